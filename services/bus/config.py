@@ -1,0 +1,266 @@
+"""Configuration from one place: the Zenoh flags every service shares, and the deployment TOML.
+
+A deployment is one TOML file (see `deploy/*.toml`): a `[zenoh]` table for the node and
+one table per service (`[puma]`, `[force]`, …). `section()` reads a table into the
+service's frozen dataclass, so a misspelt key or a bad value fails at start-up with the key
+named. Command-line flags override the file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tomllib
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import MISSING, dataclass, fields, is_dataclass, replace
+from pathlib import Path
+from typing import Any, Literal, TypeVar, get_args, get_origin, get_type_hints
+
+import zenoh
+
+from services.bus.errors import ConfigError
+
+Mode = Literal["peer", "client", "router"]
+MAX_LEASE_MS = 2000
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True, slots=True)
+class NodeConfig:
+    """How a node joins the Zenoh network.
+
+    `lease_ms` ≤ 2000 so a frozen or cut-off peer is noticed within 2 s (PROTOCOL.md §5).
+    Multicast scouting is off unless asked: labs share networks, and tests must not leak.
+    `zenoh_config` is an optional JSON5 file (TLS, auth) applied first; the fields here
+    override it.
+    """
+
+    mode: Mode = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    ns: str = ""
+    lease_ms: int = 1000
+    multicast_scouting: bool = False
+    zenoh_config: str = ""
+    admin_space: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("peer", "client", "router"):
+            raise ConfigError("zenoh.mode", f"must be peer, client or router, got {self.mode!r}")
+        if not 100 <= self.lease_ms <= MAX_LEASE_MS:
+            raise ConfigError("zenoh.lease_ms", f"must be within 100…{MAX_LEASE_MS} ms")
+        for key, eps in (("zenoh.connect", self.connect), ("zenoh.listen", self.listen)):
+            for ep in eps:
+                if "/" not in ep:
+                    raise ConfigError(key, f"endpoint {ep!r} is not PROTO/ADDRESS:PORT")
+        if self.ns and (self.ns.startswith("/") or self.ns.endswith("/") or "*" in self.ns):
+            raise ConfigError("zenoh.ns", f"{self.ns!r}: no leading/trailing '/' or wildcards")
+        if self.zenoh_config and not Path(self.zenoh_config).is_file():
+            raise ConfigError("zenoh.zenoh_config", f"no such file {self.zenoh_config!r}")
+
+    def to_zenoh(self) -> zenoh.Config:
+        """The zenoh.Config for this node."""
+        try:
+            cfg = zenoh.Config.from_file(self.zenoh_config) if self.zenoh_config else zenoh.Config()
+        except zenoh.ZError as e:
+            raise ConfigError("zenoh.zenoh_config", str(e)) from None
+        cfg.insert_json5("mode", json.dumps(self.mode))
+        if self.connect:
+            cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        if self.listen:
+            cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        cfg.insert_json5("transport/link/tx/lease", str(self.lease_ms))
+        if self.ns:
+            cfg.insert_json5("namespace", json.dumps(self.ns))
+        if self.admin_space:
+            cfg.insert_json5("adminspace/enabled", "true")
+        return cfg
+
+
+def add_node_args(parser: argparse.ArgumentParser) -> None:
+    """The Zenoh flags, parsed in one place for every service and tool."""
+    g = parser.add_argument_group("zenoh")
+    g.add_argument(
+        "--connect",
+        "-e",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="endpoint to connect to, e.g. tcp/192.168.1.10:7447 (repeatable)",
+    )
+    g.add_argument(
+        "--listen",
+        "-l",
+        action="append",
+        default=None,
+        metavar="ENDPOINT",
+        help="endpoint to listen on, e.g. tcp/0.0.0.0:7448 (repeatable)",
+    )
+    g.add_argument("--mode", "-m", choices=["peer", "client", "router"], default=None)
+    g.add_argument("--ns", default=None, help="namespace prefix, e.g. cell2")
+    g.add_argument(
+        "--config",
+        "-c",
+        default=None,
+        metavar="FILE",
+        help="deployment TOML (deploy/*.toml): [zenoh] and per-service tables",
+    )
+    g.add_argument(
+        "--zenoh-config",
+        default=None,
+        metavar="FILE",
+        help="a Zenoh JSON5 config (TLS, auth) applied before the flags",
+    )
+    g.add_argument("--lease-ms", type=int, default=None, help="link lease (≤ 2000 ms)")
+    g.add_argument(
+        "--multicast",
+        action="store_true",
+        default=None,
+        help="enable multicast scouting (off by default)",
+    )
+
+
+def load_deploy(path: str | Path | None) -> dict[str, Any]:
+    """The deployment TOML as a dict (empty when no file)."""
+    if not path:
+        return {}
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError("--config", f"no such file {str(p)!r}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError("--config", f"{p}: {e}") from None
+
+
+def node_config(
+    args: argparse.Namespace, deploy: Mapping[str, Any] | None = None, **defaults: Any
+) -> NodeConfig:
+    """NodeConfig from `defaults` < the deployment's [zenoh] table < command-line flags."""
+    deploy = deploy if deploy is not None else load_deploy(getattr(args, "config", None))
+    base = section(NodeConfig, {**defaults, **dict(deploy.get("zenoh", {}))}, "zenoh")
+    flags: dict[str, Any] = {}
+    for attr, key in (("connect", "connect"), ("listen", "listen")):
+        v = getattr(args, attr, None)
+        if v:
+            flags[key] = tuple(v)
+    for attr, key in (
+        ("mode", "mode"),
+        ("ns", "ns"),
+        ("zenoh_config", "zenoh_config"),
+        ("lease_ms", "lease_ms"),
+        ("multicast", "multicast_scouting"),
+    ):
+        v = getattr(args, attr, None)
+        if v is not None:
+            flags[key] = v
+    return replace(base, **flags) if flags else base
+
+
+def section(cls: type[T], data: Mapping[str, Any] | None, name: str) -> T:
+    """Build the frozen dataclass `cls` from a TOML table, naming any bad key as `name.key`.
+
+    Unknown keys are refused; values are checked against the field annotations (int, float,
+    bool, str, Literal, tuples, nested dataclasses); `cls.__post_init__` checks ranges.
+    """
+    if not is_dataclass(cls):
+        raise TypeError(f"{cls!r} is not a dataclass")
+    data = dict(data or {})
+    hints = get_type_hints(cls)
+    known = {f.name for f in fields(cls)}
+    for key in data:
+        if key not in known:
+            raise ConfigError(f"{name}.{key}", f"unknown key (known: {', '.join(sorted(known))})")
+    values = {k: _coerce(f"{name}.{k}", hints[k], v) for k, v in data.items()}
+    missing = [
+        f.name
+        for f in fields(cls)
+        if f.name not in values and f.default is MISSING and f.default_factory is MISSING
+    ]
+    if missing:
+        raise ConfigError(f"{name}.{missing[0]}", "required")
+    try:
+        return cls(**values)
+    except ConfigError:
+        raise
+    except (TypeError, ValueError) as e:
+        raise ConfigError(name, str(e)) from None
+
+
+def _coerce(key: str, tp: Any, v: Any) -> Any:
+    origin = get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = get_args(tp)
+        if v is None and type(None) in args:
+            return None
+        last: ConfigError | None = None
+        for a in args:
+            if a is type(None):
+                continue
+            try:
+                return _coerce(key, a, v)
+            except ConfigError as e:
+                last = e
+        raise last or ConfigError(key, f"bad value {v!r}")
+    if origin is Literal:
+        if v not in get_args(tp):
+            raise ConfigError(key, f"must be one of {list(get_args(tp))}, got {v!r}")
+        return v
+    if tp is bool:
+        if not isinstance(v, bool):
+            raise ConfigError(key, f"expected true/false, got {v!r}")
+        return v
+    if tp is int:
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ConfigError(key, f"expected an integer, got {v!r}")
+        return v
+    if tp is float:
+        if isinstance(v, bool) or not isinstance(v, int | float):
+            raise ConfigError(key, f"expected a number, got {v!r}")
+        if v != v or v in (float("inf"), float("-inf")):
+            raise ConfigError(key, "must be finite")
+        return float(v)
+    if tp is str:
+        if not isinstance(v, str):
+            raise ConfigError(key, f"expected a string, got {v!r}")
+        return v
+    if origin is tuple:
+        if not isinstance(v, list | tuple):
+            raise ConfigError(key, f"expected a list, got {v!r}")
+        args = get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(f"{key}[{i}]", args[0], x) for i, x in enumerate(v))
+        if len(args) != len(v):
+            raise ConfigError(key, f"expected {len(args)} items, got {len(v)}")
+        return tuple(
+            _coerce(f"{key}[{i}]", a, x) for i, (a, x) in enumerate(zip(args, v, strict=True))
+        )
+    if is_dataclass(tp) and isinstance(tp, type):
+        if not isinstance(v, Mapping):
+            raise ConfigError(key, f"expected a table, got {v!r}")
+        return section(tp, v, key)
+    if tp is typing.Any:
+        return v
+    raise ConfigError(key, f"unsupported type {tp!r}")
+
+
+def service_config(
+    cls: type[T], args: argparse.Namespace, name: str, overrides: Mapping[str, Any] | None = None
+) -> T:
+    """The `[name]` table of the deployment file named by `--config`, plus `overrides`."""
+    deploy = load_deploy(getattr(args, "config", None))
+    table = dict(deploy.get(name, {}))
+    table.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    return section(cls, table, name)
+
+
+def endpoints(value: Sequence[str] | str | None) -> tuple[str, ...]:
+    """Normalise one endpoint or a list of them to a tuple."""
+    if value is None:
+        return ()
+    return (value,) if isinstance(value, str) else tuple(value)

@@ -1,0 +1,45 @@
+"""Process lifecycle: SIGINT/SIGTERM become a stop flag, so every service runs its `finally`."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from types import FrameType
+
+
+class Shutdown:
+    """Set on SIGINT or SIGTERM (installed from the main thread). `wait()` sleeps until then.
+
+    Services poll `is_set()` in their loops and leave through their `finally` blocks, which
+    hold the arm and close the Zenoh session.
+    """
+
+    def __init__(self, install: bool = True) -> None:
+        self._event = threading.Event()
+        self.signal: int | None = None
+        if install and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, self._handle)
+            signal.signal(signal.SIGTERM, self._handle)
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        self.signal = signum
+        self._event.set()
+
+    def set(self) -> None:
+        self._event.set()
+
+    def is_set(self) -> bool:
+        return self._event.is_set()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        return self._event.wait(timeout_s)
+
+
+def setup_logging(name: str, verbose: bool = False) -> logging.Logger:
+    """One log format for every service: time, level, service, message."""
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format=f"%(asctime)s %(levelname)-7s {name}: %(message)s",
+    )
+    return logging.getLogger(f"telerobot.{name}")

@@ -1,0 +1,205 @@
+"""The messages of the wire contract (PROTOCOL.md §3) as frozen dataclasses.
+
+Vectors travel as tuples of floats: `Vec3` (3), `Joints` (6), `Rot` (9, a row-major 3×3
+rotation). The field annotations are the schema: `services.bus.codec` reads them to encode,
+decode and validate, so a field is declared once, here. Optional fields default to None and
+are left out of the encoding when None.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+
+@dataclass(frozen=True, slots=True)
+class Size:
+    """Annotation: a float sequence of exactly `n` finite numbers."""
+
+    n: int
+
+
+@dataclass(frozen=True, slots=True)
+class Rotation:
+    """Annotation: the 9 floats are a proper rotation (‖RᵀR − I‖ ≤ 1e-6, det R > 0)."""
+
+    tol: float = 1e-6
+
+
+@dataclass(frozen=True, slots=True)
+class Range:
+    """Annotation: a number within [lo, hi]."""
+
+    lo: float
+    hi: float
+
+
+@dataclass(frozen=True, slots=True)
+class MaxLen:
+    """Annotation: a str or bytes of at most `n` characters / bytes."""
+
+    n: int
+
+
+Vec3 = Annotated[tuple[float, ...], Size(3)]
+Vec6 = Annotated[tuple[float, ...], Size(6)]
+Joints = Annotated[tuple[float, ...], Size(6)]
+Rot = Annotated[tuple[float, ...], Size(9), Rotation()]
+Count = Annotated[int, Range(0, 2**63 - 1)]
+Name = Annotated[str, MaxLen(128)]
+Unit = Annotated[float, Range(0.0, 1.0)]
+
+Frame = Literal["world", "tool"]
+Eye = Literal["l", "r"]
+ImageEncoding = Literal["jpeg", "bgr8"]
+RobotStatus = Literal["disconnected", "connected", "initializing", "ready", "moving", "error"]
+
+MAX_FRAME_BYTES = 64 * 1024 * 1024
+MAX_TEXT = 4096
+
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    """Base: every message has `seq` (per-sender counter) and `t_ns` (sender's time.time_ns())."""
+
+    name: ClassVar[str] = "Message"
+
+
+@dataclass(frozen=True, slots=True)
+class OperatorCommand(Message):
+    """`robot/cmd` and `robot/puma/cmd`: the operator's scaled motion since the engagement (§2)."""
+
+    name: ClassVar[str] = "OperatorCommand"
+    seq: Count
+    t_ns: Count
+    master: Name
+    engage: Count
+    active: bool
+    frame: Frame
+    dp: Vec3
+    dR: Rot
+    grip: Unit | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class RobotState(Message):
+    """`robot/state`: joints, tool and flange poses (world), last command applied."""
+
+    name: ClassVar[str] = "RobotState"
+    seq: Count
+    t_ns: Count
+    status: RobotStatus
+    q: Joints
+    tool_p: Vec3
+    tool_R: Rot
+    flange_p: Vec3
+    flange_R: Rot
+    engage: Count
+    cmd_seq: Count
+    grip: Unit | None = None
+    manipulability: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ForceSample(Message):
+    """`robot/force`: force `f` (N) and moment `c` (N·m) at the tool point, tool frame."""
+
+    name: ClassVar[str] = "ForceSample"
+    seq: Count
+    t_ns: Count
+    f: Vec3
+    c: Vec3
+    raw: Vec6 | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Event(Message):
+    """`robot/events`: something a person or a supervisor should know about."""
+
+    name: ClassVar[str] = "Event"
+    seq: Count
+    t_ns: Count
+    source: Name
+    kind: Name
+    message: Annotated[str, MaxLen(MAX_TEXT)]
+    data: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class StereoFrame(Message):
+    """`vision/stereo/l|r`: one eye of a stereo pair; both eyes share `seq` and `t_ns`."""
+
+    name: ClassVar[str] = "StereoFrame"
+    seq: Count
+    t_ns: Count
+    eye: Eye
+    width: Annotated[int, Range(1, 16384)]
+    height: Annotated[int, Range(1, 16384)]
+    encoding: ImageEncoding
+    data: Annotated[bytes, MaxLen(MAX_FRAME_BYTES)] = field(repr=False)
+    fx: float | None = None
+    fy: float | None = None
+    cx: float | None = None
+    cy: float | None = None
+    baseline: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class MasterState(Message):
+    """`master/state`: what the operator's station is doing."""
+
+    name: ClassVar[str] = "MasterState"
+    seq: Count
+    t_ns: Count
+    master: Name
+    engage: Count
+    active: bool
+    frame: Frame
+    scale_t: float
+    scale_r: float
+    hand_p: Vec3
+    hand_R: Rot
+    device: Name
+
+
+@dataclass(frozen=True, slots=True)
+class VisionStats(Message):
+    """`vision/stats` (extension, docs/protocol-extensions.md): the stereo pipeline's figures."""
+
+    name: ClassVar[str] = "VisionStats"
+    seq: Count
+    t_ns: Count
+    fps: float
+    encode_ms: float
+    dropped: Count
+    skew_ms: float
+    width: Count
+    height: Count
+    encoding: ImageEncoding
+    data: dict[str, Any] | None = None
+
+
+ALL_MESSAGES: tuple[type[Message], ...] = (
+    OperatorCommand,
+    RobotState,
+    ForceSample,
+    Event,
+    StereoFrame,
+    MasterState,
+    VisionStats,
+)
+
+IDENTITY_R: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def vec(a: ArrayLike) -> tuple[float, ...]:
+    """A float tuple from any array-like (flattened, row-major) for a message field."""
+    return tuple(float(x) for x in np.asarray(a, dtype=float).ravel())
+
+
+def mat3(r: tuple[float, ...] | list[float]) -> NDArray[np.float64]:
+    """The 3×3 matrix of a row-major `R` field."""
+    return np.asarray(r, dtype=float).reshape(3, 3)

@@ -1,0 +1,470 @@
+"""A service's presence on the bus: one Zenoh session with typed streams and methods.
+
+Rules it enforces so services do not have to remember them (ZENOH_NOTES.md):
+- the session is always closed (`with Node(...)`): a process with callbacks and an open
+  session never exits;
+- subscriber callbacks only decode and store (latest-wins) or hand over; they never block;
+- a method call waits for the service's liveliness token before its first `get`, and an
+  empty reply set is `Unavailable`, never success;
+- every rejected payload is counted and reported as a `rejected` Event (rate-limited).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback
+from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+import zenoh
+
+from services.bus import codec
+from services.bus.config import NodeConfig
+from services.bus.errors import ERROR_CODES, ProtocolError, RpcError, TelerobotError, Unavailable
+from services.bus.keys import ALIVE_PREFIX, ENCODING, EVENTS, QoS, Topic, alive_key, rpc_key
+from services.bus.messages import Event, Message
+
+log = logging.getLogger("telerobot.bus")
+
+M = TypeVar("M", bound=Message)
+Handler = Callable[[dict[str, Any]], dict[str, Any]]
+
+_ENCODING = zenoh.Encoding(ENCODING)
+_QOS: dict[QoS, dict[str, Any]] = {
+    QoS.CONTROL: {
+        "priority": zenoh.Priority.REAL_TIME,
+        "express": True,
+        "congestion_control": zenoh.CongestionControl.DROP,
+    },
+    QoS.STATE: {
+        "priority": zenoh.Priority.INTERACTIVE_HIGH,
+        "express": False,
+        "congestion_control": zenoh.CongestionControl.DROP,
+    },
+    QoS.BULK: {
+        "priority": zenoh.Priority.DATA_LOW,
+        "express": False,
+        "congestion_control": zenoh.CongestionControl.DROP,
+    },
+    QoS.RELIABLE: {
+        "priority": zenoh.Priority.DATA,
+        "express": False,
+        "congestion_control": zenoh.CongestionControl.BLOCK,
+    },
+}
+REJECT_REPORT_INTERVAL_S = 1.0
+CALL_RETRY_S = 0.02
+RESTART_GAP_NS = 250_000_000
+
+
+class Publisher(Generic[M]):
+    """A typed publisher: `put(msg)` validates, encodes and sends with the topic's QoS."""
+
+    def __init__(self, session: zenoh.Session, topic: Topic[M]) -> None:
+        self.topic = topic
+        self._pub = session.declare_publisher(topic.key, encoding=_ENCODING, **_QOS[topic.qos])
+        self.sent = 0
+
+    def put(self, msg: M) -> None:
+        self._pub.put(codec.encode(msg))
+        self.sent += 1
+
+    def put_bytes(self, payload: bytes) -> None:
+        """Send an already-encoded payload (replay, fuzzing)."""
+        self._pub.put(payload)
+        self.sent += 1
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+@dataclass
+class Subscription(Generic[M]):
+    """A typed subscription. `latest` holds the newest valid message (highest `seq`)."""
+
+    topic: Topic[M]
+    latest: M | None = None
+    received: int = 0
+    rejected: int = 0
+    last_error: str | None = None
+    _cond: threading.Condition = field(default_factory=threading.Condition)
+    _sub: Any = None
+
+    def get(self) -> M | None:
+        return self.latest
+
+    def wait_for(self, pred: Callable[[M], bool], timeout_s: float) -> M | None:
+        """Block until the newest message satisfies `pred` (or the deadline); returns it."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                m = self.latest
+                if m is not None and pred(m):
+                    return m
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+
+    def wait_count(self, n: int, timeout_s: float) -> bool:
+        """Block until `received` ≥ n or the deadline."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while self.received < n:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+            return True
+
+
+class AliveSet:
+    """The liveliness tokens under `alive/**`, kept current by a liveliness subscriber."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self._cond = threading.Condition()
+        self._alive: set[str] = set()
+        self._listeners: list[Callable[[str, bool], None]] = []
+        self._sub = session.liveliness().declare_subscriber(
+            f"{ALIVE_PREFIX}/**", self._on_sample, history=True
+        )
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        name = key[len(ALIVE_PREFIX) + 1 :]
+        up = sample.kind == zenoh.SampleKind.PUT
+        with self._cond:
+            (self._alive.add if up else self._alive.discard)(name)
+            self._cond.notify_all()
+            listeners = list(self._listeners)
+        for cb in listeners:
+            try:
+                cb(name, up)
+            except Exception:  # a listener's bug must not kill Zenoh's callback thread
+                log.exception("alive listener failed")
+
+    def names(self) -> set[str]:
+        with self._cond:
+            return set(self._alive)
+
+    def is_alive(self, name: str) -> bool:
+        with self._cond:
+            return name in self._alive
+
+    def wait(self, name: str, timeout_s: float) -> bool:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while name not in self._alive:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+            return True
+
+    def on_change(self, cb: Callable[[str, bool], None]) -> None:
+        """Call `cb(name, alive)` on every change (from Zenoh's thread: keep it short)."""
+        with self._cond:
+            self._listeners.append(cb)
+
+
+class Node:
+    """One service's Zenoh session. Use as a context manager; `close()` is idempotent.
+
+    `name` is the service name used for events and for the liveliness token
+    `alive/<name>[/<instance>]`, which `announce()` declares once the service's
+    queryables are up (so a caller that sees the token can call at once).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        config: NodeConfig | None = None,
+        instance: str | None = None,
+        rpc_workers: int = 8,
+    ) -> None:
+        self.name = name
+        self.instance = instance
+        self.config = config or NodeConfig()
+        self.session = zenoh.open(self.config.to_zenoh())
+        self._lock = threading.Lock()
+        self._closed = False
+        self._token: Any = None
+        self._decls: list[Any] = []
+        self._subs: list[Subscription[Any]] = []
+        self._event_pub: Publisher[Event] | None = None
+        self._event_seq = 0
+        self._alive: AliveSet | None = None
+        self._rpc_pool = ThreadPoolExecutor(rpc_workers, thread_name_prefix=f"{name}-rpc")
+        self._reject_last: dict[str, float] = {}
+        self.rejected: dict[str, int] = {}
+
+    # --- lifecycle -------------------------------------------------------------------
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def announce(self) -> None:
+        """Declare the liveliness token: the service is up and serving."""
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(
+                alive_key(self.name, self.instance)
+            )
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        self._rpc_pool.shutdown(wait=False, cancel_futures=True)
+        try:
+            self.session.close()
+        except zenoh.ZError:
+            log.debug("session close failed", exc_info=True)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    # --- streams ---------------------------------------------------------------------
+    def publisher(self, topic: Topic[M]) -> Publisher[M]:
+        pub = Publisher(self.session, topic)
+        self._decls.append(pub)
+        return pub
+
+    def subscribe(
+        self, topic: Topic[M], on_message: Callable[[M], None] | None = None, key: str | None = None
+    ) -> Subscription[M]:
+        """Subscribe to a typed stream.
+
+        Valid messages update `latest` (latest-wins topics keep the highest `seq`; see
+        `_newer`); every valid message is passed to `on_message`. Bad payloads are counted
+        and reported, never raised.
+        `on_message` runs on Zenoh's thread: store or hand over, do not block.
+        """
+        sub: Subscription[M] = Subscription(topic)
+        keyexpr = key or topic.key
+
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                msg = codec.decode(topic.type, sample.payload.to_bytes())
+            except ProtocolError as e:
+                with sub._cond:
+                    sub.rejected += 1
+                    sub.last_error = str(e)
+                self.report_rejected(str(sample.key_expr), str(e))
+                return
+            with sub._cond:
+                if not topic.latest_wins or _newer(msg, sub.latest):
+                    sub.latest = msg
+                sub.received += 1
+                sub._cond.notify_all()
+            if on_message is not None:
+                try:
+                    on_message(msg)
+                except Exception:  # a handler bug is reported, the stream keeps flowing
+                    log.exception("handler for %s failed", keyexpr)
+                    self.event(
+                        "error",
+                        f"handler for {keyexpr} failed",
+                        {"traceback": traceback.format_exc(limit=5)},
+                    )
+
+        sub._sub = self.session.declare_subscriber(keyexpr, callback)
+        self._subs.append(sub)
+        return sub
+
+    def subscribe_raw(self, keyexpr: str, on_sample: Callable[[zenoh.Sample], None]) -> Any:
+        """An untyped subscription (introspection tools). Keep the returned handle."""
+        handle = self.session.declare_subscriber(keyexpr, on_sample)
+        self._decls.append(handle)
+        return handle
+
+    # --- events ----------------------------------------------------------------------
+    def event(self, kind: str, message: str, data: Mapping[str, Any] | None = None) -> Event:
+        """Publish an Event on `robot/events` from this service."""
+        with self._lock:
+            if self._event_pub is None:
+                self._event_pub = self.publisher(EVENTS)
+            self._event_seq += 1
+            ev = Event(
+                seq=self._event_seq,
+                t_ns=time.time_ns(),
+                source=self.name,
+                kind=kind,
+                message=message[:4096],
+                data=dict(data) if data else None,
+            )
+            if not self._closed:
+                try:
+                    self._event_pub.put(ev)
+                except (zenoh.ZError, ProtocolError):
+                    log.warning("could not publish event %s: %s", kind, message, exc_info=True)
+        return ev
+
+    def report_rejected(self, where: str, reason: str) -> None:
+        """Count a rejected input and publish a `rejected` event (at most 1/s per key)."""
+        now = time.monotonic()
+        with self._lock:
+            n = self.rejected[where] = self.rejected.get(where, 0) + 1
+            last = self._reject_last.get(where, -1e9)
+            if now - last < REJECT_REPORT_INTERVAL_S:
+                return
+            self._reject_last[where] = now
+        log.warning("rejected input on %s: %s", where, reason)
+        self.event(
+            "rejected",
+            f"rejected input on {where}: {reason}",
+            {"key": where, "reason": reason, "count": n},
+        )
+
+    # --- methods ---------------------------------------------------------------------
+    def serve(self, service: str, methods: Mapping[str, Handler]) -> None:
+        """Serve `robot/<service>/rpc/<method>` for each handler.
+
+        A handler takes the decoded argument map and returns the reply map. It runs on a
+        worker thread (so a `"wait": true` motion can block until done). `ProtocolError` →
+        `bad_request`, `RpcError` → its code, anything else → `internal` (and an event).
+        """
+        table = dict(methods)
+        prefix = rpc_key(service, "")
+
+        def run(query: zenoh.Query, method: str) -> None:
+            try:
+                handler = table.get(method)
+                if handler is None:
+                    raise RpcError(
+                        "bad_request",
+                        f"no method {method!r} on {service} (methods: {', '.join(sorted(table))})",
+                    )
+                payload = query.payload
+                args = codec.unpack(payload.to_bytes()) if payload is not None else {}
+                if args is None:
+                    args = {}
+                if not isinstance(args, dict):
+                    raise ProtocolError("args", "expected a msgpack map of arguments")
+                result = handler(args)
+                query.reply(query.key_expr, codec.pack(result), encoding=_ENCODING)
+            except (ProtocolError, RpcError) as e:
+                code = e.code if isinstance(e, RpcError) else "bad_request"
+                msg = e.message if isinstance(e, RpcError) else str(e)
+                if code == "bad_request":
+                    self.report_rejected(str(query.key_expr), msg)
+                query.reply_err(codec.pack({"error": code, "message": msg}), encoding=_ENCODING)
+            except Exception as e:  # any bug becomes an `internal` reply, never a dead service
+                log.exception("method %s/%s failed", service, method)
+                self.event(
+                    "error",
+                    f"{service}.{method} failed: {e}",
+                    {"method": method, "traceback": traceback.format_exc(limit=8)},
+                )
+                query.reply_err(
+                    codec.pack({"error": "internal", "message": str(e)}), encoding=_ENCODING
+                )
+            finally:
+                query.drop()
+
+        def callback(query: zenoh.Query) -> None:
+            method = str(query.key_expr)[len(prefix) :]
+            if "/" in method and method.split("/", 1)[0] in table:
+                method = method.split("/", 1)[0]
+            try:
+                self._rpc_pool.submit(run, query, method)
+            except RuntimeError:  # pool shut down: the node is closing
+                query.drop()
+
+        self._decls.append(self.session.declare_queryable(rpc_key(service, "**"), callback))
+
+    @property
+    def alive(self) -> AliveSet:
+        """The set of services whose liveliness token is up (created on first use)."""
+        with self._lock:
+            if self._alive is None:
+                self._alive = AliveSet(self.session)
+            return self._alive
+
+    def call(
+        self,
+        service: str,
+        method: str,
+        args: Mapping[str, Any] | None = None,
+        timeout_s: float = 2.0,
+    ) -> dict[str, Any]:
+        """Call a method: the reply map, or `RpcError` with the contract's code.
+
+        Waits (within `timeout_s`) for `alive/<service>` before the first `get`; no reply
+        at all raises `Unavailable`.
+        """
+        deadline = time.monotonic() + timeout_s
+        if not self.alive.wait(service, timeout_s):
+            raise Unavailable(f"service {service!r} is not alive (no alive/{service} token)")
+        payload = codec.pack(dict(args or {}))
+        key = rpc_key(service, method)
+        while True:
+            left = deadline - time.monotonic()
+            replies = list(
+                self.session.get(key, payload=payload, encoding=_ENCODING, timeout=max(left, 0.05))
+            )
+            if replies:
+                return _reply_map(replies[0], key)
+            # Pitfall 5: right after (re)connecting a get may see no queryable yet. Retry
+            # while the service is alive and time is left; otherwise it is absent.
+            if time.monotonic() >= deadline or not self.alive.is_alive(service):
+                raise Unavailable(f"no reply from {key}")
+            time.sleep(min(CALL_RETRY_S, max(deadline - time.monotonic(), 0.0)))
+
+
+def _reply_map(reply: zenoh.Reply, key: str) -> dict[str, Any]:
+    if reply.ok is not None:
+        data = codec.unpack(reply.ok.payload.to_bytes())
+        if not isinstance(data, dict):
+            raise RpcError("internal", f"{key} replied with a non-map")
+        return data
+    err = reply.err
+    try:
+        body = codec.unpack(err.payload.to_bytes()) if err is not None else None
+    except ProtocolError:
+        body = None
+    if isinstance(body, dict) and body.get("error") in ERROR_CODES:
+        raise RpcError(body["error"], str(body.get("message", "")))
+    text = err.payload.to_bytes().decode("utf-8", "replace") if err is not None else "no body"
+    raise RpcError("internal", f"{key}: {text}")
+
+
+def _newer(msg: Message, newest: Message | None) -> bool:
+    """Latest-wins: a higher `seq` replaces; so does a lower one sent well after the newest,
+    which is a restarted publisher counting from 1 again, not a stale sample."""
+    if newest is None:
+        return True
+    seq, t_ns = getattr(msg, "seq", 0), getattr(msg, "t_ns", 0)
+    return bool(
+        seq > getattr(newest, "seq", 0) or t_ns - getattr(newest, "t_ns", 0) > RESTART_GAP_NS
+    )
+
+
+@contextmanager
+def opened(name: str, config: NodeConfig | None = None) -> Iterator[Node]:
+    """`with opened("tool") as node:` — a Node that is always closed."""
+    node = Node(name, config)
+    try:
+        yield node
+    finally:
+        node.close()
+
+
+__all__ = [
+    "AliveSet",
+    "Node",
+    "Publisher",
+    "RpcError",
+    "Subscription",
+    "TelerobotError",
+    "Unavailable",
+    "opened",
+]

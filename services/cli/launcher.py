@@ -1,0 +1,213 @@
+"""`telerobot up PROFILE`: run a set of services as child processes from a deploy/ profile.
+
+A profile is a deployment TOML with an `[up]` table:
+
+    [up]
+    services = ["router", "puma", "force"]     # telerobot subcommands, started in order
+    [up.args]                                  # extra arguments per service
+    master = ["--device", "script"]
+    [up.commands]                              # any other command, by name
+    recorder = ["telerobot", "record", "-o", "session.mcap"]
+
+Each child gets `--config PROFILE` (so it reads its own table and `[zenoh]`), its output is
+prefixed with its name, a child that crashes is restarted with exponential backoff, and
+Ctrl-C / SIGTERM stops all (SIGTERM, then SIGKILL after `stop_timeout_s`). A child that
+exits within `startup_s` of its first start cannot start: everything is stopped and `up`
+exits non-zero. Children are spawned, never forked (ZENOH_NOTES.md pitfall 3).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from services.bus.config import load_deploy, section
+from services.bus.errors import ConfigError
+from services.bus.lifecycle import Shutdown
+
+DEPLOY_DIR = Path(__file__).resolve().parents[2] / "deploy"
+
+
+@dataclass(frozen=True, slots=True)
+class UpConfig:
+    """The `[up]` table of a profile."""
+
+    services: tuple[str, ...] = ()
+    args: dict[str, Any] = field(default_factory=dict)
+    commands: dict[str, Any] = field(default_factory=dict)
+    restart: bool = True
+    backoff_s: float = 0.5
+    backoff_max_s: float = 10.0
+    startup_s: float = 1.0
+    stop_timeout_s: float = 5.0
+
+    def __post_init__(self) -> None:
+        if not self.services and not self.commands:
+            raise ConfigError("up.services", "no services and no commands to start")
+        for name, extra in self.args.items():
+            if not isinstance(extra, list) or not all(isinstance(a, str) for a in extra):
+                raise ConfigError(f"up.args.{name}", "must be a list of strings")
+        for name, cmd in self.commands.items():
+            if not isinstance(cmd, list) or not cmd or not all(isinstance(a, str) for a in cmd):
+                raise ConfigError(f"up.commands.{name}", "must be a non-empty list of strings")
+        if self.backoff_s <= 0 or self.backoff_max_s < self.backoff_s:
+            raise ConfigError("up.backoff_s", "need 0 < backoff_s ≤ backoff_max_s")
+
+
+def resolve_profile(name: str) -> Path:
+    """A profile path, or a name in deploy/ (`sim` → deploy/sim.toml)."""
+    p = Path(name)
+    if p.is_file():
+        return p
+    candidate = DEPLOY_DIR / f"{name}.toml"
+    if candidate.is_file():
+        return candidate
+    known = sorted(x.stem for x in DEPLOY_DIR.glob("*.toml")) if DEPLOY_DIR.is_dir() else []
+    raise ConfigError("profile", f"no profile {name!r} (known: {', '.join(known)})")
+
+
+class Child:
+    """One supervised child process with prefixed output."""
+
+    def __init__(self, name: str, argv: list[str], out: IO[str]) -> None:
+        self.name = name
+        self.argv = argv
+        self.out = out
+        self.proc: subprocess.Popen[str] | None = None
+        self.starts = 0
+        self.started_at = 0.0
+        self.next_start = 0.0
+        self._pump: threading.Thread | None = None
+
+    def start(self) -> None:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.proc = subprocess.Popen(
+            self.argv,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+            bufsize=1,
+            env=env,
+            start_new_session=True,
+        )
+        self.starts += 1
+        self.started_at = time.monotonic()
+        self._pump = threading.Thread(target=self._copy, args=(self.proc,), daemon=True)
+        self._pump.start()
+        self.say(f"started pid {self.proc.pid} (start #{self.starts})")
+
+    def _copy(self, proc: subprocess.Popen[str]) -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            self.say(line.rstrip("\n"))
+
+    def say(self, text: str) -> None:
+        self.out.write(f"[{self.name}] {text}\n")
+        self.out.flush()
+
+    def poll(self) -> int | None:
+        return None if self.proc is None else self.proc.poll()
+
+    def signal(self, sig: int) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self.proc.pid, sig)
+
+    def join_output(self) -> None:
+        if self._pump is not None:
+            self._pump.join(timeout=2.0)
+
+
+def child_argv(name: str, profile: Path, cfg: UpConfig) -> list[str]:
+    if name in cfg.commands:
+        return list(cfg.commands[name])
+    return [
+        sys.executable,
+        "-m",
+        "services.cli.main",
+        name,
+        "--config",
+        str(profile),
+        *cfg.args.get(name, []),
+    ]
+
+
+def run(profile: Path, out: IO[str] = sys.stdout, stop: Shutdown | None = None) -> int:
+    """Start every child of `profile`, supervise them until stopped; the exit status."""
+    deploy = load_deploy(profile)
+    cfg = section(UpConfig, deploy.get("up"), "up")
+    stop = stop or Shutdown()
+    names = [*cfg.services, *cfg.commands]
+    children = [Child(n, child_argv(n, profile, cfg), out) for n in names]
+    status = 0
+    try:
+        for c in children:
+            c.start()
+        while not stop.is_set():
+            now = time.monotonic()
+            for c in children:
+                code = c.poll()
+                if code is None or c.next_start > now:
+                    continue
+                if c.next_start:  # a scheduled restart is due
+                    c.next_start = 0.0
+                    c.start()
+                    continue
+                if c.starts == 1 and now - c.started_at < cfg.startup_s and code != 0:
+                    c.join_output()
+                    c.say(f"could not start (exit {code}); stopping everything")
+                    status = 1
+                    stop.set()
+                    break
+                if not cfg.restart:
+                    c.say(f"exited with {code}; not restarting")
+                    continue
+                delay = min(cfg.backoff_s * 2 ** (c.starts - 1), cfg.backoff_max_s)
+                c.say(f"exited with {code}; restarting in {delay:.1f} s")
+                c.next_start = now + delay
+            stop.wait(0.05)
+    finally:
+        for c in reversed(children):
+            c.signal(signal.SIGTERM)
+        deadline = time.monotonic() + cfg.stop_timeout_s
+        for c in reversed(children):
+            while c.poll() is None and time.monotonic() < deadline:
+                time.sleep(0.05)
+            if c.poll() is None:
+                c.say("did not stop in time; killing")
+                c.signal(signal.SIGKILL)
+                if c.proc is not None:
+                    c.proc.wait()
+            c.join_output()
+            c.say(f"stopped (exit {c.poll()})")
+    return status
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="telerobot up",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "profile",
+        nargs="?",
+        default="sim",
+        help="a profile file or a name in deploy/ (default: sim)",
+    )
+    args = p.parse_args(argv)
+    try:
+        profile = resolve_profile(args.profile)
+    except ConfigError as e:
+        print(f"telerobot up: {e}", file=sys.stderr)
+        return 2
+    return run(profile)
