@@ -10,7 +10,11 @@ from __future__ import annotations
 
 from typing import Literal, get_args
 
-ErrorCode = Literal["bad_request", "not_ready", "unreachable", "limit", "estop", "busy", "internal"]
+#: PROTOCOL.md §4's codes, plus `unavailable` (docs/protocol-extensions.md): the decision
+#: server's reply when the service it forwards to is down.
+ErrorCode = Literal[
+    "bad_request", "not_ready", "unreachable", "limit", "estop", "busy", "internal", "unavailable"
+]
 ERROR_CODES: frozenset[str] = frozenset(get_args(ErrorCode))
 
 
