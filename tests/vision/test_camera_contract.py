@@ -1,0 +1,91 @@
+"""One contract, every backend: what the pipeline relies on from a `Camera`."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.vision.camera import Camera, CameraError, camera_from_config, open_camera
+from services.vision.config import VisionConfig
+
+from .fakes import FakeCamera, write_video
+
+W, H = 32, 24
+
+
+def _sim(tmp: Path) -> Camera:
+    return open_camera("sim", config=VisionConfig(width=W, height=H), supersample=1)
+
+
+def _opencv_pair(tmp: Path) -> Camera:
+    frames = [np.full((H, W, 3), 40 * i, np.uint8) for i in range(4)]
+    files = (str(write_video(tmp / "l.avi", frames)), str(write_video(tmp / "r.avi", frames)))
+    return camera_from_config(VisionConfig(camera="opencv", files=files, width=W, height=H))
+
+
+def _opencv_sbs(tmp: Path) -> Camera:
+    frames = [np.full((H, 2 * W, 3), 40 * i, np.uint8) for i in range(4)]
+    path = str(write_video(tmp / "sbs.avi", frames))
+    return camera_from_config(VisionConfig(camera="opencv", files=(path,), width=W, height=H))
+
+
+def _fake(tmp: Path) -> Camera:
+    return FakeCamera(W, H)
+
+
+BACKENDS: dict[str, Callable[[Path], Camera]] = {
+    "sim": _sim,
+    "opencv-pair": _opencv_pair,
+    "opencv-side-by-side": _opencv_sbs,
+    "fake": _fake,
+}
+
+
+@pytest.mark.parametrize("backend", list(BACKENDS))
+def test_camera_contract(backend: str, tmp_path: Path) -> None:
+    cam = BACKENDS[backend](tmp_path)
+    assert isinstance(cam, Camera)
+    assert isinstance(cam.name, str) and cam.name
+    cam.open()
+    cam.open()  # idempotent
+    try:
+        pair = cam.grab()
+        assert pair is not None
+        assert pair.left.shape == pair.right.shape == (H, W, 3)
+        assert pair.left.dtype == pair.right.dtype == np.uint8
+        assert pair.t_ns_right >= pair.t_ns_left > 0
+        k = pair.intrinsics
+        assert k.fx > 0 and k.fy > 0 and 0 <= k.cx < W and 0 <= k.cy < H
+        assert pair.baseline_m > 0
+    finally:
+        cam.close()
+    cam.close()  # idempotent
+    with pytest.raises(CameraError):
+        cam.grab()
+    cam.open()  # a closed camera can be opened again
+    try:
+        assert cam.grab() is not None
+    finally:
+        cam.close()
+
+
+def test_unknown_kind_is_a_config_error() -> None:
+    from services.bus.errors import ConfigError
+
+    with pytest.raises(ConfigError) as err:
+        open_camera("kinect")
+    assert err.value.key == "vision.camera"
+
+
+def test_pure_modules_do_not_load_opencv() -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, services.vision.camera, services.vision.config, services.vision.rig, "
+        "services.vision.pipeline; sys.exit('cv2' in sys.modules)"
+    )
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0
