@@ -1,0 +1,196 @@
+"""MasterConfig validation and force feedback (frames, scaling, saturation)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.typing import ArrayLike
+
+from services.bus.errors import ConfigError
+from services.master.config import Frame, MasterConfig
+from services.master.feedback import DisplayWrench, ForceFeedback, operator_wrench, saturate
+from services.master.so3 import exp_so3, rot_x, rot_z
+
+
+def test_defaults_are_valid() -> None:
+    cfg = MasterConfig()
+    assert cfg.rate_hz == 100.0 and cfg.scale_t == 1.0 and cfg.scale_r == 1.0
+    assert cfg.frame == "world" and cfg.period_s == pytest.approx(0.01)
+    np.testing.assert_array_equal(cfg.alignment_matrix, np.eye(3))
+
+
+@pytest.mark.parametrize(
+    ("device", "engages"),
+    [
+        ("virtual", True),
+        ("scripted", True),
+        ("spacemouse", False),
+        ("serial_arm", False),
+        ("keyboard", False),
+    ],
+)
+def test_engage_on_start_defaults_by_device(device: str, engages: bool) -> None:
+    assert MasterConfig(device=device).engage_on_start is engages  # type: ignore[arg-type]
+    assert MasterConfig(device=device, engage_on_start=not engages).engage_on_start is (not engages)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("master_id", ""),
+        ("master_id", "a/b"),
+        ("master_id", "m" * 129),
+        ("device", "joystick"),
+        ("rate_hz", 0.5),
+        ("rate_hz", 1001),
+        ("rate_hz", math.inf),
+        ("rate_hz", "100"),
+        ("scale_t", 0.0),
+        ("scale_t", 1.01),
+        ("scale_r", -0.5),
+        ("frame", "flange"),
+        ("alignment", (1.0, 0.0, 0.0) * 3),
+        ("alignment", (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0)),
+        ("alignment", (1.0,) * 8),
+        ("force_scale", -1.0),
+        ("max_force_n", 0.0),
+        ("max_torque_nm", -2.0),
+        ("deadband", 1.0),
+        ("deadband", -0.1),
+        ("sensitivity", 0.0),
+        ("clutch_button", 64),
+        ("grip_button", True),
+        ("grip_button", 0),
+        ("engage_on_start", 1),
+        ("arm_dh", ((0.0, 0.0, 0.0),) * 5),
+        ("baudrate", 0),
+    ],
+)
+def test_bad_values_name_their_key(key: str, value: object) -> None:
+    with pytest.raises(ConfigError) as info:
+        MasterConfig(**{key: value})  # type: ignore[arg-type]
+    assert info.value.key == f"master.{key}"
+
+
+def test_from_mapping_accepts_toml_lists_and_rejects_unknown_keys() -> None:
+    a = list(rot_z(math.pi / 2).reshape(9))
+    cfg = MasterConfig.from_mapping({"master_id": "left", "alignment": a, "scale_t": 0.5})
+    assert cfg.master_id == "left" and cfg.scale_t == 0.5
+    np.testing.assert_allclose(cfg.alignment_matrix, rot_z(math.pi / 2))
+    with pytest.raises(ConfigError) as info:
+        MasterConfig.from_mapping({"scale": 0.5})
+    assert info.value.key == "master.scale"
+
+
+# --- feedback -------------------------------------------------------------------------------
+
+
+def wrench(
+    f: ArrayLike,
+    c: ArrayLike,
+    tool_R: ArrayLike,
+    *,
+    A: ArrayLike | None = None,
+    frame: Frame = "world",
+    scale: float = 1.0,
+    fmax: float = 100.0,
+    cmax: float = 100.0,
+) -> DisplayWrench:
+    return operator_wrench(
+        f,
+        c,
+        tool_R,
+        alignment=np.eye(3) if A is None else A,
+        frame=frame,
+        force_scale=scale,
+        max_force_n=fmax,
+        max_torque_nm=cmax,
+    )
+
+
+def test_world_mode_rotates_tool_wrench_to_world_then_to_master() -> None:
+    tool_R = rot_z(math.pi / 2)  # tool x is world y
+    out = wrench((1.0, 0, 0), (0, 0, 2.0), tool_R)
+    np.testing.assert_allclose(out.f, [0, 1.0, 0], atol=1e-12)
+    np.testing.assert_allclose(out.c, [0, 0, 2.0], atol=1e-12)
+    # Master x drives slave y (A = Rz(90°)): a push along world y is felt along master x.
+    out = wrench((1.0, 0, 0), (0, 0, 0), tool_R, A=rot_z(math.pi / 2))
+    np.testing.assert_allclose(out.f, [1.0, 0, 0], atol=1e-12)
+
+
+def test_tool_mode_ignores_tool_orientation() -> None:
+    out = wrench((0, 0, -3.0), (0.1, 0, 0), rot_x(2.0), frame="tool", scale=0.5)
+    np.testing.assert_allclose(out.f, [0, 0, -1.5], atol=1e-12)
+    np.testing.assert_allclose(out.c, [0.05, 0, 0], atol=1e-12)
+
+
+def test_saturation_keeps_direction_and_flags() -> None:
+    out = wrench((30.0, 40.0, 0.0), (0, 0, 5.0), np.eye(3), fmax=10.0, cmax=1.0)
+    np.testing.assert_allclose(out.f, [6.0, 8.0, 0.0])
+    np.testing.assert_allclose(out.c, [0, 0, 1.0])
+    assert out.force_saturated and out.torque_saturated
+    calm = wrench((1.0, 0, 0), (0, 0, 0.1), np.eye(3), fmax=10.0, cmax=1.0)
+    assert not calm.force_saturated and not calm.torque_saturated
+
+
+def test_bad_inputs_are_refused() -> None:
+    with pytest.raises(ValueError):
+        wrench((math.nan, 0, 0), (0, 0, 0), np.eye(3))
+    with pytest.raises(ValueError):
+        wrench((1, 0, 0), (0, 0, 0), 2 * np.eye(3))
+    with pytest.raises(ValueError):
+        wrench((1, 0, 0), (0, 0, 0), np.eye(3), frame="flange")  # type: ignore[arg-type]
+
+
+def test_force_feedback_uses_config() -> None:
+    cfg = MasterConfig(force_scale=0.5, max_force_n=2.0, max_torque_nm=0.1)
+    out = ForceFeedback(cfg).compute((0, 0, 10.0), (0, 0.4, 0), np.eye(3).reshape(9), "world")
+    np.testing.assert_allclose(out.f, [0, 0, 2.0])
+    np.testing.assert_allclose(out.c, [0, 0.1, 0])
+    zero = ForceFeedback.zero()
+    assert not np.any(zero.f) and not np.any(zero.c)
+
+
+vec = st.lists(st.floats(-1e4, 1e4), min_size=3, max_size=3)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    f=vec,
+    c=vec,
+    w=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3),
+    a=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3),
+    frame=st.sampled_from(["world", "tool"]),
+    scale=st.floats(0.0, 5.0),
+    fmax=st.floats(0.1, 50.0),
+    cmax=st.floats(0.01, 5.0),
+)
+def test_displayed_wrench_never_exceeds_limits_and_keeps_direction(
+    f: list[float],
+    c: list[float],
+    w: list[float],
+    a: list[float],
+    frame: Frame,
+    scale: float,
+    fmax: float,
+    cmax: float,
+) -> None:
+    tool_R, A = exp_so3(w), exp_so3(a)
+    out = wrench(f, c, tool_R, A=A, frame=frame, scale=scale, fmax=fmax, cmax=cmax)
+    assert np.linalg.norm(out.f) <= fmax * (1 + 1e-12)
+    assert np.linalg.norm(out.c) <= cmax * (1 + 1e-12)
+    to_master = A.T @ tool_R if frame == "world" else A.T
+    for got, raw in ((out.f, to_master @ f), (out.c, to_master @ c)):
+        if np.linalg.norm(raw) * scale > 1e-9:
+            cos = float(got @ raw) / (np.linalg.norm(got) * np.linalg.norm(raw))
+            assert cos > 1 - 1e-9
+
+
+def test_saturate_passes_short_vectors_unchanged() -> None:
+    v, sat = saturate((0.1, 0.2, 0.3), 1.0)
+    np.testing.assert_array_equal(v, [0.1, 0.2, 0.3])
+    assert not sat

@@ -1,0 +1,101 @@
+"""Keyboard jog: the pure key mapping, hold timing, and the tty backend on a pty."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from services.master.keyboard import (
+    KEY_AXES,
+    KeyboardMaster,
+    KeyJogState,
+    key_action,
+    parse_keys,
+)
+
+Waiter = Callable[..., bool]
+
+
+def test_parse_keys_splits_characters_and_arrows() -> None:
+    data = b"wD\x1b[A\x1b[D g\x1b[5~x\x1bOB"
+    assert parse_keys(data) == ["w", "d", "up", "left", " ", "g", "x", "down"]
+
+
+@pytest.mark.parametrize(
+    ("key", "axis", "direction"),
+    [
+        ("d", 0, 1.0),
+        ("a", 0, -1.0),
+        ("right", 0, 1.0),
+        ("left", 0, -1.0),
+        ("w", 1, 1.0),
+        ("s", 1, -1.0),
+        ("up", 1, 1.0),
+        ("down", 1, -1.0),
+        ("r", 2, 1.0),
+        ("f", 2, -1.0),
+        ("i", 3, 1.0),
+        ("k", 3, -1.0),
+        ("l", 4, 1.0),
+        ("j", 4, -1.0),
+        ("u", 5, 1.0),
+        ("o", 5, -1.0),
+    ],
+)
+def test_key_to_axis_mapping(key: str, axis: int, direction: float) -> None:
+    action = key_action(key)
+    assert (action.kind, action.axis, action.direction) == ("jog", axis, direction)
+
+
+def test_every_axis_has_both_directions() -> None:
+    covered = {(axis, d) for axis, d in KEY_AXES.values()}
+    assert covered == {(axis, d) for axis in range(6) for d in (1.0, -1.0)}
+    assert key_action(" ").kind == "clutch"
+    assert key_action("g").kind == "grip"
+    assert key_action("x").kind == "stop"
+    assert key_action("z").kind == "none"
+
+
+def test_hold_timing_clutch_grip_and_stop() -> None:
+    s = KeyJogState(hold_s=0.5)
+    assert s.clutch is True  # starts with the master-shift on
+    s.press("w", 0.0)
+    np.testing.assert_array_equal(s.deflection(0.3), [0, 1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(s.deflection(0.6), np.zeros(6))
+    s.press("w", 0.0)
+    s.press("s", 0.2)  # the opposite key takes over the axis
+    s.press("u", 0.2)
+    np.testing.assert_array_equal(s.deflection(0.4), [0, -1, 0, 0, 0, 1])
+    s.press("x", 0.4)
+    np.testing.assert_array_equal(s.deflection(0.41), np.zeros(6))
+    s.press("d", 0.5)
+    s.press(" ", 0.5)
+    assert s.clutch is False
+    np.testing.assert_array_equal(s.deflection(0.51), np.zeros(6))  # clutch also stops
+    s.press("g", 0.6)
+    assert s.grip == 1.0
+
+
+def test_keyboard_on_a_pty(wait_until: Waiter) -> None:
+    operator, terminal = os.openpty()
+    kb = KeyboardMaster(fd=terminal, speed_m_s=0.05, rate_rad_s=0.3, hold_s=0.5)
+    try:
+        kb.open()
+        first = kb.read(0.01)
+        assert first.clutch is True and kb.name == "keyboard"
+        os.write(operator, b" ")
+        assert wait_until(lambda: not kb.read(0.0).clutch)
+        os.write(operator, b"w")
+        assert wait_until(lambda: kb.read(0.001).hand_p[1] > 0.0)
+        before = kb.read(0.0).hand_p
+        after = kb.read(0.02).hand_p
+        np.testing.assert_allclose(after - before, [0, 0.05 * 0.02, 0], atol=1e-15)
+        os.write(operator, b"g")
+        assert wait_until(lambda: kb.read(0.0).grip == 1.0)
+    finally:
+        kb.close()
+        os.close(operator)
+        os.close(terminal)
