@@ -1,0 +1,383 @@
+"""`ForceCore`: the force service without the bus — sampler, eq. (4), gravity, bias, RPCs.
+
+Per sample (on the sampling thread): the sensor's reading → (F_t, C_t) at the tool point in
+the tool frame (eq. 4 for six signals; a frame change for a calibrated wrench) → minus the
+tool's weight (when the arm's orientation is known) → minus the bias → a ForceSample's
+fields, handed to `publish` through the sampler's non-blocking queue.
+
+The service wiring (`__main__.py`/`service.py`) owns the bus: it passes `publish` (put on
+`robot/force`) and `emit` (put an Event on `robot/events`), serves the `rpc_*` methods as
+the IForceSensor queryables of PROTOCOL.md §4 (an `RpcError` becomes the error reply), and
+feeds `update_robot_state` from `robot/state`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from services.bus.errors import ProtocolError, RpcError
+from services.force.config import ForceConfig
+from services.force.events import EventSink, EventThrottle
+from services.force.gravity import compensate
+from services.force.model import Vec, as_rotation, as_vec3
+from services.force.priority import PRIORITY_LEVELS
+from services.force.sampler import MonotonicClock, Sampler, SamplerClock, check_period_ms
+from services.force.sensors import (
+    ForceSensor,
+    PoseAwareSensor,
+    SensorError,
+    Six,
+    open_sensor,
+)
+
+Vec3T = tuple[float, float, float]
+TOOL_CHANGE_TOL = 1e-6
+"""m and rad: a flange→tool placement from robot/state that differs more is a new tool."""
+
+
+@dataclass(frozen=True, slots=True)
+class ForceSampleFields:
+    """The fields of a ForceSample (PROTOCOL.md §3).
+
+    `seq` strictly increasing from 1; `t_ns` time.time_ns() when the reading was taken;
+    `f` (N) and `c` (N·m) at the tool point, tool frame, weight and bias removed; `raw` the
+    sensor's six values (signals, or the Net F/T's wrench in the sensor frame).
+    """
+
+    seq: int
+    t_ns: int
+    f: Vec3T
+    c: Vec3T
+    raw: Six
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "seq": self.seq,
+            "t_ns": self.t_ns,
+            "f": list(self.f),
+            "c": list(self.c),
+            "raw": list(self.raw),
+        }
+
+
+class _BiasRequest:
+    """Averages the next `n` (weight-compensated, unbiased) wrenches on the sampling thread."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.count = 0
+        self.f_sum = np.zeros(3)
+        self.c_sum = np.zeros(3)
+        self.done = threading.Event()
+
+    def add(self, f: Vec, c: Vec) -> bool:
+        self.f_sum += f
+        self.c_sum += c
+        self.count += 1
+        return self.count >= self.n
+
+
+def _vec3t(v: Vec) -> Vec3T:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+class ForceCore:
+    """The force sensing component: one sensor, one sampling thread, the IForceSensor calls.
+
+    `publish(fields)` and `emit(kind, message, data)` are called on the sampler's publisher
+    thread, never on the sampling thread. RPC methods may be called from any thread; they
+    raise RpcError with a PROTOCOL.md §4 code. The sampling thread exists (idle) from
+    construction; `close()` ends it and closes the sensor.
+    """
+
+    def __init__(
+        self,
+        sensor: ForceSensor,
+        config: ForceConfig,
+        publish: Callable[[ForceSampleFields], None],
+        emit: EventSink,
+        *,
+        clock: SamplerClock | None = None,
+    ) -> None:
+        self._sensor = sensor
+        self._config = config
+        self._model = config.wrist_model()
+        self._load = config.tool_load()
+        self._posed: PoseAwareSensor | None = (
+            sensor if isinstance(sensor, PoseAwareSensor) else None
+        )
+        self._tool_R: Vec | None = None
+        self._bias: tuple[Vec, Vec] = (np.zeros(3), np.zeros(3))
+        self._bias_req: _BiasRequest | None = None
+        self._seq = 0
+        self._latest: ForceSampleFields | None = None
+        self._ctl = threading.RLock()
+        self._sampler: Sampler[ForceSampleFields] = Sampler(
+            self._acquire,
+            publish,
+            period_ms=config.period_ms,
+            priority=config.priority,
+            on_event=emit,
+            queue_len=config.queue_len,
+            stale_after_periods=config.stale_after_periods,
+            clock=clock or MonotonicClock(spin_us=config.spin_us),
+        )
+        sensor.on_event = EventThrottle(self._sampler.post_event, config.event_interval_s)
+
+    @classmethod
+    def from_config(
+        cls,
+        config: ForceConfig,
+        publish: Callable[[ForceSampleFields], None],
+        emit: EventSink,
+    ) -> ForceCore:
+        """The core with the sensor backend `config.sensor` (not yet opened)."""
+        return cls(open_sensor(config.sensor, **config.sensor_options()), config, publish, emit)
+
+    @property
+    def sensor(self) -> ForceSensor:
+        return self._sensor
+
+    @property
+    def sampler(self) -> Sampler[ForceSampleFields]:
+        return self._sampler
+
+    @property
+    def latest(self) -> ForceSampleFields | None:
+        return self._latest
+
+    def close(self) -> None:
+        """Stop sensing, end the threads, close the sensor. Idempotent."""
+        with self._ctl:
+            self._sampler.close()
+            self._sensor.close()
+
+    # --- from robot/state and puma's set_tool -------------------------------------------
+
+    def update_robot_state(
+        self,
+        tool_p: ArrayLike,
+        tool_R: ArrayLike,
+        flange_p: ArrayLike | None = None,
+        flange_R: ArrayLike | None = None,
+    ) -> None:
+        """The arm's pose from robot/state (world; R world←tool, 9 row-major or 3×3).
+
+        The tool orientation drives gravity compensation; a simulated sensor also senses
+        at this pose. With the flange pose too, the tool placement eMt = flange⁻¹·tool is
+        derived, and a changed placement (puma's set_tool) updates the model.
+        """
+        p = np.asarray(tool_p, dtype=float).reshape(3)
+        try:
+            R = as_rotation(tool_R, "tool_R")
+        except ValueError as e:
+            raise ProtocolError("tool_R", str(e)) from None
+        self._tool_R = R
+        if self._posed is not None:
+            self._posed.update_pose(p, R)
+        if flange_p is None or flange_R is None:
+            return
+        try:
+            Rf = as_rotation(flange_R, "flange_R")
+        except ValueError as e:
+            raise ProtocolError("flange_R", str(e)) from None
+        R_et = Rf.T @ R
+        p_et = Rf.T @ (p - np.asarray(flange_p, dtype=float).reshape(3))
+        m = self._model
+        if (
+            np.max(np.abs(p_et - m.p_et)) > TOOL_CHANGE_TOL
+            or np.max(np.abs(R_et - m.R_et)) > TOOL_CHANGE_TOL
+        ):
+            self.set_tool(p_et, R_et)
+
+    def set_tool(self, p: ArrayLike, R: ArrayLike) -> None:
+        """The tool placement eMt in the flange frame (m; R flange←tool), as puma's set_tool."""
+        p_et = np.asarray(p, dtype=float).reshape(3)
+        if not np.all(np.isfinite(p_et)):
+            raise ProtocolError("p", "not finite")
+        try:
+            R_et = as_rotation(R, "R")
+        except ValueError as e:
+            raise ProtocolError("R", str(e)) from None
+        self._model = self._model.with_tool(p_et, R_et)
+        if self._posed is not None:
+            self._posed.set_tool(p_et, R_et)
+        self._sampler.post_event(
+            "status",
+            "force model: new tool placement",
+            {"tool_p": p_et.tolist(), "tool_R": R_et.reshape(9).tolist()},
+        )
+
+    # --- IForceSensor (PROTOCOL.md §4) -------------------------------------------------
+
+    def rpc_sensor_status(self, args: dict[str, Any]) -> dict[str, Any]:
+        """{running, period_ms, priority, rate_hz, samples} and the details behind them."""
+        st = self._sampler.stats().as_dict()
+        f_b, c_b = self._bias
+        latest = self._latest
+        st.update(
+            sensor=self._sensor.name,
+            bad=self._sensor.bad,
+            gaps=self._sensor.gaps,
+            seq=latest.seq if latest else 0,
+            gravity_compensated=self._tool_R is not None,
+            bias={"f": f_b.tolist(), "c": c_b.tolist()},
+            K_l=self._model.K_l.tolist(),
+            K_r=self._model.K_r.tolist(),
+        )
+        return st
+
+    def rpc_sensor_start(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Open the sensor and trigger sensing (no-op when running)."""
+        with self._ctl:
+            if self._sampler.closed:
+                raise RpcError("not_ready", "the force service is shutting down")
+            if not self._sampler.running:
+                try:
+                    self._sensor.open()
+                except (SensorError, OSError) as e:
+                    raise RpcError("unreachable", f"{self._sensor.name}: {e}") from None
+                self._sampler.start()
+                self._sampler.post_event(
+                    "status",
+                    "force sensing started",
+                    {"running": True, "sensor": self._sensor.name},
+                )
+        return self.rpc_sensor_status({})
+
+    def rpc_sensor_stop(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Halt sensing and close the sensor."""
+        with self._ctl:
+            was_running = self._sampler.running
+            if not self._sampler.stop():
+                raise RpcError("busy", "the sampling thread did not stop in time")
+            self._sensor.close()
+            if was_running:
+                self._sampler.post_event(
+                    "status",
+                    "force sensing stopped",
+                    {"running": False, "sensor": self._sensor.name},
+                )
+        return self.rpc_sensor_status({})
+
+    def rpc_sensor_config(self, args: dict[str, Any]) -> dict[str, Any]:
+        """{period_ms?, priority?}: TimerValue and SensorThreadPriority, applied live.
+
+        Both are checked before either is applied. The reply is the status, whose
+        `priority_applied` says what the OS granted.
+        """
+        period: float | None = None
+        if "period_ms" in args:
+            try:
+                period = check_period_ms(args["period_ms"])
+            except ValueError as e:
+                raise RpcError("bad_request", str(e)) from None
+        level = args.get("priority")
+        if level is not None and level not in PRIORITY_LEVELS:
+            raise RpcError(
+                "bad_request", f"priority: one of {list(PRIORITY_LEVELS)}, got {level!r}"
+            )
+        with self._ctl:
+            if period is not None:
+                self._sampler.set_period_ms(period)
+            if level is not None:
+                self._sampler.set_priority(level)
+        return self.rpc_sensor_status({})
+
+    def rpc_sensor_bias(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Tare: the mean of the next `bias_samples` readings becomes the zero.
+
+        `{"clear": true}` removes the bias instead. Needs running sensing.
+        """
+        clear = args.get("clear", False)
+        if not isinstance(clear, bool):
+            raise RpcError("bad_request", f"clear: expected true/false, got {clear!r}")
+        if clear:
+            self._bias = (np.zeros(3), np.zeros(3))
+            return self._bias_reply(0)
+        with self._ctl:
+            if not self._sampler.running:
+                raise RpcError("not_ready", "sensing is stopped: call sensor_start first")
+            req = _BiasRequest(self._config.bias_samples)
+            self._bias_req = req
+            timeout_s = max(1.0, 20.0 * req.n * self._sampler.period_ms / 1e3)
+            if not req.done.wait(timeout_s):
+                self._bias_req = None
+                raise RpcError("unreachable", f"no data from {self._sensor.name} to bias with")
+        return self._bias_reply(req.n)
+
+    def rpc_sensor_compliance(self, args: dict[str, Any]) -> dict[str, Any]:
+        """{K_l?, K_r?}: the wrist stiffness (N/m, N·m/rad), a number or 3, positive, finite.
+
+        Replies with the stiffness now in use (an empty call just reads it).
+        """
+        values: dict[str, Vec] = {}
+        for key in ("K_l", "K_r"):
+            if key in args:
+                values[key] = _stiffness(key, args[key])
+        if values:
+            self._model = self._model.with_compliance(values.get("K_l"), values.get("K_r"))
+        return {"K_l": self._model.K_l.tolist(), "K_r": self._model.K_r.tolist()}
+
+    def rpc_sensor_read(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The latest ForceSample's fields."""
+        latest = self._latest
+        if latest is None:
+            raise RpcError("not_ready", "no force sample yet")
+        return latest.as_dict()
+
+    def _bias_reply(self, n: int) -> dict[str, Any]:
+        f_b, c_b = self._bias
+        return {"f_bias": f_b.tolist(), "c_bias": c_b.tolist(), "samples": n}
+
+    # --- sampling thread ----------------------------------------------------------------
+
+    def _acquire(self) -> ForceSampleFields | None:
+        reading = self._sensor.read()
+        if reading is None:
+            return None
+        t_ns = time.time_ns()
+        model = self._model
+        v = np.asarray(reading.values, dtype=float)
+        if reading.kind == "signals":
+            f, c = model.wrench_from_signals(v)
+        else:
+            f, c = model.wrench_from_sensor_wrench(v[:3], v[3:])
+        R = self._tool_R
+        if R is not None:
+            f, c = compensate(f, c, self._load, R)
+        req = self._bias_req
+        if req is not None and req.add(f, c):
+            self._bias = (req.f_sum / req.n, req.c_sum / req.n)
+            self._bias_req = None
+            req.done.set()
+        f_b, c_b = self._bias
+        self._seq += 1
+        sample = ForceSampleFields(
+            self._seq, t_ns, _vec3t(f - f_b), _vec3t(c - c_b), reading.values
+        )
+        self._latest = sample
+        return sample
+
+
+def _stiffness(key: str, value: Any) -> Vec:
+    ok_number = isinstance(value, int | float) and not isinstance(value, bool)
+    ok_list = (
+        isinstance(value, Sequence)
+        and not isinstance(value, str | bytes)
+        and len(value) == 3
+        and all(isinstance(x, int | float) and not isinstance(x, bool) for x in value)
+    )
+    if not (ok_number or ok_list):
+        raise RpcError("bad_request", f"{key}: a number or 3 numbers, got {value!r}")
+    try:
+        return as_vec3(value, key)
+    except ValueError as e:
+        raise RpcError("bad_request", str(e)) from None

@@ -1,0 +1,111 @@
+"""The `ForceSensor` role and `open_sensor`, which picks a backend and imports it lazily.
+
+Backends: `SimSensor` (sim_sensor.py, the default: contact with the simulated workcell),
+`SerialSensor` (serial_sensor.py, six ADC channels as checksummed ASCII lines, see
+docs/serial-force-protocol.md), `NetFTSensor` (netft.py, ATI Net F/T RDT over UDP).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal, Protocol, runtime_checkable
+
+from numpy.typing import ArrayLike
+
+from services.bus.errors import TelerobotError
+from services.force.events import EventSink
+
+SensorKind = Literal["sim", "serial", "netft"]
+SENSOR_KINDS: tuple[SensorKind, ...] = ("sim", "serial", "netft")
+
+Six = tuple[float, float, float, float, float, float]
+
+
+class SensorError(TelerobotError):
+    """A sensor could not be used: not open, disconnected, refused."""
+
+
+@dataclass(frozen=True, slots=True)
+class Reading:
+    """One new measurement from a sensor.
+
+    `kind == "signals"`: the six raw sensing signals of the compliant wrist (device units;
+    the calibration of eq. 4 turns them into plate motion). `kind == "wrench"`: a
+    calibrated wrench (Fx, Fy, Fz in N, Tx, Ty, Tz in N·m) at the sensor origin, in the
+    sensor frame R_s. Values are always finite. `device_seq` is the device's own sample
+    counter when it has one.
+    """
+
+    kind: Literal["signals", "wrench"]
+    values: Six
+    device_seq: int | None = None
+
+
+@runtime_checkable
+class ForceSensor(Protocol):
+    """A wrist force sensor.
+
+    Lifecycle: `open()` (may raise SensorError or OSError when the device is unreachable),
+    then `read()` from one thread at a time, `close()` (idempotent). `read()` never blocks:
+    it returns the newest valid measurement received since the last call, or None when
+    there is none. Bad data (garbage, NaN, short packets) is dropped, counted in `bad`,
+    and reported through `on_event("bad_data", …)`; missing device samples (sequence
+    jumps) are counted in `gaps` and reported as `gap`. `read()` before `open()` or after
+    `close()` raises SensorError.
+    """
+
+    on_event: EventSink
+
+    @property
+    def name(self) -> str:
+        """Which sensor, for people and status (e.g. "netft 192.168.1.1:49152")."""
+        ...
+
+    @property
+    def bad(self) -> int:
+        """Measurements dropped as invalid since construction."""
+        ...
+
+    @property
+    def gaps(self) -> int:
+        """Device samples missed (sequence jumps) since construction."""
+        ...
+
+    def open(self) -> None: ...
+
+    def read(self) -> Reading | None: ...
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class PoseAwareSensor(Protocol):
+    """A sensor that needs the arm's pose: the simulated one senses the simulated world."""
+
+    def update_pose(self, tool_p: ArrayLike, tool_R: ArrayLike) -> None:
+        """The tool frame in the world: `tool_p` (3, m), `tool_R` (R world←tool)."""
+        ...
+
+    def set_tool(self, p_et: ArrayLike, R_et: ArrayLike) -> None:
+        """The tool placement in the flange frame (eMt), as puma's `set_tool`."""
+        ...
+
+
+def open_sensor(kind: SensorKind, **opts: Any) -> ForceSensor:
+    """Construct the sensor backend `kind` with `opts` (the device is opened by `open()`).
+
+    The backend module is imported here, so the simulation never loads pyserial.
+    """
+    if kind == "sim":
+        from services.force.sim_sensor import SimSensor
+
+        return SimSensor(**opts)
+    if kind == "serial":
+        from services.force.serial_sensor import SerialSensor
+
+        return SerialSensor(**opts)
+    if kind == "netft":
+        from services.force.netft import NetFTSensor
+
+        return NetFTSensor(**opts)
+    raise ValueError(f"unknown sensor kind {kind!r} (known: {', '.join(SENSOR_KINDS)})")
