@@ -14,6 +14,7 @@ from typing import Any, Generic, TypeVar
 from services.bus.messages import (
     Event,
     ForceSample,
+    MasterFeedback,
     MasterState,
     Message,
     OperatorCommand,
@@ -57,6 +58,7 @@ STEREO_L = Topic("vision/stereo/l", StereoFrame, QoS.BULK, latest_wins=True)
 STEREO_R = Topic("vision/stereo/r", StereoFrame, QoS.BULK, latest_wins=True)
 MASTER_STATE = Topic("master/state", MasterState, QoS.STATE, latest_wins=True)
 VISION_STATS = Topic("vision/stats", VisionStats, QoS.RELIABLE, latest_wins=True)
+MASTER_FEEDBACK = Topic("master/feedback", MasterFeedback, QoS.STATE, latest_wins=True)
 
 TOPICS: tuple[Topic[Any], ...] = (
     CMD,
@@ -68,6 +70,7 @@ TOPICS: tuple[Topic[Any], ...] = (
     STEREO_R,
     MASTER_STATE,
     VISION_STATS,
+    MASTER_FEEDBACK,
 )
 TOPIC_BY_KEY: dict[str, Topic[Any]] = {t.key: t for t in TOPICS}
 

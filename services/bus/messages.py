@@ -182,6 +182,21 @@ class VisionStats(Message):
     data: dict[str, Any] | None = None
 
 
+@dataclass(frozen=True, slots=True)
+class MasterFeedback(Message):
+    """`master/feedback` (extension): the wrench a master displayed to the operator's hand,
+    in the operator's frame, after scaling and saturation."""
+
+    name: ClassVar[str] = "MasterFeedback"
+    seq: Count
+    t_ns: Count
+    master: Name
+    f: Vec3
+    c: Vec3
+    saturated: bool
+    stale: bool
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     OperatorCommand,
     RobotState,
@@ -190,6 +205,7 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     StereoFrame,
     MasterState,
     VisionStats,
+    MasterFeedback,
 )
 
 IDENTITY_R: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)

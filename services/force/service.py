@@ -1,0 +1,74 @@
+"""The `force` service on the bus: `robot/force` at 1 kHz and IForceSensor at robot/force/rpc.
+
+The sampling thread never touches the network: samples go through the core's handoff queue
+to a publisher thread (ForceCore), so a slow link cannot stretch the sampling period. The
+arm's pose from `robot/state` drives gravity compensation, the sim sensor's contact, and
+follows the puma's `set_tool`.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from services.bus import codec, keys
+from services.bus.errors import ProtocolError, RpcError
+from services.bus.messages import IDENTITY_R, ForceSample, RobotState, Rot, Vec3
+from services.bus.node import Node
+from services.force.config import ForceConfig
+from services.force.core import ForceCore, ForceSampleFields
+
+log = logging.getLogger("telerobot.force")
+
+
+class ForceService:
+    """Runs the force sensor; `close()` stops sensing and closes the sensor."""
+
+    def __init__(self, node: Node, config: ForceConfig) -> None:
+        self.node = node
+        self.config = config
+        self._pub = node.publisher(keys.FORCE)
+        self.core = ForceCore.from_config(config, self._publish, self._emit)
+        node.subscribe(keys.STATE, self._on_state)
+        core = self.core
+        node.serve(
+            "force",
+            {
+                "sensor_status": core.rpc_sensor_status,
+                "sensor_start": core.rpc_sensor_start,
+                "sensor_stop": core.rpc_sensor_stop,
+                "sensor_config": core.rpc_sensor_config,
+                "sensor_bias": core.rpc_sensor_bias,
+                "sensor_compliance": core.rpc_sensor_compliance,
+                "sensor_read": core.rpc_sensor_read,
+                "set_tool": self._rpc_set_tool,
+            },
+        )
+        if config.autostart:
+            try:
+                core.rpc_sensor_start({})
+            except RpcError as e:
+                node.event(
+                    "error", f"force sensor did not start: {e.message}", {"sensor": config.sensor}
+                )
+        node.announce()
+
+    def _publish(self, s: ForceSampleFields) -> None:
+        self._pub.put(ForceSample(seq=s.seq, t_ns=s.t_ns, f=s.f, c=s.c, raw=s.raw))
+
+    def _emit(self, kind: str, message: str, data: dict[str, Any]) -> None:
+        self.node.event(kind, message, data)
+
+    def _on_state(self, st: RobotState) -> None:
+        try:
+            self.core.update_robot_state(st.tool_p, st.tool_R, st.flange_p, st.flange_R)
+        except ProtocolError as e:
+            self.node.report_rejected(keys.STATE.key, str(e))
+
+    def _rpc_set_tool(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The tool placement eMt (as puma's `set_tool {p, R}`); also followed from robot/state."""
+        self.core.set_tool(codec.arg(args, "p", Vec3), codec.arg(args, "R", Rot, IDENTITY_R))
+        return self.core.rpc_sensor_status({})
+
+    def close(self) -> None:
+        self.core.close()

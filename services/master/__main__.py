@@ -1,0 +1,78 @@
+"""`telerobot master`: the master station (a SpaceMouse, a serial master arm, the keyboard,
+a scripted operator or the web console's virtual master)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from services.bus.config import add_node_args, load_deploy, node_config
+from services.bus.lifecycle import Shutdown, setup_logging
+from services.bus.node import Node
+from services.cli.introspect import LOCAL_ROUTER
+from services.master.config import MasterConfig
+from services.master.devices import DeviceNotFound
+
+#: command-line names → MasterConfig.device
+DEVICES = {
+    "spacemouse": "spacemouse",
+    "serial": "serial_arm",
+    "serial_arm": "serial_arm",
+    "keyboard": "keyboard",
+    "script": "scripted",
+    "scripted": "scripted",
+    "virtual": "virtual",
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="telerobot master", description=__doc__)
+    p.add_argument("--device", "-d", choices=sorted(DEVICES), default=None)
+    p.add_argument("--id", dest="master_id", default=None, help="this master's id")
+    p.add_argument("--port", default=None, help="serial URL or HID path")
+    p.add_argument(
+        "--script", default=None, help="trajectory file (.jsonl/.csv) or a generated motion name"
+    )
+    p.add_argument("--rate", type=float, default=None, help="command rate (Hz, ≤ 1000)")
+    p.add_argument("--scale-t", type=float, default=None)
+    p.add_argument("--scale-r", type=float, default=None)
+    p.add_argument("--frame", choices=["world", "tool"], default=None)
+    add_node_args(p)
+    args = p.parse_args(argv)
+    log = setup_logging("master")
+    deploy = load_deploy(args.config)
+    table = dict(deploy.get("master", {}))
+    overrides = {
+        "device": DEVICES.get(args.device or ""),
+        "master_id": args.master_id,
+        "port": args.port,
+        "script": args.script,
+        "rate_hz": args.rate,
+        "scale_t": args.scale_t,
+        "scale_r": args.scale_r,
+        "frame": args.frame,
+    }
+    table.update({k: v for k, v in overrides.items() if v is not None})
+    config = MasterConfig.from_mapping(table)
+    from services.master.service import MasterService
+
+    stop = Shutdown()
+    with Node(
+        "master", node_config(args, deploy, connect=(LOCAL_ROUTER,)), instance=config.master_id
+    ) as node:
+        try:
+            svc = MasterService(node, config)
+        except DeviceNotFound as e:
+            found = "\n  ".join(e.found) or "nothing"
+            print(f"telerobot master: {e}\nfound:\n  {found}", file=sys.stderr)
+            return 2
+        log.info("master %s on %s at %.0f Hz", config.master_id, svc.device.name, config.rate_hz)
+        try:
+            stop.wait()
+        finally:
+            svc.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,222 @@
+"""The `master` service on the bus: device → eq. 5 → `robot/cmd`, force → operator's hand.
+
+One loop thread owns the device (franka-node's rule): it reads the hand at `rate_hz`,
+publishes the command, and displays the newest force. Subscriptions only store. The master
+talks to the robot only through the decision server (commands on `robot/cmd`, calls to
+`robot/decision/rpc/…`). Every exit path publishes a disengaged command, so the slave holds.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import asdict
+from typing import Any
+
+from services.bus import codec, keys
+from services.bus.errors import RpcError, TelerobotError
+from services.bus.messages import (
+    MasterFeedback,
+    MasterState,
+    OperatorCommand,
+    Rot,
+    Unit,
+    Vec3,
+    vec,
+)
+from services.bus.node import Node
+from services.bus.rate import RateLoop
+from services.master.config import MasterConfig
+from services.master.devices import DeviceLost, MasterDevice, open_master
+from services.master.feedback import ForceFeedback
+from services.master.teleop import Teleop
+
+log = logging.getLogger("telerobot.master")
+
+STATE_RATE_HZ = 50.0
+FORCE_STALE_S = 0.1
+REOPEN_S = 1.0
+HOLD_REPEATS = 3
+
+
+class MasterService:
+    """Runs one master station; `close()` leaves the slave holding."""
+
+    def __init__(
+        self, node: Node, config: MasterConfig, device: MasterDevice | None = None
+    ) -> None:
+        self.node = node
+        self.config = config
+        self.device = device if device is not None else open_master(config)
+        self.teleop = Teleop(config, self.device.name)
+        self.feedback = ForceFeedback(config)
+        self._cmd = node.publisher(keys.CMD)
+        self._state = node.publisher(keys.MASTER_STATE)
+        self._fb = node.publisher(keys.MASTER_FEEDBACK)
+        self._force = node.subscribe(keys.FORCE)
+        self._robot = node.subscribe(keys.STATE)
+        self._stop = threading.Event()
+        self._device_ok = True
+        self._fb_seq = 0
+        self.ticks = 0
+        self.displayed = self.feedback.zero()
+        self.service_name = f"master/{config.master_id}"
+        node.serve(
+            self.service_name,
+            {
+                "status": self._rpc_status,
+                "set_scale": self._rpc_set_scale,
+                "set_frame": self._rpc_set_frame,
+                "set_hand": self._rpc_set_hand,
+            },
+        )
+        self._thread = threading.Thread(target=self._loop, name="master-loop", daemon=True)
+        self._thread.start()
+        node.announce()
+
+    # --- the loop (owns the device) -------------------------------------------------
+    def _loop(self) -> None:
+        rate = RateLoop(self.config.rate_hz, on_late=self._on_late)
+        state_every = max(1, round(self.config.rate_hz / STATE_RATE_HZ))
+        last = time.perf_counter()
+        try:
+            while not self._stop.is_set():
+                now = time.perf_counter()
+                dt, last = now - last, now
+                self._tick(dt)
+                if self.ticks % state_every == 0:
+                    self._publish_state()
+                self.ticks += 1
+                rate.sleep()
+        finally:
+            self._hold()
+
+    def _tick(self, dt_s: float) -> None:
+        t_ns = time.time_ns()
+        try:
+            if not self._device_ok:
+                self._reopen()
+            reading = self.device.read(dt_s)
+        except (DeviceLost, TelerobotError, OSError) as e:
+            if self._device_ok:
+                self._device_ok = False
+                self._reopen_at = time.monotonic() + REOPEN_S
+                self.node.event(
+                    "error",
+                    f"master device {self.device.name} lost: {e}",
+                    {"device": self.device.name},
+                )
+            self._cmd.put(OperatorCommand(**asdict(self.teleop.hold(t_ns, rearm=False))))
+            return
+        self._cmd.put(OperatorCommand(**asdict(self.teleop.tick(reading, t_ns))))
+        self._display_force()
+
+    def _reopen(self) -> None:
+        if time.monotonic() < self._reopen_at:
+            raise DeviceLost("waiting to reopen")
+        self._reopen_at = time.monotonic() + REOPEN_S
+        self.device.close()
+        self.device.open()
+        self._device_ok = True
+        self.node.event(
+            "status",
+            f"master device {self.device.name} back; press and release the master-shift to engage",
+            {"device": self.device.name},
+        )
+
+    def _display_force(self) -> None:
+        sample, state = self._force.latest, self._robot.latest
+        stale = (
+            sample is None or state is None or time.time_ns() - sample.t_ns > FORCE_STALE_S * 1e9
+        )
+        if stale or sample is None or state is None:
+            shown = self.feedback.zero()
+        else:
+            shown = self.feedback.compute(sample.f, sample.c, state.tool_R, self.teleop.frame)
+        if self.device.can_display_force:
+            self.device.display_force(shown.f, shown.c)
+        self.displayed = shown
+        self._stale = stale
+
+    def _publish_state(self) -> None:
+        t_ns = time.time_ns()
+        self._state.put(MasterState(**asdict(self.teleop.state(t_ns))))
+        self._fb_seq += 1
+        shown = self.displayed
+        self._fb.put(
+            MasterFeedback(
+                seq=self._fb_seq,
+                t_ns=t_ns,
+                master=self.config.master_id,
+                f=vec(shown.f),
+                c=vec(shown.c),
+                saturated=bool(shown.force_saturated or shown.torque_saturated),
+                stale=bool(getattr(self, "_stale", True)),
+            )
+        )
+
+    def _hold(self) -> None:
+        """Disengage on the way out: the slave holds (sent a few times: one may be lost)."""
+        for _ in range(HOLD_REPEATS):
+            try:
+                self._cmd.put(OperatorCommand(**asdict(self.teleop.hold(time.time_ns()))))
+            except Exception:  # closing: a failed put must not hide the others
+                log.warning("could not send the hold command", exc_info=True)
+
+    def _on_late(self, late_s: float, n_late: int) -> None:
+        log.warning("master loop late by %.1f ms (%d late ticks)", late_s * 1e3, n_late)
+
+    # --- methods --------------------------------------------------------------------
+    def _status(self) -> dict[str, Any]:
+        return {
+            "master": self.config.master_id,
+            "device": self.device.name,
+            "device_ok": self._device_ok,
+            "engaged": self.teleop.engaged,
+            "engage": self.teleop.engage,
+            "frame": self.teleop.frame,
+            "scale_t": self.teleop.scale_t,
+            "scale_r": self.teleop.scale_r,
+            "rate_hz": self.config.rate_hz,
+            "can_display_force": self.device.can_display_force,
+            "ticks": self.ticks,
+        }
+
+    def _rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
+        return self._status()
+
+    def _rpc_set_scale(self, args: dict[str, Any]) -> dict[str, Any]:
+        st = codec.arg(args, "scale_t", float, None)
+        sr = codec.arg(args, "scale_r", float, None)
+        try:
+            self.teleop.set_scale(scale_t=st, scale_r=sr)
+        except ValueError as e:
+            raise RpcError("bad_request", str(e)) from None
+        return self._status()
+
+    def _rpc_set_frame(self, args: dict[str, Any]) -> dict[str, Any]:
+        frame = codec.arg(args, "frame", str)
+        try:
+            self.teleop.set_frame(frame)
+        except ValueError as e:
+            raise RpcError("bad_request", str(e)) from None
+        return self._status()
+
+    def _rpc_set_hand(self, args: dict[str, Any]) -> dict[str, Any]:
+        set_hand = getattr(self.device, "set_hand", None)
+        if set_hand is None:
+            raise RpcError("bad_request", f"device {self.device.name} is not a virtual master")
+        p = codec.arg(args, "p", Vec3)
+        R = codec.arg(args, "R", Rot, None)
+        clutch = codec.arg(args, "clutch", bool, False)
+        grip = codec.arg(args, "grip", Unit, None)
+        set_hand(p, None if R is None else [R[0:3], R[3:6], R[6:9]], clutch=clutch, grip=grip)
+        return {}
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        if self._thread.is_alive():
+            self._hold()
+        self.device.close()
