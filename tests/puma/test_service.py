@@ -1,0 +1,136 @@
+"""The puma service over Zenoh: methods, the command stream, and bad input that never moves it."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from services.bus import keys
+from services.bus.errors import RpcError
+from services.bus.messages import IDENTITY_R, Event, OperatorCommand, RobotState
+from services.puma.config import PumaConfig
+from services.puma.service import PumaService
+
+
+@pytest.fixture
+def puma(net):  # type: ignore[no-untyped-def]
+    node = net.node("puma")
+    svc = PumaService(node, PumaConfig(sim_calibration_s=0.05))
+    try:
+        yield svc
+    finally:
+        svc.close()
+
+
+def _ready(client, state) -> RobotState:  # type: ignore[no-untyped-def]
+    client.call("puma", "connect", {}, timeout_s=5.0)
+    client.call("puma", "initialize", {"wait": True}, timeout_s=10.0)
+    st = state.wait_for(lambda s: s.status == "ready", 10.0)
+    assert st is not None, "the arm never became ready"
+    return st
+
+
+def test_status_machine_and_motion_methods(net, puma) -> None:
+    client = net.node("operator")
+    state = client.subscribe(keys.STATE)
+    statuses: list[str] = []
+    moved = threading.Event()
+
+    def on_event(ev: Event) -> None:
+        if ev.source == "puma" and ev.kind == "status" and ev.data:
+            statuses.append(str(ev.data.get("status")))
+        if ev.kind == "moved":
+            moved.set()
+
+    client.subscribe(keys.EVENTS, on_event)
+    assert client.call("puma", "status", {}, timeout_s=5.0)["status"] == "disconnected"
+    with pytest.raises(RpcError) as err:
+        client.call("puma", "home", {}, timeout_s=5.0)
+    assert err.value.code == "not_ready"
+    st = _ready(client, state)
+    reply = client.call(
+        "puma", "move_relative", {"dp": [0.0, 0.0, -0.05], "wait": True}, timeout_s=20.0
+    )
+    assert reply["completed"] is True
+    after = state.wait_for(lambda s: s.status == "ready" and s.seq > st.seq + 5, 5.0)
+    assert after is not None
+    assert after.tool_p[2] == pytest.approx(st.tool_p[2] - 0.05, abs=1e-3)
+    assert moved.wait(5.0)
+    assert statuses[:3] == ["connected", "initializing", "ready"]
+    fk = client.call("puma", "fk", {"q": list(after.q)}, timeout_s=5.0)
+    assert np.allclose(fk["tool_p"], after.tool_p, atol=1e-6)
+    ik = client.call("puma", "ik", {"p": fk["tool_p"], "R": fk["tool_R"]}, timeout_s=5.0)
+    assert len(ik["solutions"]) == 8
+
+
+def test_command_stream_moves_the_tool_and_bad_commands_never_do(net, puma) -> None:
+    client = net.node("master")
+    state = client.subscribe(keys.STATE)
+    rejected: list[Event] = []
+    got_rejected = threading.Event()
+
+    def on_event(ev: Event) -> None:
+        if ev.kind == "rejected":
+            rejected.append(ev)
+            got_rejected.set()
+
+    client.subscribe(keys.EVENTS, on_event)
+    st0 = _ready(client, state)
+    pub = client.publisher(keys.PUMA_CMD)
+    seq = 0
+
+    def send(dp: tuple[float, float, float], engage: int = 1, active: bool = True) -> None:
+        nonlocal seq
+        seq += 1
+        pub.put(
+            OperatorCommand(
+                seq=seq,
+                t_ns=time.time_ns(),
+                master="m",
+                engage=engage,
+                active=active,
+                frame="world",
+                dp=dp,
+                dR=IDENTITY_R,
+            )
+        )
+
+    for i in range(1, 41):
+        send((0.0, 0.001 * i, 0.0))
+    moved = state.wait_for(
+        lambda s: s.cmd_seq == seq and abs(s.tool_p[1] - st0.tool_p[1] - 0.04) < 1e-7, 10.0
+    )
+    assert moved is not None, "the tool did not follow the command stream"
+    q_before = np.array(moved.q)
+
+    # Garbage on the command key: NaN, a reflected R, a huge dp, not msgpack at all.
+    raw = client.session
+    good = {
+        "seq": seq + 1,
+        "t_ns": 1,
+        "master": "m",
+        "engage": 1,
+        "active": True,
+        "frame": "world",
+        "dp": [0.0, 0.04, 0.0],
+        "dR": list(IDENTITY_R),
+    }
+    bad = [
+        {**good, "dp": [float("nan"), 0.0, 0.0]},
+        {**good, "dR": [1.0, 0, 0, 0, 1.0, 0, 0, 0, -1.0]},
+        b"\xc1\xff not msgpack",
+    ]
+    for payload in bad:
+        raw.put(
+            keys.PUMA_CMD.key, payload if isinstance(payload, bytes) else msgpack.packb(payload)
+        )
+    send((5.0, 0.0, 0.0))  # a valid message, but a 5 m jump: refused by the proxy
+    assert got_rejected.wait(5.0), "no rejected event"
+    later = state.wait_for(lambda s: s.seq > moved.seq + 50, 5.0)
+    assert later is not None
+    assert np.allclose(later.q, q_before, atol=1e-6), "bad commands moved the arm"
+    assert any(ev.kind == "rejected" for ev in rejected)
