@@ -1,0 +1,251 @@
+"""The `Arm` contract, run against every backend: SimArm and SerialArm talking to the fake
+controller over a loopback socket. Real time with deadlines: both run their own threads."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from services.puma.arm import QN_RAD, Arm, ArmError, open_arm
+from services.puma.fake_controller import FakeController
+from services.puma.serial_arm import SerialArm
+from services.puma.sim_arm import SimArm
+
+DEADLINE_S = 5.0
+Q0 = np.array(QN_RAD)
+
+
+def wait_for(pred: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.002)
+
+
+@dataclass
+class Rig:
+    """One backend under test: the arm, a way to fail it, and the truth about its joints."""
+
+    arm: Arm
+    fail: Callable[[], None]
+    true_q: Callable[[], np.ndarray]
+
+
+@pytest.fixture(params=["sim", "serial"])
+def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
+    if request.param == "sim":
+        sim = SimArm(calibration_s=0.1)
+        try:
+            yield Rig(sim, lambda: sim.inject_fault("error"), lambda: sim.q_true)
+        finally:
+            sim.close()
+    else:
+        fake = FakeController(calibration_s=0.1).start()
+        arm = SerialArm(fake.url, cycle_ms=4.0, timeout_s=0.1)
+        try:
+            yield Rig(arm, fake.garble_next_reply, lambda: fake.q)
+        finally:
+            arm.close()
+            fake.close()
+
+
+def ready(rig: Rig) -> np.ndarray:
+    rig.arm.connect()
+    rig.arm.initialize()
+    wait_for(lambda: rig.arm.status == "ready", "ready")
+    return rig.arm.read_joints()
+
+
+def stream_to(arm: Arm, q_from: np.ndarray, q_to: np.ndarray, n: int = 100) -> None:
+    """Stream a smooth ramp of setpoints, one every ~2 ms, as a control loop would."""
+    for k in range(1, n + 1):
+        s = 0.5 - 0.5 * np.cos(np.pi * k / n)
+        arm.command(q_from + s * (q_to - q_from))
+        time.sleep(0.002)
+
+
+def settled(arm: Arm, target: np.ndarray, tol: float = 1e-3) -> bool:
+    return bool(np.max(np.abs(arm.read_joints() - target)) < tol)
+
+
+def holding_at(arm: Arm, target: np.ndarray) -> Callable[[], bool]:
+    """A condition that keeps commanding `target` (as a control loop does) until it is reached."""
+
+    def check() -> bool:
+        arm.command(target)
+        return settled(arm, target)
+
+    return check
+
+
+def test_is_an_arm(rig: Rig) -> None:
+    assert isinstance(rig.arm, Arm)
+    assert rig.arm.status == "disconnected"
+    assert rig.arm.last_error is None
+
+
+def test_connect_then_calibrate_then_joints_report(rig: Rig) -> None:
+    rig.arm.connect()
+    assert rig.arm.status == "connected"
+    with pytest.raises(ArmError):
+        rig.arm.read_joints()  # incremental encoders: nothing known before calibration
+    rig.arm.initialize()
+    assert rig.arm.status in ("initializing", "ready")
+    wait_for(lambda: rig.arm.status == "ready", "calibration")
+    np.testing.assert_allclose(rig.arm.read_joints(), Q0, atol=1e-6)
+
+
+def test_setpoints_before_ready_are_ignored(rig: Rig) -> None:
+    rig.arm.connect()
+    rig.arm.command(Q0 + 0.1)
+    rig.arm.initialize()
+    wait_for(lambda: rig.arm.status == "ready", "ready")
+    time.sleep(0.05)  # give a wrongly queued setpoint the time to show; not a synchronisation
+    np.testing.assert_allclose(rig.true_q(), Q0, atol=1e-9)
+
+
+def test_command_and_readback_converge(rig: Rig) -> None:
+    q0 = ready(rig)
+    target = q0 + np.array([0.2, -0.15, 0.1, 0.3, -0.2, 0.25])
+    stream_to(rig.arm, q0, target)
+    wait_for(holding_at(rig.arm, target), "convergence")
+    assert rig.arm.status == "ready"
+    np.testing.assert_allclose(rig.true_q(), target, atol=1e-3)
+
+
+def test_stop_holds_where_it_is(rig: Rig) -> None:
+    q0 = ready(rig)
+    far = q0 + 1.0
+    for k in range(1, 51):  # 1.5 rad/s towards a far target, stopped after 0.15 rad
+        rig.arm.command(q0 + min(k * 0.003, 1.0) * (far - q0))
+        time.sleep(0.002)
+    rig.arm.stop()
+    held: list[np.ndarray] = []
+
+    def still() -> bool:
+        held.append(rig.true_q())
+        return len(held) > 20 and bool(np.max(np.abs(held[-1] - held[-20])) < 1e-9)
+
+    wait_for(still, "the arm to come to rest")
+    q_held = held[-1]
+    # It moved, then stopped within its braking distance, far short of where it was going.
+    assert np.all(q_held > q0 + 0.01) and np.all(q_held < q0 + 0.5)
+    wait_for(lambda: settled(rig.arm, q_held, 2e-6), "readback of the held pose")
+    rig.arm.command(q_held)  # streaming may resume from where it holds
+    assert rig.arm.status == "ready"
+
+
+def test_estop_halts_and_reconnect_recovers_without_jump(rig: Rig) -> None:
+    q0 = ready(rig)
+    stream_to(rig.arm, q0, q0 + 0.2, n=30)
+    rig.arm.estop()
+    assert rig.arm.status == "error"
+    assert "emergency" in (rig.arm.last_error or "")
+    q_stop = rig.true_q()
+    rig.arm.command(q_stop + 0.05)
+    time.sleep(0.05)  # a refused setpoint must not move it: look a little later
+    np.testing.assert_allclose(rig.true_q(), q_stop, atol=1e-9)
+    rig.arm.connect()
+    assert rig.arm.status == "connected"
+    rig.arm.initialize()
+    wait_for(lambda: rig.arm.status == "ready", "ready after e-stop")
+    np.testing.assert_allclose(rig.arm.read_joints(), q_stop, atol=1e-6)
+    np.testing.assert_allclose(rig.true_q(), q_stop, atol=1e-9)
+
+
+def test_fault_gives_error_then_reconnect_without_jump(rig: Rig) -> None:
+    q0 = ready(rig)
+    target = q0 + 0.25
+    rig.fail()
+    # Keep streaming: the arm must refuse everything from the fault on.
+    for _ in range(200):
+        rig.arm.command(target)
+        if rig.arm.status == "error":
+            break
+        time.sleep(0.002)
+    wait_for(lambda: rig.arm.status == "error", "error")
+    assert rig.arm.last_error
+    for _ in range(20):
+        rig.arm.command(target)
+    held: list[np.ndarray] = []
+
+    def still() -> bool:
+        held.append(rig.true_q())
+        return len(held) > 20 and bool(np.max(np.abs(held[-1] - held[-20])) < 1e-9)
+
+    wait_for(still, "the arm to hold")
+    q_fault = held[-1]
+    assert np.max(np.abs(q_fault - target)) > 0.1, "setpoints after the fault were executed"
+    rig.arm.connect()
+    rig.arm.initialize()
+    wait_for(lambda: rig.arm.status == "ready", "ready after the fault")
+    q_back = rig.arm.read_joints()
+    np.testing.assert_allclose(q_back, q_fault, atol=1e-6)
+    rig.arm.command(q_back)  # the first setpoint after recovery is where the arm is
+    time.sleep(0.05)  # a jump, were there one, would show by now
+    assert rig.arm.status == "ready"
+    np.testing.assert_allclose(rig.true_q(), q_fault, atol=1e-6)
+
+
+def test_jumping_setpoint_is_refused(rig: Rig) -> None:
+    q0 = ready(rig)
+    rig.arm.command(q0 + np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0]))
+    wait_for(lambda: rig.arm.status == "error", "the jump to be refused")
+    assert "jump" in (rig.arm.last_error or "").lower() or "STEP" in (rig.arm.last_error or "")
+    time.sleep(0.05)  # look again a little later: it must not have moved
+    np.testing.assert_allclose(rig.true_q(), q0, atol=2e-6)  # 1 µrad wire resolution
+
+
+def test_setpoint_outside_the_limits_is_refused(rig: Rig) -> None:
+    q0 = ready(rig)
+    near = q0.copy()
+    near[4] = np.radians(100.0) - 0.1  # joint 5 close to its upper limit
+    # In short legs, so the arm is never far behind its setpoint even on a loaded machine.
+    for leg in np.linspace(0.0, 1.0, 5)[1:]:
+        q_leg = q0 + leg * (near - q0)
+        stream_to(rig.arm, rig.arm.read_joints(), q_leg, n=50)
+        wait_for(holding_at(rig.arm, q_leg), "the next leg")
+    past = near.copy()
+    past[4] = np.radians(100.0) + 0.01  # past the limit, though a small step
+    rig.arm.command(past)
+    wait_for(lambda: rig.arm.status == "error", "the limit to be refused")
+    assert "limit" in (rig.arm.last_error or "").lower()
+    assert np.all(rig.true_q() <= np.radians(100.0) + 1e-9)
+
+
+def test_close_is_idempotent(rig: Rig) -> None:
+    ready(rig)
+    rig.arm.close()
+    rig.arm.close()
+    assert rig.arm.status == "disconnected"
+
+
+def test_open_arm_picks_the_backend() -> None:
+    arm = open_arm("sim", calibration_s=0.0, threaded=False)
+    assert isinstance(arm, SimArm)
+    with pytest.raises(ValueError, match="port"):
+        open_arm("serial")
+    with pytest.raises(ValueError, match="kind"):
+        open_arm("usb")  # type: ignore[arg-type]
+    ser = open_arm("serial", "socket://127.0.0.1:9", cycle_ms=10.0)
+    assert isinstance(ser, SerialArm)
+    assert ser.status == "disconnected"
+
+
+def test_sim_and_proxy_do_not_load_pyserial() -> None:
+    code = (
+        "import sys\n"
+        "import services.puma.arm, services.puma.sim_arm, services.puma.proxy\n"
+        "from services.puma.arm import open_arm\n"
+        "open_arm('sim', threaded=False)\n"
+        "print('serial' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
