@@ -1,0 +1,103 @@
+"""`telerobot record -o FILE.mcap`: record every stream of the namespace to MCAP.
+
+Open the file in Foxglove for plots and video; replay it with `telerobot replay`, summarize
+it with `telerobot report`. Ctrl-C or SIGTERM finishes the file. See docs/record.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from services.bus.config import add_node_args, node_config
+from services.bus.lifecycle import Shutdown, setup_logging
+from services.bus.node import Node
+from services.record.recorder import Recorder, RecorderConfig
+
+LOCAL_ROUTER = "tcp/127.0.0.1:7447"
+STATUS_INTERVAL_S = 10.0
+POLL_S = 0.1
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="telerobot record", description=__doc__)
+    add_node_args(p)
+    p.add_argument("-o", "--output", required=True, metavar="FILE.mcap", help="output file")
+    p.add_argument(
+        "--keys",
+        action="append",
+        default=[],
+        metavar="KEYEXPR",
+        help="record only keys in this Zenoh key expression, e.g. 'robot/**' (repeatable; "
+        "default: everything, '**')",
+    )
+    p.add_argument("--no-video", action="store_true", help="leave out vision/stereo/*")
+    p.add_argument(
+        "--max-size-mb", type=float, default=0.0, help="end (or split) at this size (0: none)"
+    )
+    p.add_argument(
+        "--max-duration-s", type=float, default=0.0, help="end (or split) after this (0: none)"
+    )
+    p.add_argument(
+        "--split",
+        action="store_true",
+        help="at a limit start the next part (FILE_000.mcap, FILE_001.mcap, …) instead of ending",
+    )
+    p.add_argument("--chunk-size-kb", type=int, default=1024, help="chunk size (uncompressed)")
+    p.add_argument(
+        "--chunk-interval-s",
+        type=float,
+        default=1.0,
+        help="close a chunk at least this often: at most this much is lost if killed",
+    )
+    p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
+    p.add_argument("--queue-len", type=int, default=50_000, help="inbox bound (samples)")
+    p.add_argument("--verbose", "-v", action="store_true", help="debug logging")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    log = setup_logging("record", args.verbose)
+    config = RecorderConfig(
+        output=args.output,
+        keys=tuple(args.keys),
+        video=not args.no_video,
+        max_size_mb=args.max_size_mb,
+        max_duration_s=args.max_duration_s,
+        split=args.split,
+        queue_len=args.queue_len,
+        chunk_size_kb=args.chunk_size_kb,
+        chunk_interval_s=args.chunk_interval_s,
+        compression=args.compression,
+    )
+    node_cfg = node_config(args, connect=(LOCAL_ROUTER,))
+    stop = Shutdown()
+    with Node("record", node_cfg) as node:
+        recorder = Recorder(node, config)
+        next_status = time.monotonic() + STATUS_INTERVAL_S
+        try:
+            while not stop.is_set() and not recorder.ended.wait(POLL_S):
+                if time.monotonic() >= next_status:
+                    next_status += STATUS_INTERVAL_S
+                    st = recorder.stats()
+                    log.info(
+                        "%d messages written, %d dropped, %s", st.written, st.dropped, st.files[-1]
+                    )
+        finally:
+            final = recorder.stop()
+    summary = final.as_dict()
+    log.info(
+        "recorded %d messages (%d dropped) in %s",
+        summary["written"],
+        summary["dropped"],
+        ", ".join(summary["files"]),
+    )
+    print(json.dumps({k: summary[k] for k in ("written", "dropped", "files", "error")}))
+    return 1 if final.error else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

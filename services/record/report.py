@@ -1,0 +1,466 @@
+"""`telerobot report FILE.mcap`: rates, latencies, seq gaps and events of a recording; plots.
+
+Read from the raw channels (the exact payloads), decoded with the contract's codec:
+
+- rate per key: (n − 1) / (last − first receive time);
+- latency per key: receive time − the sender's `t_ns` (publish → record). Across machines
+  this includes their clock offset;
+- gaps per key and sender (an Event's `source`, a command's `master`): a `seq` more than one
+  above the previous is a gap of `seq − prev − 1` missing messages; a `seq` not above the
+  previous is counted as out of order (or a restarted sender);
+- events: every `robot/events` message;
+- tracking: the distance from the arm's tool point (`robot/state` while `ready` or
+  `moving`) to the newest supervised command target (`robot/puma/cmd`) at that moment.
+
+`--plots DIR` writes `force.png` (force and moment at the tool point over time) and
+`path.png` (the tool path against the command targets, top and side views).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, cast
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from services.bus import codec, keys
+from services.bus.errors import ProtocolError
+from services.bus.messages import (
+    Event,
+    ForceSample,
+    MasterFeedback,
+    MasterState,
+    Message,
+    OperatorCommand,
+    RobotState,
+    mat3,
+)
+from services.record import plots
+from services.record.archive import Recording
+
+#: command streams whose targets are drawn, with their plot labels
+COMMAND_KEYS = {keys.PUMA_CMD.key: "supervised command", keys.CMD.key: "operator command"}
+#: robot states whose tool pose is the arm's (before calibration it is not)
+POSED = ("ready", "moving")
+
+
+@dataclass(frozen=True, slots=True)
+class Spread:
+    """Summary of a set of values (ms or mm)."""
+
+    n: int
+    mean: float
+    p50: float
+    p95: float
+    max: float
+    min: float
+
+    @staticmethod
+    def of(values: Sequence[float]) -> Spread | None:
+        if not values:
+            return None
+        a = np.asarray(values, dtype=float)
+        return Spread(
+            n=int(a.size),
+            mean=float(a.mean()),
+            p50=float(np.percentile(a, 50)),
+            p95=float(np.percentile(a, 95)),
+            max=float(a.max()),
+            min=float(a.min()),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class KeyReport:
+    """One key's figures: times in s from the start of the recording, latency in ms."""
+
+    key: str
+    type: str
+    count: int
+    rate_hz: float
+    first_s: float
+    last_s: float
+    bytes: int
+    rejected: int
+    latency_ms: Spread | None
+    senders: int
+    gaps: int
+    missing: int
+    out_of_order: int
+
+
+@dataclass(frozen=True, slots=True)
+class EventRow:
+    """An event as received: time (s from the start), source, kind, message, data."""
+
+    t_s: float
+    source: str
+    kind: str
+    message: str
+    data: dict[str, Any] | None
+
+
+@dataclass
+class Traces:
+    """The series the plots draw (times in s from the start; world frame, m; tool frame for
+    force, N and N·m)."""
+
+    force_t_s: list[float] = field(default_factory=list)
+    force_f: list[tuple[float, ...]] = field(default_factory=list)
+    force_c: list[tuple[float, ...]] = field(default_factory=list)
+    tool_t_s: list[float] = field(default_factory=list)
+    tool_p: list[tuple[float, ...]] = field(default_factory=list)
+    targets: dict[str, tuple[list[float], list[tuple[float, ...]]]] = field(default_factory=dict)
+
+
+@dataclass
+class Report:
+    """Everything `telerobot report` prints, plus the plot series."""
+
+    files: list[str]
+    start_ns: int
+    end_ns: int
+    messages: int
+    keys: list[KeyReport]
+    events: list[EventRow]
+    truncated: list[str]
+    recorder: dict[str, Any] | None
+    tracking_mm: Spread | None
+    traces: Traces
+
+    @property
+    def duration_s(self) -> float:
+        return (self.end_ns - self.start_ns) / 1e9 if self.messages else 0.0
+
+    def key(self, key: str) -> KeyReport:
+        return next(k for k in self.keys if k.key == key)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = {
+            "files": self.files,
+            "start_ns": self.start_ns,
+            "duration_s": round(self.duration_s, 6),
+            "messages": self.messages,
+            "keys": [asdict(k) for k in self.keys],
+            "events": [asdict(e) for e in self.events],
+            "truncated": self.truncated,
+            "recorder": self.recorder,
+            "tracking_mm": asdict(self.tracking_mm) if self.tracking_mm else None,
+        }
+        out: dict[str, Any] = codec.jsonable(d)
+        return out
+
+
+def command_target(p0: ArrayLike, R0: ArrayLike, dp: ArrayLike, frame: str) -> NDArray[np.float64]:
+    """The tool-point target of a command (PROTOCOL.md §2, the paper's eq. 2):
+    `p0 + dp` in the world frame, `p0 + R0·dp` in the tool frame, where (p0, R0) is the tool
+    pose at the engagement's first active command."""
+    p0a, dpa = np.asarray(p0, dtype=float), np.asarray(dp, dtype=float)
+    if frame == "tool":
+        return p0a + np.asarray(R0, dtype=float).reshape(3, 3) @ dpa
+    return p0a + dpa
+
+
+class _Stamped(Protocol):
+    """Every contract message has these (messages.py's base class does not declare them)."""
+
+    seq: int
+    t_ns: int
+
+
+def _sender(msg: Message) -> str:
+    if isinstance(msg, Event):
+        return msg.source
+    if isinstance(msg, OperatorCommand | MasterState | MasterFeedback):
+        return msg.master
+    return ""
+
+
+@dataclass
+class _KeyAcc:
+    type: str
+    count: int = 0
+    first_ns: int = 0
+    last_ns: int = 0
+    bytes: int = 0
+    rejected: int = 0
+    latency_ms: list[float] = field(default_factory=list)
+    last_seq: dict[str, int] = field(default_factory=dict)
+    gaps: int = 0
+    missing: int = 0
+    out_of_order: int = 0
+
+    def seq(self, sender: str, seq: int) -> None:
+        prev = self.last_seq.get(sender)
+        self.last_seq[sender] = seq
+        if prev is None or seq == prev + 1:
+            return
+        if seq > prev + 1:
+            self.gaps += 1
+            self.missing += seq - prev - 1
+        else:
+            self.out_of_order += 1
+
+
+@dataclass
+class _Engagement:
+    engage: int
+    p0: NDArray[np.float64]
+    R0: NDArray[np.float64]
+
+
+def analyze(paths: Sequence[str | Path], select: Callable[[str], bool] | None = None) -> Report:
+    """Read the recording (all its parts, in order) and compute the report."""
+    acc: dict[str, _KeyAcc] = {}
+    events: list[EventRow] = []
+    traces = Traces()
+    truncated: list[str] = []
+    recorder: dict[str, Any] | None = None
+    start_ns: int | None = None
+    end_ns = 0
+    total = 0
+    tool: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+    engaged: dict[tuple[str, str], _Engagement] = {}
+    target: NDArray[np.float64] | None = None
+    tracking: list[float] = []
+
+    for path in paths:
+        rec = Recording(Path(path))
+        for m in rec.raw(select):
+            if start_ns is None:
+                start_ns = m.log_time_ns
+            end_ns = max(end_ns, m.log_time_ns)
+            total += 1
+            t_s = (m.log_time_ns - start_ns) / 1e9
+            topic = keys.topic_for(m.key)
+            a = acc.get(m.key)
+            if a is None:
+                a = acc[m.key] = _KeyAcc(topic.type.name if topic else "", first_ns=m.log_time_ns)
+            a.count += 1
+            a.last_ns = m.log_time_ns
+            a.bytes += len(m.payload)
+            if topic is None:
+                continue
+            try:
+                msg = codec.decode(topic.type, m.payload)
+            except ProtocolError:
+                a.rejected += 1
+                continue
+            stamped = cast(_Stamped, msg)
+            a.latency_ms.append((m.log_time_ns - stamped.t_ns) / 1e6)
+            a.seq(_sender(msg), stamped.seq)
+
+            if isinstance(msg, ForceSample):
+                traces.force_t_s.append(t_s)
+                traces.force_f.append(msg.f)
+                traces.force_c.append(msg.c)
+            elif isinstance(msg, RobotState):
+                if msg.status not in POSED:
+                    continue
+                tool = (np.asarray(msg.tool_p), mat3(msg.tool_R))
+                traces.tool_t_s.append(t_s)
+                traces.tool_p.append(msg.tool_p)
+                if target is not None:
+                    tracking.append(float(np.linalg.norm(tool[0] - target)) * 1e3)
+            elif isinstance(msg, Event):
+                events.append(EventRow(t_s, msg.source, msg.kind, msg.message, msg.data))
+            elif isinstance(msg, OperatorCommand) and m.key in COMMAND_KEYS and msg.active:
+                k = (m.key, msg.master)
+                eng = engaged.get(k)
+                if (eng is None or eng.engage != msg.engage) and tool is not None:
+                    eng = engaged[k] = _Engagement(msg.engage, tool[0].copy(), tool[1].copy())
+                if eng is None or eng.engage != msg.engage:
+                    continue  # no arm pose known yet: the target is unknown
+                p = command_target(eng.p0, eng.R0, msg.dp, msg.frame)
+                ts, ps = traces.targets.setdefault(m.key, ([], []))
+                ts.append(t_s)
+                ps.append(tuple(float(x) for x in p))
+                if m.key == keys.PUMA_CMD.key:
+                    target = p
+        if rec.truncated:
+            truncated.append(str(path))
+        stats = rec.metadata.get("telerobot.stats", {}).get("stats")
+        if stats:
+            recorder = json.loads(stats)
+
+    start = start_ns or 0
+    reports = []
+    for key in sorted(acc):
+        a = acc[key]
+        span_s = (a.last_ns - a.first_ns) / 1e9
+        reports.append(
+            KeyReport(
+                key=key,
+                type=a.type,
+                count=a.count,
+                rate_hz=(a.count - 1) / span_s if span_s > 0 else 0.0,
+                first_s=(a.first_ns - start) / 1e9,
+                last_s=(a.last_ns - start) / 1e9,
+                bytes=a.bytes,
+                rejected=a.rejected,
+                latency_ms=Spread.of(a.latency_ms),
+                senders=len(a.last_seq),
+                gaps=a.gaps,
+                missing=a.missing,
+                out_of_order=a.out_of_order,
+            )
+        )
+    return Report(
+        files=[str(p) for p in paths],
+        start_ns=start,
+        end_ns=end_ns,
+        messages=total,
+        keys=reports,
+        events=events,
+        truncated=truncated,
+        recorder=recorder,
+        tracking_mm=Spread.of(tracking),
+        traces=traces,
+    )
+
+
+# --- plots ---------------------------------------------------------------------------------
+AXES = ("x", "y", "z")
+
+
+def force_plot(report: Report) -> plots.Image:
+    """Force (N) and moment (N·m) at the tool point, tool frame, over time."""
+    tr = report.traces
+    t = np.asarray(tr.force_t_s)
+    f = np.asarray(tr.force_f, dtype=float).reshape(-1, 3)
+    c = np.asarray(tr.force_c, dtype=float).reshape(-1, 3)
+    fs = [plots.Series.of(f"f{a}", t, f[:, i]) for i, a in enumerate(AXES)]
+    fs.append(plots.Series.of("|f|", t, np.linalg.norm(f, axis=1), plots.BLACK))
+    cs = [plots.Series.of(f"c{a}", t, c[:, i]) for i, a in enumerate(AXES)]
+    return plots.stack(
+        [
+            plots.panel(fs, "robot/force: force at the tool point", "time (s)", "force (N)"),
+            plots.panel(cs, "robot/force: moment at the tool point", "time (s)", "moment (N*m)"),
+        ]
+    )
+
+
+def path_plot(report: Report) -> plots.Image:
+    """The tool path (robot/state) against the command targets: top (x–y) and side (x–z)."""
+    tr = report.traces
+    # Drawn in this order, widest first, so every line stays visible where they overlap.
+    lines: list[tuple[str, NDArray[np.float64], plots.BGR, int]] = [
+        (
+            "arm tool point (robot/state)",
+            np.asarray(tr.tool_p, float).reshape(-1, 3),
+            plots.BLACK,
+            5,
+        )
+    ]
+    for i, (key, label) in enumerate(COMMAND_KEYS.items()):
+        if key in tr.targets:
+            pts = np.asarray(tr.targets[key][1], dtype=float).reshape(-1, 3)
+            lines.append((f"{label} ({key})", pts, plots.PALETTE[1 + i], 3 - 2 * i))
+    views = []
+    for (i, j), name in (((0, 1), "top view"), ((0, 2), "side view")):
+        series = [plots.Series.of(lb, p[:, i], p[:, j], col, w) for lb, p, col, w in lines]
+        views.append(
+            plots.panel(
+                series,
+                f"tool path, {name}",
+                f"{AXES[i]} (m, world)",
+                f"{AXES[j]} (m, world)",
+                size=(640, 560),
+                equal_aspect=True,
+            )
+        )
+    return plots.stack(views, horizontal=True)
+
+
+def write_plots(report: Report, folder: str | Path) -> list[Path]:
+    """Write `force.png` and `path.png` into `folder`; their paths."""
+    d = Path(folder)
+    return [
+        plots.save_png(d / "force.png", force_plot(report)),
+        plots.save_png(d / "path.png", path_plot(report)),
+    ]
+
+
+# --- text ----------------------------------------------------------------------------------
+def _ms(s: Spread | None, attr: str) -> str:
+    return f"{getattr(s, attr):.2f}" if s is not None else "-"
+
+
+def format_report(report: Report, max_events: int = 50) -> str:
+    """The report as text for people."""
+    lines = [
+        f"recording: {', '.join(report.files)}",
+        f"duration {report.duration_s:.3f} s, {report.messages} messages, {len(report.keys)} keys",
+    ]
+    if report.truncated:
+        lines.append(f"cut short (recorder killed?): {', '.join(report.truncated)}")
+    if report.recorder is not None:
+        r = report.recorder
+        lines.append(
+            f"recorder: {r.get('received', 0)} received, {r.get('dropped', 0)} dropped, "
+            f"{r.get('written', 0)} written"
+        )
+    lines.append("")
+    head = (
+        f"{'KEY':<22} {'TYPE':<16} {'COUNT':>7} {'RATE Hz':>9} {'LAT mean':>9} "
+        f"{'p95':>8} {'max ms':>8} {'GAPS':>5} {'MISSING':>8} {'OOO':>4} {'BAD':>4}"
+    )
+    lines.append(head)
+    for k in report.keys:
+        lines.append(
+            f"{k.key:<22} {k.type or '?':<16} {k.count:>7} {k.rate_hz:>9.1f} "
+            f"{_ms(k.latency_ms, 'mean'):>9} {_ms(k.latency_ms, 'p95'):>8} "
+            f"{_ms(k.latency_ms, 'max'):>8} {k.gaps:>5} {k.missing:>8} {k.out_of_order:>4} "
+            f"{k.rejected:>4}"
+        )
+    if report.tracking_mm is not None:
+        t = report.tracking_mm
+        lines += [
+            "",
+            f"tracking (tool point → supervised target): mean {t.mean:.1f} mm, "
+            f"p95 {t.p95:.1f} mm, max {t.max:.1f} mm",
+        ]
+    lines += ["", f"events ({len(report.events)}):"]
+    for e in report.events[:max_events]:
+        lines.append(f"  {e.t_s:9.3f} s  {e.source:<10} {e.kind:<10} {e.message}")
+    if len(report.events) > max_events:
+        lines.append(f"  … {len(report.events) - max_events} more (--max-events)")
+    return "\n".join(lines)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="telerobot report", description=__doc__)
+    p.add_argument("files", nargs="+", metavar="FILE.mcap", help="recording (or its parts)")
+    p.add_argument("--plots", metavar="DIR", default=None, help="write force.png, path.png here")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.add_argument("--max-events", type=int, default=50, help="events listed in the text")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    for f in args.files:
+        if not Path(f).is_file():
+            print(f"telerobot report: no such file {f!r}", file=sys.stderr)
+            return 2
+    report = analyze(args.files)
+    written = write_plots(report, args.plots) if args.plots else []
+    if args.json:
+        out = report.as_dict()
+        out["plots"] = [str(p) for p in written]
+        print(json.dumps(out))
+    else:
+        print(format_report(report, args.max_events))
+        for p in written:
+            print(f"plot: {p}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
