@@ -244,6 +244,12 @@ def _coerce(key: str, tp: Any, v: Any) -> Any:
         if not isinstance(v, Mapping):
             raise ConfigError(key, f"expected a table, got {v!r}")
         return section(tp, v, key)
+    if origin is dict:
+        # A free-form table (e.g. [up.commands]): TOML keys are strings; values by type.
+        if not isinstance(v, Mapping):
+            raise ConfigError(key, f"expected a table, got {v!r}")
+        value_tp = get_args(tp)[1] if get_args(tp) else typing.Any
+        return {str(k): _coerce(f"{key}.{k}", value_tp, x) for k, x in v.items()}
     if tp is typing.Any:
         return v
     raise ConfigError(key, f"unsupported type {tp!r}")

@@ -39,7 +39,9 @@ _QOS: dict[QoS, dict[str, Any]] = {
     QoS.CONTROL: {
         "priority": zenoh.Priority.REAL_TIME,
         "express": True,
-        "congestion_control": zenoh.CongestionControl.DROP,
+        # Block, as keys.QoS.CONTROL and PROTOCOL.md §3 say: with DROP a loaded 2-core host
+        # lost up to half of a 300-sample burst on loopback; only video may drop.
+        "congestion_control": zenoh.CongestionControl.BLOCK,
     },
     QoS.STATE: {
         "priority": zenoh.Priority.INTERACTIVE_HIGH,
@@ -290,8 +292,6 @@ class Node:
     def event(self, kind: str, message: str, data: Mapping[str, Any] | None = None) -> Event:
         """Publish an Event on `robot/events` from this service."""
         with self._lock:
-            if self._event_pub is None:
-                self._event_pub = self.publisher(EVENTS)
             self._event_seq += 1
             ev = Event(
                 seq=self._event_seq,
@@ -303,6 +303,10 @@ class Node:
             )
             if not self._closed:
                 try:
+                    # Declared here, not above: after close() declaring raises ZError, and
+                    # a late callback's event must be dropped, not crash its thread.
+                    if self._event_pub is None:
+                        self._event_pub = self.publisher(EVENTS)
                     self._event_pub.put(ev)
                 except (zenoh.ZError, ProtocolError):
                     log.warning("could not publish event %s: %s", kind, message, exc_info=True)

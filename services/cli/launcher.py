@@ -86,6 +86,8 @@ class Child:
         self.starts = 0
         self.started_at = 0.0
         self.next_start = 0.0
+        #: exited and not to be restarted (restart = false): no longer supervised
+        self.finished = False
         self._pump: threading.Thread | None = None
 
     def start(self) -> None:
@@ -156,7 +158,7 @@ def run(profile: Path, out: IO[str] = sys.stdout, stop: Shutdown | None = None) 
             now = time.monotonic()
             for c in children:
                 code = c.poll()
-                if code is None or c.next_start > now:
+                if code is None or c.finished or c.next_start > now:
                     continue
                 if c.next_start:  # a scheduled restart is due
                     c.next_start = 0.0
@@ -170,6 +172,7 @@ def run(profile: Path, out: IO[str] = sys.stdout, stop: Shutdown | None = None) 
                     break
                 if not cfg.restart:
                     c.say(f"exited with {code}; not restarting")
+                    c.finished = True
                     continue
                 delay = min(cfg.backoff_s * 2 ** (c.starts - 1), cfg.backoff_max_s)
                 c.say(f"exited with {code}; restarting in {delay:.1f} s")

@@ -41,8 +41,10 @@ class Box:
         """The 8 corners, (8, 3), ordered by the bits (x, y, z) of the index."""
         lo, hi = self.lo, self.hi
         return np.array(
-            [[(hi if i & 1 else lo)[0], (hi if i & 2 else lo)[1], (hi if i & 4 else lo)[2]]
-             for i in range(8)]
+            [
+                [(hi if i & 1 else lo)[0], (hi if i & 2 else lo)[1], (hi if i & 4 else lo)[2]]
+                for i in range(8)
+            ]
         )
 
 

@@ -123,9 +123,15 @@ def test_command_and_readback_converge(rig: Rig) -> None:
 def test_stop_holds_where_it_is(rig: Rig) -> None:
     q0 = ready(rig)
     far = q0 + 1.0
-    for k in range(1, 51):  # 1.5 rad/s towards a far target, stopped after 0.15 rad
-        rig.arm.command(q0 + min(k * 0.003, 1.0) * (far - q0))
-        time.sleep(0.002)
+    # Stream towards a far target (0.003 rad per setpoint) until the arm is really moving
+    # (condition, not a fixed count: a loaded machine sends fewer setpoints per cycle).
+    deadline = time.monotonic() + 20.0
+    k = 0
+    while not np.all(rig.true_q() > q0 + 0.02):
+        assert time.monotonic() < deadline, "the arm never started to move"
+        k += 1
+        rig.arm.command(q0 + min(k * 0.003, 0.3) * (far - q0))
+        time.sleep(0.002)  # the streaming period, not a synchronisation
     rig.arm.stop()
     held: list[np.ndarray] = []
 

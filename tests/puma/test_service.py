@@ -27,9 +27,9 @@ def puma(net):  # type: ignore[no-untyped-def]
 
 
 def _ready(client, state) -> RobotState:  # type: ignore[no-untyped-def]
-    client.call("puma", "connect", {}, timeout_s=5.0)
-    client.call("puma", "initialize", {"wait": True}, timeout_s=10.0)
-    st = state.wait_for(lambda s: s.status == "ready", 10.0)
+    client.call("puma", "connect", {}, timeout_s=30.0)
+    client.call("puma", "initialize", {"wait": True}, timeout_s=30.0)
+    st = state.wait_for(lambda s: s.status == "ready", 30.0)
     assert st is not None, "the arm never became ready"
     return st
 
