@@ -1,4 +1,6 @@
-"""The `telerobot` command and the zenoh-cli codec entry points: their group name has a '-' that pyproject refuses.
+"""The `telerobot` command and the zenoh-cli codec entry points.
+
+The codec groups' names have a '-' that pyproject tables refuse.
 
 zenoh-cli (PyPI) gathers codecs from `zenoh-cli.codecs.*`; some versions spell it
 `zenoh_cli.codecs.*`, so both are registered. Everything else is in pyproject.toml.
