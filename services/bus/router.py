@@ -48,6 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     add_node_args(p)
     args = p.parse_args(argv)
     setup_logging("router")
+    # RUST_LOG=info,zenoh::net::routing::interceptor::access_control=trace shows ACL denials.
+    zenoh.try_init_log_from_env()
     cfg = router_config(args)
     stop = Shutdown()
     with open_router(cfg) as session:

@@ -1,0 +1,102 @@
+#!/usr/bin/env bash
+# make-certs.sh: a private certificate authority and the certificates of one Telerobot cell.
+#
+#   deploy/certs/make-certs.sh [-o DIR] [-d DAYS] [-c CLIENT]... ROBOT_HOST [ROBOT_HOST...]
+#
+# ROBOT_HOST: every name or address an operator will use to reach the robot host's router
+#   (tls/ROBOT_HOST:7448), e.g. `robot.lab.example.org 192.168.10.5`. Each one goes into the
+#   router certificate's subjectAltName (DNS or IP), because clients check the name they dialled
+#   against it (Zenoh's `verify_name_on_connect`, on by default).
+# -c CLIENT: a client certificate whose common name is CLIENT (repeatable; default: operator and
+#   observer). With mTLS the router's ACL matches these names (`cert_common_names`).
+# -o DIR: where to write (default: the current directory). An existing CA there is reused, so
+#   the script can be run again to add a client or renew the router certificate without
+#   re-issuing everyone's.
+# -d DAYS: validity of the new leaf certificates (default 825, the longest most clients accept).
+#
+# Writes, in DIR: ca.pem, ca.key (keep the key offline), router.pem, router.key, and
+# CLIENT.pem, CLIENT.key per client. Keys are ECDSA P-256 in PKCS#8, which Zenoh (rustls) reads.
+set -euo pipefail
+
+usage() {
+  sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//' >&2
+  exit 2
+}
+
+out="."
+days=825
+clients=()
+while getopts "o:d:c:h" opt; do
+  case "$opt" in
+    o) out="$OPTARG" ;;
+    d) days="$OPTARG" ;;
+    c) clients+=("$OPTARG") ;;
+    *) usage ;;
+  esac
+done
+shift $((OPTIND - 1))
+[ "$#" -ge 1 ] || usage
+[ "${#clients[@]}" -gt 0 ] || clients=(operator observer)
+command -v openssl >/dev/null || { echo "make-certs.sh: needs openssl (apt-get install openssl)" >&2; exit 1; }
+case "$days" in '' | *[!0-9]*) echo "make-certs.sh: -d takes a number of days" >&2; exit 2 ;; esac
+
+mkdir -p "$out"
+umask 077  # private keys readable by their owner only
+work="$(mktemp -d)"
+trap 'rm -rf "$work"' EXIT
+
+# subjectAltName entries: an IPv4/IPv6 literal is an IP entry, anything else a DNS name.
+san=""
+for host in "$@"; do
+  case "$host" in
+    *[!0-9.]* | '') if [[ "$host" == *:* ]]; then entry="IP:$host"; else entry="DNS:$host"; fi ;;
+    *) entry="IP:$host" ;;
+  esac
+  san="${san:+$san,}$entry"
+done
+
+newkey() {
+  openssl genpkey -algorithm EC -pkeyopt ec_paramgen_curve:P-256 -out "$1" 2>/dev/null
+}
+
+if [ -f "$out/ca.pem" ] && [ -f "$out/ca.key" ]; then
+  echo "reusing the CA in $out"
+else
+  newkey "$out/ca.key"
+  # The CA lives longer than its leaves (10 years); rustls requires CA:TRUE and keyCertSign.
+  openssl req -x509 -new -key "$out/ca.key" -sha256 -days 3650 -subj "/CN=Telerobot cell CA" \
+    -addext "basicConstraints=critical,CA:TRUE" \
+    -addext "keyUsage=critical,keyCertSign,cRLSign" \
+    -addext "subjectKeyIdentifier=hash" \
+    -out "$out/ca.pem"
+  echo "new CA: $out/ca.pem"
+fi
+
+# sign NAME CN EXTENSIONS: NAME.key + NAME.pem signed by the CA.
+sign() {
+  local name="$1" cn="$2" ext="$3"
+  newkey "$out/$name.key"
+  openssl req -new -key "$out/$name.key" -subj "/CN=$cn" -out "$work/$name.csr"
+  printf '%b\n' "$ext" >"$work/$name.ext"
+  # -CAcreateserial with a fresh serial file: a random serial number per certificate
+  openssl x509 -req -in "$work/$name.csr" -CA "$out/ca.pem" -CAkey "$out/ca.key" \
+    -CAcreateserial -CAserial "$work/ca.srl" -sha256 -days "$days" \
+    -extfile "$work/$name.ext" -out "$out/$name.pem" 2>/dev/null
+  echo "$name.pem: CN=$cn${4:+, $4}"
+}
+
+leaf="basicConstraints=critical,CA:FALSE\nkeyUsage=critical,digitalSignature\nsubjectKeyIdentifier=hash\nauthorityKeyIdentifier=keyid"
+sign router telerobot-router "$leaf\nextendedKeyUsage=serverAuth\nsubjectAltName=$san" "SAN $san"
+for client in "${clients[@]}"; do
+  case "$client" in
+    '' | *[!A-Za-z0-9._-]*) echo "make-certs.sh: bad client name '$client'" >&2; exit 2 ;;
+    router | ca) echo "make-certs.sh: '$client' is reserved" >&2; exit 2 ;;
+  esac
+  sign "$client" "$client" "$leaf\nextendedKeyUsage=clientAuth"
+done
+
+# Certificates are public; keys stay 0600. Group-readable keys are set by the installer.
+chmod 0644 "$out"/*.pem
+openssl verify -CAfile "$out/ca.pem" "$out/router.pem" >/dev/null
+echo "done: copy ca.pem, router.pem, router.key to the robot host;" \
+  "ca.pem and a client's .pem/.key to its host"

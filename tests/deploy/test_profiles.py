@@ -1,0 +1,85 @@
+"""`telerobot up` runs the shipped robot and operator profiles as two hosts would.
+
+The profiles are installed from deploy/ like in test_security.py (prefix and ports
+rewritten), plus the edits a lab makes to try a cell without hardware: the simulated arm,
+sensor and cameras on the robot host, the scripted master on the station, which dials the
+router at localhost. Both launchers start every child; the station's master and console
+and the robot's services see each other through the router's ACL (liveliness tokens,
+`decision status`); SIGTERM stops each launcher cleanly.
+"""
+
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+
+import pytest
+
+from services.bus.config import NodeConfig
+from services.bus.node import Node
+from tests.bus.test_router import ChildProcess, spawned, telerobot
+from tests.conftest import free_port
+from tests.deploy.cell import Cell, install, wait_until
+
+pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
+
+DEADLINE_S = 45.0
+STOP_S = 30.0
+ROBOT_SERVICES = {"puma", "force", "decision", "vision"}
+STATION = {"master/station1", "console", "master/console"}
+
+
+def edit(path: Path, *pairs: tuple[str, str]) -> None:
+    text = path.read_text()
+    for old, new in pairs:
+        assert old in text, f"{path.name} has no {old!r}"
+        text = text.replace(old, new)
+    path.write_text(text)
+
+
+def without_hardware(cell: Cell) -> None:
+    edit(
+        cell.profile("robot"),
+        ('arm = "serial"', 'arm = "sim"'),
+        ('sensor = "serial"', 'sensor = "sim"'),
+        # SCHED_FIFO on a shared 2-core test machine is not ours to take
+        ('priority = "highest"', 'priority = "normal"'),
+        ('camera = "opencv"', 'camera = "sim"'),
+        ("devices = [0, 2]\n", ""),
+    )
+    edit(
+        cell.profile("operator"),
+        ('device = "spacemouse"', 'device = "scripted"'),
+        ("port = 8080", f"port = {free_port()}"),
+        ("tls/robot.lab.example:7448", f"tls/localhost:{cell.tls_port}"),
+    )
+
+
+def stop(launcher: ChildProcess) -> int:
+    """SIGTERM, as systemd or Ctrl-C would; the launcher stops its children in turn (each
+    within its `stop_timeout_s`), so allow it more than ChildProcess.stop's 5 s."""
+    launcher.proc.send_signal(signal.SIGTERM)
+    return launcher.wait(STOP_S)
+
+
+def test_robot_and_operator_profiles_come_up_together(tmp_path: Path) -> None:
+    cell = install(tmp_path, ports=(free_port(), free_port()))
+    without_hardware(cell)
+    with spawned(telerobot("up", str(cell.profile("robot")))) as robot:
+        with spawned(telerobot("up", str(cell.profile("operator")))) as station:
+            cfg = NodeConfig(
+                mode="client",
+                connect=(f"tcp/127.0.0.1:{cell.tcp_port}",),
+                zenoh_config=str(cell.client_file("robot-local")),
+            )
+            with Node("check", cfg) as node:
+                want = ROBOT_SERVICES | STATION
+                up = wait_until(lambda: want <= node.alive.names(), DEADLINE_S, poll_s=0.1)
+                assert up, node.alive.names()
+                status = node.call("decision", "status", {}, DEADLINE_S)
+                assert want <= set(status["alive"]), status["alive"]
+            assert stop(station) == 0, station.rest()[-20:]
+        assert stop(robot) == 0, robot.rest()[-30:]
+        lines = robot.rest()
+    for service in ROBOT_SERVICES | {"router"}:
+        assert f"[{service}] stopped (exit 0)" in lines, (service, lines[-30:])

@@ -1,0 +1,328 @@
+"""The robot host's router, started from the shipped profile and JSON5, enforces TLS,
+user/password authentication and the access-control list by role.
+
+The router is `telerobot router --config robot.toml` in a child process, configured from
+the very files of deploy/ (installed into a temporary directory: only the /etc/telerobot/
+prefix and the listen ports are rewritten). Clients are in-process client sessions on
+loopback: the robot's own services log in as `robot` over `tcp/127.0.0.1`, the operator
+and the observer over `tls/localhost` with the cell's CA.
+
+Every denial is checked against an allowed flow of the same client at the same time (a key
+the client may publish, delivered to the same subscriber), so a test cannot pass because
+nothing flows at all. Denials are silent to the sender: a denied put simply never arrives.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from services.bus import codec, keys
+from services.bus.config import NodeConfig
+from services.bus.errors import RpcError, Unavailable
+from services.bus.keys import ENCODING
+from services.bus.messages import OperatorCommand, RobotState
+from services.bus.node import Node, Subscription
+from tests.bus.test_node import wait_matched
+from tests.bus.test_router import ChildProcess, spawned, telerobot
+from tests.conftest import free_port
+from tests.deploy.cell import Cell, install, wait_until
+
+DEADLINE_S = 15.0
+DELIVERED = 20
+"""Allowed messages a test waits for before it judges the denied ones (all sent in between)."""
+IDENTITY9 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def command(seq: int, master: str) -> OperatorCommand:
+    return OperatorCommand(
+        seq=seq,
+        t_ns=time.time_ns(),
+        master=master,
+        engage=1,
+        active=True,
+        frame="world",
+        dp=(0.0, 0.0, 0.0),
+        dR=IDENTITY9,
+    )
+
+
+def state(seq: int) -> RobotState:
+    return RobotState(
+        seq=seq,
+        t_ns=time.time_ns(),
+        status="ready",
+        q=(0.0,) * 6,
+        tool_p=(0.5, 0.0, 0.6),
+        tool_R=IDENTITY9,
+        flange_p=(0.5, 0.0, 0.8),
+        flange_R=IDENTITY9,
+        engage=0,
+        cmd_seq=0,
+    )
+
+
+class Senders:
+    """Counts, per `master` field, the commands a subscription received (Zenoh's thread
+    writes, the test reads)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._counts: dict[str, int] = {}
+
+    def __call__(self, msg: OperatorCommand) -> None:
+        with self._lock:
+            self._counts[msg.master] = self._counts.get(msg.master, 0) + 1
+
+    @property
+    def by_master(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._counts)
+
+    def count(self, master: str) -> int:
+        return self.by_master.get(master, 0)
+
+
+def put(node: Node, key: str, msg: OperatorCommand) -> None:
+    """A raw session put: unlike a declared publisher, it is sent even when the client knows
+    no subscriber, so only the router's ACL can stop it (a hostile client skips the
+    client-side matching too)."""
+    node.session.put(key, codec.encode(msg), encoding=ENCODING)
+
+
+def interleave(allowed: tuple[Node, str, Senders], denied: list[tuple[Node, str, str]]) -> int:
+    """Put robot/cmd from the allowed client and each denied (client, key, name) in turn
+    until the allowed one has delivered DELIVERED commands; the number of rounds sent."""
+    node, name, seen = allowed
+    rounds = 0
+    deadline = time.monotonic() + DEADLINE_S
+    while seen.count(name) < DELIVERED:
+        assert time.monotonic() < deadline, f"allowed {name} delivered {seen.by_master}"
+        rounds += 1
+        for dnode, dkey, dname in denied:
+            put(dnode, dkey, command(rounds, dname))
+        put(node, keys.CMD.key, command(rounds, name))
+        time.sleep(0.005)  # pacing: commands are sent at ≤ 1 kHz in service too
+    return rounds
+
+
+class Router:
+    """The robot host's router in a child process, and the cell it was installed from."""
+
+    def __init__(self, cell: Cell, child: ChildProcess) -> None:
+        self.cell = cell
+        self.child = child
+        self.tcp = f"tcp/127.0.0.1:{cell.tcp_port}"
+        self.tls = f"tls/localhost:{cell.tls_port}"
+
+    def node(
+        self, name: str, client_file: Path, endpoint: str, instance: str | None = None
+    ) -> Node:
+        cfg = NodeConfig(mode="client", connect=(endpoint,), zenoh_config=str(client_file))
+        return Node(name, cfg, instance=instance)
+
+    def station(self, client_file: Path, endpoint: str, master_id: str) -> Node:
+        """A master's session as an operator station opens it, its token announced."""
+        node = self.node("master", client_file, endpoint, master_id)
+        node.announce()
+        return node
+
+    def robot(self, name: str) -> Node:
+        """A robot-host service: the `robot` login over loopback TCP."""
+        return self.node(name, self.cell.client_file("robot-local"), self.tcp)
+
+
+def start_router(root: Path, router_file: str | None = None) -> Iterator[Router]:
+    cell = install(root, ports=(free_port(), free_port()))
+    profile = cell.profile("robot")
+    if router_file is not None:
+        text = profile.read_text().replace("robot-router.json5", router_file)
+        profile.write_text(text)
+    with spawned(telerobot("router", "--config", str(profile))) as child:
+        line = child.expect("router up")
+        assert f"tls/127.0.0.1:{cell.tls_port}" in line, line
+        yield Router(cell, child)
+
+
+@pytest.fixture(scope="module")
+def router(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Router]:
+    yield from start_router(tmp_path_factory.mktemp("cell"))
+
+
+@pytest.fixture(scope="module")
+def mtls_router(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Router]:
+    yield from start_router(tmp_path_factory.mktemp("cell-mtls"), "robot-router-mtls.json5")
+
+
+class RobotSide:
+    """The robot host's decision and puma stand-ins: subscribers of robot/cmd and
+    robot/puma/cmd, `status` methods that count their calls, and liveliness tokens."""
+
+    def __init__(self, stack: ExitStack, router: Router) -> None:
+        self.cmd, self.puma_cmd = Senders(), Senders()
+        self.calls: dict[str, int] = {"decision": 0, "puma": 0}
+        self.node = stack.enter_context(router.robot("decision"))
+        self.node.subscribe(keys.CMD, self.cmd)
+        self.node.subscribe(keys.PUMA_CMD, self.puma_cmd)
+        self.node.serve("decision", {"status": self._status("decision")})
+        self.node.announce()
+        puma = stack.enter_context(router.robot("puma"))
+        puma.serve("puma", {"status": self._status("puma")})
+        puma.announce()
+
+    def _status(self, who: str) -> Callable[[dict[str, Any]], dict[str, Any]]:
+        def status(args: dict[str, Any]) -> dict[str, Any]:
+            self.calls[who] += 1
+            return {"who": who}
+
+        return status
+
+
+def denied_call(node: Node, service: str) -> None:
+    """A call the router must not deliver: it fails (no reply, or Zenoh's timeout error)."""
+    with pytest.raises((Unavailable, RpcError)):
+        node.call(service, "status", {}, 1.0)
+
+
+def test_operator_commands_through_decision_but_never_the_puma_directly(router: Router) -> None:
+    with ExitStack() as stack:
+        side = RobotSide(stack, router)
+        robot, cmd, puma_cmd = side.node, side.cmd, side.puma_cmd
+        op = stack.enter_context(
+            router.station(router.cell.client_file("operator-client"), router.tls, "op1")
+        )
+        assert op.alive.wait("decision", DEADLINE_S), "the operator sees the robot's services"
+        assert robot.alive.wait("master/op1", DEADLINE_S), "the robot sees the operator's token"
+        rounds = interleave((op, "operator", cmd), [(op, keys.PUMA_CMD.key, "op-to-puma")])
+        assert rounds >= DELIVERED
+        assert puma_cmd.by_master == {}, "a put to robot/puma/cmd from off the robot host"
+
+        # The subscriber of robot/puma/cmd works: the robot host's own decision reaches it.
+        local = robot.publisher(keys.PUMA_CMD)
+        wait_matched(local, DEADLINE_S)
+        for i in range(1, 6):
+            local.put(command(i, "decision"))
+        assert wait_until(lambda: puma_cmd.count("decision") == 5, DEADLINE_S)
+        assert set(puma_cmd.by_master) == {"decision"}
+
+        # Methods: the decision server answers the operator; the puma's methods do not,
+        # although the puma is up and answers the robot host itself.
+        assert op.call("decision", "status", {}, DEADLINE_S) == {"who": "decision"}
+        assert robot.call("puma", "status", {}, DEADLINE_S) == {"who": "puma"}
+        denied_call(op, "puma")
+        assert side.calls == {"decision": 1, "puma": 1}
+
+
+def test_observer_may_watch_but_not_command(router: Router) -> None:
+    with ExitStack() as stack:
+        side = RobotSide(stack, router)
+        robot, cmd = side.node, side.cmd
+        op = stack.enter_context(
+            router.station(router.cell.client_file("operator-client"), router.tls, "op2")
+        )
+        observer_file = router.cell.client_file("observer-client")
+        watchers: list[tuple[str, Node]] = [
+            ("observer-tls", stack.enter_context(router.node("obs", observer_file, router.tls))),
+            ("observer-tcp", stack.enter_context(router.node("obs", observer_file, router.tcp))),
+        ]
+        states: list[Subscription[RobotState]] = [n.subscribe(keys.STATE) for _, n in watchers]
+        denied = [(n, keys.CMD.key, name) for name, n in watchers]
+        assert wait_until(lambda: robot.alive.is_alive("master/op2"), DEADLINE_S)
+        interleave((op, "operator", cmd), denied)
+        assert cmd.count("observer-tls") == 0 and cmd.count("observer-tcp") == 0, cmd.by_master
+
+        # Their subscriptions to the robot's state work.
+        state_pub = robot.publisher(keys.STATE)
+        n = 30
+        for i in range(1, n + 1):
+            state_pub.put(state(i))
+            time.sleep(0.002)
+        for sub in states:
+            assert sub.wait_for(lambda m: m.seq == n, DEADLINE_S) is not None
+            assert sub.received >= 1
+
+        # …and they call nothing, not even the decision server.
+        for _, watcher in watchers:
+            denied_call(watcher, "decision")
+        assert side.calls == {"decision": 0, "puma": 0}
+
+
+def test_operator_login_over_plain_tcp_commands_nothing(router: Router) -> None:
+    """Command rights need TLS (`link_protocols`): the operator's login over the plain
+    listener matches no subject."""
+    with ExitStack() as stack:
+        cmd = RobotSide(stack, router).cmd
+        op_file = router.cell.client_file("operator-client")
+        tls = stack.enter_context(router.node("master", op_file, router.tls, "tls"))
+        tcp = stack.enter_context(router.node("master", op_file, router.tcp, "tcp"))
+        interleave((tls, "over-tls", cmd), [(tcp, keys.CMD.key, "tcp")])
+        assert cmd.count("tcp") == 0, cmd.by_master
+
+
+def test_wrong_password_cannot_connect(router: Router) -> None:
+    cell = router.cell
+    bad = cell.variant(
+        "operator-client.json5",
+        lambda t: t.replace('password: "change-me-operator"', 'password: "guess"'),
+        "bad-password.json5",
+    )
+    nobody = cell.variant(
+        "operator-client.json5",
+        lambda t: t.replace('user: "operator"', 'user: "intruder"'),
+        "unknown-user.json5",
+    )
+    # `robot`'s password from the robot host's file: logs in, so the file itself is good
+    router.robot("probe").close()
+    for file, endpoint in ((bad, router.tls), (bad, router.tcp), (nobody, router.tls)):
+        with pytest.raises(zenoh.ZError, match="Unable to connect"):
+            router.node("master", file, endpoint).close()
+    no_login = cell.variant(
+        "operator-client.json5",
+        lambda t: re.sub(r"\s*auth: \{.*?\n    \},", "", t, flags=re.S),
+        "no-login.json5",
+    )
+    with pytest.raises(zenoh.ZError, match="Unable to connect"):
+        router.node("master", no_login, router.tls).close()
+
+
+def test_client_without_the_ca_cannot_connect_over_tls(router: Router) -> None:
+    cell = router.cell
+    no_ca = cell.variant(
+        "operator-client.json5",
+        lambda t: re.sub(r'\n\s*root_ca_certificate: "[^"]*",', "", t),
+        "no-ca.json5",
+    )
+    with pytest.raises(zenoh.ZError, match="Unable to connect"):
+        router.node("master", no_ca, router.tls).close()
+    # the same file with the CA (the shipped one) connects: the CA is what was missing
+    router.node("master", cell.client_file("operator-client"), router.tls).close()
+
+
+def test_mutual_tls_needs_the_operator_certificate_and_login(mtls_router: Router) -> None:
+    cell = mtls_router.cell
+    with ExitStack() as stack:
+        cmd = RobotSide(stack, mtls_router).cmd
+        op = stack.enter_context(
+            mtls_router.node("master", cell.client_file("operator-client-mtls"), mtls_router.tls)
+        )
+        # A client certificate of the cell, but the observer's: the operator's password
+        # with it commands nothing (the ACL wants CN `operator` AND user `operator`).
+        wrong_cn = cell.variant(
+            "operator-client-mtls.json5",
+            lambda t: t.replace("certs/operator.", "certs/observer."),
+            "observer-cert.json5",
+        )
+        imp = stack.enter_context(mtls_router.node("master", wrong_cn, mtls_router.tls, "imp"))
+        interleave((op, "operator", cmd), [(imp, keys.CMD.key, "imposter")])
+        assert cmd.count("imposter") == 0, cmd.by_master
+    # Without any client certificate the TLS handshake fails.
+    with pytest.raises(zenoh.ZError, match="Unable to connect"):
+        mtls_router.node("master", cell.client_file("operator-client"), mtls_router.tls).close()
