@@ -144,8 +144,9 @@ def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
 def check_rotation(name: str, r: tuple[float, ...], tol: float = 1e-6) -> None:
     """Reject a non-orthonormal (‖RᵀR − I‖ > tol) or reflected (det R < 0) rotation."""
     R = np.asarray(r, dtype=float).reshape(3, 3)
-    err = float(np.linalg.norm(R.T @ R - np.eye(3)))
-    if err > tol:
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: err is inf, rejected
+        err = float(np.linalg.norm(R.T @ R - np.eye(3)))
+    if not err <= tol:
         raise ProtocolError(name, f"not a rotation: ‖RᵀR − I‖ = {err:.3g} > {tol:g}")
     if np.linalg.det(R) < 0:
         raise ProtocolError(name, "reflection: det R < 0")

@@ -1,0 +1,167 @@
+"""The decision server's configuration: the `[decision]` table, read once into a frozen dataclass.
+
+Every value is checked in `__post_init__`; a bad one raises `ConfigError("decision.<key>", …)`.
+The supervisory settings (everything but `rate_hz`, `rpc_timeout_s` and `wait_timeout_s`) can
+also be changed while the service runs through the `supervisor` method, which builds a new
+config with the same checks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Any
+
+from services.bus.errors import ConfigError
+
+Vec3T = tuple[float, float, float]
+
+#: settings fixed at start-up: the `supervisor` method refuses to change them.
+STARTUP_ONLY: frozenset[str] = frozenset({"rate_hz", "rpc_timeout_s", "wait_timeout_s"})
+
+_POSITIVE = (
+    "rate_hz",
+    "watchdog_ms",
+    "stale_ms",
+    "state_stale_ms",
+    "max_force_n",
+    "max_torque_nm",
+    "max_tool_speed_m_s",
+    "max_tool_rot_speed_rad_s",
+    "rpc_timeout_s",
+    "wait_timeout_s",
+    "task_speed_m_s",
+    "guarded_speed_m_s",
+    "guarded_max_force_n",
+    "guarded_max_distance_m",
+    "arrive_tol_m",
+    "event_interval_s",
+)
+_BOOLEAN = ("compliance", "estop_power_off")
+_NON_NEGATIVE = (
+    "admittance_m_per_n_s",
+    "admittance_rad_per_nm_s",
+    "admittance_deadband_n",
+    "admittance_deadband_nm",
+    "tool_tip_radius_m",
+    "grip_time_s",
+)
+
+
+@dataclass(frozen=True, slots=True)
+class DecisionConfig:
+    """Settings of the decision server (units in the names; world frame = DH base frame).
+
+    Loop and watchdogs:
+      rate_hz: the supervisory loop rate (≥ 500 Hz by design; every tick publishes one
+        command to the puma while teleoperation or a task runs).
+      watchdog_ms: no fresh command from the lease holder for this long → hold.
+      stale_ms: with compliance on, no force sample for this long → hold.
+      state_stale_ms: no robot/state for this long → hold (the puma is gone or frozen).
+
+    Supervision (§2.1.4's "active compliance … as supervisory functions"):
+      max_force_n, max_torque_nm: above these the motion into the contact is removed.
+      compliance: admittance on: the target yields to the wrist force,
+        dp = admittance_m_per_n_s · f_world · dt, dθ = admittance_rad_per_nm_s · c_tool · dt,
+        with deadbands admittance_deadband_n / admittance_deadband_nm.
+      workspace_min, workspace_max: the box (m, world) the tool point must stay in. The
+        default spans the table (x 0.35…0.85, y −0.45…0.45, top z = 0.40) and its margins;
+        its floor is the table top, so the tool point never enters the table.
+      max_tool_speed_m_s, max_tool_rot_speed_rad_s: the supervised target never moves
+        faster (per tick: speed / rate_hz).
+
+    Methods and tasks:
+      rpc_timeout_s: timeout of a forwarded call; wait_timeout_s: of one with "wait": true.
+      task_speed_m_s: default speed of a task's moves; guarded_speed_m_s,
+        guarded_max_force_n, guarded_max_distance_m: defaults of `guarded_move`.
+      tool_tip_radius_m: radius of the tool's round tip around the tool point: a guarded
+        move reports the contact point this far ahead of the tool point.
+      arrive_tol_m: a task move is done when the measured tool point is this close.
+      grip_time_s: how long a task waits for the gripper to open or close.
+      event_interval_s: an intervention's event is sent at most once per this interval per
+        reason (and per master for refusals).
+      estop_power_off: `estop` also powers the arm off through puma's `estop` extension
+        (recovery then needs `connect` and `initialize`); default: puma `stop` (brake, hold).
+    """
+
+    rate_hz: float = 500.0
+    watchdog_ms: float = 100.0
+    stale_ms: float = 50.0
+    state_stale_ms: float = 200.0
+    max_force_n: float = 40.0
+    max_torque_nm: float = 4.0
+    compliance: bool = False
+    admittance_m_per_n_s: float = 0.002
+    admittance_rad_per_nm_s: float = 0.02
+    admittance_deadband_n: float = 2.0
+    admittance_deadband_nm: float = 0.2
+    workspace_min: Vec3T = (0.25, -0.5, 0.40)
+    workspace_max: Vec3T = (0.95, 0.5, 1.2)
+    max_tool_speed_m_s: float = 0.25
+    max_tool_rot_speed_rad_s: float = 1.0
+    rpc_timeout_s: float = 2.0
+    wait_timeout_s: float = 60.0
+    task_speed_m_s: float = 0.05
+    guarded_speed_m_s: float = 0.02
+    guarded_max_force_n: float = 5.0
+    guarded_max_distance_m: float = 0.2
+    tool_tip_radius_m: float = 0.005
+    arrive_tol_m: float = 0.002
+    grip_time_s: float = 0.5
+    event_interval_s: float = 1.0
+    estop_power_off: bool = False
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in _BOOLEAN:
+                if not isinstance(v, bool):
+                    raise _err(f.name, f"must be true or false, got {v!r}")
+                continue
+            if f.name in ("workspace_min", "workspace_max"):
+                if not isinstance(v, tuple) or len(v) != 3:
+                    raise _err(f.name, f"must be 3 numbers (m), got {v!r}")
+                for i, x in enumerate(v):
+                    _finite(f"{f.name}[{i}]", x)
+                continue
+            _finite(f.name, v)
+        for key in _POSITIVE:
+            if not getattr(self, key) > 0:
+                raise _err(key, f"must be > 0, got {getattr(self, key)}")
+        for key in _NON_NEGATIVE:
+            if not getattr(self, key) >= 0:
+                raise _err(key, f"must be ≥ 0, got {getattr(self, key)}")
+        for i, (lo, hi) in enumerate(zip(self.workspace_min, self.workspace_max, strict=True)):
+            if not lo < hi:
+                raise _err(
+                    "workspace_max",
+                    f"axis {'xyz'[i]}: max {hi} must be above min {lo}",
+                )
+        if self.guarded_speed_m_s > self.max_tool_speed_m_s:
+            raise _err("guarded_speed_m_s", "must not exceed max_tool_speed_m_s")
+        if self.task_speed_m_s > self.max_tool_speed_m_s:
+            raise _err("task_speed_m_s", "must not exceed max_tool_speed_m_s")
+
+    @property
+    def period_s(self) -> float:
+        """The nominal loop period (s): the speed limits are applied per this period."""
+        return 1.0 / self.rate_hz
+
+    def settings(self) -> dict[str, Any]:
+        """Every setting as a msgpack-friendly map (tuples as lists)."""
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = list(v) if isinstance(v, tuple) else v
+        return out
+
+
+def _err(key: str, message: str) -> ConfigError:
+    return ConfigError(f"decision.{key}", message)
+
+
+def _finite(key: str, v: object) -> None:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise _err(key, f"must be a number, got {type(v).__name__}")
+    if not math.isfinite(v):
+        raise _err(key, "must be finite")

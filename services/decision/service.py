@@ -1,0 +1,434 @@
+"""The decision service on the bus: the operator's single entry point (IDecisionServer).
+
+It serves `robot/decision/rpc/…` (every IProxyRobot and IForceSensor method forwarded to the
+puma and force services, plus `status`, `supervisor`, `estop`, `reset`, `task`), and runs the
+supervisory loop between `robot/cmd` and `robot/puma/cmd` on a thread of its own.
+
+Threads: Zenoh's callbacks only store the newest state/force sample or hand commands and
+liveliness changes over (deques); the loop thread owns the `Supervisor` and is the only
+publisher of `robot/puma/cmd`; RPC handlers run on the node's worker pool and touch the
+supervisor under the same lock, briefly. A task's caller waits on a condition of that lock.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable, Mapping
+from dataclasses import fields
+from functools import partial
+from typing import Any
+
+import zenoh
+
+from services.bus.codec import arg, jsonable
+from services.bus.config import section
+from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
+from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
+from services.bus.messages import ForceSample, OperatorCommand, RobotState
+from services.bus.node import Node
+from services.bus.rate import RateLoop
+from services.decision.config import STARTUP_ONLY, DecisionConfig
+from services.decision.supervisor import INTERVENTIONS, Inputs, Mode, Supervisor, TaskRun
+from services.decision.tasks import TASK_NAMES, TaskPlan, plan_task
+
+log = logging.getLogger("telerobot.decision")
+
+SERVICE = "decision"
+#: IProxyRobot (PROTOCOL §4) forwarded to robot/puma/rpc/…; puma's `status` is part of ours.
+PUMA_METHODS: tuple[str, ...] = (
+    "connect",
+    "initialize",
+    "set_tool",
+    "set_frame",
+    "move_joints",
+    "move_pose",
+    "move_relative",
+    "stop",
+    "home",
+    "fk",
+    "ik",
+    "limits",
+)
+#: IForceSensor (PROTOCOL §4) forwarded to robot/force/rpc/…
+FORCE_METHODS: tuple[str, ...] = (
+    "sensor_status",
+    "sensor_start",
+    "sensor_stop",
+    "sensor_config",
+    "sensor_bias",
+    "sensor_compliance",
+    "sensor_read",
+)
+#: forwarded methods that move the arm: refused while teleoperation or a task commands it
+#: (busy) and under the e-stop latch (estop)
+MOTION_METHODS: frozenset[str] = frozenset({"move_joints", "move_pose", "move_relative", "home"})
+ALIVE_WAIT_S = 0.5
+"""How long a forwarded call waits for the target's liveliness token before `unavailable`."""
+STATUS_CALL_TIMEOUT_S = 1.0
+HOLD_REPEATS = 3
+"""Inactive commands sent at close (each a new seq): one lost packet must not matter."""
+
+
+class DecisionService:
+    """The DecisionServer: declares its streams and methods, starts the loop, announces.
+
+    `close()` holds the arm (an inactive command, then puma `stop`) and stops the loop; it
+    does not close the node.
+    """
+
+    def __init__(self, node: Node, config: DecisionConfig) -> None:
+        self.node = node
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        wall = time.time_ns()
+        # Counters seeded from the wall clock, like the masters': a restarted decision server
+        # still counts upwards, so the puma never ignores it as stale.
+        self.supervisor = Supervisor(
+            config, seq_start=wall // 1_000, engage_start=wall // 1_000_000
+        )
+        self._commands: deque[OperatorCommand] = deque(maxlen=4096)
+        self._lost: deque[str] = deque(maxlen=1024)
+        self._state: tuple[RobotState, int] | None = None
+        self._force: tuple[ForceSample, int] | None = None
+        self._stop = threading.Event()
+        self._closed = False
+        self.loop_errors = 0
+        self.publish_errors = 0
+        self._rate: RateLoop | None = None
+
+        self._pub = node.publisher(PUMA_CMD)
+        node.subscribe(CMD, self._commands.append)
+        node.subscribe(STATE, self._on_state)
+        node.subscribe(FORCE, self._on_force)
+        node.alive.on_change(self._on_alive)
+        node.serve(SERVICE, self._methods())
+        self._thread = threading.Thread(target=self._loop, name="decision-loop", daemon=True)
+        self._thread.start()
+        node.announce()
+
+    # --- Zenoh callbacks: store or hand over, never block --------------------------------
+    def _on_state(self, msg: RobotState) -> None:
+        self._state = (msg, time.monotonic_ns())
+
+    def _on_force(self, msg: ForceSample) -> None:
+        self._force = (msg, time.monotonic_ns())
+
+    def _on_alive(self, name: str, up: bool) -> None:
+        if not up:
+            self._lost.append(name)
+
+    # --- the loop --------------------------------------------------------------------------
+    @property
+    def config(self) -> DecisionConfig:
+        return self.supervisor.config
+
+    def _loop(self) -> None:
+        rate = RateLoop(self.config.rate_hz, on_late=self._on_late)
+        self._rate = rate
+        while not self._stop.is_set():
+            self._tick()
+            rate.sleep()
+
+    def _on_late(self, late_s: float, n_late: int) -> None:
+        log.warning("supervisory loop late by %.1f ms (%d late ticks)", late_s * 1e3, n_late)
+
+    def _inputs(self) -> Inputs:
+        commands = tuple(_drain(self._commands))
+        lost = tuple(_drain(self._lost))
+        state, force = self._state, self._force
+        return Inputs(
+            now_ns=time.monotonic_ns(),
+            wall_ns=time.time_ns(),
+            state=state[0] if state else None,
+            state_rx_ns=state[1] if state else 0,
+            force=force[0] if force else None,
+            force_rx_ns=force[1] if force else 0,
+            commands=commands,
+            lost=lost,
+        )
+
+    def _tick(self) -> None:
+        inp = self._inputs()
+        with self._cond:
+            try:
+                res = self.supervisor.tick(inp)
+            except Exception as e:  # a bug: count it, report it, latch the safe state
+                self.loop_errors += 1
+                log.exception("supervisor tick failed")
+                self.supervisor.estop(inp.now_ns, f"internal error in the supervisor: {e}")
+                self._event(
+                    "error",
+                    f"supervisor tick failed: {e}",
+                    {"traceback": traceback.format_exc(limit=8)},
+                )
+                self._cond.notify_all()
+                return
+            if res.finished:
+                self._cond.notify_all()
+        if res.command is not None:
+            self._put(res.command)
+        for n in res.notices:
+            self._event(n.kind, n.message, n.data)
+
+    def _put(self, cmd: OperatorCommand) -> None:
+        try:
+            self._pub.put(cmd)
+        except (zenoh.ZError, ProtocolError):
+            self.publish_errors += 1
+            log.warning("could not publish on robot/puma/cmd", exc_info=True)
+
+    def _event(self, kind: str, message: str, data: Mapping[str, Any]) -> None:
+        if not self.node.closed:
+            self.node.event(kind, message, data)
+
+    # --- methods ---------------------------------------------------------------------------
+    def _methods(self) -> dict[str, Callable[[dict[str, Any]], dict[str, Any]]]:
+        methods: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {}
+        for name in PUMA_METHODS:
+            methods[name] = partial(self._puma_method, name)
+        for name in FORCE_METHODS:
+            methods[name] = partial(self._forward, "force", name)
+        methods.update(
+            status=self.rpc_status,
+            supervisor=self.rpc_supervisor,
+            estop=self.rpc_estop,
+            reset=self.rpc_reset,
+            task=self.rpc_task,
+        )
+        return methods
+
+    def _forward(
+        self, service: str, method: str, args: Mapping[str, Any], timeout_s: float | None = None
+    ) -> dict[str, Any]:
+        """Call `service.method` with the same arguments; its error codes pass through, and a
+        service that is down is `unavailable`."""
+        if timeout_s is None:
+            wait = args.get("wait") is True
+            timeout_s = self.config.wait_timeout_s if wait else self.config.rpc_timeout_s
+        if not self.node.alive.wait(service, min(ALIVE_WAIT_S, timeout_s)):
+            raise RpcError("unavailable", f"the {service} service is not running")
+        try:
+            return self.node.call(service, method, args, timeout_s)
+        except Unavailable as e:
+            raise RpcError("unavailable", f"{service}.{method}: {e}") from None
+
+    def _puma_method(self, method: str, args: dict[str, Any]) -> dict[str, Any]:
+        now = time.monotonic_ns()
+        if method == "stop":
+            with self._cond:
+                self.supervisor.stop(now)
+                self._cond.notify_all()
+        elif method in MOTION_METHODS:
+            with self._cond:
+                self.supervisor.claim(method)
+        elif method == "set_tool":
+            with self._cond:
+                if self.supervisor.mode in (Mode.FOLLOW, Mode.TASK):
+                    raise RpcError("busy", "set_tool refused: the supervisor is commanding the arm")
+        return self._forward("puma", method, args)
+
+    def rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The superset status: robot (robot/state and puma's `status`), sensor (robot/force
+        and `sensor_status`), supervisor (mode, lease, task, settings), alive services and the
+        intervention counters."""
+        now = time.monotonic_ns()
+        with self._cond:
+            snap = self.supervisor.snapshot()
+            settings = self.config.settings()
+        state, force = self._state, self._force
+        interventions = dict(snap["interventions"])
+        interventions["rejected"] = interventions.get("rejected", 0) + self._cmd_rejections()
+        rate = self._rate
+        return {
+            "service": SERVICE,
+            "mode": snap["mode"],
+            "lease": snap["lease"],
+            "estop": snap["estop"],
+            "supervisor": snap,
+            "settings": settings,
+            "interventions": interventions,
+            "robot": _stamped(state, now),
+            "force": _stamped(force, now),
+            "puma": self._peek("puma", "status"),
+            "sensor": self._peek("force", "sensor_status"),
+            "alive": sorted(self.node.alive.names()),
+            "loop": {
+                "rate_hz": self.config.rate_hz,
+                "ticks": rate.ticks if rate else 0,
+                "late": rate.late if rate else 0,
+                "errors": self.loop_errors,
+                "publish_errors": self.publish_errors,
+            },
+        }
+
+    def _cmd_rejections(self) -> int:
+        return sum(
+            n
+            for key, n in dict(self.node.rejected).items()
+            if key == CMD.key or key.endswith("/" + CMD.key)
+        )
+
+    def _peek(self, service: str, method: str) -> dict[str, Any]:
+        if not self.node.alive.is_alive(service):
+            return {"error": "unavailable", "message": f"the {service} service is not running"}
+        try:
+            return self.node.call(service, method, {}, STATUS_CALL_TIMEOUT_S)
+        except RpcError as e:
+            return {"error": e.code, "message": e.message}
+        except Unavailable as e:
+            return {"error": "unavailable", "message": str(e)}
+
+    def rpc_supervisor(self, args: dict[str, Any]) -> dict[str, Any]:
+        """No arguments: the supervisory settings and mode. With arguments: change those
+        settings (same names and checks as the `[decision]` table; bad_request otherwise)."""
+        if args:
+            fixed = sorted(set(args) & STARTUP_ONLY)
+            if fixed:
+                raise RpcError("bad_request", f"{', '.join(fixed)}: fixed at start-up")
+            with self._cond:
+                current = self.config.settings()
+            try:
+                new = section(DecisionConfig, {**current, **args}, "decision")
+            except ConfigError as e:
+                raise RpcError("bad_request", str(e)) from None
+            with self._cond:
+                self.supervisor.set_config(new)
+            changed = sorted(k for k in args if current.get(k) != new.settings().get(k))
+            self._event(
+                "status",
+                f"supervisor settings changed: {', '.join(changed) or 'none'}",
+                {"changed": {k: new.settings()[k] for k in changed}},
+            )
+        with self._cond:
+            return {
+                "settings": self.config.settings(),
+                "mode": self.supervisor.mode.value,
+                "startup_only": sorted(STARTUP_ONLY),
+            }
+
+    def rpc_estop(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Latch the emergency stop: hold, pre-empt any task, stop the puma; everything that
+        moves is refused until `reset`."""
+        with self._cond:
+            self.supervisor.estop(time.monotonic_ns(), str(args.get("reason") or "estop requested"))
+            self._cond.notify_all()
+        method = "estop" if self.config.estop_power_off else "stop"
+        try:
+            puma: dict[str, Any] = self._forward("puma", method, {})
+        except RpcError as e:
+            puma = {"error": e.code, "message": e.message}
+        return {"estop": True, "puma": puma}
+
+    def rpc_reset(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Clear the e-stop latch; masters must engage anew to move."""
+        with self._cond:
+            was = self.supervisor.reset(time.monotonic_ns())
+        return {"estop": False, "was_latched": was}
+
+    def rpc_task(self, args: dict[str, Any]) -> dict[str, Any]:
+        """`task {name, …}`: guarded_move, pick_place (streamed by the supervisor), home
+        (forwarded), cancel. Replies on completion unless `"wait": false`."""
+        name = arg(args, "name", str)
+        if self._closed:
+            raise RpcError("unavailable", "the decision server is shutting down")
+        if name not in TASK_NAMES:
+            raise ProtocolError("name", f"unknown task {name!r} (tasks: {', '.join(TASK_NAMES)})")
+        now = time.monotonic_ns()
+        if name == "cancel":
+            with self._cond:
+                run = self.supervisor.cancel_task(now)
+                self._cond.notify_all()
+            if run is not None and run.external:
+                self._forward("puma", "stop", {})
+            return {"cancelled": run.name if run is not None else None}
+        if name == "home":
+            return self._home_task(args, now)
+        with self._cond:
+            plan = plan_task(name, args, self.config)
+            run = self.supervisor.start_task(plan, now)
+        if not plan.wait:
+            return {"accepted": True, "task": name, "id": run.id}
+        return self._wait(run)
+
+    def _wait(self, run: TaskRun) -> dict[str, Any]:
+        with self._cond:
+            if not self._cond.wait_for(lambda: run.done, self.config.wait_timeout_s):
+                self.supervisor.cancel_task(time.monotonic_ns())
+                raise RpcError("internal", f"task {run.name!r} did not finish in time: cancelled")
+        return _outcome(run)
+
+    def _home_task(self, args: Mapping[str, Any], now: int) -> dict[str, Any]:
+        wait = bool(arg(args, "wait", bool, True))
+        with self._cond:
+            run = self.supervisor.start_task(TaskPlan("home", (), wait), now, external=True)
+
+        def go() -> None:
+            result: dict[str, Any] | None = None
+            error: tuple[ErrorCode, str] | None = None
+            try:
+                reply = self._forward("puma", "home", {"wait": True}, self.config.wait_timeout_s)
+                result = {"task": "home", "done": True, **reply}
+            except RpcError as e:
+                error = (e.code, e.message)
+            with self._cond:
+                self.supervisor.finish_external(run, result=result, error=error)
+                self._cond.notify_all()
+
+        if not wait:
+            threading.Thread(target=go, name="decision-home", daemon=True).start()
+            return {"accepted": True, "task": "home", "id": run.id}
+        go()
+        return _outcome(run)
+
+    # --- shutdown --------------------------------------------------------------------------
+    def close(self) -> None:
+        """Hold the arm (inactive command, puma `stop`), stop the loop. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        with self._cond:
+            final = self.supervisor.shutdown(time.monotonic_ns(), time.time_ns(), HOLD_REPEATS)
+            self._cond.notify_all()
+        for cmd in final:
+            self._put(cmd)
+        if self.node.closed or not self.node.alive.is_alive("puma"):
+            return
+        try:
+            self.node.call("puma", "stop", {}, self.config.rpc_timeout_s)
+        except (RpcError, Unavailable) as e:
+            log.info("puma stop at close: %s", e)
+
+
+def _drain(q: deque[Any]) -> list[Any]:
+    out = []
+    while True:
+        try:
+            out.append(q.popleft())
+        except IndexError:
+            return out
+
+
+def _stamped(
+    item: tuple[RobotState, int] | tuple[ForceSample, int] | None, now_ns: int
+) -> dict[str, Any] | None:
+    if item is None:
+        return None
+    msg, rx_ns = item
+    out: dict[str, Any] = jsonable({f.name: getattr(msg, f.name) for f in fields(msg)})
+    out["age_ms"] = (now_ns - rx_ns) / 1e6
+    return out
+
+
+def _outcome(run: TaskRun) -> dict[str, Any]:
+    if run.error is not None:
+        raise RpcError(run.error[0], run.error[1])
+    return dict(run.result or {"task": run.name, "done": run.done})
+
+
+__all__ = ["FORCE_METHODS", "INTERVENTIONS", "PUMA_METHODS", "DecisionService"]

@@ -1,0 +1,334 @@
+"""The Supervisor driven tick by tick: each filter, the watchdogs, the lease, e-stop, rebase."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from services.bus.codec import to_fields
+from services.bus.errors import RpcError
+from services.decision.config import DecisionConfig
+from services.decision.supervisor import Mode
+from services.decision.tasks import TaskPlan
+from services.workcell.scene import TABLE, Scene
+from tests.decision.rig import TICK_NS, TOOL_DOWN, Rig, angle_between, rot_z
+
+V_STEP = 0.25 * 0.002  # default speed limit per 2 ms tick (m)
+W_STEP = 1.0 * 0.002  # default rotation limit per tick (rad)
+EMPTY = Scene()  # no table: free space
+
+
+def engaged(rig: Rig, master: str = "m1", engage: int = 1, ticks: int = 3) -> None:
+    for _ in range(ticks):
+        rig.step([rig.cmd(master, engage)])
+    assert rig.sup.mode is Mode.FOLLOW and rig.sup.lease == master
+
+
+# --- mapping and the filters ---------------------------------------------------------------
+
+
+def test_follows_the_operator_in_world_and_tool_frames() -> None:
+    rig = Rig(scene=EMPTY)
+    start = rig.p.copy()
+    engaged(rig)
+    first = rig.outputs[0]
+    assert first.master == "decision" and first.frame == "world" and first.active
+    assert np.allclose(first.dp, 0.0)  # rebased on the current pose: no jump
+    rig.run(20, lambda i: [rig.cmd(dp=(0.0, 0.01, 0.0))])
+    assert np.allclose(rig.p, start + np.array([0.0, 0.01, 0.0]), atol=1e-9)
+    # a new engagement in tool mode: dp is along the tool axes (z down)
+    rig.run(20, lambda i: [rig.cmd(engage=2, dp=(0.0, 0.0, 0.01), frame="tool")])
+    assert np.allclose(rig.p, start + np.array([0.0, 0.01, -0.01]), atol=1e-9)
+    assert rig.outputs[-1].engage == 2 and rig.sup.stats["engagements"] == 2
+
+
+def test_every_published_command_is_valid_on_the_wire() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.run(50, lambda i: [rig.cmd(dp=(0.001 * i, 0, 0), dR=rot_z(0.01 * i))])
+    for c in rig.outputs:
+        to_fields(c)  # raises ProtocolError if a rotation drifted or a field is bad
+    seqs = [c.seq for c in rig.outputs]
+    assert seqs == sorted(set(seqs))
+
+
+def test_speed_limit_spreads_a_jump_and_catches_up() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    start = rig.p.copy()
+    path = []
+    for _ in range(250):
+        rig.step([rig.cmd(dp=(0.1, 0.0, 0.0))])
+        path.append(rig.sup.p_sup.copy())
+    steps = np.linalg.norm(np.diff(np.array([start, *path]), axis=0), axis=1)
+    assert steps.max() <= V_STEP + 1e-12
+    assert np.allclose(
+        path[-1], start + np.array([0.1, 0.0, 0.0]), atol=1e-9
+    )  # delayed, not dropped
+    speed = [n for n in rig.notices_of("limit") if n.data["reason"] == "speed"]
+    assert len(speed) == 1 and rig.sup.counters["limit"] == 1
+
+
+def test_rotation_speed_limit() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    Rs = [rig.R.copy()]
+    for _ in range(600):
+        rig.step([rig.cmd(dR=rot_z(1.0))])
+        Rs.append(rig.sup.R_sup.copy())
+    assert max(angle_between(a, b) for a, b in itertools.pairwise(Rs)) <= W_STEP + 1e-9
+    assert angle_between(Rs[-1], TOOL_DOWN @ rot_z(1.0)) < 1e-6
+
+
+def test_workspace_clamp_keeps_an_offset_not_a_jump() -> None:
+    rig = Rig(scene=EMPTY, p=(0.9, 0.0, 0.6))
+    engaged(rig)
+    rig.run(300, lambda i: [rig.cmd(dp=(0.2, 0.0, 0.0))])  # hand 15 cm beyond x = 0.95
+    assert rig.sup.p_sup[0] == pytest.approx(0.95)
+    assert rig.p[0] <= 0.95 + 1e-12
+    limits = [n for n in rig.notices_of("limit") if n.data["reason"] == "workspace"]
+    assert len(limits) == 1
+    # the hand comes back 5 cm: the tool comes back 5 cm at once (the excess is forgotten)
+    rig.run(200, lambda i: [rig.cmd(dp=(0.15, 0.0, 0.0))])
+    assert rig.sup.p_sup[0] == pytest.approx(0.90)
+
+
+def test_engagement_outside_the_box_may_only_come_back() -> None:
+    rig = Rig(scene=EMPTY, p=(1.0, 0.0, 0.6))  # outside x ≤ 0.95
+    engaged(rig)
+    rig.run(20, lambda i: [rig.cmd(dp=(0.05, 0.0, 0.0))])
+    assert rig.sup.p_sup[0] == pytest.approx(1.0)  # not further out
+    # back by 10 cm from the hand's furthest point (the 5 cm out were dropped)
+    rig.run(400, lambda i: [rig.cmd(dp=(-0.05, 0.0, 0.0))])
+    assert rig.sup.p_sup[0] == pytest.approx(0.9)
+
+
+def test_contact_stops_motion_into_the_table_but_not_along_or_away() -> None:
+    top = TABLE.top_z
+    rig = Rig(p=(0.6, 0.0, top + 0.02))
+    engaged(rig)
+    # the hand goes down to 1.5 mm above the workspace floor: 3.5 mm into the probe's contact
+    rig.run(200, lambda i: [rig.cmd(dp=(0.0, 0.0, -0.0185))])
+    assert rig.sup.counters["contact"] == 1
+    (ev,) = rig.notices_of("contact")
+    assert ev.data["reason"] == "force" and ev.data["force_n"] > 40.0
+    z_stop = rig.p[2]
+    assert top < z_stop < top + 0.005  # the probe (r = 5 mm) touches, the box floor is not hit
+    assert not [n for n in rig.notices_of("limit") if n.data["reason"] == "workspace"]
+    force_n = float(np.linalg.norm(rig.force_w()))
+    assert 40.0 < force_n < 40.0 + 20_000 * V_STEP + 1e-6  # at most one step past the threshold
+    # sliding along the table is allowed while in contact
+    rig.run(100, lambda i: [rig.cmd(dp=(0.02, 0.0, -0.0185))])
+    assert rig.p[0] == pytest.approx(0.62, abs=1e-6)
+    assert rig.p[2] == pytest.approx(z_stop, abs=1e-6)
+    # lifting the hand lifts the tool at once (what went into the table was dropped)
+    rig.run(100, lambda i: [rig.cmd(dp=(0.02, 0.0, -0.0085))])
+    assert rig.p[2] == pytest.approx(z_stop + 0.01, abs=1e-6)
+
+
+def test_torque_filter_stops_rotation_into_a_moment() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.push_c = np.array([0.0, 0.0, 5.0])  # a moment about the tool z axis (> 4 N·m)
+    R_before = rig.R.copy()
+    rig.run(50, lambda i: [rig.cmd(dR=rot_z(-0.05))])  # turning against it: refused
+    assert angle_between(R_before, rig.R) < 1e-9
+    assert [n.data["reason"] for n in rig.notices_of("contact")] == ["torque"]
+    # turning back with it is allowed at once: the hand's 0.1 rad back move becomes 0.1 rad
+    rig.run(100, lambda i: [rig.cmd(dR=rot_z(0.05))])
+    assert angle_between(R_before, rig.R) == pytest.approx(0.1, abs=1e-6)
+
+
+def test_admittance_yields_to_a_push_beyond_the_deadband() -> None:
+    rig = Rig(DecisionConfig(compliance=True), scene=EMPTY)
+    engaged(rig)
+    start = rig.p.copy()
+    rig.push_w = np.array([1.5, 0.0, 0.0])  # inside the 2 N deadband
+    rig.run(100, lambda i: [rig.cmd()])
+    assert np.allclose(rig.p, start)
+    rig.push_w = np.array([12.0, 0.0, 0.0])  # 10 N beyond the band: 0.02 m/s
+    rig.run(500, lambda i: [rig.cmd()])  # 1 s
+    assert rig.p[0] - start[0] == pytest.approx(0.02, rel=1e-6)
+    rig.push_w = np.zeros(3)
+    rig.run(100, lambda i: [rig.cmd()])  # released: the tool stays where it was pushed
+    assert rig.p[0] - start[0] == pytest.approx(0.02, rel=1e-6)
+
+
+def test_compliance_with_a_stale_force_stream_holds() -> None:
+    rig = Rig(DecisionConfig(compliance=True), scene=EMPTY)
+    engaged(rig)
+    rig.run(30, lambda i: [rig.cmd()], force=False)  # 60 ms without a sample (stale: 50 ms)
+    assert rig.sup.mode is Mode.HOLD
+    (ev,) = rig.notices_of("watchdog")
+    assert ev.data["reason"] == "force_stale"
+    assert not rig.outputs[-1].active
+
+
+def test_compliance_refuses_an_engagement_without_force() -> None:
+    rig = Rig(DecisionConfig(compliance=True), scene=EMPTY)
+    rig.run(30, lambda i: [rig.cmd()], force=False)
+    assert rig.sup.mode is Mode.IDLE and rig.outputs == []
+    assert rig.sup.counters["rejected"] >= 1
+
+
+# --- watchdogs, hold, rebase -------------------------------------------------------------------
+
+
+def test_command_watchdog_holds_until_a_new_engagement_and_rebases() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.run(20, lambda i: [rig.cmd(dp=(0.0, 0.005, 0.0))])
+    rig.run(60)  # 120 ms without commands (watchdog 100 ms)
+    assert rig.sup.mode is Mode.HOLD and rig.sup.lease is None
+    (ev,) = rig.notices_of("watchdog")
+    assert ev.data["reason"] == "command_timeout"
+    held = [c for c in rig.outputs if not c.active]
+    assert len(held) >= 5 and {c.engage for c in held} == {1}
+    assert all(np.allclose(c.dp, held[0].dp) for c in held)  # the last target, re-sent
+    n = len(rig.outputs)
+    # the same engagement resumes streaming: nothing moves
+    rig.run(50, lambda i: [rig.cmd(dp=(0.0, 0.05, 0.0))])
+    assert not any(c.active for c in rig.outputs[n:])
+    assert rig.notices_of("lease")[-1].data["reason"] == "engagement_held"
+    # a new engagement moves again, rebased on the current pose (first dp = 0)
+    pose = rig.p.copy()
+    rig.step([rig.cmd(engage=2)])
+    new = rig.outputs[-1]
+    assert new.active and new.engage == 2 and np.allclose(new.dp, 0.0)
+    assert np.allclose(rig.p, pose)
+
+
+def test_master_liveliness_lost_holds_at_once() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.step([rig.cmd()], lost=["master/m1"])
+    assert rig.sup.mode is Mode.HOLD and not rig.outputs[-1].active
+    assert rig.notices_of("watchdog")[-1].data["reason"] == "master_lost"
+    # the token comes back and the same engagement keeps streaming: still held
+    rig.run(10, lambda i: [rig.cmd(dp=(0.01, 0, 0))])
+    assert not any(c.active for c in rig.outputs[-10:])
+
+
+def test_stale_robot_state_or_robot_error_holds() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.run(110, lambda i: [rig.cmd()], state=False)  # 220 ms > state_stale_ms 200
+    assert rig.notices_of("watchdog")[-1].data["reason"] == "state_stale"
+    rig2 = Rig(scene=EMPTY)
+    engaged(rig2)
+    rig2.status = "error"
+    rig2.step([rig2.cmd()])
+    assert rig2.notices_of("watchdog")[-1].data["reason"] == "robot_error"
+
+
+def test_engagement_refused_when_the_robot_is_not_ready() -> None:
+    rig = Rig(scene=EMPTY, status="connected")
+    rig.run(5, lambda i: [rig.cmd()])
+    assert rig.sup.mode is Mode.IDLE and rig.outputs == []
+    rig.status = "ready"
+    rig.run(5, lambda i: [rig.cmd()])  # that engagement was refused for good
+    assert rig.outputs == []
+    engaged(rig, engage=2)
+
+
+def test_disengage_releases_the_lease_and_holds() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.step([rig.cmd(active=False)])
+    assert rig.sup.mode is Mode.HOLD and rig.sup.lease is None
+    assert rig.notices_of("lease")[-1].data["action"] == "released"
+    assert rig.sup.counters["watchdog"] == 0  # a disengage is not an intervention
+    rig.run(5)
+    assert all(not c.active for c in rig.outputs[-5:])
+
+
+def test_stale_seq_and_engage_are_ignored() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.run(30, lambda i: [rig.cmd(dp=(0.0, 0.01, 0.0))])
+    target = rig.p.copy()
+    old = rig.cmd(dp=(0.0, 0.05, 0.0), seq=3)  # an old seq arriving late
+    rig.step([old])
+    rig.step([rig.cmd(engage=0, dp=(0.05, 0, 0))])  # a lower engage
+    rig.step([rig.cmd(dp=(0.0, 0.01, 0.0))])
+    assert np.allclose(rig.p, target)
+    assert rig.sup.stats["stale_commands"] == 2
+    assert rig.notices_of("rejected")[0].data["reason"] == "stale seq or engage"
+
+
+def test_a_restarted_master_counting_from_one_is_accepted() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.step([rig.cmd(active=False)])
+    rig.now_ns += 1_000_000_000  # the master restarts a second later with seq 1, engage 1
+    rig.seqs.clear()
+    engaged(rig, engage=1)
+
+
+# --- the lease ---------------------------------------------------------------------------------
+
+
+def test_a_second_master_is_refused_with_rate_limited_events() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig, "m1")
+    rig.run(250, lambda i: [rig.cmd("m1"), rig.cmd("m2", dp=(0.05, 0, 0))])  # 0.5 s
+    refused = [n for n in rig.notices_of("lease") if n.data.get("master") == "m2"]
+    assert len(refused) == 1  # one event per second and master
+    assert rig.sup.counters["lease"] == 250  # every refused command is counted
+    assert rig.sup.lease == "m1"
+    rig.step([rig.cmd("m1", active=False)])
+    rig.run(5, lambda i: [rig.cmd("m2", dp=(0.05, 0, 0))])  # m2's current engagement: blocked
+    assert rig.sup.lease is None
+    engaged(rig, "m2", engage=2)
+
+
+# --- e-stop ------------------------------------------------------------------------------------
+
+
+def test_estop_latches_holds_refuses_and_reset_needs_a_new_engagement() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.sup.estop(rig.now_ns)
+    rig.run(10, lambda i: [rig.cmd(dp=(0.05, 0, 0))])
+    assert rig.sup.mode is Mode.ESTOP and all(not c.active for c in rig.outputs[-10:])
+    assert rig.sup.counters["estop"] == 1 + 10  # the latch and every refused command
+    assert rig.notices_of("estop")[0].data["latched"] is True
+    with pytest.raises(RpcError) as e:
+        rig.sup.claim("move_joints")
+    assert e.value.code == "estop"
+    with pytest.raises(RpcError) as e:
+        rig.sup.start_task(TaskPlan("guarded_move", ()), rig.now_ns)
+    assert e.value.code == "estop"
+    assert rig.sup.reset(rig.now_ns)
+    rig.run(10, lambda i: [rig.cmd(dp=(0.05, 0, 0))])
+    assert not any(c.active for c in rig.outputs[-10:])
+    engaged(rig, engage=2)
+
+
+def test_claim_for_a_forwarded_motion() -> None:
+    rig = Rig(scene=EMPTY)
+    rig.sup.claim("home")  # idle: fine
+    engaged(rig)
+    with pytest.raises(RpcError) as e:
+        rig.sup.claim("move_pose")
+    assert e.value.code == "busy"
+    rig.step([rig.cmd(active=False)])
+    assert rig.sup.mode is Mode.HOLD
+    rig.sup.claim("move_pose")  # stops re-sending the hold
+    n = len(rig.outputs)
+    rig.run(5)
+    assert len(rig.outputs) == n
+
+
+def test_stop_holds_teleoperation() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.sup.stop(rig.now_ns)
+    rig.step([rig.cmd(dp=(0.02, 0, 0))])
+    assert rig.sup.mode is Mode.HOLD and not rig.outputs[-1].active
+
+
+def test_tick_timing_uses_the_nominal_period() -> None:
+    assert int(DecisionConfig().period_s * 1e9) == TICK_NS
