@@ -28,6 +28,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("services.record.replay", "replay an MCAP recording"),
     "report": ("services.record.report", "summarize an MCAP recording"),
     "demo": ("services.cli.demo", "run a task scenario with the console"),
+    "workcell": ("services.workcell.__main__", "the simulated workcell (objects, gripper, bottle)"),
+    "tasks": ("services.tasks.__main__", "run the paper's evaluation tasks (1, 2, 3)"),
 }
 
 

@@ -7,7 +7,8 @@ scenarios. Frames: world (R_w, the DH base frame; z up, floor at z = 0). Units: 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +25,8 @@ class Box:
     size: tuple[float, float, float]
     color: tuple[int, int, int] = (160, 160, 160)
     stiffness_n_per_m: float = 20_000.0
+    #: an object the gripper may pick up (services.workcell.physics); fixtures are not
+    movable: bool = False
 
     @property
     def lo(self) -> Vec3:
@@ -50,7 +53,11 @@ class Box:
 
 @dataclass(frozen=True, slots=True)
 class Cylinder:
-    """An upright cylinder (a bottle): base centre `base` (m, world), `radius`, `height`."""
+    """An upright cylinder (a bottle): base centre `base` (m, world), `radius`, `height`.
+
+    A movable cylinder is an open-topped bottle holding liquid up to `liquid_height_m`
+    (m above its base, upright) at the start; it spills when tilted (docs/tasks.md, W3).
+    """
 
     name: str
     base: tuple[float, float, float]
@@ -58,6 +65,12 @@ class Cylinder:
     height: float
     color: tuple[int, int, int] = (200, 140, 60)
     stiffness_n_per_m: float = 20_000.0
+    movable: bool = False
+    liquid_height_m: float = 0.0
+
+    @property
+    def top_z(self) -> float:
+        return float(self.base[2] + self.height)
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,6 +101,44 @@ class Scene:
             if b.name == name:
                 return b
         raise KeyError(name)
+
+    def cylinder(self, name: str) -> Cylinder:
+        for c in self.cylinders:
+            if c.name == name:
+                return c
+        raise KeyError(name)
+
+    def solid(self, name: str) -> Box | Cylinder:
+        """The box or cylinder called `name` (KeyError if none)."""
+        for s in self.solids():
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    def solids(self) -> tuple[Box | Cylinder, ...]:
+        """Every box, then every cylinder, in declaration order."""
+        out: list[Box | Cylinder] = [*self.boxes]
+        out.extend(self.cylinders)
+        return tuple(out)
+
+    def movables(self) -> tuple[Box | Cylinder, ...]:
+        """The objects the gripper may pick up, boxes first, in declaration order."""
+        return tuple(s for s in self.solids() if s.movable)
+
+    def moved(self, origins: Mapping[str, Sequence[float]]) -> Scene:
+        """The same scene with solids moved: `origins[name]` is a box's new `center` or a
+        cylinder's new `base` (m, world). Solids stay axis-aligned and upright: a renderer
+        or contact model of this scene sees a moved object at its new place, not its tilt
+        (the dynamic poses are in `workcell/state`, docs/tasks.md)."""
+        boxes = tuple(
+            replace(b, center=_triple(origins[b.name])) if b.name in origins else b
+            for b in self.boxes
+        )
+        cylinders = tuple(
+            replace(c, base=_triple(origins[c.name])) if c.name in origins else c
+            for c in self.cylinders
+        )
+        return replace(self, boxes=boxes, cylinders=cylinders)
 
     def contacts(self, point: Vec3, radius: float = 0.0) -> list[Contact]:
         """Every contact of a sphere of `radius` (m) centred at `point` (world) with the scene."""
@@ -176,10 +227,19 @@ def _cylinder_contact(c: Cylinder, p: Vec3, radius: float) -> Contact | None:
     return Contact(c.name, depth, n, c.stiffness_n_per_m * depth * n)
 
 
+def _triple(v: Sequence[float]) -> tuple[float, float, float]:
+    if len(v) != 3:
+        raise ValueError(f"expected 3 coordinates, got {len(v)}")
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
 TABLE = Box("table", center=(0.60, 0.0, 0.20), size=(0.50, 0.90, 0.40), color=(60, 90, 140))
 """The table in front of the arm: top at z = 0.40 m, reachable with the tool pointing down."""
 
 BLOCK_SIZE_M = 0.05
+BOTTLE_LIQUID_HEIGHT_M = 0.18
+"""Liquid in the bottle (m above its base, upright): 18 of its 20 cm, so it spills past a
+tilt of atan((0.20 − 0.18) / 0.035) = 29.7° (docs/tasks.md, W3)."""
 
 
 def default_scene() -> Scene:
@@ -187,10 +247,17 @@ def default_scene() -> Scene:
     top = TABLE.top_z
     h = BLOCK_SIZE_M
     blocks = tuple(
-        Box(f"block{i}", center=(0.50, y, top + h / 2), size=(h, h, h), color=col)
+        Box(f"block{i}", center=(0.50, y, top + h / 2), size=(h, h, h), color=col, movable=True)
         for i, (y, col) in enumerate(
             [(-0.20, (40, 40, 200)), (-0.10, (40, 180, 40)), (0.0, (200, 60, 40))]
         )
     )
-    bottle = Cylinder("bottle", base=(0.55, 0.25, top), radius=0.035, height=0.20)
+    bottle = Cylinder(
+        "bottle",
+        base=(0.55, 0.25, top),
+        radius=0.035,
+        height=0.20,
+        movable=True,
+        liquid_height_m=BOTTLE_LIQUID_HEIGHT_M,
+    )
     return Scene(boxes=(TABLE, *blocks), cylinders=(bottle,))

@@ -1,0 +1,1 @@
+"""The paper's three evaluation tasks as simulated scenarios (docs/tasks.md)."""
