@@ -1,0 +1,150 @@
+"""Pure geometry of the console's 3D scene: poses of the drawn parts from the bus messages.
+
+Frames: world R_w (the DH base frame, z up, m); rotations are 3×3 matrices or unit
+quaternions `wxyz` (w first, viser's convention). Nothing here touches the bus or the page.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Vec = NDArray[np.float64]
+Mat = NDArray[np.float64]
+Frame = Literal["world", "tool"]
+
+MIN_SEGMENT_M = 1e-6
+
+
+def wxyz_from_R(R: ArrayLike) -> Vec:
+    """The unit quaternion (w, x, y, z), w ≥ 0, of the rotation matrix R (Shepperd's method,
+    stable for every angle)."""
+    m = np.asarray(R, dtype=float).reshape(3, 3)
+    tr = float(np.trace(m))
+    if tr > 0.0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = np.array(
+            [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+        )
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(max(1.0 + m[i, i] - m[j, j] - m[k, k], 0.0))
+        q = np.zeros(4)
+        q[0] = (m[k, j] - m[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (m[j, i] + m[i, j]) / s
+        q[1 + k] = (m[k, i] + m[i, k]) / s
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0.0 else -q
+
+
+def R_from_wxyz(wxyz: ArrayLike) -> Mat:
+    """The rotation matrix of a quaternion (w, x, y, z); normalised first, so a gizmo pose
+    that drifted off unit length still gives a proper rotation."""
+    q = np.asarray(wxyz, dtype=float).reshape(4)
+    n = float(np.linalg.norm(q))
+    if not np.isfinite(n) or n < 1e-12:
+        raise ValueError(f"not a quaternion: {wxyz!r}")
+    w, x, y, z = q / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotation_z_to(direction: ArrayLike) -> Mat:
+    """A rotation whose z axis is `direction` (any non-zero length; identity for a null
+    one): how a link drawn as a cylinder along its local z is turned to join two joints.
+    The twist about z is arbitrary (a cylinder does not show it); the x axis is taken
+    square to the world axis least aligned with `direction`, which is accurate for every
+    direction, antiparallel to z included."""
+    d = np.asarray(direction, dtype=float).reshape(3)
+    n = float(np.linalg.norm(d))
+    if n < MIN_SEGMENT_M:
+        return np.eye(3)
+    z = d / n
+    helper = np.zeros(3)
+    helper[int(np.argmin(np.abs(z)))] = 1.0
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
+def link_segments(origins: ArrayLike, tool_p: ArrayLike) -> list[tuple[Vec, Vec]]:
+    """The arm's links as segments (start, end), m, world: between consecutive DH frame
+    origins (`Puma560.link_origins`, (7, 3)), then flange → tool point; segments shorter
+    than 1 µm (the wrist's coincident origins) are left out."""
+    pts = np.asarray(origins, dtype=float).reshape(-1, 3)
+    chain = [*pts, np.asarray(tool_p, dtype=float).reshape(3)]
+    out: list[tuple[Vec, Vec]] = []
+    for a, b in itertools.pairwise(chain):
+        if float(np.linalg.norm(b - a)) >= MIN_SEGMENT_M:
+            out.append((a.copy(), b.copy()))
+    return out
+
+
+def cylinder_pose(a: ArrayLike, b: ArrayLike) -> tuple[Vec, Vec, float]:
+    """(centre, wxyz, length) of a cylinder along local z drawn from point a to point b."""
+    pa = np.asarray(a, dtype=float).reshape(3)
+    pb = np.asarray(b, dtype=float).reshape(3)
+    d = pb - pa
+    return 0.5 * (pa + pb), wxyz_from_R(rotation_z_to(d)), float(np.linalg.norm(d))
+
+
+def commanded_tool_pose(
+    p0: ArrayLike, R0: ArrayLike, dp: ArrayLike, dR: ArrayLike, frame: Frame
+) -> tuple[Vec, Mat]:
+    """The tool target an OperatorCommand asks for, PROTOCOL §2 (the paper's eqs. 2–3):
+
+        R_target = R0 · dR
+        p_target = p0 + dp          (frame "world", ΔT_w)
+        p_target = p0 + R0 · dp     (frame "tool",  M_w^t ΔT_t)
+
+    (p0, R0): the tool pose at the engagement's first command (m, world)."""
+    p0v = np.asarray(p0, dtype=float).reshape(3)
+    R0m = np.asarray(R0, dtype=float).reshape(3, 3)
+    dpv = np.asarray(dp, dtype=float).reshape(3)
+    R = R0m @ np.asarray(dR, dtype=float).reshape(3, 3)
+    p = p0v + dpv if frame == "world" else p0v + R0m @ dpv
+    return p, R
+
+
+def force_arrow(
+    tool_p: ArrayLike, tool_R: ArrayLike, f_tool: ArrayLike, m_per_n: float, max_len_m: float
+) -> NDArray[np.float64]:
+    """The force at the tool point as an arrow (2, 3), m, world: from the tool point along
+    f_world = R_wt · f_tool (a ForceSample is in the tool frame), `m_per_n` long per newton,
+    clipped to `max_len_m` (direction kept)."""
+    p = np.asarray(tool_p, dtype=float).reshape(3)
+    f_w = np.asarray(tool_R, dtype=float).reshape(3, 3) @ np.asarray(f_tool, dtype=float).reshape(3)
+    v = m_per_n * f_w
+    n = float(np.linalg.norm(v))
+    if n > max_len_m:
+        v *= max_len_m / n
+    return np.stack([p, p + v])
+
+
+def box_edges(lo: ArrayLike, hi: ArrayLike) -> NDArray[np.float64]:
+    """The 12 edges (12, 2, 3) of the axis-aligned box [lo, hi] (m, world), e.g. the
+    supervisor's workspace box: the corners differing in exactly one coordinate."""
+    a = np.asarray(lo, dtype=float).reshape(3)
+    b = np.asarray(hi, dtype=float).reshape(3)
+    corners = [np.where([(i >> k) & 1 for k in range(3)], b, a) for i in range(8)]
+    edges = [
+        (corners[i], corners[i | (1 << k)]) for i in range(8) for k in range(3) if not i & (1 << k)
+    ]
+    return np.array(edges, dtype=float)
+
+
+def hand_pose(position: ArrayLike, wxyz: ArrayLike) -> tuple[Vec, Mat]:
+    """The virtual master's hand pose (p (3,), R (3, 3), world) from the gizmo's pose: the
+    hand IS the gizmo, so with scale 1, frame world and the hand engaged at the tool pose,
+    eq. 5 and §2 make the tool target equal the gizmo pose."""
+    return np.asarray(position, dtype=float).reshape(3).copy(), R_from_wxyz(wxyz)

@@ -1,0 +1,223 @@
+"""What the console knows of the system: the newest of every stream, the force history, the
+event log, the engagement reference of the commanded target, and the polled status.
+
+Zenoh's callbacks only store here (latest-wins or append, under a lock, O(1)); the GUI
+thread reads snapshots. Nothing here talks to the page.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.bus.keys import (
+    EVENTS,
+    FORCE,
+    MASTER_STATE,
+    PUMA_CMD,
+    STATE,
+    STEREO_L,
+    STEREO_R,
+    VISION_STATS,
+)
+from services.bus.messages import (
+    Event,
+    ForceSample,
+    MasterState,
+    OperatorCommand,
+    RobotState,
+    StereoFrame,
+    VisionStats,
+    mat3,
+)
+from services.bus.node import Node, Subscription
+from services.console.geometry import Mat, Vec, commanded_tool_pose
+
+TARGET_STALE_S = 1.0
+"""The commanded target is drawn while robot/puma/cmd arrived within this time."""
+
+
+class ForceHistory:
+    """A ring buffer of force samples for the plots: time (s, the sender's clock), f (3, N),
+    c (3, N·m), tool frame. `add` is O(1) and called from Zenoh's thread."""
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 2:
+            raise ValueError("capacity must be ≥ 2")
+        self._t = np.zeros(capacity)
+        self._w = np.zeros((capacity, 6))
+        self._n = 0
+        self._i = 0
+        self._lock = threading.Lock()
+
+    def add(self, t_s: float, f: tuple[float, ...], c: tuple[float, ...]) -> None:
+        with self._lock:
+            self._t[self._i] = t_s
+            self._w[self._i, :3] = f
+            self._w[self._i, 3:] = c
+            self._i = (self._i + 1) % len(self._t)
+            self._n = min(self._n + 1, len(self._t))
+
+    def __len__(self) -> int:
+        with self._lock:
+            return self._n
+
+    def window(
+        self, span_s: float, max_points: int
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The samples of the last `span_s` seconds before the newest one, oldest first, as
+        (t, w): t (n,) in s relative to the newest (≤ 0), w (n, 6) = (f, c); decimated by an
+        integer step to at most `max_points`."""
+        with self._lock:
+            n, i = self._n, self._i
+            idx = (np.arange(i - n, i)) % len(self._t)
+            t = self._t[idx].copy()
+            w = self._w[idx].copy()
+        if n == 0:
+            return np.zeros(0), np.zeros((0, 6))
+        t -= t[-1]
+        keep = t >= -span_s
+        t, w = t[keep], w[keep]
+        step = max(1, -(-len(t) // max_points))
+        # Decimate from the newest backwards so the newest sample is always shown; the
+        # arrays are made contiguous because the page's serializer sends raw buffers.
+        return (
+            np.ascontiguousarray(t[::-1][::step][::-1]),
+            np.ascontiguousarray(w[::-1][::step][::-1]),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class TargetRef:
+    """The tool pose (p0, R0) at the start of engagement `engage` on robot/puma/cmd, taken
+    from the newest robot/state when that engagement's first command arrived."""
+
+    engage: int
+    p0: Vec
+    R0: Mat
+
+
+class BusMirror:
+    """Subscribes to every stream the console shows; polled status is stored here too."""
+
+    def __init__(self, node: Node, events: int, force_capacity: int) -> None:
+        self.node = node
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self.force = ForceHistory(force_capacity)
+        self._force_latest: ForceSample | None = None
+        self._events: deque[Event] = deque(maxlen=events)
+        self.events_seen = 0
+        self._masters: dict[str, MasterState] = {}
+        self._cmd: OperatorCommand | None = None
+        self._cmd_rx_s = -1e18
+        self._ref: TargetRef | None = None
+        self.decision_status: dict[str, Any] | None = None
+        self.decision_error: str | None = "no reply yet"
+        self.master_status: dict[str, Any] | None = None
+        self.state: Subscription[RobotState] = node.subscribe(STATE)
+        self.left: Subscription[StereoFrame] = node.subscribe(STEREO_L)
+        self.right: Subscription[StereoFrame] = node.subscribe(STEREO_R)
+        self.vision: Subscription[VisionStats] = node.subscribe(VISION_STATS)
+        node.subscribe(FORCE, self._on_force)
+        node.subscribe(EVENTS, self._on_event)
+        node.subscribe(MASTER_STATE, self._on_master)
+        node.subscribe(PUMA_CMD, self._on_puma_cmd)
+
+    # --- Zenoh's thread: store only -------------------------------------------------------
+    def _on_force(self, msg: ForceSample) -> None:
+        self.force.add(msg.t_ns / 1e9, msg.f, msg.c)
+        self._force_latest = msg
+
+    def _on_event(self, ev: Event) -> None:
+        with self._lock:
+            self._events.append(ev)
+            self.events_seen += 1
+
+    def _on_master(self, msg: MasterState) -> None:
+        with self._cond:
+            old = self._masters.get(msg.master)
+            if old is None or msg.seq > old.seq or msg.t_ns > old.t_ns:
+                self._masters[msg.master] = msg
+            self._cond.notify_all()
+
+    def _on_puma_cmd(self, cmd: OperatorCommand) -> None:
+        state = self.state.latest
+        with self._lock:
+            if self._cmd is not None and cmd.seq <= self._cmd.seq and cmd.t_ns <= self._cmd.t_ns:
+                return
+            self._cmd = cmd
+            self._cmd_rx_s = time.monotonic()
+            if (self._ref is None or self._ref.engage != cmd.engage) and state is not None:
+                self._ref = TargetRef(
+                    cmd.engage, np.asarray(state.tool_p, dtype=float), mat3(state.tool_R)
+                )
+
+    # --- readers ----------------------------------------------------------------------------
+    def latest_force(self) -> ForceSample | None:
+        return self._force_latest
+
+    def events(self) -> list[Event]:
+        with self._lock:
+            return list(self._events)
+
+    def events_since(self, seen: int) -> tuple[list[Event], int]:
+        """The events that arrived after the first `seen` ones (at most the log's length),
+        oldest first, and the new count to pass next time."""
+        with self._lock:
+            n = min(self.events_seen - seen, len(self._events))
+            return (list(self._events)[len(self._events) - n :] if n > 0 else []), self.events_seen
+
+    def master(self, master_id: str) -> MasterState | None:
+        with self._lock:
+            return self._masters.get(master_id)
+
+    def wait_master(
+        self, master_id: str, pred: Callable[[MasterState], bool], timeout_s: float
+    ) -> MasterState | None:
+        """Block until master `master_id`'s newest state satisfies `pred`, or the deadline."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                m = self._masters.get(master_id)
+                if m is not None and pred(m):
+                    return m
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+
+    def target(self) -> tuple[Vec, Mat, bool] | None:
+        """The tool target robot/puma/cmd asks for (p, R, active), PROTOCOL §2, or None when
+        no command arrived within TARGET_STALE_S."""
+        with self._lock:
+            cmd, ref, rx = self._cmd, self._ref, self._cmd_rx_s
+        if cmd is None or ref is None or ref.engage != cmd.engage:
+            return None
+        if time.monotonic() - rx > TARGET_STALE_S:
+            return None
+        p, R = commanded_tool_pose(ref.p0, ref.R0, cmd.dp, mat3(cmd.dR), cmd.frame)
+        return p, R, cmd.active
+
+    def set_status(
+        self,
+        decision: dict[str, Any] | None,
+        decision_error: str | None,
+        master: dict[str, Any] | None,
+    ) -> None:
+        """Store the polled status (from the poller thread)."""
+        with self._lock:
+            self.decision_status = decision
+            self.decision_error = decision_error
+            self.master_status = master
+
+    def status(self) -> tuple[dict[str, Any] | None, str | None, dict[str, Any] | None]:
+        with self._lock:
+            return self.decision_status, self.decision_error, self.master_status

@@ -1,0 +1,165 @@
+"""The console's text panels as HTML: robot and supervisor status, master, services, events.
+
+Pure functions of what the bus delivered, so they are tested without a browser. Every value
+that came off the bus is escaped. Elements carry stable ids (`tr-…`) and `data-` attributes
+so tests and scripts can read the page.
+"""
+
+from __future__ import annotations
+
+import html
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from services.bus.messages import Event, MasterState, RobotState
+
+#: services the console expects on a complete system (alive/<name>)
+EXPECTED_SERVICES: tuple[str, ...] = ("puma", "force", "decision", "vision")
+
+_STATUS_COLOR = {
+    "ready": "#1a7f37",
+    "moving": "#0969da",
+    "initializing": "#9a6700",
+    "connected": "#9a6700",
+    "disconnected": "#6e7781",
+    "error": "#cf222e",
+}
+_KIND_COLOR = {
+    "estop": "#cf222e",
+    "error": "#cf222e",
+    "watchdog": "#bc4c00",
+    "limit": "#bc4c00",
+    "contact": "#bc4c00",
+    "rejected": "#bc4c00",
+    "lease": "#8250df",
+    "status": "#0969da",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class MasterView:
+    """What the console knows about the master it drives."""
+
+    master_id: str
+    link: str
+    """The gizmo link's state: `engaged`, `master-shift`, `holding`, `waiting`, …"""
+    state: MasterState | None
+    error: str | None
+
+
+def _e(x: object) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _vec(v: Iterable[float], digits: int = 3) -> str:
+    return " ".join(f"{x:+.{digits}f}" for x in v)
+
+
+def _row(label: str, value_html: str) -> str:
+    return (
+        f'<tr><td style="color:#57606a;padding-right:8px;white-space:nowrap">{_e(label)}</td>'
+        f"<td>{value_html}</td></tr>"
+    )
+
+
+def status_html(
+    state: RobotState | None,
+    decision: Mapping[str, Any] | None,
+    decision_error: str | None,
+    master: MasterView,
+    last_action: str,
+) -> str:
+    """The status panel: robot (robot/state), supervisor (decision `status`), master, and
+    the result of the last button pressed."""
+    rows: list[str] = []
+    if state is None:
+        rows.append(_row("robot", '<span id="tr-robot-status" data-status="none">no state</span>'))
+    else:
+        color = _STATUS_COLOR.get(state.status, "#24292f")
+        rows.append(
+            _row(
+                "robot",
+                f'<b id="tr-robot-status" data-status="{_e(state.status)}" '
+                f'style="color:{color}">{_e(state.status)}</b>',
+            )
+        )
+        rows.append(
+            _row("tool p (m)", f'<code id="tr-tool-p">{_vec(state.tool_p)}</code>'),
+        )
+        rows.append(_row("q (rad)", f'<code id="tr-q">{_vec(state.q, 2)}</code>'))
+    if decision is not None:
+        mode = str(decision.get("mode", "?"))
+        estop = bool(decision.get("estop"))
+        lease = decision.get("lease")
+        mode_html = f'<b id="tr-mode" data-mode="{_e(mode)}">{_e(mode)}</b>'
+        if estop:
+            mode_html += ' <b id="tr-estop" style="color:#cf222e">E-STOP LATCHED</b>'
+        rows.append(_row("supervisor", mode_html))
+        rows.append(
+            _row(
+                "lease",
+                f'<span id="tr-lease" data-lease="{_e(lease or "")}">'
+                f"{_e(lease) if lease else 'free'}</span>",
+            )
+        )
+    else:
+        rows.append(
+            _row(
+                "supervisor",
+                f'<span id="tr-mode" data-mode="none" style="color:#cf222e">'
+                f"{_e(decision_error or 'no reply yet')}</span>",
+            )
+        )
+    rows.append(_row("master", master_html(master)))
+    rows.append(_row("last action", f'<span id="tr-action">{_e(last_action or "-")}</span>'))
+    return f'<table style="font-size:0.8em;width:100%">{"".join(rows)}</table>'
+
+
+def master_html(m: MasterView) -> str:
+    """One line: the master's id, device, link state, scales and frame."""
+    parts = [f'<span id="tr-master" data-link="{_e(m.link)}">{_e(m.master_id)}: {_e(m.link)}']
+    st = m.state
+    if st is not None:
+        parts.append(
+            f" ({_e(st.device)}, {_e(st.frame)}, s_t {st.scale_t:.2f}, s_r {st.scale_r:.2f})"
+        )
+    parts.append("</span>")
+    if m.error:
+        parts.append(f'<br><span id="tr-master-error" style="color:#cf222e">{_e(m.error)}</span>')
+    return "".join(parts)
+
+
+def alive_html(names: Iterable[str], expected: Sequence[str] = EXPECTED_SERVICES) -> str:
+    """The services whose liveliness token is up; expected ones that are down in red."""
+    up = sorted(set(names))
+    items = [f'<li data-alive="{_e(n)}" style="color:#1a7f37">● {_e(n)}</li>' for n in up] + [
+        f'<li data-down="{_e(n)}" style="color:#cf222e">○ {_e(n)} (down)</li>'
+        for n in expected
+        if n not in up
+    ]
+    return (
+        '<ul id="tr-alive" style="font-size:0.8em;list-style:none;padding-left:0;margin:0">'
+        + "".join(items)
+        + "</ul>"
+    )
+
+
+def events_html(events: Sequence[Event]) -> str:
+    """The event log, newest first: time, source, kind, message."""
+    items = []
+    for ev in reversed(events):
+        t = time.strftime("%H:%M:%S", time.localtime(ev.t_ns / 1e9))
+        ms = (ev.t_ns // 1_000_000) % 1000
+        color = _KIND_COLOR.get(ev.kind, "#24292f")
+        items.append(
+            f'<li class="tr-event" data-kind="{_e(ev.kind)}" data-source="{_e(ev.source)}">'
+            f'<span style="color:#8c959f">{t}.{ms:03d}</span> '
+            f'<b style="color:{color}">{_e(ev.kind)}</b> '
+            f'<span style="color:#57606a">{_e(ev.source)}</span> {_e(ev.message)}</li>'
+        )
+    return (
+        '<ul id="tr-events" style="font-size:0.75em;list-style:none;padding-left:0;margin:0;'
+        'max-height:18em;overflow-y:auto">' + "".join(items) + "</ul>"
+    )
