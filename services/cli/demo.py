@@ -12,6 +12,7 @@ running, so the console's virtual master can take over. Ctrl-C stops everything.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import threading
 
@@ -23,6 +24,26 @@ from services.cli import launcher
 
 CONSOLE_WAIT_S = 60.0
 TASKS = ("1", "2", "3", "none")
+_URL = re.compile(r"\[console\] console: (http://\S+)")
+
+
+class _UrlWatch:
+    """The launcher's output, passed through; remembers the URL the console prints (viser
+    moves to the next free port when the configured one is taken)."""
+
+    def __init__(self) -> None:
+        self.url: str | None = None
+        self.seen = threading.Event()
+
+    def write(self, text: str) -> int:
+        m = _URL.search(text)
+        if m and self.url is None:
+            self.url = m.group(1)
+            self.seen.set()
+        return sys.stdout.write(text)
+
+    def flush(self) -> None:
+        sys.stdout.flush()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,8 +63,10 @@ def main(argv: list[str] | None = None) -> int:
     port = int(deploy.get("console", {}).get("port", 8080))
     stop = Shutdown()
     status: list[int] = []
+    watch = _UrlWatch()
     runner = threading.Thread(
-        target=lambda: status.append(launcher.run(profile, stop=stop)), name="launcher"
+        target=lambda: status.append(launcher.run(profile, out=watch, stop=stop)),  # type: ignore[arg-type]
+        name="launcher",
     )
     runner.start()
     connect = tuple(deploy.get("zenoh", {}).get("connect", ["tcp/127.0.0.1:7447"]))
@@ -52,11 +75,13 @@ def main(argv: list[str] | None = None) -> int:
     with Node("demo", node_cfg) as node:
         if node.alive.wait("console", CONSOLE_WAIT_S):
             up = True
+            watch.seen.wait(5.0)
+            url = watch.url or f"http://127.0.0.1:{port}"
             bar = "=" * 60
             task = "" if args.task == "none" else f"  task {args.task}: starting (metrics follow)\n"
             print(
                 f"\n{bar}\n  Telerobot simulation is up.\n"
-                f"  console: http://127.0.0.1:{port}\n"
+                f"  console: {url}\n"
                 f"{task}"
                 f"  inspect: .venv/bin/telerobot topic list | alive | call decision status\n"
                 f"  Ctrl-C stops everything.\n{bar}\n",

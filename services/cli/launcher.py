@@ -13,7 +13,8 @@ Each child gets `--config PROFILE` (so it reads its own table and `[zenoh]`), it
 prefixed with its name, a child that crashes is restarted with exponential backoff, and
 Ctrl-C / SIGTERM stops all (SIGTERM, then SIGKILL after `stop_timeout_s`). A child that
 exits within `startup_s` of its first start cannot start: everything is stopped and `up`
-exits non-zero. Children are spawned, never forked (ZENOH_NOTES.md pitfall 3).
+exits non-zero. Children stop one by one in reverse start order. Children are spawned,
+never forked (ZENOH_NOTES.md pitfall 3).
 """
 
 from __future__ import annotations
@@ -179,10 +180,11 @@ def run(profile: Path, out: IO[str] = sys.stdout, stop: Shutdown | None = None) 
                 c.next_start = now + delay
             stop.wait(0.05)
     finally:
+        # Stop in reverse start order, each before the next: the master and the decision
+        # server leave the arm holding while the puma and the router are still there.
         for c in reversed(children):
             c.signal(signal.SIGTERM)
-        deadline = time.monotonic() + cfg.stop_timeout_s
-        for c in reversed(children):
+            deadline = time.monotonic() + cfg.stop_timeout_s
             while c.poll() is None and time.monotonic() < deadline:
                 time.sleep(0.05)
             if c.poll() is None:
