@@ -35,6 +35,7 @@ from services.bus.config import load_deploy, section
 from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown
 
+_OUT_LOCK = threading.Lock()
 DEPLOY_DIR = Path(__file__).resolve().parents[2] / "deploy"
 
 
@@ -114,8 +115,10 @@ class Child:
             self.say(line.rstrip("\n"))
 
     def say(self, text: str) -> None:
-        self.out.write(f"[{self.name}] {text}\n")
-        self.out.flush()
+        # One lock for every child: their pump threads share one output stream.
+        with _OUT_LOCK:
+            self.out.write(f"[{self.name}] {text}\n")
+            self.out.flush()
 
     def poll(self) -> int | None:
         return None if self.proc is None else self.proc.poll()
