@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import ctypes
+import ctypes.util
 import os
 import signal
 import subprocess
@@ -36,6 +38,17 @@ from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown
 
 _OUT_LOCK = threading.Lock()
+_PR_SET_PDEATHSIG = 1
+_LIBC = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
+
+
+def _die_with_parent() -> None:
+    """In the child, before exec: SIGTERM it if the launcher dies, even by SIGKILL, so a
+    killed `up` never leaves services (and an arm proxy) running on their own. Linux only;
+    the call is a plain syscall, safe between fork and exec."""
+    _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+
+
 DEPLOY_DIR = Path(__file__).resolve().parents[2] / "deploy"
 
 
@@ -102,6 +115,7 @@ class Child:
             bufsize=1,
             env=env,
             start_new_session=True,
+            preexec_fn=_die_with_parent,
         )
         self.starts += 1
         self.started_at = time.monotonic()

@@ -327,3 +327,14 @@ def test_an_unknown_profile_exits_2(tmp_path: Path, capsys: pytest.CaptureFixtur
     p = tmp_path / "mine.toml"
     p.write_text('[up]\nservices = ["puma"]\n')
     assert launcher.resolve_profile(str(p)) == p
+
+
+def test_children_die_with_a_killed_launcher(tmp_path: Path) -> None:
+    path = profile(tmp_path, {"hello": [PY, "-c", HELLO]})
+    with spawned(telerobot("up", str(path))) as up:
+        up.expect("[hello] hello")
+        pids = started_pids(up.lines, "hello")
+        up.proc.send_signal(signal.SIGKILL)
+        up.wait(DEADLINE_S)
+    assert len(pids) == 1
+    assert wait_gone(pids), "a child outlived its SIGKILLed launcher"
