@@ -2,17 +2,23 @@
 
 from __future__ import annotations
 
+import faulthandler
 import logging
 import signal
 import threading
 from types import FrameType
+
+#: after a stop signal, a process that has not exited by then dumps every thread's stack
+#: to stderr and exits (status 1): an exit hang is reported, never left running.
+EXIT_GRACE_S = 15.0
 
 
 class Shutdown:
     """Set on SIGINT or SIGTERM (installed from the main thread). `wait()` sleeps until then.
 
     Services poll `is_set()` in their loops and leave through their `finally` blocks, which
-    hold the arm and close the Zenoh session.
+    hold the arm and close the Zenoh session. A signal also arms a last-resort timer: a
+    process still there `EXIT_GRACE_S` later prints every thread's stack and exits.
     """
 
     def __init__(self, install: bool = True) -> None:
@@ -24,6 +30,8 @@ class Shutdown:
 
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         self.signal = signum
+        if not self._event.is_set():
+            faulthandler.dump_traceback_later(EXIT_GRACE_S, exit=True)
         self._event.set()
 
     def set(self) -> None:
