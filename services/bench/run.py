@@ -1,0 +1,649 @@
+"""One bench run: start the deployed topology, measure each phase, stop everything.
+
+Topology (as deploy/robot.toml runs it): the embedded router on 127.0.0.1:PORT, and puma
+(sim arm, autostart), force (sim sensor, 1 kHz), decision, a master station (virtual
+device, not engaged) and, in the video phases, vision — each a separate process in client
+mode connected to the router. The bench itself is one more client: the operator's side.
+
+Phases, in order (each `phase_s` long): IK throughput (in the bench process, before any
+child runs); force alone; the TCP floor; commands at 100 Hz and at 1 kHz; method calls and
+the XML-RPC baseline; force + stereo at the paper's setting; force + stereo at 640×480@30.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.bench import stats
+from services.bench.baselines import tcp_floor, xmlrpc_round_trips
+from services.bench.probes import CommandDriver, FrameRecord, StreamProbe, VideoProbe, time_calls
+from services.bench.procs import Children, free_port, telerobot_argv, wait_log
+from services.bench.report import PAPER_SIZE
+from services.bus.config import NodeConfig
+from services.bus.errors import RpcError, Unavailable
+from services.bus.keys import EVENTS, FORCE, PUMA_CMD, STATE, VISION_STATS
+from services.bus.messages import Event, ForceSample, OperatorCommand, RobotState, VisionStats
+from services.bus.node import Node
+from services.force.priority import PriorityLevel
+
+Say = Callable[[str], None]
+Trace = tuple[np.ndarray, np.ndarray]
+
+MASTER_ID = "bench"
+STATION_ID = "station"
+CMD_TRAVEL_M = 0.02
+"""How far one command phase moves the tool (m, world x; alternately + and −)."""
+CMD_MAX_STEP_M = 5e-6
+"""dp step per command (m): k · step must stay far below the supervisor's speed limit."""
+DRAIN_TIMEOUT_S = 2.0
+CALL_TIMEOUT_S = 5.0
+HOLD_KINDS = ("watchdog", "rejected", "limit", "contact", "estop", "busy")
+"""Decision event kinds that mean the bench's commands were held back, refused or altered
+("lease" events also announce the lease being taken and released, so they are left out;
+lease refusals are in the decision's intervention counters)."""
+MAX_MESSAGES = 10
+VIDEO_WARMUP_S = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class BenchOptions:
+    """What to run. `phase_s`: length of every measuring phase (s); `rpc_calls`: calls per
+    method; `ik_n`: poses for the IK throughput; `port`: the router's TCP port on
+    127.0.0.1 (0: a free one); `logs_dir`: the children's logs; `force_priority`: the
+    force service's `--priority` (what the kernel granted is recorded in the settings)."""
+
+    phase_s: float = 20.0
+    quick: bool = False
+    rpc_calls: int = 1000
+    ik_n: int = 10_000
+    port: int = 0
+    logs_dir: Path = Path("artifacts/bench-logs")
+    command_rates_hz: tuple[float, ...] = (100.0, 1000.0)
+    paper_size: tuple[int, int] = PAPER_SIZE
+    paper_fps: float = 17.0
+    vga_size: tuple[int, int] = (640, 480)
+    vga_fps: float = 30.0
+    startup_timeout_s: float = 90.0
+    settle_s: float = 1.0
+    force_priority: PriorityLevel = "highest"
+    """The force sampler's thread priority, as deploy/robot.toml runs it."""
+
+    @staticmethod
+    def quick_options(**overrides: Any) -> BenchOptions:
+        """`--quick`: 5 s phases, fewer calls and IK poses (under 2 min on 2 cores)."""
+        base: dict[str, Any] = {"phase_s": 5.0, "quick": True, "rpc_calls": 200, "ik_n": 2000}
+        base.update(overrides)
+        return BenchOptions(**base)
+
+
+@dataclass
+class RunResult:
+    """What `run_bench` returns: the measured phases, the settings, notes for people, and
+    the force-latency traces for the plot."""
+
+    phases: dict[str, Any] = field(default_factory=dict)
+    settings: dict[str, Any] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    traces: dict[str, Trace] = field(default_factory=dict)
+
+
+def _loadavg() -> str:
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
+    """Run every phase; every child is stopped before this returns or raises."""
+    port = opts.port or free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    res = RunResult()
+    res.settings = {
+        "quick": opts.quick,
+        "phase_s": opts.phase_s,
+        "rpc_calls": opts.rpc_calls,
+        "ik_n": opts.ik_n,
+        "router": endpoint,
+        "mode": "client",
+        "paper_size": f"{opts.paper_size[0]}x{opts.paper_size[1]}",
+        "paper_fps": opts.paper_fps,
+        "vga_size": f"{opts.vga_size[0]}x{opts.vga_size[1]}",
+        "vga_fps": opts.vga_fps,
+        "command_rates_hz": list(opts.command_rates_hz),
+        "force_priority": opts.force_priority,
+        "loadavg_start": _loadavg(),
+    }
+
+    say(f"IK throughput over {opts.ik_n} poses …")
+    from services.puma.kinematics import bench_ik
+
+    res.phases["ik"] = bench_ik(opts.ik_n)
+
+    zargs = ["--mode", "client", "--connect", endpoint]
+    with Children(opts.logs_dir) as kids:
+        router = kids.spawn("router", telerobot_argv("router", "--listen", endpoint))
+        wait_log(router, "router up", opts.startup_timeout_s)
+        say(f"router up on {endpoint}; starting puma, force, decision, master …")
+        node = Node("master", NodeConfig(mode="client", connect=(endpoint,)), instance=MASTER_ID)
+        try:
+            node.announce()  # alive/master/bench: the bench commands as a master
+            _start_services(kids, node, zargs, opts, say)
+            res.settings["force_priority_applied"] = _force_priority(node)
+            # Start-up transients (the last imports, the first states, the sensor's bias)
+            # are not what an operator works with.
+            time.sleep(opts.settle_s)
+            _phase_force(node, opts, res, "force_alone", say)
+            kids.check()
+            _phase_tcp(opts, res, say)
+            driver = CommandDriver(node, MASTER_ID)
+            for i, rate in enumerate(opts.command_rates_hz):
+                _phase_commands(node, driver, rate, -1.0 if i % 2 else 1.0, opts, res, say)
+                kids.check()
+            _phase_rpc(node, opts, res, say)
+            for key, size, fps in (
+                ("paper", opts.paper_size, opts.paper_fps),
+                ("vga", opts.vga_size, opts.vga_fps),
+            ):
+                _phase_video(kids, node, zargs, key, size, fps, opts, res, say)
+                kids.check()
+        finally:
+            node.close()
+    res.settings["loadavg_end"] = _loadavg()
+    res.notes.append(force_note(res.phases))
+    busy = _busy_note(res.settings["loadavg_start"], res.settings["loadavg_end"])
+    if busy:
+        res.notes.append(busy)
+    return res
+
+
+def force_note(phases: dict[str, Any]) -> str:
+    """Where force samples went missing: the sensor's own rate beside the delivered one."""
+    parts, lost = [], []
+    for key, name in (
+        ("force_alone", "alone"),
+        ("force_stereo_paper", "with 360×288"),
+        ("force_stereo_vga", "with 640×480"),
+    ):
+        f = phases.get(key)
+        if f is None:
+            continue
+        parts.append(f"{name} {f['produced_rate_hz']:.0f}/{f['rate_hz']:.0f} Hz")
+        lost.append(int(f["loss"]["lost"]))
+    text = "force produced by the sensor / received by the bench: " + ", ".join(parts)
+    if lost and not any(lost):
+        return text + "; 0 lost: every sample the sensor produced arrived."
+    return text + f"; lost on the way: {', '.join(str(n) for n in lost)}."
+
+
+def _busy_note(start: str, end: str) -> str | None:
+    """A plain warning when other work competed for the CPUs during the run."""
+    cpus = os.cpu_count() or 1
+    try:
+        worst = max(float(start.split()[0]), float(end.split()[0]))
+    except (ValueError, IndexError):
+        return None
+    if worst <= cpus:
+        return None
+    return (
+        f"the machine was busy: 1-min load average up to {worst:.1f} on {cpus} CPUs from "
+        "other processes; every figure includes that contention."
+    )
+
+
+# --- start-up -----------------------------------------------------------------------------
+
+
+def _start_services(
+    kids: Children, node: Node, zargs: list[str], opts: BenchOptions, say: Say
+) -> None:
+    station = opts.logs_dir / "bench-master.toml"
+    # The station's virtual master must not engage at start (its default): it would hold
+    # the decision's lease and the bench's commands would be refused.
+    station.write_text(
+        f'[master]\ndevice = "virtual"\nmaster_id = "{STATION_ID}"\nengage_on_start = false\n'
+    )
+    kids.spawn("puma", telerobot_argv("puma", "--autostart", *zargs))
+    kids.spawn("force", telerobot_argv("force", "--priority", opts.force_priority, *zargs))
+    kids.spawn("decision", telerobot_argv("decision", *zargs))
+    kids.spawn("master", telerobot_argv("master", "--config", str(station), *zargs))
+    for name in ("puma", "force", "decision", f"master/{STATION_ID}"):
+        _wait_alive(kids, node, name, opts.startup_timeout_s)
+    status = StreamProbe(node, STATE, lambda m: (m.status,)).start()
+    try:
+        deadline = time.monotonic() + opts.startup_timeout_s
+        while (newest := status.newest()) is None or newest[1][0] != "ready":
+            kids.check()
+            if time.monotonic() > deadline:
+                raise TimeoutError("the puma never reported ready on robot/state")
+            time.sleep(0.05)
+    finally:
+        # Undeclared at once: a subscriber left running would load the bench all along.
+        status.stop()
+    say("puma ready, force streaming, decision and master up")
+
+
+def _force_priority(node: Node) -> dict[str, Any] | None:
+    """What the kernel granted the force sampler's thread (its `sensor_status`)."""
+    try:
+        got = node.call("force", "sensor_status", {}, CALL_TIMEOUT_S).get("priority_applied")
+    except (Unavailable, RpcError):
+        return None
+    return dict(got) if isinstance(got, dict) else None
+
+
+def _wait_alive(kids: Children, node: Node, name: str, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not node.alive.wait(name, 0.5):
+        kids.check()
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"alive/{name} never appeared within {timeout_s:g} s")
+
+
+# --- force --------------------------------------------------------------------------------
+
+
+def _force_probe(node: Node) -> StreamProbe[ForceSample]:
+    return StreamProbe(node, FORCE, lambda m: (m.seq, m.t_ns)).start()
+
+
+def force_figures(
+    records: Sequence[tuple[int, tuple[Any, ...]]], t0_ns: int, t1_ns: int
+) -> tuple[dict[str, Any], Trace]:
+    """The force phase's figures from probe records `(rx_ns, (seq, t_ns))` that arrived in
+    [t0_ns, t1_ns]: rate, the sensor's own rate, latency summary, seq loss; and the trace
+    (s since t0, latency ms) for the plot."""
+    rows = [r for r in records if t0_ns <= r[0] <= t1_ns]
+    rx = np.array([r[0] for r in rows], dtype=np.int64)
+    seq = [int(r[1][0]) for r in rows]
+    tx = np.array([r[1][1] for r in rows], dtype=np.int64)
+    lat = stats.latencies_ms(rx, tx)
+    loss = stats.seq_loss(seq)
+    duration_s = (t1_ns - t0_ns) / stats.NS_PER_S
+    produced = 0.0
+    if len(seq) >= 2 and tx.max() > tx.min():
+        # The sensor's own rate, from its seq and t_ns: counts what was lost on the way too.
+        produced = (max(seq) - min(seq)) * stats.NS_PER_S / float(tx.max() - tx.min())
+    fig = {
+        "duration_s": duration_s,
+        "received": len(rows),
+        "rate_hz": stats.rate_hz(len(rows), duration_s),
+        "produced_rate_hz": produced,
+        "latency_ms": stats.summarize(lat).as_dict(),
+        "loss": loss.as_dict(),
+    }
+    t_s = (rx - t0_ns).astype(float) / stats.NS_PER_S
+    return fig, (t_s, lat)
+
+
+def _measure_window(probe_ready: Callable[[], bool], phase_s: float) -> tuple[int, int]:
+    """The measuring window: from when the probe has its first sample, for phase_s."""
+    if not probe_ready():
+        raise TimeoutError("no sample arrived on the probed stream")
+    t0 = time.time_ns()
+    # The phase's length is the measurement itself, not a wait for a condition.
+    time.sleep(phase_s)
+    return t0, time.time_ns()
+
+
+def _phase_force(node: Node, opts: BenchOptions, res: RunResult, key: str, say: Say) -> None:
+    say(f"[{key}] force stream alone for {opts.phase_s:g} s …")
+    probe = _force_probe(node)
+    t0, t1 = _measure_window(lambda: probe.wait_count(1, 10.0), opts.phase_s)
+    fig, trace = force_figures(probe.stop(), t0, t1)
+    fig["rejected"] = probe.rejected
+    res.phases[key] = fig
+    res.traces["force alone"] = trace
+    say(_force_line(fig))
+
+
+def _force_line(fig: dict[str, Any]) -> str:
+    lat = fig["latency_ms"]
+    return (
+        f"    {fig['rate_hz']:.0f} Hz received, latency p50 {_ms(lat['p50'])} p99 "
+        f"{_ms(lat['p99'])} max {_ms(lat['max'])}, lost {fig['loss']['lost']}"
+    )
+
+
+def _ms(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.3f} ms"
+
+
+# --- TCP floor ----------------------------------------------------------------------------
+
+
+def _phase_tcp(opts: BenchOptions, res: RunResult, say: Say) -> None:
+    say(f"[baseline_tcp] the same force packets over raw TCP at 1 kHz for {opts.phase_s:g} s …")
+    run = tcp_floor(1000.0, opts.phase_s)
+    lat = stats.latencies_ms(run.rx_ns, run.t_ns)
+    loss = stats.seq_loss(run.seq)
+    span_s = (
+        float(run.rx_ns.max() - run.rx_ns.min()) / stats.NS_PER_S if run.rx_ns.size > 1 else 0.0
+    )
+    res.phases["baseline_tcp"] = {
+        "duration_s": span_s,
+        "sent": run.sent,
+        "received": len(run.seq),
+        "rate_hz": stats.rate_from_times(run.rx_ns),
+        "payload_bytes": run.payload_bytes,
+        "latency_ms": stats.summarize(lat).as_dict(),
+        "loss": {**loss.as_dict(), "lost": run.sent - loss.unique},
+    }
+    say(_force_line(res.phases["baseline_tcp"]))
+
+
+# --- commands -----------------------------------------------------------------------------
+
+
+class HoldWatch:
+    """Tells the command driver when the decision stopped following the bench's current
+    engagement: an inactive puma command of the engagement it was following (a hold), or
+    no active one at all `refused_after_s` after the engagement began (a refusal).
+
+    `newest()` gives the newest robot/puma/cmd record `(rx_ns, (seq, master, active, dp_x,
+    engage))`, as the command phase's probe records them."""
+
+    def __init__(
+        self,
+        newest: Callable[[], tuple[int, tuple[Any, ...]] | None],
+        refused_after_s: float = 1.0,
+    ) -> None:
+        self.newest = newest
+        self.refused_after_ns = int(refused_after_s * stats.NS_PER_S)
+        self._started = -1
+        self._following: int | None = None
+
+    def __call__(self, started_ns: int) -> bool:
+        if started_ns != self._started:
+            self._started, self._following = started_ns, None
+        newest = self.newest()
+        waited = time.time_ns() - started_ns > self.refused_after_ns
+        if newest is None or newest[0] < started_ns or newest[1][1] != "decision":
+            return waited and self._following is None
+        _seq, _master, active, _dp, engage = newest[1]
+        if active:
+            self._following = engage
+            return False
+        if self._following is not None:
+            return bool(engage == self._following)
+        return waited
+
+
+def _phase_commands(
+    node: Node,
+    driver: CommandDriver,
+    rate_hz: float,
+    sign: float,
+    opts: BenchOptions,
+    res: RunResult,
+    say: Say,
+) -> None:
+    key = f"commands_{rate_hz:.0f}hz"
+    say(f"[{key}] robot/cmd at {rate_hz:g} Hz through decision to puma for {opts.phase_s:g} s …")
+    n_planned = max(1, round(rate_hz * opts.phase_s))
+    step = sign * min(CMD_MAX_STEP_M, CMD_TRAVEL_M / n_planned)
+
+    def fwd_fields(m: OperatorCommand) -> tuple[Any, ...]:
+        return (m.seq, m.master, m.active, m.dp[0], m.engage)
+
+    def state_fields(m: RobotState) -> tuple[Any, ...]:
+        return (m.t_ns, m.cmd_seq, m.status)
+
+    def event_fields(m: Event) -> tuple[Any, ...]:
+        return (m.source, m.kind, m.message)
+
+    fwd = StreamProbe(node, PUMA_CMD, fwd_fields).start()
+    states = StreamProbe(node, STATE, state_fields).start()
+    events = StreamProbe(node, EVENTS, event_fields).start()
+    if not states.wait_count(1, 5.0):
+        raise TimeoutError("no robot/state before the command phase")
+    before = _interventions(node)
+    run = driver.stream(rate_hz, opts.phase_s, step, held=HoldWatch(fwd.newest))
+    sent = run.sent
+    t_first, t_last = sent[0][1], sent[-1][1]
+    k0s = [k0 for _, k0 in run.starts]
+
+    def decision_active(rows: Sequence[tuple[int, tuple[Any, ...]]]) -> list[tuple[int, int, int]]:
+        """(rx_ns, seq, k) of the decision's active puma commands since the first sent, k
+        decoded from dp within the bench engagement the decision engagement follows."""
+        active = [(rx, f) for rx, f in rows if f[1] == "decision" and f[2] and rx >= t_first]
+        first_seen: dict[int, int] = {}
+        for rx, f in active:
+            first_seen.setdefault(int(f[4]), rx)
+        follows = stats.assign_engagements([t for t, _ in run.starts], first_seen)
+        return [
+            (rx, int(f[0]), k0s[follows[int(f[4])]] + stats.dp_index(float(f[3]), step))
+            for rx, f in active
+            if int(f[4]) in follows
+        ]
+
+    last_seq = max((r[1] for r in decision_active(fwd.snapshot())), default=None)
+    if last_seq is not None:
+        # Wait (with a deadline) until the puma reports the last forwarded command applied.
+        deadline = time.monotonic() + DRAIN_TIMEOUT_S
+        while time.monotonic() < deadline:
+            newest = states.newest()
+            if newest is not None and newest[1][1] >= last_seq:
+                break
+            time.sleep(0.01)
+    fwd_rec = fwd.stop()
+    st_rec = states.stop()
+    ev_rec = [e for rx, e in events.stop() if rx >= t_first and e[0] == "decision"]
+    after = _interventions(node)
+    forwarded = [r for r in decision_active(fwd_rec) if 0 <= r[2] < len(sent)]
+    st_rows = [(rx, int(s[0]), int(s[1])) for rx, s in st_rec if rx >= t_first]
+    m = stats.match_commands(sent, forwarded, st_rows)
+    duration_s = (t_last - t_first) / stats.NS_PER_S
+    fwd_rx = [r[0] for r in forwarded if r[0] <= t_last + DRAIN_TIMEOUT_S * stats.NS_PER_S]
+    res.phases[key] = {
+        "rate_hz_target": rate_hz,
+        "sent": m.sent,
+        "sent_rate_hz": stats.rate_hz(max(m.sent - 1, 0), duration_s),
+        "step_m": step,
+        "engagements": len(run.starts),
+        "forwarded_distinct": m.forwarded_distinct,
+        "forwarded_rate_hz": stats.rate_hz(m.forwarded_distinct, duration_s),
+        "puma_cmd_rate_hz": stats.rate_from_times(fwd_rx),
+        "matched": m.matched,
+        "unforwarded": m.unforwarded,
+        "forward_ms": stats.summarize(m.forward_ms).as_dict(),
+        "applied_ms": stats.summarize(m.applied_ms).as_dict(),
+        "seen_ms": stats.summarize(m.seen_ms).as_dict(),
+        "states_moving": sum(1 for _, s in st_rec if s[2] == "moving"),
+        "decision_events": dict(Counter(e[1] for e in ev_rec)),
+        "decision_interventions": (
+            {k: after[k] - before.get(k, 0) for k in after if after[k] != before.get(k, 0)}
+            if before is not None and after is not None
+            else None
+        ),
+        "decision_messages": [e[2] for e in ev_rec if e[1] != "status"][:MAX_MESSAGES],
+    }
+    f = res.phases[key]
+    held = [e[2] for e in ev_rec if e[1] in HOLD_KINDS]
+    if held or len(run.starts) > 1:
+        res.notes.append(
+            f"{key}: the decision intervened {len(held)} time(s) (first: "
+            f"{held[0] if held else 'none reported'}); the bench engaged "
+            f"{len(run.starts)} time(s), as an operator engages again after a hold."
+        )
+    say(
+        f"    sent {m.sent} ({f['sent_rate_hz']:.0f} Hz) in {len(run.starts)} engagement(s), "
+        f"{m.forwarded_distinct} reached the puma ({f['forwarded_rate_hz']:.0f} Hz); "
+        f"master→puma p50 {_ms(f['forward_ms']['p50'])} p99 {_ms(f['forward_ms']['p99'])}; "
+        f"applied p50 {_ms(f['applied_ms']['p50'])} p99 {_ms(f['applied_ms']['p99'])}"
+    )
+
+
+def _interventions(node: Node) -> dict[str, int] | None:
+    """The decision's intervention counters (its `status`), to difference around a phase;
+    None when the decision did not answer."""
+    try:
+        got = node.call("decision", "status", {}, CALL_TIMEOUT_S).get("interventions", {})
+    except (Unavailable, RpcError):
+        return None
+    return {str(k): int(v) for k, v in got.items() if isinstance(v, int)}
+
+
+def _puma_status(node: Node, attempts: int = 3) -> dict[str, Any]:
+    """Puma's status map (the XML-RPC baseline replies with it), retried on a lost reply."""
+    lost = Unavailable("puma status: no attempt made")
+    for _ in range(attempts):
+        try:
+            return node.call("puma", "status", {}, CALL_TIMEOUT_S)
+        except Unavailable as e:
+            lost = e
+    raise lost
+
+
+# --- method calls -------------------------------------------------------------------------
+
+
+def _phase_rpc(node: Node, opts: BenchOptions, res: RunResult, say: Say) -> None:
+    n = opts.rpc_calls
+    for key, service, method in (
+        ("rpc_decision_status", "decision", "status"),
+        ("rpc_decision_supervisor", "decision", "supervisor"),
+        ("rpc_puma_status", "puma", "status"),
+    ):
+        say(f"[{key}] {n} calls of robot/{service}/rpc/{method} …")
+        times = time_calls(node, service, method, n)
+        res.phases[key] = {**stats.summarize(times.ms).as_dict(), "failures": times.failures}
+        failed = sum(times.failures.values())
+        say(
+            f"    p50 {_ms(res.phases[key]['p50'])} p99 {_ms(res.phases[key]['p99'])}"
+            + (f", {failed} failed: {times.failures}" if failed else "")
+        )
+        if failed:
+            res.notes.append(
+                f"{key}: {failed} of {n} calls failed ({times.failures}); only the answered "
+                "ones are timed."
+            )
+    reply = _puma_status(node)
+    say(f"[baseline_xmlrpc] {n} XML-RPC calls returning puma's status map …")
+    rtt = xmlrpc_round_trips(reply, n)
+    res.phases["baseline_xmlrpc"] = {"latency_ms": stats.summarize(rtt).as_dict(), "calls": n}
+    lat = res.phases["baseline_xmlrpc"]["latency_ms"]
+    say(f"    p50 {_ms(lat['p50'])} p99 {_ms(lat['p99'])}")
+
+
+# --- video --------------------------------------------------------------------------------
+
+
+def _phase_video(
+    kids: Children,
+    node: Node,
+    zargs: list[str],
+    key: str,
+    size: tuple[int, int],
+    fps: float,
+    opts: BenchOptions,
+    res: RunResult,
+    say: Say,
+) -> None:
+    w, h = size
+    say(f"[video_{key}] starting vision at {w}x{h} @ {fps:g} fps …")
+    kids.spawn(
+        "vision", telerobot_argv("vision", "--size", f"{w}x{h}", "--fps", f"{fps:g}", *zargs)
+    )
+    try:
+        _wait_alive(kids, node, "vision", opts.startup_timeout_s)
+        video = VideoProbe(node).start()
+        vstats = StreamProbe(node, VISION_STATS, lambda m: (m,)).start()
+        if not video.wait_frames(3, opts.startup_timeout_s):
+            kids.check("vision")
+            raise TimeoutError(f"no stereo frames at {w}x{h} within {opts.startup_timeout_s} s")
+        # The renderer's first frames come while its caches fill: not what an operator sees.
+        time.sleep(VIDEO_WARMUP_S)
+        say(f"[force_stereo_{key}] force + stereo {w}x{h}@{fps:g} for {opts.phase_s:g} s …")
+        probe = _force_probe(node)
+        t0, t1 = _measure_window(lambda: probe.wait_count(1, 10.0), opts.phase_s)
+        force_rec = probe.stop()
+        frames = video.stop()
+        newest_stats = vstats.stop()
+        last_stats: VisionStats | None = newest_stats[-1][1][0] if newest_stats else None
+    finally:
+        kids.stop("vision")
+    frames = [f for f in frames if t0 <= f.rx_ns <= t1]
+    vfig, windows = video_figures(frames, t0, t1, w, h, fps)
+    vfig["decode_errors"] = video.decode_errors
+    if last_stats is not None:
+        vfig["vision_stats"] = {
+            "fps": last_stats.fps,
+            "encode_ms": last_stats.encode_ms,
+            "dropped": last_stats.dropped,
+            "capture_skew_ms": last_stats.skew_ms,
+        }
+    ffig, trace = force_figures(force_rec, t0, t1)
+    inflight = stats.rate_in_windows([r[0] for r in force_rec if t0 <= r[0] <= t1], windows)
+    ffig["in_flight"] = {
+        "count": inflight.count,
+        "covered_s": inflight.covered_s,
+        "rate_hz": inflight.rate_hz if inflight.covered_s > 0 else None,
+    }
+    res.phases[f"video_{key}"] = vfig
+    res.phases[f"force_stereo_{key}"] = ffig
+    res.traces[f"with stereo {w}x{h}@{fps:g}"] = trace
+    say(_force_line(ffig) + f"; {inflight.rate_hz:.0f} Hz while a pair is in flight")
+    lat = vfig["latency_ms"]
+    say(
+        f"    video {vfig['fps_l']:.1f}/{vfig['fps_r']:.1f} fps (l/r), capture→decoded p50 "
+        f"{_ms(lat['p50'])} p99 {_ms(lat['p99'])}, {vfig['mbit_s']:.1f} Mbit/s"
+    )
+
+
+def video_figures(
+    frames: Sequence[FrameRecord], t0: int, t1: int, w: int, h: int, fps: float
+) -> tuple[dict[str, Any], list[tuple[int, int]]]:
+    """The video phase's figures from the decoded frames (already cut to the window
+    [t0, t1]): fps per eye, capture→decoded latency, arrival skew, missing pairs, bit rate;
+    and each complete pair's in-flight window (capture t_ns, arrival of its later eye)."""
+    duration_s = (t1 - t0) / stats.NS_PER_S
+    eyes = {e: [f for f in frames if f.eye == e] for e in ("l", "r")}
+    # From the delivered frames' own capture stamps: (n − 1) periods over their span, free of
+    # where the window happened to cut the frame train.
+    fps_l = stats.rate_from_times([f.t_ns for f in eyes["l"]])
+    fps_r = stats.rate_from_times([f.t_ns for f in eyes["r"]])
+    lat = [(f.decoded_ns - f.t_ns) / stats.NS_PER_MS for f in frames]
+    left = {f.seq: f.rx_ns for f in eyes["l"]}
+    right = {f.seq: f.rx_ns for f in eyes["r"]}
+    both = sorted(set(left) & set(right))
+    t_of = {f.seq: f.t_ns for f in frames}
+    windows = [(t_of[s], max(left[s], right[s])) for s in both]
+    pair_loss = stats.seq_loss(sorted(set(left) | set(right)))
+    fig = {
+        "width": w,
+        "height": h,
+        "fps_target": fps,
+        "duration_s": duration_s,
+        "frames_l": len(eyes["l"]),
+        "frames_r": len(eyes["r"]),
+        "fps_l": fps_l,
+        "fps_r": fps_r,
+        "fps_min": min(fps_l, fps_r),
+        "pairs_complete": len(both),
+        "pairs_missing": pair_loss.lost,
+        "latency_ms": stats.summarize(lat).as_dict(),
+        "arrival_skew_ms": stats.summarize(stats.pair_skew_ms(left, right)).as_dict(),
+        "bytes_per_pair": (sum(f.nbytes for f in frames) / len(both)) if both else None,
+        "mbit_s": sum(f.nbytes for f in frames) * 8 / 1e6 / duration_s if duration_s else 0.0,
+    }
+    return fig, windows
+
+
+__all__ = [
+    "BenchOptions",
+    "HoldWatch",
+    "RunResult",
+    "force_figures",
+    "force_note",
+    "run_bench",
+    "video_figures",
+]

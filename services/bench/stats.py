@@ -1,0 +1,320 @@
+"""The bench's statistics, free of I/O: percentiles, seq loss, rates, command matching.
+
+Times are integers in nanoseconds from `time.time_ns()` (the contract's `t_ns`); every
+process of a run shares the machine's clock, so `receive − t_ns` is a one-way latency.
+Latencies come out in milliseconds. Nothing here measures: it only reduces what the probes
+recorded, so each function is tested on hand-worked inputs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+NS_PER_MS = 1_000_000
+NS_PER_S = 1_000_000_000
+
+
+@dataclass(frozen=True, slots=True)
+class Summary:
+    """Order statistics of one sample (ms, or whatever unit went in). `n` = 0: all NaN."""
+
+    n: int
+    p50: float
+    p99: float
+    max: float
+    mean: float
+    min: float
+
+    def as_dict(self) -> dict[str, float | int | None]:
+        """JSON-ready: NaN (no data) becomes None."""
+        return {
+            "n": self.n,
+            "p50": _finite_or_none(self.p50),
+            "p99": _finite_or_none(self.p99),
+            "max": _finite_or_none(self.max),
+            "mean": _finite_or_none(self.mean),
+            "min": _finite_or_none(self.min),
+        }
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def percentile(values: Sequence[float] | np.ndarray, q: float) -> float:
+    """The q-th percentile (0 ≤ q ≤ 100), linear between order statistics (numpy's default,
+    so p50 of an even count is the mean of the middle two). Empty input → NaN."""
+    if not 0.0 <= q <= 100.0:
+        raise ValueError(f"percentile {q} outside [0, 100]")
+    a = np.asarray(values, dtype=float)
+    if a.size == 0:
+        return math.nan
+    return float(np.percentile(a, q))
+
+
+def summarize(values: Sequence[float] | np.ndarray) -> Summary:
+    """p50, p99, max, mean and min of `values` (NaN everywhere when empty)."""
+    a = np.asarray(values, dtype=float)
+    if a.size == 0:
+        nan = math.nan
+        return Summary(0, nan, nan, nan, nan, nan)
+    return Summary(
+        n=int(a.size),
+        p50=percentile(a, 50.0),
+        p99=percentile(a, 99.0),
+        max=float(a.max()),
+        mean=float(a.mean()),
+        min=float(a.min()),
+    )
+
+
+def latencies_ms(rx_ns: Sequence[int] | np.ndarray, t_ns: Sequence[int] | np.ndarray) -> np.ndarray:
+    """One-way latencies (ms): arrival time minus the sender's stamp, element by element."""
+    rx = np.asarray(rx_ns, dtype=np.int64)
+    tx = np.asarray(t_ns, dtype=np.int64)
+    if rx.shape != tx.shape:
+        raise ValueError(f"{rx.size} arrival times for {tx.size} stamps")
+    return (rx - tx).astype(float) / NS_PER_MS
+
+
+@dataclass(frozen=True, slots=True)
+class SeqLoss:
+    """What a stream's `seq` numbers say about delivery.
+
+    Loss is counted between the first and the last `seq` received (a probe that joins a
+    running stream cannot see what was sent before it, nor after it stops): `expected` =
+    last − first + 1, `lost` = expected − distinct seqs received. `duplicates` counts
+    repeated seqs; `reordered` counts arrivals lower than a seq already received.
+    """
+
+    received: int
+    unique: int
+    first: int | None
+    last: int | None
+    expected: int
+    lost: int
+    duplicates: int
+    reordered: int
+
+    @property
+    def loss_ratio(self) -> float:
+        return self.lost / self.expected if self.expected else 0.0
+
+    def as_dict(self) -> dict[str, float | int | None]:
+        return {
+            "received": self.received,
+            "unique": self.unique,
+            "first": self.first,
+            "last": self.last,
+            "expected": self.expected,
+            "lost": self.lost,
+            "loss_ratio": self.loss_ratio,
+            "duplicates": self.duplicates,
+            "reordered": self.reordered,
+        }
+
+
+def seq_loss(seqs: Sequence[int]) -> SeqLoss:
+    """Loss, duplicates and reordering in a list of received `seq` numbers, in arrival order."""
+    if not seqs:
+        return SeqLoss(0, 0, None, None, 0, 0, 0, 0)
+    seen: set[int] = set()
+    duplicates = reordered = 0
+    high = None
+    for s in seqs:
+        if s in seen:
+            duplicates += 1
+        else:
+            seen.add(s)
+        if high is not None and s < high:
+            reordered += 1
+        high = s if high is None else max(high, s)
+    first, last = min(seen), max(seen)
+    expected = last - first + 1
+    return SeqLoss(
+        received=len(seqs),
+        unique=len(seen),
+        first=first,
+        last=last,
+        expected=expected,
+        lost=expected - len(seen),
+        duplicates=duplicates,
+        reordered=reordered,
+    )
+
+
+def rate_hz(count: int, duration_s: float) -> float:
+    """Events per second over a window of `duration_s` (0 for an empty window)."""
+    if count < 0:
+        raise ValueError("count must be ≥ 0")
+    return count / duration_s if duration_s > 0 else 0.0
+
+
+def rate_from_times(times_ns: Sequence[int] | np.ndarray) -> float:
+    """Events per second from their own times: (n − 1) intervals over first → last."""
+    t = np.asarray(times_ns, dtype=np.int64)
+    if t.size < 2:
+        return 0.0
+    span = int(t.max() - t.min())
+    return (t.size - 1) * NS_PER_S / span if span > 0 else 0.0
+
+
+def merge_windows(windows: Sequence[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The union of closed intervals [start, end] as sorted, disjoint intervals."""
+    out: list[tuple[int, int]] = []
+    for start, end in sorted((min(a, b), max(a, b)) for a, b in windows):
+        if out and start <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], end))
+        else:
+            out.append((start, end))
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class WindowRate:
+    """Events that fell inside a set of time windows, and their rate over the windows' union."""
+
+    count: int
+    covered_s: float
+    rate_hz: float
+
+
+def rate_in_windows(
+    times_ns: Sequence[int] | np.ndarray, windows: Sequence[tuple[int, int]]
+) -> WindowRate:
+    """How many of `times_ns` fall inside the union of `windows`, per second of that union.
+
+    The paper's "76 Hz during active video intervals": force samples received while a
+    stereo pair was in flight, per second of in-flight time.
+    """
+    merged = merge_windows(windows)
+    if not merged:
+        return WindowRate(0, 0.0, 0.0)
+    t = np.sort(np.asarray(times_ns, dtype=np.int64))
+    starts = np.array([w[0] for w in merged], dtype=np.int64)
+    ends = np.array([w[1] for w in merged], dtype=np.int64)
+    inside = int(
+        (np.searchsorted(t, ends, side="right") - np.searchsorted(t, starts, side="left")).sum()
+    )
+    covered_s = float((ends - starts).sum()) / NS_PER_S
+    return WindowRate(inside, covered_s, inside / covered_s if covered_s > 0 else 0.0)
+
+
+def pair_skew_ms(left_rx_ns: Mapping[int, int], right_rx_ns: Mapping[int, int]) -> list[float]:
+    """|right − left| arrival time (ms) of each pair whose two eyes both arrived, by seq."""
+    both = sorted(set(left_rx_ns) & set(right_rx_ns))
+    return [abs(right_rx_ns[s] - left_rx_ns[s]) / NS_PER_MS for s in both]
+
+
+@dataclass(frozen=True, slots=True)
+class CommandLatencies:
+    """Per operator command: how long until the arm had it (or a newer one).
+
+    forward_ms: bench `t_ns` → the first `robot/puma/cmd` carrying this command or a newer
+      one arrives at the bench (master → decision → puma's input, through the router);
+    applied_ms: bench `t_ns` → `t_ns` of the first `robot/state` whose `cmd_seq` shows that
+      puma command (or a later one) applied — the puma's own stamp;
+    seen_ms: bench `t_ns` → that `robot/state` arrives back at the bench (the full loop).
+    matched: commands with all three; unforwarded: commands no puma command carried (the
+    tail of a run, or commands the decision superseded before its next tick and never
+    followed by a newer one); forwarded_distinct: distinct commands the puma stream carried.
+    """
+
+    forward_ms: np.ndarray
+    applied_ms: np.ndarray
+    seen_ms: np.ndarray
+    sent: int
+    matched: int
+    unforwarded: int
+    forwarded_distinct: int
+
+
+def match_commands(
+    sent: Sequence[tuple[int, int]],
+    forwarded: Sequence[tuple[int, int, int]],
+    states: Sequence[tuple[int, int, int]],
+) -> CommandLatencies:
+    """Match the bench's commands to the decision's commands and the puma's states.
+
+    sent: (k, t_ns) per bench command, k its index in the engagement (0, 1, …), which the
+      bench encodes in `dp` so that it survives the decision's re-sequencing;
+    forwarded: (rx_ns, seq, k) per `robot/puma/cmd` in arrival order, k decoded from its dp;
+    states: (rx_ns, t_ns, cmd_seq) per `robot/state` in arrival order.
+
+    The decision sends the newest command each tick, so a command may be carried only by a
+    later one: command k counts as forwarded by the first puma command with index ≥ k, and
+    applied by the first state with `cmd_seq` ≥ that puma command's seq.
+    """
+    if not sent:
+        empty = np.zeros(0)
+        return CommandLatencies(empty, empty, empty, 0, 0, 0, 0)
+    ks = np.array([k for k, _ in sent], dtype=np.int64)
+    t_sent = np.array([t for _, t in sent], dtype=np.int64)
+    f_rx = np.array([f[0] for f in forwarded], dtype=np.int64)
+    f_seq = np.array([f[1] for f in forwarded], dtype=np.int64)
+    f_k = np.array([f[2] for f in forwarded], dtype=np.int64)
+    s_rx = np.array([s[0] for s in states], dtype=np.int64)
+    s_t = np.array([s[1] for s in states], dtype=np.int64)
+    s_cmd = np.array([s[2] for s in states], dtype=np.int64)
+
+    # Running maxima make "first with index ≥ k" a binary search, and a late duplicate of
+    # an old puma command or state cannot make a newer command look older.
+    fi = _first_at_least(f_k, ks)
+    seq_needed = np.where(fi >= 0, f_seq[np.maximum(fi, 0)] if f_seq.size else 0, -1)
+    si = _first_at_least(s_cmd, seq_needed)
+    si = np.where(fi >= 0, si, -1)
+    fwd = fi >= 0
+    ok = fwd & (si >= 0)
+    forward_ms = (f_rx[fi[fwd]] - t_sent[fwd]).astype(float) / NS_PER_MS
+    applied_ms = (s_t[si[ok]] - t_sent[ok]).astype(float) / NS_PER_MS
+    seen_ms = (s_rx[si[ok]] - t_sent[ok]).astype(float) / NS_PER_MS
+    distinct = int(np.unique(f_k[np.isin(f_k, ks)]).size) if f_k.size else 0
+    return CommandLatencies(
+        forward_ms=forward_ms,
+        applied_ms=applied_ms,
+        seen_ms=seen_ms,
+        sent=len(sent),
+        matched=int(ok.sum()),
+        unforwarded=int((~fwd).sum()),
+        forwarded_distinct=distinct,
+    )
+
+
+def _first_at_least(values: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """For each w in `wanted`: the first index i with max(values[:i+1]) ≥ w, else −1."""
+    if values.size == 0:
+        return np.full(wanted.shape, -1, dtype=np.int64)
+    running = np.maximum.accumulate(values)
+    idx = np.searchsorted(running, wanted, side="left")
+    return np.where(idx < values.size, idx, -1).astype(np.int64)
+
+
+def assign_engagements(
+    starts_ns: Sequence[int], first_seen_ns: Mapping[int, int]
+) -> dict[int, int]:
+    """Which of the bench's engagements each decision engagement follows.
+
+    starts_ns: when each bench engagement's first command was sent, in order;
+    first_seen_ns: decision `engage` → arrival of its first active puma command.
+    A decision engagement starts only in answer to a bench engagement's first command, so it
+    follows the latest bench engagement started before it was first seen (an engagement the
+    decision refused simply gets none). Decision engagements seen before any bench
+    engagement are left out.
+    """
+    starts = np.asarray(starts_ns, dtype=np.int64)
+    out: dict[int, int] = {}
+    for engage, seen in first_seen_ns.items():
+        j = int(np.searchsorted(starts, seen, side="right")) - 1
+        if j >= 0:
+            out[engage] = j
+    return out
+
+
+def dp_index(dp_x_m: float, step_m: float) -> int:
+    """The command index the bench encoded as dp_x = k · step (rounded: the decision's
+    (p0 + dp) − p0 differs from dp by a few ulps, far below step/2)."""
+    return round(dp_x_m / step_m)
