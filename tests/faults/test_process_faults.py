@@ -330,7 +330,10 @@ def test_flood_of_commands_leaves_decision_responsive_and_force_streaming(
     assert result["sent"] >= 1000 * flood_s, "the rogue did not flood"
     assert drained, "the decision server did not count every garbage payload"
     assert failed == 0 and ok >= 3
-    assert flood_rate >= 0.5 * pre_rate
+    # The force stream keeps flowing through the flood. On a quiet 2-core host it keeps
+    # 88–91 % of its rate (docs/faults.md); the bound is loose because CI machines are shared
+    # (45 % was seen with a benchmark running beside the suite): it catches a stalled stream.
+    assert flood_rate >= 0.3 * pre_rate
     cell.assert_no_crash()
 
 
