@@ -19,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
+from services.bench.cpu import process_cpu_s
+
 STOP_TIMEOUT_S = 5.0
 POLL_S = 0.02
 
@@ -101,6 +103,11 @@ class Children:
         child = Child(name, argv, proc, log_path, log, start)
         self.children[name] = child
         return child
+
+    def cpu_s(self) -> float:
+        """CPU time (s) the running children have used so far (a reaped child's time is in
+        the bench's own `getrusage(RUSAGE_CHILDREN)` instead)."""
+        return sum(process_cpu_s(c.proc.pid) for c in self.children.values() if c.alive())
 
     def check(self, *names: str) -> None:
         """Raise ChildFailed if one of `names` (default: every child) has exited."""

@@ -301,10 +301,16 @@ def table(doc: Mapping[str, Any]) -> str:
     """A Markdown table of the comparison, headed by the machine, followed by the misses."""
     m = doc["machine"]
     s = doc["settings"]
+    run_cpu = (s.get("cpu") or {}).get("run")
+    shared = (
+        f"other processes took {run_cpu['others_share']:.0%} of the CPUs during the run "
+        f"(the bench and its services {run_cpu['bench_share']:.0%})"
+        if run_cpu
+        else f"load average {s.get('loadavg_start', 'n/a')} before the run"
+    )
     lines = [
         f"Machine: {m['nproc']} CPUs, {m['cpu_model']}, Python {m['python']}, "
-        f"eclipse-zenoh {m['zenoh']}; load average {s.get('loadavg_start', 'n/a')} at start, "
-        f"{s.get('loadavg_end', 'n/a')} at end; phases of {s.get('phase_s', 'n/a')} s"
+        f"eclipse-zenoh {m['zenoh']}; {shared}; phases of {s.get('phase_s', 'n/a')} s"
         f"{' (--quick)' if s.get('quick') else ''}.",
         "",
         "| figure | ours | baseline (same run) | ours/baseline | paper | ours/paper | verdict |",

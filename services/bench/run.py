@@ -15,14 +15,15 @@ from __future__ import annotations
 import os
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from services.bench import stats
+from services.bench import cpu, stats
 from services.bench.baselines import tcp_floor, xmlrpc_round_trips
 from services.bench.probes import CommandDriver, FrameRecord, StreamProbe, VideoProbe, time_calls
 from services.bench.procs import Children, free_port, telerobot_argv, wait_log
@@ -95,6 +96,34 @@ class RunResult:
     traces: dict[str, Trace] = field(default_factory=dict)
 
 
+class CpuLog:
+    """CPU use of the whole run and of each phase: the bench's processes vs the others
+    (services.bench.cpu). `kids` is set once the children exist."""
+
+    def __init__(self) -> None:
+        self.kids: Children | None = None
+        self.cpus = os.cpu_count() or 1
+        self.start = self._now()
+        self.phases: dict[str, dict[str, float | int]] = {}
+
+    def _now(self) -> cpu.CpuSample | None:
+        return cpu.sample(self.kids.cpu_s() if self.kids is not None else 0.0)
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        a = self._now()
+        yield
+        b = self._now()
+        if a is not None and b is not None:
+            self.phases[name] = cpu.usage(a, b, self.cpus).as_dict()
+
+    def total(self) -> dict[str, float | int] | None:
+        b = self._now()
+        if self.start is None or b is None:
+            return None
+        return cpu.usage(self.start, b, self.cpus).as_dict()
+
+
 def _loadavg() -> str:
     try:
         return " ".join(f"{x:.2f}" for x in os.getloadavg())
@@ -123,13 +152,16 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
         "loadavg_start": _loadavg(),
     }
 
+    log = CpuLog()
     say(f"IK throughput over {opts.ik_n} poses …")
     from services.puma.kinematics import bench_ik
 
-    res.phases["ik"] = bench_ik(opts.ik_n)
+    with log.phase("ik"):
+        res.phases["ik"] = bench_ik(opts.ik_n)
 
     zargs = ["--mode", "client", "--connect", endpoint]
     with Children(opts.logs_dir) as kids:
+        log.kids = kids
         router = kids.spawn("router", telerobot_argv("router", "--listen", endpoint))
         wait_log(router, "router up", opts.startup_timeout_s)
         say(f"router up on {endpoint}; starting puma, force, decision, master …")
@@ -141,33 +173,42 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
             # Start-up transients (the last imports, the first states, the sensor's bias)
             # are not what an operator works with.
             time.sleep(opts.settle_s)
-            _phase_force(node, opts, res, "force_alone", say)
+            with log.phase("force_alone"):
+                _phase_force(node, opts, res, "force_alone", say)
             kids.check()
-            _phase_tcp(opts, res, say)
+            with log.phase("baseline_tcp"):
+                _phase_tcp(opts, res, say)
             driver = CommandDriver(node, MASTER_ID)
             for i, rate in enumerate(opts.command_rates_hz):
-                _phase_commands(node, driver, rate, -1.0 if i % 2 else 1.0, opts, res, say)
+                with log.phase(f"commands_{rate:.0f}hz"):
+                    _phase_commands(node, driver, rate, -1.0 if i % 2 else 1.0, opts, res, say)
                 kids.check()
-            _phase_rpc(node, opts, res, say)
+            with log.phase("rpc"):
+                _phase_rpc(node, opts, res, say)
             for key, size, fps in (
                 ("paper", opts.paper_size, opts.paper_fps),
                 ("vga", opts.vga_size, opts.vga_fps),
             ):
-                _phase_video(kids, node, zargs, key, size, fps, opts, res, say)
+                with log.phase(f"video_{key}"):
+                    _phase_video(kids, node, zargs, key, size, fps, opts, res, say)
                 kids.check()
         finally:
             node.close()
+    log.kids = None  # every child is reaped: its time is in getrusage(RUSAGE_CHILDREN)
     res.settings["loadavg_end"] = _loadavg()
+    res.settings["cpu"] = {"run": log.total(), "phases": log.phases}
     res.notes.append(force_note(res.phases))
-    busy = _busy_note(res.settings["loadavg_start"], res.settings["loadavg_end"])
+    busy = busy_note(res.settings["cpu"])
     if busy:
         res.notes.append(busy)
     return res
 
 
 def force_note(phases: dict[str, Any]) -> str:
-    """Where force samples went missing: the sensor's own rate beside the delivered one."""
-    parts, lost = [], []
+    """Where force samples went missing: the sensor's own rate beside the delivered one, and
+    the missing seqs beside those the force service itself dropped (its hand-off queue keeps
+    the newest when its publisher falls behind)."""
+    parts, missing = [], []
     for key, name in (
         ("force_alone", "alone"),
         ("force_stereo_paper", "with 360×288"),
@@ -177,25 +218,34 @@ def force_note(phases: dict[str, Any]) -> str:
         if f is None:
             continue
         parts.append(f"{name} {f['produced_rate_hz']:.0f}/{f['rate_hz']:.0f} Hz")
-        lost.append(int(f["loss"]["lost"]))
+        lost = int(f["loss"]["lost"])
+        if lost:
+            drops = (f.get("service") or {}).get("drops")
+            inside = f" ({drops} dropped inside the force service)" if drops is not None else ""
+            missing.append(f"{name} {lost} missing{inside}")
     text = "force produced by the sensor / received by the bench: " + ", ".join(parts)
-    if lost and not any(lost):
+    if parts and not missing:
         return text + "; 0 lost: every sample the sensor produced arrived."
-    return text + f"; lost on the way: {', '.join(str(n) for n in lost)}."
+    return text + "; " + ", ".join(missing) + "."
 
 
-def _busy_note(start: str, end: str) -> str | None:
-    """A plain warning when other work competed for the CPUs during the run."""
-    cpus = os.cpu_count() or 1
-    try:
-        worst = max(float(start.split()[0]), float(end.split()[0]))
-    except (ValueError, IndexError):
+BUSY_SHARE = 0.15
+"""Above this share of the CPUs taken by other processes, a phase is reported as contended."""
+
+
+def busy_note(cpu_use: dict[str, Any]) -> str | None:
+    """A plain warning naming the phases during which other processes took more than
+    BUSY_SHARE of the CPUs (their figures include that contention)."""
+    run = cpu_use.get("run")
+    phases = cpu_use.get("phases", {})
+    busy = {k: v["others_share"] for k, v in phases.items() if v["others_share"] > BUSY_SHARE}
+    if run is None or not busy:
         return None
-    if worst <= cpus:
-        return None
+    listed = ", ".join(f"{k} {share:.0%}" for k, share in busy.items())
     return (
-        f"the machine was busy: 1-min load average up to {worst:.1f} on {cpus} CPUs from "
-        "other processes; every figure includes that contention."
+        f"the machine was shared: other processes took {run['others_share']:.0%} of the "
+        f"{run['cpus']} CPUs over the run, and more than {BUSY_SHARE:.0%} during: {listed}; "
+        "those figures include that contention."
     )
 
 
@@ -294,12 +344,35 @@ def _measure_window(probe_ready: Callable[[], bool], phase_s: float) -> tuple[in
     return t0, time.time_ns()
 
 
+FORCE_COUNTERS = ("samples", "published", "drops", "overruns")
+"""The force sampler's counters (its `sensor_status`): samples taken, handed to the bus,
+dropped from its hand-off queue when the publisher fell behind, periods skipped late."""
+
+
+def _force_counters(node: Node) -> dict[str, int] | None:
+    try:
+        got = node.call("force", "sensor_status", {}, CALL_TIMEOUT_S)
+    except (Unavailable, RpcError):
+        return None
+    return {k: int(got[k]) for k in FORCE_COUNTERS if isinstance(got.get(k), int)}
+
+
+def _delta(a: dict[str, int] | None, b: dict[str, int] | None) -> dict[str, int] | None:
+    """b − a per counter, around a measuring window (None if either call failed)."""
+    if a is None or b is None:
+        return None
+    return {k: b[k] - a[k] for k in b if k in a}
+
+
 def _phase_force(node: Node, opts: BenchOptions, res: RunResult, key: str, say: Say) -> None:
     say(f"[{key}] force stream alone for {opts.phase_s:g} s …")
     probe = _force_probe(node)
+    before = _force_counters(node)
     t0, t1 = _measure_window(lambda: probe.wait_count(1, 10.0), opts.phase_s)
+    after = _force_counters(node)
     fig, trace = force_figures(probe.stop(), t0, t1)
     fig["rejected"] = probe.rejected
+    fig["service"] = _delta(before, after)
     res.phases[key] = fig
     res.traces["force alone"] = trace
     say(_force_line(fig))
@@ -564,7 +637,9 @@ def _phase_video(
         time.sleep(VIDEO_WARMUP_S)
         say(f"[force_stereo_{key}] force + stereo {w}x{h}@{fps:g} for {opts.phase_s:g} s …")
         probe = _force_probe(node)
+        before = _force_counters(node)
         t0, t1 = _measure_window(lambda: probe.wait_count(1, 10.0), opts.phase_s)
+        after = _force_counters(node)
         force_rec = probe.stop()
         frames = video.stop()
         newest_stats = vstats.stop()
@@ -582,6 +657,7 @@ def _phase_video(
             "capture_skew_ms": last_stats.skew_ms,
         }
     ffig, trace = force_figures(force_rec, t0, t1)
+    ffig["service"] = _delta(before, after)
     inflight = stats.rate_in_windows([r[0] for r in force_rec if t0 <= r[0] <= t1], windows)
     ffig["in_flight"] = {
         "count": inflight.count,

@@ -202,7 +202,11 @@ def test_force_note_tells_source_from_transport() -> None:
     note = force_note(phases)
     assert note.startswith("force produced by the sensor / received by the bench: alone ")
     assert "0 lost: every sample the sensor produced arrived." not in note  # 2 lost at VGA
-    assert note.endswith("lost on the way: 0, 0, 2.")
+    assert note.endswith("; with 640×480 2 missing.")
+    phases["force_stereo_vga"]["service"] = {"drops": 2, "samples": 500}
+    assert force_note(phases).endswith(
+        "; with 640×480 2 missing (2 dropped inside the force service)."
+    )
     phases["force_stereo_vga"] = _force(500.0, 1.0)
     assert force_note(phases).endswith("0 lost: every sample the sensor produced arrived.")
     assert "with 640×480 500/500 Hz" in force_note(phases)

@@ -1,0 +1,85 @@
+"""CPU accounting: /proc/stat parsing, the split between the bench and the others."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import pytest
+
+from services.bench import cpu
+from services.bench.report import document, machine, table
+from services.bench.run import busy_note
+
+STAT = """cpu  1000 10 200 5000 40 0 30 20 0 0
+cpu0 500 5 100 2500 20 0 15 10 0 0
+intr 123
+"""
+
+
+def test_parse_proc_stat() -> None:
+    busy, total = cpu.parse_proc_stat(STAT, 100.0)
+    # busy: user 1000 + nice 10 + system 200 + irq 0 + softirq 30 + steal 20
+    assert busy == pytest.approx(12.60)
+    assert total == pytest.approx(12.60 + 50.40)  # + idle 5000 + iowait 40
+    with pytest.raises(ValueError):
+        cpu.parse_proc_stat("intr 1\n", 100.0)
+
+
+def test_usage_splits_the_machine_between_the_bench_and_the_others() -> None:
+    a = cpu.CpuSample(busy_s=100.0, total_s=1000.0, own_s=1.0, wall_s=10.0)
+    b = cpu.CpuSample(busy_s=112.0, total_s=1020.0, own_s=8.0, wall_s=20.0)
+    u = cpu.usage(a, b, cpus=2)
+    assert (u.wall_s, u.capacity_s, u.machine_busy_s, u.bench_s, u.others_s) == (
+        10.0,
+        20.0,
+        12.0,
+        7.0,
+        5.0,
+    )
+    assert u.others_share == 0.25 and u.bench_share == 0.35
+    # tick granularity: the bench may appear to use more than the machine did
+    c = cpu.CpuSample(busy_s=100.5, total_s=1001.0, own_s=2.0, wall_s=11.0)
+    assert cpu.usage(a, c, cpus=2).others_s == 0.0
+
+
+def test_process_cpu_s_reads_this_process() -> None:
+    x = 0
+    for i in range(2_000_000):  # burn a little CPU so the tick counter moves
+        x += i
+    assert cpu.process_cpu_s(os.getpid()) > 0.0
+    assert cpu.process_cpu_s(2**22 + 12345) == 0.0  # no such process
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc/stat is Linux")
+def test_sample_on_linux() -> None:
+    s = cpu.sample(live_children_s=1.5)
+    assert s is not None and s.own_s >= 1.5 and s.total_s >= s.busy_s > 0
+
+
+def _use(others_share: float) -> dict[str, float | int]:
+    return {"cpus": 2, "others_share": others_share, "bench_share": 0.5}
+
+
+def test_busy_note_names_the_contended_phases() -> None:
+    quiet = {"run": _use(0.05), "phases": {"force_alone": _use(0.05)}}
+    assert busy_note(quiet) is None
+    shared = {
+        "run": _use(0.2),
+        "phases": {"force_alone": _use(0.05), "video_vga": _use(0.42), "rpc": _use(0.16)},
+    }
+    note = busy_note(shared)
+    assert note is not None
+    assert "other processes took 20% of the 2 CPUs over the run" in note
+    assert "during: video_vga 42%, rpc 16%;" in note
+    assert "force_alone" not in note
+
+
+def test_table_header_reports_the_cpu_split() -> None:
+    settings = {"quick": False, "phase_s": 20.0, "cpu": {"run": _use(0.07), "phases": {}}}
+    text = table(document({}, machine(), settings))
+    assert (
+        "other processes took 7% of the CPUs during the run (the bench and its services 50%)"
+        in text
+    )
+    assert "phases of 20.0 s." in text
