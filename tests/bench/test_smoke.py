@@ -15,7 +15,7 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(
         os.environ.get("TELEROBOT_BENCH_SMOKE") != "1",
-        reason="the full bench run takes ~1.5 min: set TELEROBOT_BENCH_SMOKE=1",
+        reason="the full bench run takes about a minute: set TELEROBOT_BENCH_SMOKE=1",
     ),
 ]
 
