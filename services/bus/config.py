@@ -260,9 +260,17 @@ def service_config(
 ) -> T:
     """The `[name]` table of the deployment file named by `--config`, plus `overrides`."""
     deploy = load_deploy(getattr(args, "config", None))
+    return section(cls, service_table(deploy, name, overrides), name)
+
+
+def service_table(
+    deploy: Mapping[str, Any], name: str, overrides: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """The deployment's `[name]` table with the command-line `overrides` that were given
+    (None means the flag was not given and the file's value stands)."""
     table = dict(deploy.get(name, {}))
     table.update({k: v for k, v in (overrides or {}).items() if v is not None})
-    return section(cls, table, name)
+    return table
 
 
 def endpoints(value: Sequence[str] | str | None) -> tuple[str, ...]:

@@ -12,7 +12,14 @@ import contextlib
 import sys
 from dataclasses import replace
 
-from services.bus.config import NodeConfig, add_node_args, load_deploy, node_config, section
+from services.bus.config import (
+    NodeConfig,
+    add_node_args,
+    load_deploy,
+    node_config,
+    section,
+    service_table,
+)
 from services.bus.lifecycle import Shutdown, setup_logging
 from services.bus.node import Node
 from services.cli.introspect import LOCAL_ROUTER
@@ -80,14 +87,13 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     setup_logging("console", args.verbose)
     deploy = load_deploy(args.config)
-    table = dict(deploy.get("console", {}))
     overrides = {
         "port": args.port,
         "host": args.host,
         "master": args.master,
         "master_id": args.master_id,
     }
-    table.update({k: v for k, v in overrides.items() if v is not None})
+    table = service_table(deploy, "console", overrides)
     config = section(ConsoleConfig, table, "console")
     node_cfg = node_config(args, deploy, connect=(LOCAL_ROUTER,))
     return run(node_cfg, config, Shutdown())

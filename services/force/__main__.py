@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from services.bus.config import add_node_args, load_deploy, node_config, section
+from services.bus.config import add_node_args, load_deploy, node_config, section, service_table
 from services.bus.lifecycle import Shutdown, setup_logging
 from services.bus.node import Node
 from services.cli.introspect import LOCAL_ROUTER
@@ -27,7 +27,6 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     log = setup_logging("force")
     deploy = load_deploy(args.config)
-    table = dict(deploy.get("force", {}))
     overrides = {
         "sensor": args.sensor,
         "port": args.port,
@@ -35,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
         "period_ms": args.period_ms,
         "priority": args.priority,
     }
-    table.update({k: v for k, v in overrides.items() if v is not None})
+    table = service_table(deploy, "force", overrides)
     config = section(ForceConfig, table, "force")
     from services.force.service import ForceService
 

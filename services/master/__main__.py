@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from services.bus.config import add_node_args, load_deploy, node_config
+from services.bus.config import add_node_args, load_deploy, node_config, service_table
 from services.bus.lifecycle import Shutdown, setup_logging
 from services.bus.node import Node
 from services.cli.introspect import LOCAL_ROUTER
@@ -41,7 +41,6 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     log = setup_logging("master")
     deploy = load_deploy(args.config)
-    table = dict(deploy.get("master", {}))
     overrides = {
         "device": DEVICES.get(args.device or ""),
         "master_id": args.master_id,
@@ -52,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
         "scale_r": args.scale_r,
         "frame": args.frame,
     }
-    table.update({k: v for k, v in overrides.items() if v is not None})
+    table = service_table(deploy, "master", overrides)
     config = MasterConfig.from_mapping(table)
     from services.master.service import MasterService
 

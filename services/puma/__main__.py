@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from services.bus.config import add_node_args, load_deploy, node_config
+from services.bus.config import add_node_args, load_deploy, node_config, service_table
 from services.bus.lifecycle import Shutdown, setup_logging
 from services.bus.node import Node
 from services.cli.introspect import LOCAL_ROUTER
@@ -26,10 +26,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     log = setup_logging("puma")
     deploy = load_deploy(args.config)
-    table = dict(deploy.get("puma", {}))
-    autostart = bool(table.pop("autostart", False)) or args.autostart
     overrides = {"arm": args.arm, "port": args.port, "baudrate": args.baudrate}
-    table.update({k: v for k, v in overrides.items() if v is not None})
+    table = service_table(deploy, "puma", overrides)
+    autostart = bool(table.pop("autostart", False)) or args.autostart
     config = PumaConfig.from_mapping(table)
     from services.puma.service import PumaService
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from services.bus.config import add_node_args, load_deploy, node_config
+from services.bus.config import add_node_args, load_deploy, node_config, service_table
 from services.bus.lifecycle import Shutdown, setup_logging
 from services.bus.node import Node
 from services.cli.introspect import LOCAL_ROUTER
@@ -25,7 +25,6 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     log = setup_logging("vision")
     deploy = load_deploy(args.config)
-    table = dict(deploy.get("vision", {}))
     overrides = {
         "camera": args.camera,
         "size": args.size,
@@ -35,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
         "devices": [int(d) if d.isdigit() else d for d in args.device or []] or None,
         "files": args.file,
     }
-    table.update({k: v for k, v in overrides.items() if v is not None})
+    table = service_table(deploy, "vision", overrides)
     config = VisionConfig.from_mapping(table)
     from services.vision.service import VisionService
 
