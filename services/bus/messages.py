@@ -82,6 +82,9 @@ class OperatorCommand(Message):
     dp: Vec3
     dR: Rot
     grip: Unit | None = None
+    origin_t_ns: Count | None = None
+    """Extension: on `robot/puma/cmd`, the `t_ns` of the operator's `robot/cmd` command this
+    supervised command carries out (absent on holds and task steps)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -101,6 +104,14 @@ class RobotState(Message):
     cmd_seq: Count
     grip: Unit | None = None
     manipulability: float | None = None
+    cmd_rx_ns: Count | None = None
+    """Extension: time.time_ns() when the puma received command `cmd_seq`."""
+    setpoint_ns: Count | None = None
+    """Extension: time.time_ns() when the first arm setpoint computed from command `cmd_seq`
+    went to the arm (absent until one has)."""
+    cmd_origin_t_ns: Count | None = None
+    """Extension: the `origin_t_ns` that command `cmd_seq` carried (the operator's send
+    time), so master→puma and master→setpoint are timed on one clock."""
 
 
 @dataclass(frozen=True, slots=True)

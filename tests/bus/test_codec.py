@@ -60,6 +60,7 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "dp": [0.1, 0.2, 0.3],
         "dR": RZ90,
         "grip": 0.5,
+        "origin_t_ns": 7,
     },
     RobotState: {
         "seq": 1,
@@ -74,6 +75,9 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "cmd_seq": 4,
         "grip": 0.0,
         "manipulability": 0.02,
+        "cmd_rx_ns": 11,
+        "setpoint_ns": 12,
+        "cmd_origin_t_ns": 8,
     },
     ForceSample: {
         "seq": 1,
@@ -141,8 +145,8 @@ VALID: dict[type[Message], dict[str, Any]] = {
 }
 
 OPTIONAL: dict[type[Message], set[str]] = {
-    OperatorCommand: {"grip"},
-    RobotState: {"grip", "manipulability"},
+    OperatorCommand: {"grip", "origin_t_ns"},
+    RobotState: {"grip", "manipulability", "cmd_rx_ns", "setpoint_ns", "cmd_origin_t_ns"},
     ForceSample: {"raw"},
     Event: {"data"},
     StereoFrame: {"fx", "fy", "cx", "cy", "baseline"},
