@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 import traceback
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Collection, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -329,14 +329,26 @@ class Node:
         )
 
     # --- methods ---------------------------------------------------------------------
-    def serve(self, service: str, methods: Mapping[str, Handler]) -> None:
+    def serve(
+        self,
+        service: str,
+        methods: Mapping[str, Handler],
+        inline: Collection[str] = (),
+    ) -> None:
         """Serve `robot/<service>/rpc/<method>` for each handler.
 
-        A handler takes the decoded argument map and returns the reply map. It runs on a
-        worker thread (so a `"wait": true` motion can block until done). `ProtocolError` →
-        `bad_request`, `RpcError` → its code, anything else → `internal` (and an event).
+        A handler takes the decoded argument map and returns the reply map. Handlers named in
+        `inline` never block (no I/O, no waiting, only short locks): they run in Zenoh's
+        callback, which saves the hand-over to a worker (the floor of a call). Every other
+        handler runs on a worker thread, so a `"wait": true` motion or a nested call can
+        block until done. `ProtocolError` → `bad_request`, `RpcError` → its code, anything
+        else → `internal` (and an event).
         """
         table = dict(methods)
+        unknown = set(inline) - set(table)
+        if unknown:
+            raise ValueError(f"inline methods not served: {sorted(unknown)}")
+        direct = frozenset(inline)
         prefix = rpc_key(service, "")
 
         def run(query: zenoh.Query, method: str) -> None:
@@ -378,6 +390,9 @@ class Node:
             method = str(query.key_expr)[len(prefix) :]
             if "/" in method and method.split("/", 1)[0] in table:
                 method = method.split("/", 1)[0]
+            if method in direct or method not in table:
+                run(query, method)  # never blocks; an unknown method is answered at once
+                return
             try:
                 self._rpc_pool.submit(run, query, method)
             except RuntimeError:  # pool shut down: the node is closing
@@ -405,23 +420,66 @@ class Node:
         Waits (within `timeout_s`) for `alive/<service>` before the first `get`; no reply
         at all raises `Unavailable`.
         """
+        return self.call_start(service, method, args, timeout_s).result()
+
+    def call_start(
+        self,
+        service: str,
+        method: str,
+        args: Mapping[str, Any] | None = None,
+        timeout_s: float = 2.0,
+    ) -> PendingCall:
+        """Send a call and return at once; `result()` waits for the reply (as `call`).
+
+        Calls started one after the other run concurrently: the decision's `status` asks
+        puma and force at the same time.
+        """
         deadline = time.monotonic() + timeout_s
         if not self.alive.wait(service, timeout_s):
             raise Unavailable(f"service {service!r} is not alive (no alive/{service} token)")
         payload = codec.pack(dict(args or {}))
         key = rpc_key(service, method)
+        replies = self.session.get(key, payload=payload, encoding=_ENCODING, timeout=timeout_s)
+        return PendingCall(self, service, key, payload, deadline, replies)
+
+    def _call_retry(
+        self, service: str, key: str, payload: bytes, deadline: float
+    ) -> dict[str, Any]:
+        """The `get` loop after a first attempt saw no reply (pitfall 5)."""
         while True:
+            if time.monotonic() >= deadline or not self.alive.is_alive(service):
+                raise Unavailable(f"no reply from {key}")
+            time.sleep(min(CALL_RETRY_S, max(deadline - time.monotonic(), 0.0)))
             left = deadline - time.monotonic()
             replies = list(
                 self.session.get(key, payload=payload, encoding=_ENCODING, timeout=max(left, 0.05))
             )
             if replies:
                 return _reply_map(replies[0], key)
-            # Pitfall 5: right after (re)connecting a get may see no queryable yet. Retry
-            # while the service is alive and time is left; otherwise it is absent.
-            if time.monotonic() >= deadline or not self.alive.is_alive(service):
-                raise Unavailable(f"no reply from {key}")
-            time.sleep(min(CALL_RETRY_S, max(deadline - time.monotonic(), 0.0)))
+
+
+class PendingCall:
+    """A method call under way (`Node.call_start`); `result()` gives its reply once."""
+
+    def __init__(
+        self, node: Node, service: str, key: str, payload: bytes, deadline: float, replies: Any
+    ) -> None:
+        self._node = node
+        self._service = service
+        self._key = key
+        self._payload = payload
+        self._deadline = deadline
+        self._replies = replies
+
+    def result(self) -> dict[str, Any]:
+        """The reply map, or `RpcError` with the contract's code; `Unavailable` when no
+        reply came before the deadline."""
+        replies = list(self._replies)
+        if replies:
+            return _reply_map(replies[0], self._key)
+        # Pitfall 5: right after (re)connecting a get may see no queryable yet. Retry while
+        # the service is alive and time is left; otherwise it is absent.
+        return self._node._call_retry(self._service, self._key, self._payload, self._deadline)
 
 
 def _reply_map(reply: zenoh.Reply, key: str) -> dict[str, Any]:
@@ -465,6 +523,7 @@ def opened(name: str, config: NodeConfig | None = None) -> Iterator[Node]:
 __all__ = [
     "AliveSet",
     "Node",
+    "PendingCall",
     "Publisher",
     "RpcError",
     "Subscription",

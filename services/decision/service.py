@@ -1,13 +1,19 @@
 """The decision service on the bus: the operator's single entry point (IDecisionServer).
 
 It serves `robot/decision/rpc/…` (every IProxyRobot and IForceSensor method forwarded to the
-puma and force services, plus `status`, `supervisor`, `estop`, `reset`, `task`), and runs the
-supervisory loop between `robot/cmd` and `robot/puma/cmd` on a thread of its own.
+puma and force services, plus `status`, `supervisor`, `estop`, `reset`, `task`), and
+supervises `robot/cmd` into `robot/puma/cmd`.
 
-Threads: Zenoh's callbacks only store the newest state/force sample or hand commands and
-liveliness changes over (deques); the loop thread owns the `Supervisor` and is the only
-publisher of `robot/puma/cmd`; RPC handlers run on the node's worker pool and touch the
-supervisor under the same lock, briefly. A task's caller waits on a condition of that lock.
+Reactive: an operator command is supervised and its result published in the Zenoh callback
+that delivers it, so the puma has it one hop later; a lost service is handled the same way.
+Between inputs a timer thread sleeps until the supervisor's next deadline (a watchdog, the
+20 Hz hold re-send, a task's or a catching-up target's next step): an idle decision server
+does nothing. The state and force callbacks only store the newest sample.
+
+Threads: every tick runs under one lock (`_cond`), and the command it yields is published
+under it too, so `robot/puma/cmd` leaves in `seq` order whichever thread ticked; events go
+out after the lock is released. RPC handlers touch the supervisor under the same lock,
+briefly; a task's caller waits on its condition.
 """
 
 from __future__ import annotations
@@ -16,7 +22,6 @@ import logging
 import threading
 import time
 import traceback
-from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import fields
 from functools import partial
@@ -29,10 +34,9 @@ from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
 from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
 from services.bus.messages import ForceSample, OperatorCommand, RobotState
-from services.bus.node import Node
-from services.bus.rate import RateLoop
+from services.bus.node import Node, PendingCall
 from services.decision.config import STARTUP_ONLY, DecisionConfig
-from services.decision.supervisor import INTERVENTIONS, Inputs, Mode, Supervisor, TaskRun
+from services.decision.supervisor import INTERVENTIONS, Inputs, Mode, Notice, Supervisor, TaskRun
 from services.decision.tasks import TASK_NAMES, TaskPlan, plan_task
 
 log = logging.getLogger("telerobot.decision")
@@ -71,6 +75,8 @@ ALIVE_WAIT_S = 0.5
 STATUS_CALL_TIMEOUT_S = 1.0
 HOLD_REPEATS = 3
 """Inactive commands sent at close (each a new seq): one lost packet must not matter."""
+IDLE_WAIT_S = 1.0
+"""The timer re-checks this often when nothing is due (a safety net; inputs wake it)."""
 
 
 class DecisionService:
@@ -90,27 +96,30 @@ class DecisionService:
         self.supervisor = Supervisor(
             config, seq_start=wall // 1_000, engage_start=wall // 1_000_000
         )
-        self._commands: deque[OperatorCommand] = deque(maxlen=4096)
-        self._lost: deque[str] = deque(maxlen=1024)
         self._state: tuple[RobotState, int] | None = None
         self._force: tuple[ForceSample, int] | None = None
         self._stop = threading.Event()
         self._closed = False
         self.loop_errors = 0
         self.publish_errors = 0
-        self._rate: RateLoop | None = None
+        self.timer_ticks = 0
+        self.timer_late = 0
+        self.timer_late_max_ms = 0.0
 
         self._pub = node.publisher(PUMA_CMD)
-        node.subscribe(CMD, self._commands.append)
+        node.subscribe(CMD, self._on_command)
         node.subscribe(STATE, self._on_state)
         node.subscribe(FORCE, self._on_force)
         node.alive.on_change(self._on_alive)
-        node.serve(SERVICE, self._methods())
-        self._thread = threading.Thread(target=self._loop, name="decision-loop", daemon=True)
+        node.serve(SERVICE, self._methods(), inline=("supervisor", "reset"))
+        self._thread = threading.Thread(target=self._timer, name="decision-timer", daemon=True)
         self._thread.start()
         node.announce()
 
-    # --- Zenoh callbacks: store or hand over, never block --------------------------------
+    # --- Zenoh callbacks: react to commands and losses, store the rest --------------------
+    def _on_command(self, msg: OperatorCommand) -> None:
+        self._react(commands=(msg,))
+
     def _on_state(self, msg: RobotState) -> None:
         self._state = (msg, time.monotonic_ns())
 
@@ -119,26 +128,16 @@ class DecisionService:
 
     def _on_alive(self, name: str, up: bool) -> None:
         if not up:
-            self._lost.append(name)
+            self._react(lost=(name,))
 
-    # --- the loop --------------------------------------------------------------------------
+    # --- ticks -----------------------------------------------------------------------------
     @property
     def config(self) -> DecisionConfig:
         return self.supervisor.config
 
-    def _loop(self) -> None:
-        rate = RateLoop(self.config.rate_hz, on_late=self._on_late)
-        self._rate = rate
-        while not self._stop.is_set():
-            self._tick()
-            rate.sleep()
-
-    def _on_late(self, late_s: float, n_late: int) -> None:
-        log.warning("supervisory loop late by %.1f ms (%d late ticks)", late_s * 1e3, n_late)
-
-    def _inputs(self) -> Inputs:
-        commands = tuple(_drain(self._commands))
-        lost = tuple(_drain(self._lost))
+    def _inputs(
+        self, commands: tuple[OperatorCommand, ...] = (), lost: tuple[str, ...] = ()
+    ) -> Inputs:
         state, force = self._state, self._force
         return Inputs(
             now_ns=time.monotonic_ns(),
@@ -151,27 +150,60 @@ class DecisionService:
             lost=lost,
         )
 
-    def _tick(self) -> None:
-        inp = self._inputs()
+    def _react(
+        self, commands: tuple[OperatorCommand, ...] = (), lost: tuple[str, ...] = ()
+    ) -> None:
+        """Tick now with these inputs (or none, after a method changed the mode): publish
+        the result at once and let the timer re-plan its next wake-up."""
         with self._cond:
-            try:
-                res = self.supervisor.tick(inp)
-            except Exception as e:  # a bug: count it, report it, latch the safe state
-                self.loop_errors += 1
-                log.exception("supervisor tick failed")
-                self.supervisor.estop(inp.now_ns, f"internal error in the supervisor: {e}")
-                self._event(
-                    "error",
-                    f"supervisor tick failed: {e}",
-                    {"traceback": traceback.format_exc(limit=8)},
-                )
-                self._cond.notify_all()
+            if self._closed:
                 return
-            if res.finished:
-                self._cond.notify_all()
+            notices = self._tick_locked(self._inputs(commands, lost))
+            self._cond.notify_all()
+        self._emit(notices)
+
+    def _tick_locked(self, inp: Inputs) -> tuple[Notice, ...]:
+        """One supervisor tick under the lock; the command goes out before the lock is
+        released. Returns the notices to publish after it."""
+        try:
+            res = self.supervisor.tick(inp)
+        except Exception as e:  # a bug: count it, report it, latch the safe state
+            self.loop_errors += 1
+            log.exception("supervisor tick failed")
+            self.supervisor.estop(inp.now_ns, f"internal error in the supervisor: {e}")
+            bug = Notice(
+                "error",
+                f"supervisor tick failed: {e}",
+                {"traceback": traceback.format_exc(limit=8)},
+            )
+            return (bug,)
         if res.command is not None:
             self._put(res.command)
-        for n in res.notices:
+        return res.notices
+
+    def _timer(self) -> None:
+        """Sleep until the supervisor's next deadline (or an input re-plans it); tick."""
+        while True:
+            with self._cond:
+                if self._stop.is_set():
+                    return
+                wake = self.supervisor.next_wake_ns()
+                now = time.monotonic_ns()
+                if wake is None or wake > now:
+                    left_s = IDLE_WAIT_S if wake is None else min((wake - now) * 1e-9, IDLE_WAIT_S)
+                    self._cond.wait(left_s)
+                    continue
+                late_ms = (now - wake) * 1e-6
+                if late_ms > self.config.period_s * 1e3:
+                    self.timer_late += 1
+                    self.timer_late_max_ms = max(self.timer_late_max_ms, late_ms)
+                self.timer_ticks += 1
+                notices = self._tick_locked(self._inputs())
+                self._cond.notify_all()
+            self._emit(notices)
+
+    def _emit(self, notices: tuple[Notice, ...]) -> None:
+        for n in notices:
             self._event(n.kind, n.message, n.data)
 
     def _put(self, cmd: OperatorCommand) -> None:
@@ -221,7 +253,7 @@ class DecisionService:
         if method == "stop":
             with self._cond:
                 self.supervisor.stop(now)
-                self._cond.notify_all()
+            self._react()
         elif method in MOTION_METHODS:
             with self._cond:
                 self.supervisor.claim(method)
@@ -235,6 +267,8 @@ class DecisionService:
         """The superset status: robot (robot/state and puma's `status`), sensor (robot/force
         and `sensor_status`), supervisor (mode, lease, task, settings), alive services and the
         intervention counters."""
+        puma = self._peek_start("puma", "status")
+        sensor = self._peek_start("force", "sensor_status")
         now = time.monotonic_ns()
         with self._cond:
             snap = self.supervisor.snapshot()
@@ -242,7 +276,6 @@ class DecisionService:
         state, force = self._state, self._force
         interventions = dict(snap["interventions"])
         interventions["rejected"] = interventions.get("rejected", 0) + self._cmd_rejections()
-        rate = self._rate
         return {
             "service": SERVICE,
             "mode": snap["mode"],
@@ -253,13 +286,15 @@ class DecisionService:
             "interventions": interventions,
             "robot": _stamped(state, now),
             "force": _stamped(force, now),
-            "puma": self._peek("puma", "status"),
-            "sensor": self._peek("force", "sensor_status"),
+            "puma": _peek_result(puma),
+            "sensor": _peek_result(sensor),
             "alive": sorted(self.node.alive.names()),
             "loop": {
                 "rate_hz": self.config.rate_hz,
-                "ticks": rate.ticks if rate else 0,
-                "late": rate.late if rate else 0,
+                "ticks": snap["stats"]["ticks"],
+                "timer_ticks": self.timer_ticks,
+                "late": self.timer_late,
+                "late_max_ms": round(self.timer_late_max_ms, 3),
                 "errors": self.loop_errors,
                 "publish_errors": self.publish_errors,
             },
@@ -272,13 +307,12 @@ class DecisionService:
             if key == CMD.key or key.endswith("/" + CMD.key)
         )
 
-    def _peek(self, service: str, method: str) -> dict[str, Any]:
+    def _peek_start(self, service: str, method: str) -> PendingCall | dict[str, Any]:
+        """Start a nested call of `status` (they run concurrently), or its error map."""
         if not self.node.alive.is_alive(service):
             return {"error": "unavailable", "message": f"the {service} service is not running"}
         try:
-            return self.node.call(service, method, {}, STATUS_CALL_TIMEOUT_S)
-        except RpcError as e:
-            return {"error": e.code, "message": e.message}
+            return self.node.call_start(service, method, {}, STATUS_CALL_TIMEOUT_S)
         except Unavailable as e:
             return {"error": "unavailable", "message": str(e)}
 
@@ -297,6 +331,7 @@ class DecisionService:
                 raise RpcError("bad_request", str(e)) from None
             with self._cond:
                 self.supervisor.set_config(new)
+                self._cond.notify_all()  # the timer's next deadline may have moved
             changed = sorted(k for k in args if current.get(k) != new.settings().get(k))
             self._event(
                 "status",
@@ -315,7 +350,7 @@ class DecisionService:
         moves is refused until `reset`."""
         with self._cond:
             self.supervisor.estop(time.monotonic_ns(), str(args.get("reason") or "estop requested"))
-            self._cond.notify_all()
+        self._react()  # the hold goes out now
         method = "estop" if self.config.estop_power_off else "stop"
         try:
             puma: dict[str, Any] = self._forward("puma", method, {})
@@ -327,6 +362,7 @@ class DecisionService:
         """Clear the e-stop latch; masters must engage anew to move."""
         with self._cond:
             was = self.supervisor.reset(time.monotonic_ns())
+            self._cond.notify_all()
         return {"estop": False, "was_latched": was}
 
     def rpc_task(self, args: dict[str, Any]) -> dict[str, Any]:
@@ -341,7 +377,7 @@ class DecisionService:
         if name == "cancel":
             with self._cond:
                 run = self.supervisor.cancel_task(now)
-                self._cond.notify_all()
+            self._react()
             if run is not None and run.external:
                 self._forward("puma", "stop", {})
             return {"cancelled": run.name if run is not None else None}
@@ -350,6 +386,7 @@ class DecisionService:
         with self._cond:
             plan = plan_task(name, args, self.config)
             run = self.supervisor.start_task(plan, now)
+        self._react()  # the task's first step now; the timer takes the next ones
         if not plan.wait:
             return {"accepted": True, "task": name, "id": run.id}
         return self._wait(run)
@@ -376,7 +413,7 @@ class DecisionService:
                 error = (e.code, e.message)
             with self._cond:
                 self.supervisor.finish_external(run, result=result, error=error)
-                self._cond.notify_all()
+            self._react()
 
         if not wait:
             threading.Thread(target=go, name="decision-home", daemon=True).start()
@@ -389,14 +426,16 @@ class DecisionService:
         """Hold the arm (inactive command, puma `stop`), stop the loop. Idempotent."""
         if self._closed:
             return
-        self._closed = True
-        self._stop.set()
+        with self._cond:
+            self._closed = True
+            self._stop.set()
+            self._cond.notify_all()
         self._thread.join(timeout=2.0)
         with self._cond:
             final = self.supervisor.shutdown(time.monotonic_ns(), time.time_ns(), HOLD_REPEATS)
             self._cond.notify_all()
-        for cmd in final:
-            self._put(cmd)
+            for cmd in final:
+                self._put(cmd)
         if self.node.closed or not self.node.alive.is_alive("puma"):
             return
         try:
@@ -405,13 +444,16 @@ class DecisionService:
             log.info("puma stop at close: %s", e)
 
 
-def _drain(q: deque[Any]) -> list[Any]:
-    out = []
-    while True:
-        try:
-            out.append(q.popleft())
-        except IndexError:
-            return out
+def _peek_result(call: PendingCall | dict[str, Any]) -> dict[str, Any]:
+    """The nested call's reply, or its error as a map (status never fails for it)."""
+    if isinstance(call, dict):
+        return call
+    try:
+        return call.result()
+    except RpcError as e:
+        return {"error": e.code, "message": e.message}
+    except Unavailable as e:
+        return {"error": "unavailable", "message": str(e)}
 
 
 def _stamped(

@@ -1,4 +1,4 @@
-"""The supervisory loop's logic, free of I/O: one `tick()` per loop period.
+"""The supervisory logic, free of I/O: one `tick()` per input, and per timer wake-up.
 
 The decision server stands between the masters (`robot/cmd`) and the puma (`robot/puma/cmd`).
 It keeps its own engagement towards the puma (`engage_out`, its own `seq`, master id
@@ -15,8 +15,16 @@ back moves the tool back at once. Motion the speed limit holds back is only dela
 target catches up with the operator at the limit speed.
 
 Holding (watchdog, lost master, e-stop, stale streams, disengage) sends `active = false`
-with the last dp/dR every tick, never `active = true` again for that engagement; motion
-resumes only with a NEW engagement of a master, which is rebased on the then-current pose.
+with the last dp/dR at once and then every HOLD_RESEND_NS, never `active = true` again for
+that engagement; motion resumes only with a NEW engagement of a master, which is rebased on
+the then-current pose.
+
+Reactive: the service ticks once per operator command as it arrives (and per lost service),
+so the supervised command goes out at once; between inputs it ticks only when
+`next_wake_ns()` says: a watchdog deadline, the hold's re-send, a task's or a catching-up
+target's next step. A tick with nothing new publishes nothing. The speed limits bound the
+target's motion over the time since its last step (not per tick), so a master at any rate
+may move at the limit speed on average.
 
 Time: `now_ns` is a monotonic clock (ns) for watchdogs and ticks; `wall_ns` is the
 `time.time_ns()` put in the commands' `t_ns`. Not thread-safe: the service calls it under
@@ -66,6 +74,12 @@ SETTLE_S = 2.0
 """A task move may take this much longer than distance / speed before it fails."""
 MOVING_STATUSES = ("ready", "moving")
 STEP_EPS_M = 1e-9
+STEP_EPS_RAD = 1e-9
+BLOCKED_SHARE = 0.01
+"""A guarded move is blocked when a step moves less than this share of what it asked."""
+HOLD_RESEND_NS = 50_000_000
+"""A hold is re-sent this often (20 Hz): one lost packet must not matter, and the puma needs
+nothing more while nothing changes."""
 
 #: the kinds of intervention events, each with a counter in `status`
 INTERVENTIONS: tuple[str, ...] = (
@@ -83,9 +97,10 @@ class Mode(Enum):
     """What the supervisor is doing.
 
     IDLE: nothing to command (start-up, after a forwarded motion or an external task);
-    nothing is published. FOLLOW: a master holds the lease and its engagement is followed.
-    HOLD: an engagement (teleoperation or task) ended; the hold is re-sent every tick.
-    TASK: an autonomous task runs. ESTOP: latched until `reset`; the hold is re-sent.
+    nothing is published. FOLLOW: a master holds the lease and its engagement is followed,
+    one command out per command in. HOLD: an engagement (teleoperation or task) ended; the
+    hold is re-sent at 20 Hz. TASK: an autonomous task runs, one step per period.
+    ESTOP: latched until `reset`; the hold is re-sent.
     """
 
     IDLE = "idle"
@@ -263,6 +278,14 @@ class Supervisor:
         self._task_ids = 0
         self._now_ns = 0
         self.hold_reason: str | None = None
+        self._dt_s = config.period_s
+        self._last_adv_ns: int | None = None
+        self._last_out_ns: int | None = None
+        self._last_out_active = False
+        self._fresh = False
+        self._lagging = False
+        self._state_rx_ns = 0
+        self._force_rx_ns = 0
 
     # --- settings ----------------------------------------------------------------------
     @property
@@ -277,9 +300,19 @@ class Supervisor:
 
     # --- the tick ------------------------------------------------------------------------
     def tick(self, inp: Inputs) -> TickResult:
-        """Process the inputs of one loop period; return what to publish."""
+        """Process new inputs (or none: a timer wake-up); return what to publish."""
         self._now_ns = inp.now_ns
+        self._state_rx_ns, self._force_rx_ns = inp.state_rx_ns, inp.force_rx_ns
         self.stats["ticks"] += 1
+        self._fresh = False
+        last = self._last_adv_ns
+        # The time the target may move over: since its last step, at most one watchdog
+        # period (a longer gap is a hold anyway).
+        self._dt_s = (
+            self._cfg.period_s
+            if last is None
+            else min(max((inp.now_ns - last) * 1e-9, 0.0), self._cfg.watchdog_ms * 1e-3)
+        )
         state_ok = self._state_fresh(inp)
         force_ok = self._force_fresh(inp)
         for name in inp.lost:
@@ -298,11 +331,46 @@ class Supervisor:
                 # engagement began), not at one the arm was never asked to reach.
                 began = self.engage_out != engage
                 self.p_sup, self.R_sup = (self._p0.copy(), self._R0.copy()) if began else sent
-        if out is None and self.mode in (Mode.HOLD, Mode.ESTOP) and self._p0 is not None:
+        if (
+            out is None
+            and self.mode in (Mode.HOLD, Mode.ESTOP)
+            and self._p0 is not None
+            and self._hold_due()
+        ):
             out = self._command(inp, active=False)
         notices, self._notices = tuple(self._notices), []
         finished, self._finished = tuple(self._finished), []
         return TickResult(out, notices, finished)
+
+    def _hold_due(self) -> bool:
+        """The first hold after motion goes out at once, then every HOLD_RESEND_NS."""
+        last = self._last_out_ns
+        return last is None or self._last_out_active or self._now_ns - last >= HOLD_RESEND_NS
+
+    def next_wake_ns(self) -> int | None:
+        """When the service must tick again without new input (monotonic ns), or None:
+        only on input. Watchdogs wake at their deadline; a task, a target catching up with
+        the operator, and compliance step every period; a hold is re-sent at 20 Hz."""
+        cfg = self._cfg
+        now = self._now_ns
+        period_ns = int(cfg.period_s * 1e9)
+        if self.mode is Mode.FOLLOW:
+            if self._lagging or cfg.compliance:
+                return now + period_ns
+            deadline = min(
+                self._cmd_rx_ns + int(cfg.watchdog_ms * 1e6),
+                self._state_rx_ns + int(cfg.state_stale_ms * 1e6),
+            )
+            return max(deadline + 1, now + 1)
+        if self.mode is Mode.TASK:
+            run = self.task
+            return now + period_ns if run is not None and not run.external else None
+        if self.mode in (Mode.HOLD, Mode.ESTOP) and self._p0 is not None:
+            last = self._last_out_ns
+            if last is None or self._last_out_active:
+                return now + 1
+            return max(last + HOLD_RESEND_NS, now + 1)
+        return None
 
     def _state_fresh(self, inp: Inputs) -> bool:
         return (
@@ -463,6 +531,7 @@ class Supervisor:
                 return
             if cmd.engage == self.engage_in:
                 self._cmd, self._cmd_rx_ns = cmd, inp.now_ns
+                self._fresh = True
                 return
         elif not cmd.active:
             return
@@ -501,6 +570,7 @@ class Supervisor:
             )
         self.engage_in = cmd.engage
         self._cmd, self._cmd_rx_ns = cmd, inp.now_ns
+        self._fresh = True
         self._begin_out(state)
         self.mode = Mode.FOLLOW
         self.hold_reason = None
@@ -515,6 +585,10 @@ class Supervisor:
         self._off_p = np.zeros(3)
         self._off_R = np.eye(3)
         self._edges.clear()
+        self._lagging = False
+        # The engagement's first step may move one period's worth, as a tick always could.
+        self._last_adv_ns = self._now_ns - int(self._cfg.period_s * 1e9)
+        self._dt_s = self._cfg.period_s
         self.stats["engagements"] += 1
 
     def _release_lease(self, why: str) -> None:
@@ -580,6 +654,8 @@ class Supervisor:
             )
         if self.mode is not Mode.FOLLOW or self._cmd is None or self._p0 is None:
             return None
+        if not (self._fresh or self._lagging or cfg.compliance):
+            return None  # nothing new: the puma already has this target
         cmd = self._cmd
         p_des, R_des = operator_target(self._p0, self._R0, cmd.dp, mat3(cmd.dR), cmd.frame)
         g_p = p_des + self._off_p
@@ -587,8 +663,12 @@ class Supervisor:
         g_p, g_R = self._advance(g_p, g_R, inp, force_ok)
         self._off_p = g_p - p_des
         self._off_R = orthonormalize(R_des.T @ g_R)
+        self._lagging = (
+            _norm(g_p - self.p_sup) > STEP_EPS_M
+            or _norm(log_so3(self.R_sup.T @ g_R)) > STEP_EPS_RAD
+        )
         self._grip = cmd.grip
-        return self._command(inp, active=True)
+        return self._command(inp, active=True, origin_t_ns=cmd.t_ns if self._fresh else None)
 
     def _advance(self, g_p: Vec, g_R: Mat, inp: Inputs, force_ok: bool) -> tuple[Vec, Mat]:
         """Move the supervised target one tick towards the goal (g_p, g_R) through the
@@ -597,12 +677,14 @@ class Supervisor:
         (a) contact: above max_force_n (max_torque_nm) the goal's component into the
             contact is removed (and a target deeper than the measured tool is pulled back);
         (b) compliance: the goal yields along the force (admittance);
-        (c) speed: the step is at most max_tool_speed · period (rotation likewise);
+        (c) speed: the step is at most max_tool_speed · dt, dt the time since the last
+            step (rotation likewise): a rate limit over time, whatever the input rate;
         (d) workspace: goal and target are clamped to the box (grown to contain the current
             target, so a target outside may only come back).
         """
         cfg = self._cfg
-        dt = cfg.period_s
+        dt = self._dt_s
+        self._last_adv_ns = self._now_ns
         lo, hi = effective_box(cfg.workspace_min, cfg.workspace_max, self.p_sup)
         g1 = clamp_box(g_p, lo, hi)
         clamped = _norm(g1 - g_p) > STEP_EPS_M
@@ -690,11 +772,15 @@ class Supervisor:
         self.R_sup = orthonormalize(self.R_sup @ exp_so3(wstep))
         return goal_p, orthonormalize(goal_R)
 
-    def _command(self, inp: Inputs, active: bool) -> OperatorCommand:
+    def _command(
+        self, inp: Inputs, active: bool, origin_t_ns: int | None = None
+    ) -> OperatorCommand:
         assert self._p0 is not None
         dp, dR = engagement_command(self._p0, self._R0, self.p_sup, self.R_sup)
         self.seq_out += 1
         self.stats["published"] += 1
+        self._last_out_ns = self._now_ns
+        self._last_out_active = active
         return OperatorCommand(
             seq=self.seq_out,
             t_ns=inp.wall_ns,
@@ -705,6 +791,7 @@ class Supervisor:
             dp=vec(dp),
             dR=vec(dR),
             grip=self._grip,
+            origin_t_ns=origin_t_ns,
         )
 
     # --- e-stop, stop, hand-over to forwarded motions ---------------------------------------
@@ -927,7 +1014,7 @@ class Supervisor:
                     f"{_list(goal)}; tool at {list(state.tool_p)}",
                 )
                 return
-        g = self.p_sup + clip_norm(goal - self.p_sup, step.speed_m_s * self._cfg.period_s)[0]
+        g = self.p_sup + clip_norm(goal - self.p_sup, step.speed_m_s * self._dt_s)[0]
         self._advance(g, run.R_keep, inp, force_ok)
         at_goal = _norm(self.p_sup - goal) <= STEP_EPS_M
         arrived = _norm(np.asarray(state.tool_p) - goal) <= self._cfg.arrive_tol_m
@@ -968,9 +1055,12 @@ class Supervisor:
                 self._fail(run, "unreachable", "guarded move: the arm did not follow")
             return
         before = self.p_sup.copy()
-        g = self.p_sup + d * min(step.speed_m_s * self._cfg.period_s, left)
+        want = min(step.speed_m_s * self._dt_s, left)
+        g = self.p_sup + d * want
         self._advance(g, run.R_keep, inp, force_ok)
-        if float((self.p_sup - before) @ d) <= STEP_EPS_M:
+        # Blocked: a filter (contact, workspace) kept the step. A tick only an instant after
+        # the last one asks for no step worth judging.
+        if want > STEP_EPS_M and float((self.p_sup - before) @ d) <= BLOCKED_SHARE * want:
             self._guarded_done(run, step, state, f_w, df, "blocked")
 
     def _guarded_done(

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -493,6 +494,11 @@ class PumaProxy:
         self._mapping = TeleopMapping()
         self._grip: float | None = None
         self._last_cmd_t_ns = 0
+        self._cmd_rx_ns: int | None = None
+        self._cmd_origin_t_ns: int | None = None
+        self._setpoint_ns: int | None = None
+        self._awaiting_setpoint = False
+        self._fk_cache: tuple[bytes, int, dict[str, Any]] | None = None
         self._limiter = _Limiter(config.event_interval_s)
         self.counters: dict[str, int] = {
             "ticks": 0,
@@ -508,6 +514,18 @@ class PumaProxy:
         """The robot status of PROTOCOL §5 (cheap: no kinematics)."""
         with self._lock:
             return self._status
+
+    @property
+    def needs_tick(self) -> bool:
+        """Whether the control loop must tick at its rate: a motion, a brake or a teleop
+        servo runs, the setpoint still has velocity, or calibration is under way. Otherwise
+        nothing changes between commands and a slow watch tick is enough."""
+        with self._lock:
+            if self._status == "initializing":
+                return True
+            if self._status not in ("ready", "moving"):
+                return False
+            return self._gen is not None or bool(self._qd_cmd.any())
 
     def __enter__(self) -> PumaProxy:
         return self
@@ -551,6 +569,8 @@ class PumaProxy:
         if follow > self.config.max_following_error_rad:
             self._fail("internal", f"following error {follow:.3f} rad: the arm does not follow")
             return
+        if self._gen is None and not self._qd_cmd.any():
+            return  # at rest with nothing to do: the arm already holds this setpoint
         q_des = self._desired(dt_s)
         step = safe_step(
             self._q_cmd, self._qd_cmd, q_des, dt_s, self.limits, self._tool_pose, self._pose_cmd
@@ -563,6 +583,9 @@ class PumaProxy:
         self._q_cmd, self._qd_cmd = step.q, step.qd
         self._pose_cmd = (step.tool_p, step.tool_R)
         self.arm.command(self._q_cmd)
+        if self._awaiting_setpoint:
+            self._awaiting_setpoint = False
+            self._setpoint_ns = time.time_ns()
         self._update_motion(dt_s)
 
     def _desired(self, dt_s: float) -> Vec:
@@ -672,11 +695,20 @@ class PumaProxy:
         self._pose_cmd = self._tool_pose(self._q_cmd)
         self._mapping.rebase()
         self._set_status("ready")
+        # The first setpoint is where the arm is: from here on it holds what it was sent.
+        self.arm.command(self._q_cmd)
         self._event("data", "arm calibrated", {"q": [float(x) for x in q]})
 
     # --- streamed commands ----------------------------------------------------------------
 
-    def on_command(self, cmd: TeleopInput, t_ns: int, grip: float | None) -> None:
+    def on_command(
+        self,
+        cmd: TeleopInput,
+        t_ns: int,
+        grip: float | None,
+        rx_ns: int | None = None,
+        origin_t_ns: int | None = None,
+    ) -> None:
         """A streamed OperatorCommand (`robot/puma/cmd`, after supervision; PROTOCOL §2–3).
 
         Ignored unless `ready` or `moving` (and while `stop` brakes). A command with a
@@ -686,12 +718,23 @@ class PumaProxy:
         (`Puma560.solve`) that the arm then chases within every limit, pre-empting a running
         motion. An unreachable target leaves the last reachable goal in place (the arm holds
         there) and raises a rate-limited `error` event with code `unreachable`.
+
+        `rx_ns` (when the service received it) and `origin_t_ns` (the operator's send time
+        it carries) are reported in the state with the time of the first setpoint it
+        produced, so the operator's path can be timed on one clock.
         """
         with self._lock:
-            self._on_command_locked(cmd, t_ns, grip)
+            self._on_command_locked(cmd, t_ns, grip, rx_ns, origin_t_ns)
         self._flush()
 
-    def _on_command_locked(self, cmd: TeleopInput, t_ns: int, grip: float | None) -> None:
+    def _on_command_locked(
+        self,
+        cmd: TeleopInput,
+        t_ns: int,
+        grip: float | None,
+        rx_ns: int | None,
+        origin_t_ns: int | None,
+    ) -> None:
         self.counters["commands"] += 1
         if self._status not in ("ready", "moving") or isinstance(self._gen, _Brake):
             self.counters["commands_ignored"] += 1
@@ -722,6 +765,10 @@ class PumaProxy:
             self.counters["commands_ignored"] += 1
             return  # stale: an older seq or engagement
         self._last_cmd_t_ns = int(t_ns)
+        self._cmd_rx_ns = rx_ns
+        self._cmd_origin_t_ns = origin_t_ns
+        self._setpoint_ns = None
+        self._awaiting_setpoint = cmd.active
         if grip is not None:
             self._grip = float(grip)
         if target is None:
@@ -990,23 +1037,40 @@ class PumaProxy:
     # --- internals --------------------------------------------------------------------------
 
     def _state_locked(self) -> dict[str, Any]:
+        out = dict(self._poses_locked())
+        out["status"] = self._status
+        out["engage"] = self._mapping.engage if self._mapping.engage is not None else -1
+        out["cmd_seq"] = self._mapping.last_seq
+        if self._grip is not None:
+            out["grip"] = self._grip
+        if self._cmd_rx_ns is not None:
+            out["cmd_rx_ns"] = self._cmd_rx_ns
+        if self._cmd_origin_t_ns is not None:
+            out["cmd_origin_t_ns"] = self._cmd_origin_t_ns
+        if self._setpoint_ns is not None:
+            out["setpoint_ns"] = self._setpoint_ns
+        return out
+
+    def _poses_locked(self) -> dict[str, Any]:
+        """Joints, tool and flange poses and manipulability of the measured joints; computed
+        again only when the joints or the tool changed (an arm at rest costs nothing)."""
         q = self._q_meas if self._q_meas is not None else self._q_cmd
+        key = q.tobytes()
+        cache = self._fk_cache
+        if cache is not None and cache[0] == key and cache[1] == self._tool_version:
+            return cache[2]
         oMe = self._kin.fk_flange(q)
         oMt = oMe * self._eMt
-        out: dict[str, Any] = {
-            "status": self._status,
+        poses: dict[str, Any] = {
             "q": _floats(q),
             "tool_p": _floats(oMt.translation),
             "tool_R": _floats(oMt.rotation.reshape(-1)),
             "flange_p": _floats(oMe.translation),
             "flange_R": _floats(oMe.rotation.reshape(-1)),
-            "engage": self._mapping.engage if self._mapping.engage is not None else -1,
-            "cmd_seq": self._mapping.last_seq,
             "manipulability": self._kin.manipulability(q),
         }
-        if self._grip is not None:
-            out["grip"] = self._grip
-        return out
+        self._fk_cache = (key, self._tool_version, poses)
+        return poses
 
     def _tool_pose(self, q: Vec) -> tuple[Vec, Vec]:
         oMt = self._kin.fk_tool(q, self._eMt)

@@ -1,9 +1,13 @@
 """The `puma` service on the bus: IProxyRobot at robot/puma/rpc, `robot/state`, `robot/puma/cmd`.
 
-One control thread owns the arm (franka-node's rule): it applies the newest command from
-`robot/puma/cmd`, ticks the proxy at `control_rate_hz` and publishes `robot/state` at
-`state_rate_hz`. The command subscription only stores the newest command (latest-wins);
-methods run on the node's worker pool and only plan under the proxy's lock. Every exit path
+One control thread owns the arm (franka-node's rule). It is woken, not polled: the command
+subscription stores the newest command (latest-wins) and wakes it, and it applies the command
+and ticks the proxy at once, so the arm gets the new setpoint one IK and one safety step
+after the command arrived. While a motion, brake or servo runs it ticks at
+`control_rate_hz` and publishes `robot/state` at `state_rate_hz`; at rest it only watches the
+arm and publishes the (unchanged, cached) state at `idle_state_rate_hz` (≥ 100 Hz, the
+contract's floor). Methods that do not block run in Zenoh's callback, the others on the
+node's worker pool; both only plan under the proxy's lock and wake the loop. Every exit path
 (close, a crash of the loop, SIGTERM through `__main__`) holds the arm.
 """
 
@@ -19,7 +23,6 @@ import numpy as np
 from services.bus import codec, keys
 from services.bus.messages import OperatorCommand, RobotState, mat3
 from services.bus.node import Node
-from services.bus.rate import RateLoop
 from services.puma.arm import open_arm
 from services.puma.config import PumaConfig
 from services.puma.mapping import TeleopInput
@@ -29,7 +32,15 @@ log = logging.getLogger("telerobot.puma")
 
 #: methods that start a motion and so accept `"wait": true`
 MOTIONS = ("move_joints", "move_pose", "move_relative", "home")
+#: methods that never block (no I/O with the arm, no waiting): answered in Zenoh's callback
+INLINE = ("status", "set_frame", "stop", "fk", "ik", "limits")
 WAIT_TIMEOUT_S = 120.0
+IDLE_STATE_RATE_HZ = 100.0
+"""robot/state's rate while the arm rests (PROTOCOL §3: ≥ 100 Hz)."""
+MIN_TICK_S = 1e-5
+MAX_TICK_S = 0.01
+"""A tick advances the motion by the time since the last one, within these bounds (a
+command can arrive right after a tick; a stalled thread must not make one long step)."""
 
 
 class PumaService:
@@ -45,13 +56,15 @@ class PumaService:
         self._state_pub = node.publisher(keys.STATE)
         self._state_seq = 0
         self._cmd_lock = threading.Lock()
-        self._pending: OperatorCommand | None = None
+        self._pending: tuple[OperatorCommand, int] | None = None
+        self._wake = threading.Event()
         self._stop = threading.Event()
+        self.late_ticks = 0
+        self.late_max_ms = 0.0
         node.subscribe(keys.PUMA_CMD, self._on_command)
         methods: dict[str, Any] = {
             name: getattr(self.proxy, f"rpc_{name}")
             for name in (
-                "status",
                 "connect",
                 "initialize",
                 "set_tool",
@@ -63,9 +76,10 @@ class PumaService:
                 "limits",
             )
         }
+        methods["status"] = self.rpc_status
         for name in MOTIONS:
             methods[name] = self._motion_method(name)
-        node.serve("puma", methods)
+        node.serve("puma", {k: self._waking(h) for k, h in methods.items()}, inline=INLINE)
         self._thread = threading.Thread(target=self._loop, name="puma-control", daemon=True)
         self._thread.start()
         node.announce()
@@ -76,13 +90,28 @@ class PumaService:
     # --- commands (latest wins; applied by the control thread) ------------------------
     def _on_command(self, cmd: OperatorCommand) -> None:
         with self._cmd_lock:
-            self._pending = cmd
+            self._pending = (cmd, time.time_ns())
+        self._wake.set()
 
-    def _apply_pending(self) -> None:
+    def _waking(self, handler: Any) -> Any:
+        """A method handler that wakes the control loop afterwards: it may have started,
+        stopped or re-planned a motion the loop must now tick."""
+
+        def run(args: dict[str, Any]) -> dict[str, Any]:
+            try:
+                reply: dict[str, Any] = handler(args)
+                return reply
+            finally:
+                self._wake.set()
+
+        return run
+
+    def _apply_pending(self) -> bool:
         with self._cmd_lock:
-            cmd, self._pending = self._pending, None
-        if cmd is None:
-            return
+            pending, self._pending = self._pending, None
+        if pending is None:
+            return False
+        cmd, rx_ns = pending
         ti = TeleopInput(
             seq=cmd.seq,
             engage=cmd.engage,
@@ -91,27 +120,50 @@ class PumaService:
             dp=np.asarray(cmd.dp),
             dR=mat3(cmd.dR),
         )
-        self.proxy.on_command(ti, cmd.t_ns, cmd.grip)
+        self.proxy.on_command(ti, cmd.t_ns, cmd.grip, rx_ns, cmd.origin_t_ns)
+        return True
 
     # --- the control loop -------------------------------------------------------------
     def _loop(self) -> None:
-        rate = RateLoop(self.config.control_rate_hz, on_late=self._on_late)
-        state_every = max(1, round(self.config.control_rate_hz / self.config.state_rate_hz))
-        dt = 1.0 / self.config.control_rate_hz
-        ticks = 0
+        period_s = 1.0 / self.config.control_rate_hz
+        busy_state_s = 1.0 / self.config.state_rate_hz
+        idle_state_s = 1.0 / min(IDLE_STATE_RATE_HZ, self.config.state_rate_hz)
+        now = time.monotonic()
+        last_tick = now
+        next_tick = now
+        next_state = now
         try:
             while not self._stop.is_set():
-                self._apply_pending()
-                self.proxy.tick(dt)
-                if ticks % state_every == 0:
+                self._wake.clear()
+                now = time.monotonic()
+                commanded = self._apply_pending()
+                busy = self.proxy.needs_tick
+                state_due = now >= next_state
+                # At rest the loop only watches the arm, once per state it publishes.
+                if commanded or (busy and now >= next_tick) or (state_due and not busy):
+                    if busy and not commanded and now - next_tick > period_s:
+                        self._count_late(now - next_tick)
+                    self.proxy.tick(min(max(now - last_tick, MIN_TICK_S), MAX_TICK_S))
+                    last_tick = now
+                    next_tick = now + period_s
+                    busy = self.proxy.needs_tick
+                if state_due:
                     self._publish_state()
-                ticks += 1
-                rate.sleep()
+                    next_state += busy_state_s if busy else idle_state_s
+                    if next_state <= now:  # late: re-anchor rather than burst
+                        next_state = now + (busy_state_s if busy else idle_state_s)
+                deadline = min(next_state, next_tick) if busy else next_state
+                self._wake.wait(max(deadline - time.monotonic(), 0.0))
         except Exception as e:  # the loop must never die silently with the arm moving
             log.exception("control loop failed")
             self.node.event("error", f"puma control loop failed: {e}", {"code": "internal"})
             self.proxy.rpc_stop({})
             raise
+
+    def _count_late(self, late_s: float) -> None:
+        """Lateness is counted and reported in `status` (loop.late), never logged per tick."""
+        self.late_ticks += 1
+        self.late_max_ms = max(self.late_max_ms, late_s * 1e3)
 
     def _publish_state(self) -> None:
         st = self.proxy.state()
@@ -120,10 +172,13 @@ class PumaService:
         st["cmd_seq"] = max(0, int(st["cmd_seq"]))
         self._state_pub.put(RobotState(seq=self._state_seq, t_ns=time.time_ns(), **st))
 
-    def _on_late(self, late_s: float, n_late: int) -> None:
-        log.warning("control loop late by %.1f ms (%d late ticks)", late_s * 1e3, n_late)
-
     # --- methods ----------------------------------------------------------------------
+    def rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The proxy's status plus the control loop's lateness (count and worst)."""
+        out = self.proxy.rpc_status(args)
+        out["loop"] = {"late": self.late_ticks, "late_max_ms": round(self.late_max_ms, 3)}
+        return out
+
     def _motion_method(self, name: str) -> Any:
         rpc = getattr(self.proxy, f"rpc_{name}")
 

@@ -35,6 +35,10 @@ FaultKind = Literal["stall", "disconnect", "error"]
 
 # Substep of the simulated servo (s): the 1 kHz of a PUMA joint servo board.
 SERVO_DT_S = 1e-3
+ARRIVED_RAD = 1e-9
+"""The servo's exponential approach ends here: joints this close to the setpoint, and this
+slow (rad/s), are at the setpoint and at rest (far below any encoder's resolution)."""
+IDLE_WAIT_S = 1.0
 
 
 class JointFollower:
@@ -91,6 +95,16 @@ class JointFollower:
         at_stop = (q_next < self.q_lo) | (q_next > self.q_hi)
         self.q = np.clip(q_next, self.q_lo, self.q_hi)
         self.v[at_stop] = 0.0
+        if (
+            np.abs(self.setpoint - self.q).max() <= ARRIVED_RAD
+            and np.abs(self.v).max() <= ARRIVED_RAD
+        ):
+            self.q = self.setpoint.copy()
+            self.v[:] = 0.0
+
+    def at_rest(self) -> bool:
+        """Exactly at the setpoint with zero velocity: stepping changes nothing."""
+        return not self.v.any() and np.array_equal(self.q, self.setpoint)
 
     def is_settled(self, tol_rad: float = 1e-4) -> bool:
         return bool(np.all(np.abs(self.setpoint - self.q) <= tol_rad) and np.all(self.v == 0.0))
@@ -101,7 +115,9 @@ class SimArm:
 
     `q_init` (rad) is where the joints are at power-on. `calibration_s` is the simulated
     duration of `initialize()`. `threaded=True` steps the servo at 1 kHz of wall time in a
-    thread started by `connect()`; `threaded=False` leaves stepping to `step(dt_s)`.
+    thread started by `connect()` while anything moves, and sleeps while the joints rest at
+    the setpoint (a new setpoint, a fault or a calibration wakes it); `threaded=False`
+    leaves stepping to `step(dt_s)`.
     A setpoint further than `max_setpoint_step_rad` from the measured joints, or outside
     the joint limits, is refused and puts the arm in `error` (the controller never jumps).
     A joint whose servo position and actual position differ by more than
@@ -145,6 +161,7 @@ class SimArm:
         self._threaded = threaded
         self._thread: threading.Thread | None = None
         self._running = threading.Event()
+        self._kick = threading.Event()
         self.setpoints_accepted = 0
         self.setpoints_ignored = 0
 
@@ -181,6 +198,7 @@ class SimArm:
             self._servo.hold()
             if self._calibration_s == 0.0:
                 self._finish_calibration()
+        self._kick.set()
 
     def read_joints(self) -> Q:
         with self._lock:
@@ -212,10 +230,12 @@ class SimArm:
                 return
             self._servo.setpoint = sp
             self.setpoints_accepted += 1
+        self._kick.set()
 
     def stop(self) -> None:
         with self._lock:
             self._servo.hold()
+        self._kick.set()
 
     def estop(self) -> None:
         with self._lock:
@@ -223,6 +243,7 @@ class SimArm:
             self._q_actual = self._servo.q.copy()
             self._status = "error"
             self._last_error = "emergency stop"
+        self._kick.set()
 
     def close(self) -> None:
         with self._lock:
@@ -232,6 +253,7 @@ class SimArm:
         thread, self._thread = self._thread, None
         if thread is not None:
             self._running.clear()
+            self._kick.set()
             thread.join(timeout=1.0)
 
     # --- simulation --------------------------------------------------------------------
@@ -276,6 +298,7 @@ class SimArm:
                 self._stalled_joint = joint - 1
             else:
                 raise ValueError(f"unknown fault {kind!r}")
+        self._kick.set()
 
     def step(self, dt_s: float) -> None:
         """Advance the simulation by `dt_s` (s), in servo substeps of at most 1 ms."""
@@ -321,10 +344,24 @@ class SimArm:
             self._last_error = why
         self._status = "error"
 
+    def _resting(self) -> bool:
+        with self._lock:
+            return self._status != "initializing" and self._servo.at_rest()
+
     def _run(self) -> None:
         next_t = time.monotonic()
         while self._running.is_set():
             self.step(SERVO_DT_S)
+            if self._resting():
+                # Nothing moves: sleep until a setpoint, fault or calibration wakes us.
+                slept = time.monotonic()
+                self._kick.wait(IDLE_WAIT_S)
+                self._kick.clear()
+                now = time.monotonic()
+                with self._lock:
+                    self._t_s += now - slept
+                next_t = now
+                continue
             next_t += SERVO_DT_S
             delay = next_t - time.monotonic()
             if delay > 0.0:

@@ -262,6 +262,53 @@ def puma(net: Net) -> Iterator[Puma]:
         release.set()
 
 
+def test_inline_methods_run_in_the_callback_the_others_on_the_pool(net: Net) -> None:
+    client, service = net.node("console"), net.node("arm")
+    threads: dict[str, str] = {}
+
+    def where(name: str) -> Callable[[dict[str, Any]], dict[str, Any]]:
+        def handler(args: dict[str, Any]) -> dict[str, Any]:
+            threads[name] = threading.current_thread().name
+            return {"method": name}
+
+        return handler
+
+    with pytest.raises(ValueError, match="not served"):
+        service.serve("arm", {"status": where("status")}, inline=("nope",))
+    service.serve("arm", {"status": where("status"), "move": where("move")}, inline=("status",))
+    service.announce()
+    assert client.call("arm", "status") == {"method": "status"}
+    assert client.call("arm", "move") == {"method": "move"}
+    assert threads["move"].startswith("arm-rpc")  # the node's worker pool
+    assert not threads["status"].startswith("arm-rpc")  # Zenoh's own callback thread
+    with pytest.raises(RpcError) as info:  # an unknown method is answered at once too
+        client.call("arm", "fly")
+    assert info.value.code == "bad_request" and "fly" in info.value.message
+
+
+def test_calls_started_together_run_concurrently(net: Net) -> None:
+    client, service = net.node("console"), net.node("pair")
+    first_in = threading.Event()
+
+    def first(args: dict[str, Any]) -> dict[str, Any]:
+        first_in.set()
+        return {"first": True}
+
+    def second(args: dict[str, Any]) -> dict[str, Any]:
+        # Answers only once the first call has arrived: called one after the other, the
+        # second would come first and fail; started together, both are in flight.
+        return {"second": first_in.wait(DEADLINE_S)}
+
+    service.serve("pair", {"first": first, "second": second})
+    service.announce()
+    b = client.call_start("pair", "second", {}, DEADLINE_S)
+    a = client.call_start("pair", "first", {}, DEADLINE_S)
+    assert b.result() == {"second": True}
+    assert a.result() == {"first": True}
+    with pytest.raises(Unavailable):
+        client.call_start("nobody", "status", {}, 0.2)
+
+
 def test_call_success_reply(puma: Puma) -> None:
     client = puma.client
     assert client.call("puma", "status") == {"status": "ready", "q": [0.0] * 6, "echo": {}}

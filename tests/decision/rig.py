@@ -130,9 +130,11 @@ class Rig:
         lost: Sequence[str] = (),
         state: bool = True,
         force: bool = True,
+        dt_ns: int = TICK_NS,
     ) -> TickResult:
-        """One tick. `state`/`force` False: that stream delivers nothing this tick."""
-        self.now_ns += TICK_NS
+        """One tick, `dt_ns` after the last. `state`/`force` False: that stream delivers
+        nothing this tick."""
+        self.now_ns += dt_ns
         if state:
             self._state, self.state_rx_ns = self.robot_state(), self.now_ns
         if force:

@@ -2,9 +2,11 @@
 
 Raw command maps go through `codec.from_fields`, as the node's subscription does, so garbage
 and NaN are refused there and only valid commands reach the supervisor, in any order: stale
-seq, huge jumps, several masters, lost masters, pushes on the tool, e-stops. Whatever
-happens, the supervised target never leaves the workspace box, never moves faster than the
-speed limits between two ticks, and an engagement that was held never moves again.
+seq, huge jumps, several masters, lost masters, pushes on the tool, e-stops, at random
+intervals (a master at 30 Hz or 10 kHz, bursts). Whatever happens, the supervised target never
+leaves the workspace box, never moves faster than the speed limits over the time since it
+last moved (one period's worth at an engagement's first step), and an engagement that was
+held never moves again.
 """
 
 from __future__ import annotations
@@ -27,8 +29,7 @@ from tests.decision.rig import Rig, angle_between
 
 CFG = DecisionConfig()
 LO, HI = np.array(CFG.workspace_min), np.array(CFG.workspace_max)
-V_STEP = CFG.max_tool_speed_m_s * CFG.period_s
-W_STEP = CFG.max_tool_rot_speed_rad_s * CFG.period_s
+PERIOD_NS = int(CFG.period_s * 1e9)
 
 any_float = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
@@ -87,6 +88,8 @@ event = st.one_of(
     st.tuples(st.just("task"), st.lists(st.floats(-1, 1), min_size=3, max_size=3)),
 )
 start = st.tuples(st.floats(LO[0], HI[0]), st.floats(LO[1], HI[1]), st.floats(LO[2], HI[2]))
+#: time between two inputs (ns): a 1 kHz master, 100 Hz, 30 Hz, a burst, the nominal period
+interval = st.sampled_from([PERIOD_NS, PERIOD_NS, 1_000_000, 10_000_000, 33_000_000, 50_000])
 
 
 class Checker:
@@ -96,23 +99,31 @@ class Checker:
         self.rig = rig
         self.p = rig.p.copy()  # the first engagement starts from the tool's pose
         self.R = rig.R.copy()
+        self.t_moved = rig.now_ns
         self.held: set[int] = set()
         self.last_active: dict[int, OperatorCommand] = {}
         self.last_seq = -1
         self.n_out = 0
         self.pending: list[OperatorCommand] = []
 
-    def tick(self, lost: tuple[str, ...] = ()) -> None:
+    def tick(self, lost: tuple[str, ...] = (), dt_ns: int = PERIOD_NS) -> None:
         rig = self.rig
-        rig.step(self.pending, lost=lost)
+        rig.step(self.pending, lost=lost, dt_ns=dt_ns)
         self.pending = []
         sup = rig.sup
         if sup.stats["engagements"] == 0:
+            self.t_moved = rig.now_ns
             return  # nothing was ever commanded: there is no target yet
         step = float(np.linalg.norm(sup.p_sup - self.p))
-        assert step <= V_STEP + 1e-12, f"target jumped {step} m in one tick"
-        assert angle_between(self.R, sup.R_sup) <= W_STEP + 1e-9
+        turn = angle_between(self.R, sup.R_sup)
+        # The limit is a rate over time: since the target last moved, capped at one watchdog
+        # period (longer is a hold), at least one period (an engagement's first step).
+        span_s = min(max(rig.now_ns - self.t_moved, PERIOD_NS), CFG.watchdog_ms * 1e6) * 1e-9
+        assert step <= CFG.max_tool_speed_m_s * span_s + 1e-12, f"target jumped {step} m"
+        assert turn <= CFG.max_tool_rot_speed_rad_s * span_s + 1e-9
         assert in_box(sup.p_sup, LO, HI, tol=1e-12), f"target {sup.p_sup} left the box"
+        if step > 0.0 or turn > 0.0:
+            self.t_moved = rig.now_ns
         self.p, self.R = sup.p_sup.copy(), sup.R_sup.copy()
         for c in rig.outputs[self.n_out :]:
             to_fields(c)
@@ -147,23 +158,23 @@ class Checker:
 @given(
     p=start,
     compliance=st.booleans(),
-    events=st.lists(event, min_size=8, max_size=50),
+    events=st.lists(st.tuples(event, interval), min_size=8, max_size=50),
 )
 def test_random_streams_never_leave_the_box_nor_exceed_the_speed_limits(
-    p: tuple[float, float, float], compliance: bool, events: list[tuple[str, Any]]
+    p: tuple[float, float, float], compliance: bool, events: list[tuple[tuple[str, Any], int]]
 ) -> None:
     rig = Rig(DecisionConfig(compliance=compliance), p=p)
     check = Checker(rig)
     seqs: dict[str, int] = {}
-    for kind, value in events:
+    for (kind, value), dt_ns in events:
         if kind == "cmd":
             check.command(value, seqs)
-            check.tick()
+            check.tick(dt_ns=dt_ns)
         elif kind == "ticks":
             for _ in range(value):
-                check.tick()
+                check.tick(dt_ns=dt_ns)
         elif kind == "lost":
-            check.tick(lost=(value,))
+            check.tick(lost=(value,), dt_ns=dt_ns)
         elif kind == "push":
             rig.push_w = np.asarray(value, dtype=float)
         elif kind == "estop":

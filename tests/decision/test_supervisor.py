@@ -10,14 +10,15 @@ import pytest
 from services.bus.codec import to_fields
 from services.bus.errors import RpcError
 from services.decision.config import DecisionConfig
-from services.decision.supervisor import Mode
-from services.decision.tasks import TaskPlan
+from services.decision.supervisor import HOLD_RESEND_NS, Mode
+from services.decision.tasks import TaskPlan, guarded_move_plan
 from services.workcell.scene import TABLE, Scene
 from tests.decision.rig import TICK_NS, TOOL_DOWN, Rig, angle_between, rot_z
 
 V_STEP = 0.25 * 0.002  # default speed limit per 2 ms tick (m)
 W_STEP = 1.0 * 0.002  # default rotation limit per tick (rad)
 EMPTY = Scene()  # no table: free space
+CFG = DecisionConfig()
 
 
 def engaged(rig: Rig, master: str = "m1", engage: int = 1, ticks: int = 3) -> None:
@@ -52,6 +53,63 @@ def test_every_published_command_is_valid_on_the_wire() -> None:
         to_fields(c)  # raises ProtocolError if a rotation drifted or a field is bad
     seqs = [c.seq for c in rig.outputs]
     assert seqs == sorted(set(seqs))
+
+
+def test_one_command_out_per_command_in_and_nothing_while_nothing_changes() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    n = len(rig.outputs)
+    sent = [rig.cmd(dp=(0.0005 * i, 0, 0)) for i in range(10)]
+    for cmd in sent:
+        rig.step([cmd])
+    assert len(rig.outputs) == n + 10  # each command at once, carrying its origin
+    assert [c.origin_t_ns for c in rig.outputs[n:]] == [c.t_ns for c in sent]
+    n = len(rig.outputs)
+    rig.run(20)  # 40 ms without input (watchdog 100 ms): nothing to send
+    assert len(rig.outputs) == n and rig.sup.mode is Mode.FOLLOW
+
+
+def test_next_wake_is_a_watchdog_deadline_a_hold_resend_or_nothing() -> None:
+    rig = Rig(scene=EMPTY)
+    assert rig.sup.next_wake_ns() is None  # idle: only inputs wake it
+    engaged(rig)
+    rig.step([rig.cmd()])
+    wake = rig.sup.next_wake_ns()
+    assert wake is not None and wake == rig.now_ns + int(CFG.watchdog_ms * 1e6) + 1
+    rig.step([rig.cmd(active=False)])  # disengage: the hold went out at once
+    assert not rig.outputs[-1].active
+    assert rig.sup.next_wake_ns() == rig.now_ns + HOLD_RESEND_NS
+    run = rig.sup.start_task(guarded_move_plan({"direction": [0, 0, 1]}, CFG), rig.now_ns)
+    assert rig.sup.next_wake_ns() == rig.now_ns + int(CFG.period_s * 1e9)
+    rig.sup.cancel_task(rig.now_ns)
+    assert run.done
+
+
+def test_a_100_hz_master_at_a_legal_speed_is_followed_without_a_limit() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    start = rig.p.copy()
+    v = 0.9 * CFG.max_tool_speed_m_s
+    for i in range(1, 31):  # 300 ms at 100 Hz: each step 10 ms of motion
+        rig.step([rig.cmd(dp=(v * 0.01 * i, 0, 0))], dt_ns=10_000_000)
+        assert np.allclose(rig.sup.p_sup, start + np.array([v * 0.01 * i, 0, 0]), atol=1e-12)
+    assert not [n for n in rig.notices_of("limit") if n.data["reason"] == "speed"]
+    assert rig.sup.counters["limit"] == 0
+
+
+def test_a_target_held_back_by_the_speed_limit_catches_up_on_the_timer() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    start = rig.p.copy()
+    rig.step([rig.cmd(dp=(0.01, 0, 0))])  # 1 cm at once: 40 ms at the limit speed
+    wake = rig.sup.next_wake_ns()
+    assert wake == rig.now_ns + int(CFG.period_s * 1e9)  # catching up: every period
+    n = len(rig.outputs)
+    rig.run(25)  # 50 ms of timer ticks, no new command
+    assert len(rig.outputs) > n and all(c.origin_t_ns is None for c in rig.outputs[n:])
+    assert np.allclose(rig.sup.p_sup, start + np.array([0.01, 0, 0]), atol=1e-12)
+    rig.step()
+    assert rig.sup.next_wake_ns() == rig.sup._cmd_rx_ns + int(CFG.watchdog_ms * 1e6) + 1
 
 
 def test_speed_limit_spreads_a_jump_and_catches_up() -> None:
@@ -184,8 +242,13 @@ def test_command_watchdog_holds_until_a_new_engagement_and_rebases() -> None:
     assert rig.sup.mode is Mode.HOLD and rig.sup.lease is None
     (ev,) = rig.notices_of("watchdog")
     assert ev.data["reason"] == "command_timeout"
+    n_active = sum(c.active for c in rig.outputs)
+    rig.run(100)  # 200 ms of holding: the hold goes out at once, then at 20 Hz
+    assert not any(c.active for c in rig.outputs[n_active:])
     held = [c for c in rig.outputs if not c.active]
-    assert len(held) >= 5 and {c.engage for c in held} == {1}
+    assert len(held) in (5, 6) and {c.engage for c in held} == {1}
+    gaps = [b.t_ns - a.t_ns for a, b in itertools.pairwise(held)]
+    assert min(gaps) >= HOLD_RESEND_NS
     assert all(np.allclose(c.dp, held[0].dp) for c in held)  # the last target, re-sent
     n = len(rig.outputs)
     # the same engagement resumes streaming: nothing moves
@@ -206,9 +269,10 @@ def test_master_liveliness_lost_holds_at_once() -> None:
     rig.step([rig.cmd()], lost=["master/m1"])
     assert rig.sup.mode is Mode.HOLD and not rig.outputs[-1].active
     assert rig.notices_of("watchdog")[-1].data["reason"] == "master_lost"
+    n = len(rig.outputs)
     # the token comes back and the same engagement keeps streaming: still held
-    rig.run(10, lambda i: [rig.cmd(dp=(0.01, 0, 0))])
-    assert not any(c.active for c in rig.outputs[-10:])
+    rig.run(30, lambda i: [rig.cmd(dp=(0.01, 0, 0))])
+    assert len(rig.outputs) > n and not any(c.active for c in rig.outputs[n - 1 :])
 
 
 def test_stale_robot_state_or_robot_error_holds() -> None:
@@ -240,8 +304,10 @@ def test_disengage_releases_the_lease_and_holds() -> None:
     assert rig.sup.mode is Mode.HOLD and rig.sup.lease is None
     assert rig.notices_of("lease")[-1].data["action"] == "released"
     assert rig.sup.counters["watchdog"] == 0  # a disengage is not an intervention
-    rig.run(5)
-    assert all(not c.active for c in rig.outputs[-5:])
+    n = len(rig.outputs)
+    assert not rig.outputs[-1].active  # the hold, at once
+    rig.run(30)
+    assert len(rig.outputs) > n and all(not c.active for c in rig.outputs[n - 1 :])
 
 
 def test_stale_seq_and_engage_are_ignored() -> None:
@@ -291,8 +357,10 @@ def test_estop_latches_holds_refuses_and_reset_needs_a_new_engagement() -> None:
     rig = Rig(scene=EMPTY)
     engaged(rig)
     rig.sup.estop(rig.now_ns)
+    n = len(rig.outputs)
     rig.run(10, lambda i: [rig.cmd(dp=(0.05, 0, 0))])
-    assert rig.sup.mode is Mode.ESTOP and all(not c.active for c in rig.outputs[-10:])
+    assert rig.sup.mode is Mode.ESTOP and len(rig.outputs) > n
+    assert all(not c.active for c in rig.outputs[n:])
     assert rig.sup.counters["estop"] == 1 + 10  # the latch and every refused command
     assert rig.notices_of("estop")[0].data["latched"] is True
     with pytest.raises(RpcError) as e:
@@ -302,8 +370,9 @@ def test_estop_latches_holds_refuses_and_reset_needs_a_new_engagement() -> None:
         rig.sup.start_task(TaskPlan("guarded_move", ()), rig.now_ns)
     assert e.value.code == "estop"
     assert rig.sup.reset(rig.now_ns)
+    n = len(rig.outputs)
     rig.run(10, lambda i: [rig.cmd(dp=(0.05, 0, 0))])
-    assert not any(c.active for c in rig.outputs[-10:])
+    assert not any(c.active for c in rig.outputs[n:])
     engaged(rig, engage=2)
 
 

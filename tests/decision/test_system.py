@@ -225,15 +225,8 @@ def make_cell(net: Net) -> Iterator[Callable[..., Cell]]:
         force_node = net.node("force")
         # 500 Hz without the final spin: the same behaviour for a third of the CPU.
         force = ForceService(force_node, ForceConfig(seed=7, period_ms=2.0, spin_us=0.0))
-        # Other test suites may share the two cores: stream staleness is tested in the unit
-        # tests; here it must only catch a service that is really gone.
-        settings = {
-            "watchdog_ms": 1000.0,
-            "state_stale_ms": 2000.0,
-            "stale_ms": 500.0,
-            **decision,
-        }
-        dec = DecisionService(net.node("decision"), DecisionConfig(**settings))  # type: ignore[arg-type]
+        # The default watchdogs (command 100 ms, state 200 ms, force 50 ms), as deployed.
+        dec = DecisionService(net.node("decision"), DecisionConfig(**decision))  # type: ignore[arg-type]
         console = net.node("console")
         cell = Cell(
             net,
@@ -316,7 +309,7 @@ def test_facade_forwards_and_status_is_a_superset(make_cell: Callable[..., Cell]
 
 
 def test_command_watchdog_holds_until_a_new_engagement(make_cell: Callable[..., Cell]) -> None:
-    cell = make_cell(watchdog_ms=400)  # (default 100 ms: a loaded machine may starve a thread)
+    cell = make_cell()
     m = cell.master("m1")
     m.engage_new(ramp((0.0, 0.03, 0.0), 0.1))
     cell.robot(lambda s: abs(s.tool_p[1] - 0.03) < 5e-4, 5.0)
@@ -480,7 +473,7 @@ def test_guarded_move_finds_the_table_top(make_cell: Callable[..., Cell]) -> Non
     m = cell.master("m1")
     m.engage_new(ramp((0.05, 0.0, 0.0), 0.1))  # an operator tries to move during the task
     reply = cell.call("task", {"name": "guarded_move", "direction": [0, 0, -1]}, 30.0)
-    assert reply["contact"] is True and reply["stopped"] == "contact"
+    assert reply["contact"] is True and reply["stopped"] == "contact", reply
     assert reply["contact_p"][2] == pytest.approx(TOP, abs=0.002)
     assert reply["force_n"] > 5.0
     busy = cell.events.wait(lambda e: e.kind == "busy" and e.source == "decision")
