@@ -8,7 +8,8 @@ Reactive: an operator command is supervised and its result published in the Zeno
 that delivers it, so the puma has it one hop later; a lost service is handled the same way.
 Between inputs a timer thread sleeps until the supervisor's next deadline (a watchdog, the
 20 Hz hold re-send, a task's or a catching-up target's next step): an idle decision server
-does nothing. The state and force callbacks only store the newest sample.
+does nothing. robot/state and robot/force are not decoded per sample: Zenoh keeps the newest
+of each, read when a tick needs them (`Node.latest`).
 
 Threads: every tick runs under one lock (`_cond`), and the command it yields is published
 under it too, so `robot/puma/cmd` leaves in `seq` order whichever thread ticked; events go
@@ -96,8 +97,6 @@ class DecisionService:
         self.supervisor = Supervisor(
             config, seq_start=wall // 1_000, engage_start=wall // 1_000_000
         )
-        self._state: tuple[RobotState, int] | None = None
-        self._force: tuple[ForceSample, int] | None = None
         self._stop = threading.Event()
         self._closed = False
         self.loop_errors = 0
@@ -108,8 +107,8 @@ class DecisionService:
 
         self._pub = node.publisher(PUMA_CMD)
         node.subscribe(CMD, self._on_command)
-        node.subscribe(STATE, self._on_state)
-        node.subscribe(FORCE, self._on_force)
+        self._state = node.latest(STATE)
+        self._force = node.latest(FORCE)
         node.alive.on_change(self._on_alive)
         node.serve(SERVICE, self._methods(), inline=("supervisor", "reset"))
         self._thread = threading.Thread(target=self._timer, name="decision-timer", daemon=True)
@@ -119,12 +118,6 @@ class DecisionService:
     # --- Zenoh callbacks: react to commands and losses, store the rest --------------------
     def _on_command(self, msg: OperatorCommand) -> None:
         self._react(commands=(msg,))
-
-    def _on_state(self, msg: RobotState) -> None:
-        self._state = (msg, time.monotonic_ns())
-
-    def _on_force(self, msg: ForceSample) -> None:
-        self._force = (msg, time.monotonic_ns())
 
     def _on_alive(self, name: str, up: bool) -> None:
         if not up:
@@ -138,7 +131,8 @@ class DecisionService:
     def _inputs(
         self, commands: tuple[OperatorCommand, ...] = (), lost: tuple[str, ...] = ()
     ) -> Inputs:
-        state, force = self._state, self._force
+        """The tick's inputs (under the lock: the newest state and force are read here)."""
+        state, force = self._state.read(), self._force.read()
         return Inputs(
             now_ns=time.monotonic_ns(),
             wall_ns=time.time_ns(),
@@ -269,11 +263,11 @@ class DecisionService:
         intervention counters."""
         puma = self._peek_start("puma", "status")
         sensor = self._peek_start("force", "sensor_status")
-        now = time.monotonic_ns()
         with self._cond:
             snap = self.supervisor.snapshot()
             settings = self.config.settings()
-        state, force = self._state, self._force
+            state, force = self._state.read(), self._force.read()
+        now = time.monotonic_ns()
         interventions = dict(snap["interventions"])
         interventions["rejected"] = interventions.get("rejected", 0) + self._cmd_rejections()
         return {

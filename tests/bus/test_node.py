@@ -144,6 +144,26 @@ def test_latest_wins_keeps_the_highest_seq(net: Net) -> None:
     assert sub.wait_for(lambda m: m.seq == 8, 0.05) is None  # 8 came after 9: not kept
 
 
+def test_latest_reads_the_newest_sample_without_a_callback_per_sample(net: Net) -> None:
+    a, b = net.node("force"), net.node("decision")
+    latest = b.latest(keys.FORCE)
+    assert latest.read() is None
+    pub = a.publisher(keys.FORCE)
+    wait_matched(pub)
+    now = time.time_ns()
+    for i in range(1, 201):
+        pub.put(force(i, t_ns=now - 5_000_000))  # sent 5 ms ago by the sender's clock
+    assert wait_until(lambda: (r := latest.read()) is not None and r[0].seq == 200)
+    got = latest.read()
+    assert got is not None and got[0] == force(200, t_ns=now - 5_000_000)
+    assert got[1] <= time.monotonic_ns() - 5_000_000  # its age counts from its t_ns
+    a.session.put(keys.FORCE.key, b"\xc1 garbage")
+    assert wait_until(lambda: latest.read() is not None and latest.rejected == 1)
+    read = latest.read()
+    assert read is not None and read[0].seq == 200  # the bad one never replaced it
+    assert b.rejected[keys.FORCE.key] == 1
+
+
 def test_latest_wins_accepts_a_restarted_publisher(net: Net) -> None:
     """A lower seq sent well after the newest is a publisher that restarted, not a stale
     sample: it must replace, or the subscriber would ignore it forever."""
