@@ -9,6 +9,7 @@ ForceSample gives them at the tool point in the tool frame, so the world force i
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
@@ -25,32 +26,55 @@ ORTHO_TOL = 1e-10
 the contract): the rounding of one product of rotations is ~1e-16."""
 
 
+def _floats3(v: Vec | Sequence[float]) -> tuple[float, float, float]:
+    x, y, z = v.tolist() if isinstance(v, np.ndarray) else v
+    return float(x), float(y), float(z)
+
+
+def norm3(v: Vec | Sequence[float]) -> float:
+    """‖v‖ of a 3-vector, in plain floats (a numpy call costs more than the arithmetic)."""
+    x, y, z = _floats3(v)
+    return math.sqrt(x * x + y * y + z * z)
+
+
 def skew(v: ArrayLike) -> Mat:
     """[v]×, the 3×3 matrix with [v]× u = v × u."""
     x, y, z = np.asarray(v, dtype=float)
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def exp_so3(w: ArrayLike) -> Mat:
-    """The rotation of rotation vector `w` (rad), Rodrigues' formula."""
-    th = np.asarray(w, dtype=float)
-    angle = float(np.linalg.norm(th))
-    k = skew(th)
+def exp_so3(w: Vec | Sequence[float]) -> Mat:
+    """The rotation of rotation vector `w` (rad), Rodrigues' formula (plain floats)."""
+    x, y, z = _floats3(w)
+    angle = math.sqrt(x * x + y * y + z * z)
     if angle < 1e-8:
-        return _I3 + k + 0.5 * (k @ k)
-    return _I3 + (math.sin(angle) / angle) * k + ((1.0 - math.cos(angle)) / angle**2) * (k @ k)
+        a, b = 1.0, 0.5
+    else:
+        a, b = math.sin(angle) / angle, (1.0 - math.cos(angle)) / (angle * angle)
+    # I + a·[w]× + b·[w]×², with [w]×² = w wᵀ − |w|² I
+    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+    return np.array(
+        [
+            [1.0 - b * (yy + zz), b * xy - a * z, b * xz + a * y],
+            [b * xy + a * z, 1.0 - b * (xx + zz), b * yz - a * x],
+            [b * xz - a * y, b * yz + a * x, 1.0 - b * (xx + yy)],
+        ]
+    )
 
 
 def log_so3(R: ArrayLike) -> Vec:
     """The rotation vector (rad, angle in [0, π]) of rotation matrix `R`."""
     r = np.asarray(R, dtype=float)
-    cos = min(1.0, max(-1.0, 0.5 * (float(np.trace(r)) - 1.0)))
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = r.tolist()
+    cos = min(1.0, max(-1.0, 0.5 * (r00 + r11 + r22 - 1.0)))
     angle = math.acos(cos)
-    w = 0.5 * np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    wx, wy, wz = 0.5 * (r21 - r12), 0.5 * (r02 - r20), 0.5 * (r10 - r01)
     if angle < 1e-8:
-        return w
+        return np.array([wx, wy, wz])
     if angle < math.pi - 1e-4:
-        return (angle / math.sin(angle)) * w
+        k = angle / math.sin(angle)
+        return np.array([k * wx, k * wy, k * wz])
+    w = np.array([wx, wy, wz])
     # Near π the antisymmetric part vanishes: take the axis from the symmetric part.
     aat = 0.5 * (r + r.T) - cos * _I3
     j = int(np.argmax(np.diag(aat)))
@@ -61,11 +85,26 @@ def log_so3(R: ArrayLike) -> Vec:
     return angle * axis
 
 
+def _is_rotation(r: Mat, tol: float) -> bool:
+    """max |RᵀR − I| < tol and det R > 0, in plain floats."""
+    (a, b, c), (d, e, f), (g, h, i) = r.tolist()
+    err = max(
+        abs(a * a + d * d + g * g - 1.0),
+        abs(b * b + e * e + h * h - 1.0),
+        abs(c * c + f * f + i * i - 1.0),
+        abs(a * b + d * e + g * h),
+        abs(a * c + d * f + g * i),
+        abs(b * c + e * f + h * i),
+    )
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    return err < tol and det > 0.0
+
+
 def orthonormalize(R: ArrayLike) -> Mat:
     """The nearest proper rotation to `R` (SVD), so products of many small steps stay
     within the contract's ‖RᵀR − I‖ ≤ 1e-6."""
     r = np.asarray(R, dtype=float)
-    if float(np.abs(r.T @ r - _I3).max()) < ORTHO_TOL and np.linalg.det(r) > 0:
+    if _is_rotation(r, ORTHO_TOL):
         return r  # already a rotation to well within the contract: skip the SVD
     u, _, vt = np.linalg.svd(r)
     d = np.sign(np.linalg.det(u @ vt)) or 1.0
@@ -110,7 +149,7 @@ def without_motion_into(inc: ArrayLike, normal: ArrayLike) -> tuple[Vec, float]:
     """
     v = np.asarray(inc, dtype=float)
     n = np.asarray(normal, dtype=float)
-    norm = float(np.linalg.norm(n))
+    norm = norm3(n)
     if norm < _TINY:
         return v.copy(), 0.0
     n = n / norm
@@ -124,7 +163,7 @@ def deadband(v: ArrayLike, width: float) -> Vec:
     """`v` shrunk by `width` along its direction (zero inside the band): the admittance
     ignores sensor noise and a small bias, and is continuous at the band's edge."""
     a = np.asarray(v, dtype=float)
-    n = float(np.linalg.norm(a))
+    n = norm3(a)
     if n <= width or n < _TINY:
         return np.zeros_like(a)
     return a * ((n - width) / n)
@@ -142,7 +181,7 @@ def admittance_step(wrench: ArrayLike, gain: float, width: float, dt_s: float) -
 def clip_norm(v: ArrayLike, max_norm: float) -> tuple[Vec, bool]:
     """`v` scaled down to length `max_norm` if longer; and whether it was."""
     a = np.asarray(v, dtype=float)
-    n = float(np.linalg.norm(a))
+    n = norm3(a)
     if n <= max_norm:
         return a.copy(), False
     return a * (max_norm / n), True

@@ -53,6 +53,7 @@ from services.decision.filters import (
     engagement_command,
     exp_so3,
     log_so3,
+    norm3,
     operator_target,
     orthonormalize,
     without_motion_into,
@@ -228,7 +229,7 @@ class TickResult:
 
 
 def _norm(v: Vec) -> float:
-    return float(np.linalg.norm(v))
+    return norm3(v)
 
 
 def _list(v: Vec) -> list[float]:
