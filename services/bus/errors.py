@@ -46,6 +46,11 @@ class Unavailable(TelerobotError):
     """No reply at all: the service is absent (PROTOCOL.md §4)."""
 
 
+class TimedOut(Unavailable):
+    """The service is there but gave no reply within the timeout: what it was asked may
+    still be under way (a motion may be running). Query its status before retrying."""
+
+
 class ConfigError(TelerobotError, ValueError):
     """A bad configuration value, found at start-up. `key` names it."""
 

@@ -11,7 +11,9 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any, Generic, TypeVar
 
+from services.bus.bounds import MAX_PAYLOAD_BYTES
 from services.bus.messages import (
+    MAX_FRAME_BYTES,
     Event,
     ForceSample,
     MasterFeedback,
@@ -41,12 +43,14 @@ class QoS(Enum):
 
 @dataclass(frozen=True, slots=True)
 class Topic(Generic[M]):
-    """A pub/sub key with its payload type and delivery class."""
+    """A pub/sub key with its payload type, delivery class and largest payload (bytes):
+    anything larger is refused before it is decoded."""
 
     key: str
     type: type[M]
     qos: QoS
     latest_wins: bool
+    max_bytes: int = MAX_PAYLOAD_BYTES
 
 
 CMD = Topic("robot/cmd", OperatorCommand, QoS.CONTROL, latest_wins=True)
@@ -54,8 +58,8 @@ PUMA_CMD = Topic("robot/puma/cmd", OperatorCommand, QoS.CONTROL, latest_wins=Tru
 STATE = Topic("robot/state", RobotState, QoS.STATE, latest_wins=True)
 FORCE = Topic("robot/force", ForceSample, QoS.CONTROL, latest_wins=True)
 EVENTS = Topic("robot/events", Event, QoS.RELIABLE, latest_wins=False)
-STEREO_L = Topic("vision/stereo/l", StereoFrame, QoS.BULK, latest_wins=True)
-STEREO_R = Topic("vision/stereo/r", StereoFrame, QoS.BULK, latest_wins=True)
+STEREO_L = Topic("vision/stereo/l", StereoFrame, QoS.BULK, True, MAX_FRAME_BYTES + 4096)
+STEREO_R = Topic("vision/stereo/r", StereoFrame, QoS.BULK, True, MAX_FRAME_BYTES + 4096)
 MASTER_STATE = Topic("master/state", MasterState, QoS.STATE, latest_wins=True)
 VISION_STATS = Topic("vision/stats", VisionStats, QoS.RELIABLE, latest_wins=True)
 MASTER_FEEDBACK = Topic("master/feedback", MasterFeedback, QoS.STATE, latest_wins=True)

@@ -6,7 +6,12 @@ Rules it enforces so services do not have to remember them (ZENOH_NOTES.md):
 - subscriber callbacks only decode and store (latest-wins) or hand over; they never block;
 - a method call waits for the service's liveliness token before its first `get`, and an
   empty reply set is `Unavailable`, never success;
-- every rejected payload is counted and reported as a `rejected` Event (rate-limited).
+- every rejected payload is counted and reported as a `rejected` Event, at most one a
+  second per key and `REJECT_EVENTS_PER_S` per service, each saying how many were
+  suppressed; a payload above its topic's `max_bytes` (or call arguments above
+  `MAX_PAYLOAD_BYTES`) is refused before it is decoded, and no reply, event or log line
+  repeats more than `bounds.MAX_ECHO_CHARS` of it; what the node remembers per key is
+  bounded, so a flood of distinct keys cannot grow memory.
 """
 
 from __future__ import annotations
@@ -24,10 +29,18 @@ from typing import Any, Generic, TypeVar
 import zenoh
 
 from services.bus import codec
+from services.bus.bounds import MAX_PAYLOAD_BYTES, short
 from services.bus.config import NodeConfig
-from services.bus.errors import ERROR_CODES, ProtocolError, RpcError, TelerobotError, Unavailable
+from services.bus.errors import (
+    ERROR_CODES,
+    ProtocolError,
+    RpcError,
+    TelerobotError,
+    TimedOut,
+    Unavailable,
+)
 from services.bus.keys import ALIVE_PREFIX, ENCODING, EVENTS, QoS, Topic, alive_key, rpc_key
-from services.bus.messages import Event, Message
+from services.bus.messages import MAX_TEXT, Event, Message
 
 log = logging.getLogger("telerobot.bus")
 
@@ -60,7 +73,16 @@ _QOS: dict[QoS, dict[str, Any]] = {
     },
 }
 REJECT_REPORT_INTERVAL_S = 1.0
+REJECT_EVENTS_PER_S = 5
+"""Rejected-input events one node sends per second, over all keys."""
+MAX_REJECT_KEYS = 256
+"""Keys whose rejections are counted (and rate-limited) one by one; the rest share OTHER."""
+OTHER_KEY = "(other keys)"
+MAX_EVENT_DATA_BYTES = 16 * 1024
+"""An event's data larger than this (packed) is replaced by a short summary."""
 CALL_RETRY_S = 0.02
+ZENOH_TIMEOUT = b"Timeout"
+"""The error reply Zenoh itself gives a `get` whose queryable did not answer in time."""
 RESTART_GAP_NS = 250_000_000
 
 
@@ -131,9 +153,11 @@ class Latest(Generic[M]):
     Zenoh holds the newest sample in a ring of one: no Python runs per sample (a Python
     callback costs ~9 % of a core at 1 kHz), so a service that needs `robot/force` only
     when it acts pays only then. `read()` returns the newest valid message and its arrival
-    time on the monotonic clock, estimated as the read time less the message's age by its
-    `t_ns` (exact on one host; the sender's clock decides across hosts), never later than
-    the read. Bad payloads are counted and reported when read. Not thread-safe: one reader.
+    time on the monotonic clock. A sample `read()` finds arrived after the previous read
+    (reading empties the ring) and was sent at its `t_ns`; its arrival is taken as the
+    later of the two, so a stream that flows is fresh as often as it is read, and an old
+    sample found after a long pause is as old as its `t_ns` says. Bad payloads are counted
+    and reported when read. Not thread-safe: one reader.
     """
 
     def __init__(self, node: Node, topic: Topic[M]) -> None:
@@ -142,6 +166,7 @@ class Latest(Generic[M]):
         self._sub = node.session.declare_subscriber(topic.key, zenoh.handlers.RingChannel(1))
         self._msg: M | None = None
         self._rx_ns = 0
+        self._read_ns = 0
         self.received = 0
         self.rejected = 0
 
@@ -151,10 +176,12 @@ class Latest(Generic[M]):
             sample = self._sub.try_recv()
         except zenoh.ZError:  # the session is closing
             sample = None
+        now_mono = time.monotonic_ns()
+        previous, self._read_ns = self._read_ns, now_mono
         if sample is not None:
-            now_mono, now_wall = time.monotonic_ns(), time.time_ns()
+            now_wall = time.time_ns()
             try:
-                msg = codec.decode(self.topic.type, sample.payload.to_bytes())
+                msg = codec.decode(self.topic.type, _payload(sample.payload, self.topic.max_bytes))
             except ProtocolError as e:
                 self.rejected += 1
                 self._node.report_rejected(str(sample.key_expr), str(e))
@@ -162,7 +189,7 @@ class Latest(Generic[M]):
                 self.received += 1
                 if _newer(msg, self._msg):
                     age_ns = min(max(now_wall - int(getattr(msg, "t_ns", now_wall)), 0), 10**12)
-                    self._msg, self._rx_ns = msg, now_mono - age_ns
+                    self._msg, self._rx_ns = msg, max(previous, now_mono - age_ns)
         return None if self._msg is None else (self._msg, self._rx_ns)
 
 
@@ -244,6 +271,8 @@ class Node:
         self._alive: AliveSet | None = None
         self._rpc_pool = ThreadPoolExecutor(rpc_workers, thread_name_prefix=f"{name}-rpc")
         self._reject_last: dict[str, float] = {}
+        self._reject_window = (0.0, 0)
+        self._reject_suppressed = 0
         self.rejected: dict[str, int] = {}
 
     # --- lifecycle -------------------------------------------------------------------
@@ -296,7 +325,7 @@ class Node:
 
         def callback(sample: zenoh.Sample) -> None:
             try:
-                msg = codec.decode(topic.type, sample.payload.to_bytes())
+                msg = codec.decode(topic.type, _payload(sample.payload, topic.max_bytes))
             except ProtocolError as e:
                 with sub._cond:
                     sub.rejected += 1
@@ -338,15 +367,18 @@ class Node:
     # --- events ----------------------------------------------------------------------
     def event(self, kind: str, message: str, data: Mapping[str, Any] | None = None) -> Event:
         """Publish an Event on `robot/events` from this service."""
+        body = dict(data) if data else None
+        if body is not None and not _small(body):
+            body = {"truncated": True, "summary": short(body)}
         with self._lock:
             self._event_seq += 1
             ev = Event(
                 seq=self._event_seq,
                 t_ns=time.time_ns(),
                 source=self.name,
-                kind=kind,
-                message=message[:4096],
-                data=dict(data) if data else None,
+                kind=short(kind, 64),
+                message=message[:MAX_TEXT],
+                data=body,
             )
             if not self._closed:
                 try:
@@ -360,19 +392,31 @@ class Node:
         return ev
 
     def report_rejected(self, where: str, reason: str) -> None:
-        """Count a rejected input and publish a `rejected` event (at most 1/s per key)."""
+        """Count a rejected input and publish a `rejected` event: at most one a second per
+        key and REJECT_EVENTS_PER_S a second in all; the next event says how many were
+        suppressed. Only a short prefix of `where` and `reason` is ever repeated."""
+        where, reason = short(where), short(reason)
         now = time.monotonic()
         with self._lock:
+            if where not in self.rejected and len(self.rejected) >= MAX_REJECT_KEYS:
+                where = OTHER_KEY
             n = self.rejected[where] = self.rejected.get(where, 0) + 1
             last = self._reject_last.get(where, -1e9)
-            if now - last < REJECT_REPORT_INTERVAL_S:
+            start, sent = self._reject_window
+            if now - start >= 1.0:
+                start, sent = now, 0
+            if now - last < REJECT_REPORT_INTERVAL_S or sent >= REJECT_EVENTS_PER_S:
+                self._reject_suppressed += 1
+                self._reject_window = (start, sent)
                 return
             self._reject_last[where] = now
+            self._reject_window = (start, sent + 1)
+            suppressed, self._reject_suppressed = self._reject_suppressed, 0
         log.warning("rejected input on %s: %s", where, reason)
         self.event(
             "rejected",
             f"rejected input on {where}: {reason}",
-            {"key": where, "reason": reason, "count": n},
+            {"key": where, "reason": reason, "count": n, "suppressed": suppressed},
         )
 
     # --- methods ---------------------------------------------------------------------
@@ -381,6 +425,7 @@ class Node:
         service: str,
         methods: Mapping[str, Handler],
         inline: Collection[str] = (),
+        first: Mapping[str, Callable[[], None]] | None = None,
     ) -> None:
         """Serve `robot/<service>/rpc/<method>` for each handler.
 
@@ -388,14 +433,17 @@ class Node:
         `inline` never block (no I/O, no waiting, only short locks): they run in Zenoh's
         callback, which saves the hand-over to a worker (the floor of a call). Every other
         handler runs on a worker thread, so a `"wait": true` motion or a nested call can
-        block until done. `ProtocolError` → `bad_request`, `RpcError` → its code, anything
-        else → `internal` (and an event).
+        block until done. `first[method]`, if given, runs before the arguments are read or
+        checked (an e-stop latches whatever its call carries). Arguments above
+        MAX_PAYLOAD_BYTES are refused unread. `ProtocolError` → `bad_request`, `RpcError` →
+        its code, anything else → `internal` (and an event); a reply's message is short.
         """
         table = dict(methods)
-        unknown = set(inline) - set(table)
+        unknown = (set(inline) | set(first or {})) - set(table)
         if unknown:
-            raise ValueError(f"inline methods not served: {sorted(unknown)}")
+            raise ValueError(f"inline or first-action methods not served: {sorted(unknown)}")
         direct = frozenset(inline)
+        before = dict(first or {})
         prefix = rpc_key(service, "")
 
         def run(query: zenoh.Query, method: str) -> None:
@@ -404,10 +452,14 @@ class Node:
                 if handler is None:
                     raise RpcError(
                         "bad_request",
-                        f"no method {method!r} on {service} (methods: {', '.join(sorted(table))})",
+                        f"no method {short(method, 64)!r} on {service} "
+                        f"(methods: {', '.join(sorted(table))})",
                     )
+                act = before.get(method)
+                if act is not None:
+                    act()  # before anything can fail: an e-stop latches whatever it carries
                 payload = query.payload
-                args = codec.unpack(payload.to_bytes()) if payload is not None else {}
+                args = codec.unpack(_payload(payload, MAX_PAYLOAD_BYTES)) if payload else {}
                 if args is None:
                     args = {}
                 if not isinstance(args, dict):
@@ -416,19 +468,19 @@ class Node:
                 query.reply(query.key_expr, codec.pack(result), encoding=_ENCODING)
             except (ProtocolError, RpcError) as e:
                 code = e.code if isinstance(e, RpcError) else "bad_request"
-                msg = e.message if isinstance(e, RpcError) else str(e)
+                msg = short(e.message if isinstance(e, RpcError) else str(e))
                 if code == "bad_request":
                     self.report_rejected(str(query.key_expr), msg)
                 query.reply_err(codec.pack({"error": code, "message": msg}), encoding=_ENCODING)
             except Exception as e:  # any bug becomes an `internal` reply, never a dead service
-                log.exception("method %s/%s failed", service, method)
+                log.exception("method %s/%s failed", service, short(method, 64))
                 self.event(
                     "error",
-                    f"{service}.{method} failed: {e}",
-                    {"method": method, "traceback": traceback.format_exc(limit=8)},
+                    short(f"{service}.{method} failed: {e}"),
+                    {"method": short(method, 64), "traceback": traceback.format_exc(limit=8)},
                 )
                 query.reply_err(
-                    codec.pack({"error": "internal", "message": str(e)}), encoding=_ENCODING
+                    codec.pack({"error": "internal", "message": short(e)}), encoding=_ENCODING
                 )
             finally:
                 query.drop()
@@ -529,6 +581,23 @@ class PendingCall:
         return self._node._call_retry(self._service, self._key, self._payload, self._deadline)
 
 
+def _small(data: dict[str, Any]) -> bool:
+    """Whether an event's data packs to at most MAX_EVENT_DATA_BYTES."""
+    try:
+        return len(codec.pack(data)) <= MAX_EVENT_DATA_BYTES
+    except (TypeError, ValueError, OverflowError):
+        return False
+
+
+def _payload(payload: zenoh.ZBytes, max_bytes: int) -> bytes:
+    """The payload's bytes, or ProtocolError when it is larger than `max_bytes` (it is not
+    even copied out of Zenoh then)."""
+    n = len(payload)
+    if n > max_bytes:
+        raise ProtocolError("payload", f"{n} bytes is more than the {max_bytes} allowed")
+    return payload.to_bytes()
+
+
 def _reply_map(reply: zenoh.Reply, key: str) -> dict[str, Any]:
     if reply.ok is not None:
         data = codec.unpack(reply.ok.payload.to_bytes())
@@ -542,8 +611,10 @@ def _reply_map(reply: zenoh.Reply, key: str) -> dict[str, Any]:
         body = None
     if isinstance(body, dict) and body.get("error") in ERROR_CODES:
         raise RpcError(body["error"], str(body.get("message", "")))
-    text = err.payload.to_bytes().decode("utf-8", "replace") if err is not None else "no body"
-    raise RpcError("internal", f"{key}: {text}")
+    raw = err.payload.to_bytes() if err is not None else b""
+    if raw == ZENOH_TIMEOUT:
+        raise TimedOut(f"{key}: timed out with no reply; it may still be running")
+    raise RpcError("internal", f"{key}: {short(raw.decode('utf-8', 'replace'))}")
 
 
 def _newer(msg: Message, newest: Message | None) -> bool:

@@ -30,6 +30,7 @@ from typing import Any
 
 import zenoh
 
+from services.bus.bounds import short
 from services.bus.codec import arg, jsonable
 from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
@@ -110,7 +111,12 @@ class DecisionService:
         self._state = node.latest(STATE)
         self._force = node.latest(FORCE)
         node.alive.on_change(self._on_alive)
-        node.serve(SERVICE, self._methods(), inline=("supervisor", "reset"))
+        node.serve(
+            SERVICE,
+            self._methods(),
+            inline=("supervisor", "reset"),
+            first={"estop": self._latch_estop, "stop": self._hold_first},
+        )
         self._thread = threading.Thread(target=self._timer, name="decision-timer", daemon=True)
         self._thread.start()
         node.announce()
@@ -243,12 +249,8 @@ class DecisionService:
             raise RpcError("unavailable", f"{service}.{method}: {e}") from None
 
     def _puma_method(self, method: str, args: dict[str, Any]) -> dict[str, Any]:
-        now = time.monotonic_ns()
-        if method == "stop":
-            with self._cond:
-                self.supervisor.stop(now)
-            self._react()
-        elif method in MOTION_METHODS:
+        # `stop` held already, before its arguments were read (`_hold_first`).
+        if method in MOTION_METHODS:
             with self._cond:
                 self.supervisor.claim(method)
         elif method == "set_tool":
@@ -339,18 +341,33 @@ class DecisionService:
                 "startup_only": sorted(STARTUP_ONLY),
             }
 
-    def rpc_estop(self, args: dict[str, Any]) -> dict[str, Any]:
-        """Latch the emergency stop: hold, pre-empt any task, stop the puma; everything that
-        moves is refused until `reset`."""
+    def _latch_estop(self) -> None:
+        """`estop`'s first action, before its arguments are even read: latch and hold."""
         with self._cond:
-            self.supervisor.estop(time.monotonic_ns(), str(args.get("reason") or "estop requested"))
+            self.supervisor.estop(time.monotonic_ns(), "estop requested")
         self._react()  # the hold goes out now
+
+    def _hold_first(self) -> None:
+        """`stop`'s first action, before its arguments are read: hold teleoperation, cancel
+        a task."""
+        with self._cond:
+            self.supervisor.stop(time.monotonic_ns())
+        self._react()
+
+    def rpc_estop(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Latch the emergency stop (done before this runs, whatever the arguments: see
+        `_latch_estop`), pre-empt any task, stop the puma; everything that moves is refused
+        until `reset`. An optional `reason` (str) is echoed back, shortened."""
+        reason = args.get("reason")
         method = "estop" if self.config.estop_power_off else "stop"
         try:
             puma: dict[str, Any] = self._forward("puma", method, {})
         except RpcError as e:
             puma = {"error": e.code, "message": e.message}
-        return {"estop": True, "puma": puma}
+        out: dict[str, Any] = {"estop": True, "puma": puma}
+        if isinstance(reason, str):
+            out["reason"] = short(reason)
+        return out
 
     def rpc_reset(self, args: dict[str, Any]) -> dict[str, Any]:
         """Clear the e-stop latch; masters must engage anew to move."""

@@ -42,6 +42,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from services.bus.bounds import norm_out_of_bounds
 from services.bus.errors import ErrorCode, RpcError
 from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3, vec
 from services.decision.config import DecisionConfig
@@ -78,6 +79,10 @@ STEP_EPS_M = 1e-9
 STEP_EPS_RAD = 1e-9
 BLOCKED_SHARE = 0.01
 """A guarded move is blocked when a step moves less than this share of what it asked."""
+NOTICES_PER_S = 5
+"""Rate-limited events of one kind sent per second, over all their keys."""
+MAX_NOTICE_KEYS = 1024
+"""Rate-limit keys remembered (oldest forgotten first): memory stays bounded."""
 HOLD_RESEND_NS = 50_000_000
 """A hold is re-sent this often (20 Hz): one lost packet must not matter, and the puma needs
 nothing more while nothing changes."""
@@ -270,7 +275,9 @@ class Supervisor:
             "holds": 0,
             "tasks": 0,
         }
-        self._last_notice_ns: dict[str, int] = {}
+        self._last_notice_ns: OrderedDict[str, int] = OrderedDict()
+        self._kind_window: dict[str, tuple[int, int]] = {}
+        self.suppressed: dict[str, int] = {}
         self._edges: dict[str, int] = {}
         self._notices: list[Notice] = []
         self._finished: list[TaskRun] = []
@@ -389,12 +396,29 @@ class Supervisor:
         data: Mapping[str, Any] | None = None,
         limit_key: str | None = None,
     ) -> None:
-        """Queue an event; with `limit_key`, at most one per event_interval_s for that key."""
+        """Queue an event; with `limit_key`, at most one per event_interval_s for that key and
+        NOTICES_PER_S per kind over all keys (a flood of master ids is one trickle); the
+        next one sent says how many of its kind were suppressed."""
         if limit_key is not None:
+            now = self._now_ns
             last = self._last_notice_ns.get(limit_key)
-            if last is not None and self._now_ns - last < self._cfg.event_interval_s * 1e9:
+            start, sent = self._kind_window.get(kind, (now, 0))
+            if now - start >= 1_000_000_000:
+                start, sent = now, 0
+            if (
+                last is not None and now - last < self._cfg.event_interval_s * 1e9
+            ) or sent >= NOTICES_PER_S:
+                self.suppressed[kind] = self.suppressed.get(kind, 0) + 1
+                self._kind_window[kind] = (start, sent)
                 return
-            self._last_notice_ns[limit_key] = self._now_ns
+            self._kind_window[kind] = (start, sent + 1)
+            self._last_notice_ns[limit_key] = now
+            self._last_notice_ns.move_to_end(limit_key)
+            while len(self._last_notice_ns) > MAX_NOTICE_KEYS:
+                self._last_notice_ns.popitem(last=False)
+            n = self.suppressed.pop(kind, 0)
+            if n:
+                data = {**(data or {}), "suppressed": n}
         self._notices.append(Notice(kind, message, dict(data or {})))
 
     def _intervene(self, kind: str, message: str, data: Mapping[str, Any], limit_key: str) -> None:
@@ -507,6 +531,15 @@ class Supervisor:
             )
             return
         self.stats["commands"] += 1
+        if cmd.active:
+            why = norm_out_of_bounds("dp", cmd.dp, "displacement_m")
+            if why is not None:
+                # An absurd motion (a broken or hostile master): refused before any
+                # arithmetic; its engagement is blocked and, if it leads, the arm holds.
+                if self.lease == cmd.master:
+                    self._hold("limit", "absurd_command", why, intervention=False, notify=False)
+                self._refuse("limit", cmd, rec, why)
+                return
         if self.mode is Mode.ESTOP:
             if cmd.active:
                 self._refuse("estop", cmd, rec, "emergency stop latched (call reset)")
@@ -661,6 +694,11 @@ class Supervisor:
         p_des, R_des = operator_target(self._p0, self._R0, cmd.dp, mat3(cmd.dR), cmd.frame)
         g_p = p_des + self._off_p
         g_R = R_des @ self._off_R
+        if not (np.isfinite(g_p).all() and np.isfinite(g_R).all()):
+            # Unreachable with bounded inputs; if it ever happens the target keeps its
+            # last finite value and the arm holds there.
+            self._hold("limit", "non_finite", "the operator's target is not finite: holding")
+            return None
         g_p, g_R = self._advance(g_p, g_R, inp, force_ok)
         self._off_p = g_p - p_des
         self._off_R = orthonormalize(R_des.T @ g_R)

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from services.bus.bounds import check, check_each, check_norm
 from services.bus.codec import arg
 from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import Unit, Vec3
@@ -73,15 +74,16 @@ class TaskPlan:
     args: Mapping[str, Any] | None = None
 
 
-def _positive(args: Mapping[str, Any], name: str, default: float) -> float:
+def _positive(args: Mapping[str, Any], name: str, default: float, kind: str) -> float:
+    """A positive argument within the physical bound of `kind` (services/bus/bounds.py)."""
     v = float(arg(args, name, float, default))
     if not v > 0:
-        raise ProtocolError(name, f"must be > 0, got {v}")
-    return v
+        raise ProtocolError(name, f"must be > 0, got {v:.6g}")
+    return check(name, v, kind)
 
 
 def _speed(args: Mapping[str, Any], name: str, default: float, cfg: DecisionConfig) -> float:
-    v = _positive(args, name, default)
+    v = _positive(args, name, default, "speed_m_s")
     if v > cfg.max_tool_speed_m_s:
         raise RpcError(
             "limit", f"{name} {v} m/s exceeds the tool speed limit {cfg.max_tool_speed_m_s} m/s"
@@ -94,6 +96,7 @@ def _wait(args: Mapping[str, Any]) -> bool:
 
 
 def _unit(name: str, v: tuple[float, ...]) -> Vec3T:
+    check_norm(name, v, "direction")  # before the norm: 1e308² would overflow
     a = np.asarray(v, dtype=float)
     n = float(np.linalg.norm(a))
     if n < 1e-9:
@@ -103,7 +106,7 @@ def _unit(name: str, v: tuple[float, ...]) -> Vec3T:
 
 
 def _point(args: Mapping[str, Any], name: str) -> Vec3T:
-    v = arg(args, name, Vec3)
+    v = check_each(name, arg(args, name, Vec3), "position_m")
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
@@ -126,8 +129,8 @@ def guarded_move_plan(args: Mapping[str, Any], cfg: DecisionConfig) -> TaskPlan:
     step = GuardedMove(
         direction=direction,
         speed_m_s=_speed(args, "speed_m_s", cfg.guarded_speed_m_s, cfg),
-        max_force_n=_positive(args, "max_force_n", cfg.guarded_max_force_n),
-        max_distance_m=_positive(args, "max_distance_m", cfg.guarded_max_distance_m),
+        max_force_n=_positive(args, "max_force_n", cfg.guarded_max_force_n, "force_n"),
+        max_distance_m=_positive(args, "max_distance_m", cfg.guarded_max_distance_m, "distance_m"),
     )
     return TaskPlan("guarded_move", (step,), _wait(args), dict(args))
 
@@ -144,12 +147,10 @@ def pick_place_plan(args: Mapping[str, Any], cfg: DecisionConfig) -> TaskPlan:
     """
     pick = _point(args, "pick")
     place = _point(args, "place")
-    up = _positive(args, "approach_height_m", 0.10)
+    up = _positive(args, "approach_height_m", 0.10, "distance_m")
     speed = _speed(args, "speed_m_s", cfg.task_speed_m_s, cfg)
-    guard = _positive(args, "max_force_n", cfg.guarded_max_force_n)
-    depth = float(arg(args, "place_depth_m", float, 0.02))
-    if depth < 0:
-        raise ProtocolError("place_depth_m", f"must be ≥ 0, got {depth}")
+    guard = _positive(args, "max_force_n", cfg.guarded_max_force_n, "force_n")
+    depth = check("place_depth_m", float(arg(args, "place_depth_m", float, 0.02)), "distance_m")
     closed = float(arg(args, "grip_closed", Unit, 1.0))
     opened = float(arg(args, "grip_open", Unit, 0.0))
     above_pick: Vec3T = (pick[0], pick[1], pick[2] + up)

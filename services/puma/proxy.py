@@ -42,6 +42,7 @@ import numpy as np
 import pinocchio as pin
 from numpy.typing import NDArray
 
+from services.bus.bounds import check_each, check_norm, short
 from services.bus.errors import RpcError
 from services.puma.arm import Arm, ArmError
 from services.puma.config import PumaConfig
@@ -84,7 +85,7 @@ def opt_vector(args: Mapping[str, Any], key: str, n: int) -> Vec | None:
         return None
     value = args[key]
     if not isinstance(value, list | tuple) or len(value) != n:
-        raise RpcError("bad_request", f"{key}: expected {n} numbers, got {value!r:.80}")
+        raise RpcError("bad_request", f"{key}: expected {n} numbers, got {short(value, 80)}")
     if not all(_is_number(x) for x in value):
         raise RpcError("bad_request", f"{key}: every element must be a number")
     arr = np.array(value, dtype=np.float64)
@@ -140,7 +141,7 @@ def opt_frame(args: Mapping[str, Any], key: str = "frame") -> RelFrame | None:
     if value == "world" or value == "wrist" or value == "tool":
         return value
     raise RpcError(
-        "bad_request", f"{key}: must be one of {', '.join(REL_FRAMES)}, got {value!r:.40}"
+        "bad_request", f"{key}: must be one of {', '.join(REL_FRAMES)}, got {short(value, 40)}"
     )
 
 
@@ -149,7 +150,7 @@ def arg_config(args: Mapping[str, Any], key: str = "config") -> str | None:
     if c is None:
         return None
     if not (isinstance(c, str) and len(c) == 3 and c[0] in "rl" and c[1] in "ud" and c[2] in "pm"):
-        raise RpcError("bad_request", f"{key}: must be 3 letters r|l, u|d, p|m, got {c!r}")
+        raise RpcError("bad_request", f"{key}: must be 3 letters r|l, u|d, p|m, got {short(c, 40)}")
     return c
 
 
@@ -158,7 +159,7 @@ def arg_fraction(args: Mapping[str, Any], key: str) -> float:
     if x is None:
         return 1.0
     if not _is_number(x) or not math.isfinite(x) or not 0.0 < x <= 1.0:
-        raise RpcError("bad_request", f"{key}: must be a number in (0, 1], got {x!r}")
+        raise RpcError("bad_request", f"{key}: must be a number in (0, 1], got {short(x, 40)}")
     return float(x)
 
 
@@ -463,6 +464,7 @@ class PumaProxy:
         self.config = config
         self._emit = emit
         self._lock = threading.RLock()
+        self._status_changed = threading.Condition(self._lock)
         self._plan_lock = threading.Lock()
         self._emit_lock = threading.RLock()
         self._events: list[tuple[str, str, dict[str, Any]]] = []
@@ -866,9 +868,8 @@ class PumaProxy:
     def rpc_set_tool(self, args: Mapping[str, Any]) -> dict[str, Any]:
         """Place the tool frame in the flange frame: `{p (m), R}` = eMt. Not while moving."""
         p = arg_vector(args, "p", 3)
+        check_norm("p", p.tolist(), "tool_offset_m")  # a tool over 1 m is not a PUMA tool
         R = arg_rotation(args, "R")
-        if float(np.linalg.norm(p)) > 1.0:
-            raise RpcError("bad_request", "p: a tool longer than 1 m is not a PUMA tool")
         with self._lock:
             if self._status == "moving":
                 raise RpcError("busy", "cannot change the tool while moving")
@@ -906,6 +907,7 @@ class PumaProxy:
         current branch and the line is clear of singularities, else joint-interpolated to the
         IK solution of branch `config` (default: the one nearest the current joints)."""
         p = arg_vector(args, "p", 3)
+        check_each("p", p.tolist(), "position_m")
         R = arg_rotation(args, "R")
         config = arg_config(args)
         target = pin.SE3(R, p)
@@ -919,6 +921,7 @@ class PumaProxy:
         p⁺ = p + R_f·dp, R⁺ = R_f·dR·R_fᵀ·R, with R_f = I, R_we or R_wt. In the tool frame this
         is PROTOCOL §2's tool mode (p + R0·dp, R0·dR)."""
         dp = arg_vector(args, "dp", 3)
+        check_norm("dp", dp.tolist(), "displacement_m")
         if _too_long(dp, self.config.max_dp_m):
             raise RpcError("bad_request", f"dp: |dp| above {self.config.max_dp_m} m")
         dR_arg = opt_rotation(args, "dR")
@@ -1010,6 +1013,18 @@ class PumaProxy:
             raise RpcError("bad_request", f"motion: no recent motion {motion_id!r}")
         return m
 
+    def wait_initialized(self, timeout_s: float) -> dict[str, Any]:
+        """Block until calibration ends: `{status: ready}`, or RpcError when it failed
+        (`internal`) or took longer than `timeout_s` (`busy`: still initializing)."""
+        with self._status_changed:
+            done = self._status_changed.wait_for(lambda: self._status != "initializing", timeout_s)
+            status, error = self._status, self._last_error
+        if not done:
+            raise RpcError("busy", f"still initializing after {timeout_s:g} s")
+        if status != "ready":
+            raise RpcError("internal", f"initialization ended {status}: {short(error)}")
+        return {"status": status}
+
     def wait_motion(self, motion_id: int, timeout_s: float) -> dict[str, Any]:
         """Block until motion `motion_id` ends (or `timeout_s` passes): its result dict."""
         return self.motion(motion_id).wait(timeout_s)
@@ -1086,7 +1101,7 @@ class PumaProxy:
         for j in range(6):
             lo, hi = self.limits.q_lo[j], self.limits.q_hi[j]
             if not lo <= q[j] <= hi:
-                raise RpcError("limit", f"q[{j}] = {q[j]:.4f} rad is outside [{lo:.4f}, {hi:.4f}]")
+                raise RpcError("limit", f"q[{j}] = {q[j]:.6g} rad is outside [{lo:.4f}, {hi:.4f}]")
 
     def _check_not_estopped(self) -> None:
         if self._estopped:
@@ -1246,6 +1261,7 @@ class PumaProxy:
         if new == self._status:
             return
         old, self._status = self._status, new
+        self._status_changed.notify_all()
         data: dict[str, Any] = {"status": new, "previous": old}
         if why is not None:
             data["reason"] = why

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from services.bus import codec, keys
+from services.bus.bounds import check
 from services.bus.messages import OperatorCommand, RobotState, mat3
 from services.bus.node import Node
 from services.puma.arm import open_arm
@@ -30,8 +31,8 @@ from services.puma.proxy import PumaProxy
 
 log = logging.getLogger("telerobot.puma")
 
-#: methods that start a motion and so accept `"wait": true`
-MOTIONS = ("move_joints", "move_pose", "move_relative", "home")
+#: methods that start a motion and so accept `"wait": true` (initialize: until calibrated)
+MOTIONS = ("initialize", "move_joints", "move_pose", "move_relative", "home")
 #: methods that never block (no I/O with the arm, no waiting): answered in Zenoh's callback
 INLINE = ("status", "set_frame", "stop", "fk", "ik", "limits")
 WAIT_TIMEOUT_S = 120.0
@@ -66,7 +67,6 @@ class PumaService:
             name: getattr(self.proxy, f"rpc_{name}")
             for name in (
                 "connect",
-                "initialize",
                 "set_tool",
                 "set_frame",
                 "stop",
@@ -77,9 +77,17 @@ class PumaService:
             )
         }
         methods["status"] = self.rpc_status
+        # The e-stop acted before its arguments were read (`first`): the reply reports it.
+        methods["estop"] = lambda args: {"status": self.proxy.status}
         for name in MOTIONS:
             methods[name] = self._motion_method(name)
-        node.serve("puma", {k: self._waking(h) for k, h in methods.items()}, inline=INLINE)
+        node.serve(
+            "puma",
+            {k: self._waking(h) for k, h in methods.items()},
+            inline=INLINE,
+            # Before the arguments are read: a stop or an e-stop acts whatever it carries.
+            first={"stop": self._stop_first, "estop": self._estop_first},
+        )
         self._thread = threading.Thread(target=self._loop, name="puma-control", daemon=True)
         self._thread.start()
         node.announce()
@@ -179,15 +187,30 @@ class PumaService:
         out["loop"] = {"late": self.late_ticks, "late_max_ms": round(self.late_max_ms, 3)}
         return out
 
+    def _stop_first(self) -> None:
+        self.proxy.rpc_stop({})
+        self._wake.set()
+
+    def _estop_first(self) -> None:
+        self.proxy.rpc_estop({})
+        self._wake.set()
+
     def _motion_method(self, name: str) -> Any:
+        """A motion method: `wait` and `timeout_s` are checked before anything starts, so a
+        call either fails having moved nothing or replies that its motion started (and,
+        with `wait`, how it ended: a timeout says the motion goes on)."""
         rpc = getattr(self.proxy, f"rpc_{name}")
 
         def handler(args: dict[str, Any]) -> dict[str, Any]:
             wait = codec.arg(args, "wait", bool, False)
-            timeout_s = codec.arg(args, "timeout_s", float, WAIT_TIMEOUT_S)
+            timeout_s = check(
+                "timeout_s", codec.arg(args, "timeout_s", float, WAIT_TIMEOUT_S), "timeout_s"
+            )
             reply: dict[str, Any] = rpc(args)
             if not wait:
                 return reply
+            if name == "initialize":
+                return self.proxy.wait_initialized(timeout_s)
             return {**reply, **self.proxy.wait_motion(int(reply["motion"]), timeout_s)}
 
         return handler

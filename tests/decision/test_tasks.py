@@ -32,10 +32,15 @@ def test_guarded_move_plan_validates_its_arguments() -> None:
     assert isinstance(step, GuardedMove)
     assert step.direction == (0.0, 0.0, -1.0)
     assert step.speed_m_s == CFG.guarded_speed_m_s and plan.wait
-    with pytest.raises(ProtocolError):
+    with pytest.raises(RpcError) as e:
         guarded_move_plan({"direction": [0, 0, 0]}, CFG)
+    assert e.value.code == "bad_request" and e.value.message.startswith("|direction|")
     with pytest.raises(ProtocolError):
         guarded_move_plan({"direction": [0, 0, float("nan")]}, CFG)
+    for absurd in ([1e308] * 3, [0.0, 0.0, 5e-324], [-1e300, 0.0, 1.0]):
+        with pytest.raises(RpcError) as e:  # refused before the norm could overflow
+            guarded_move_plan({"direction": absurd}, CFG)
+        assert e.value.code == "bad_request" and "direction" in e.value.message
     with pytest.raises(ProtocolError):
         guarded_move_plan({"direction": [0, 0, -1], "max_force_n": -1}, CFG)
     with pytest.raises(RpcError) as e:
