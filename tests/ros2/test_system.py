@@ -432,9 +432,9 @@ def test_a_pose_target_drives_the_tool_through_the_decision(make_cell: Callable[
     # bad targets: refused, counted, reported; the arm does not move
     before = cell.bridge.status()["targets_refused"]
     bad = [
-        _pose_cdr(goal + [0.0, 0.0, 0.01], R_goal, frame_id="map"),
+        _pose_cdr(goal + np.array([0.0, 0.0, 0.01]), R_goal, frame_id="map"),
         _pose_cdr(np.array([1e308, 0.0, 0.0]), R_goal),
-        _pose_cdr(goal + [100.0, 0.0, 0.0], R_goal),
+        _pose_cdr(goal + np.array([100.0, 0.0, 0.0]), R_goal),
         _pose_cdr(np.array([math.nan, 0.0, 0.5]), R_goal),
         b"\x00\x01\x00\x00garbage",
         b"",
