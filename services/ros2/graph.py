@@ -85,6 +85,9 @@ class RosPublisher:
             )
             self._advanced = False
             self._listener = self._pub.declare_matching_listener(self._matching_changed)
+            # A subscriber already there when we declare: start from the current status.
+            with self._lock:
+                self._matching = self._matching or bool(self._pub.matching_status.matching)
         self._token = session.liveliness().declare_token(token)
 
     def _matching_changed(self, status: Any) -> None:
@@ -167,8 +170,8 @@ class RosNode:
     def __init__(self, session: zenoh.Session, domain_id: int, namespace: str, name: str) -> None:
         rmw.check_name(namespace, "namespace")
         rmw.check_name(name, "node name")
-        if "/" in name:
-            raise ValueError(f"node name {name!r} must not contain '/'")
+        if not name or "/" in name:
+            raise ValueError(f"node name {name!r} must be a plain, non-empty name")
         self.session = session
         self.domain_id = domain_id
         self.namespace = "/" + namespace.strip("/") if namespace.strip("/") else "/"

@@ -40,19 +40,12 @@ from services.puma.sim_arm import SimArm
 from services.ros2.config import Ros2Config
 from services.ros2.service import Ros2Service, bridge_node_config
 from tests.conftest import Net
+from tests.deploy.cell import wait_until as deploy_wait_until
+from tests.rosmsg.test_typehash import PUBLISHED
 
 pytestmark = pytest.mark.system
 
 STORE = get_typestore(Stores.ROS2_KILTED)
-HASH = {
-    "sensor_msgs::msg::dds_::JointState_": "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e",  # noqa: E501
-    "tf2_msgs::msg::dds_::TFMessage_": "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087",  # noqa: E501
-    "geometry_msgs::msg::dds_::WrenchStamped_": "RIHS01_8dc3deaf06b2ab281f9f9a742a8961c328ca7cec16e3fd6586d3a5c83fa78f77",  # noqa: E501
-    "std_msgs::msg::dds_::String_": "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18",  # noqa: E501
-    "sensor_msgs::msg::dds_::CompressedImage_": "RIHS01_15640771531571185e2efc8a100baf923961a4d15d5569652e6cb6691e8e371a",  # noqa: E501
-    "sensor_msgs::msg::dds_::CameraInfo_": "RIHS01_b3dfd68ff46c9d56c80fd3bd4ed22c7a4ddce8c8348f2f59c299e73118e7e275",  # noqa: E501
-    "geometry_msgs::msg::dds_::PoseStamped_": "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8",  # noqa: E501
-}
 ROS_TYPE = {
     "sensor_msgs::msg::dds_::JointState_": "sensor_msgs/msg/JointState",
     "tf2_msgs::msg::dds_::TFMessage_": "tf2_msgs/msg/TFMessage",
@@ -62,6 +55,8 @@ ROS_TYPE = {
     "sensor_msgs::msg::dds_::CameraInfo_": "sensor_msgs/msg/CameraInfo",
     "geometry_msgs::msg::dds_::PoseStamped_": "geometry_msgs/msg/PoseStamped",
 }
+HASH = {dds: PUBLISHED[ros] for dds, ros in ROS_TYPE.items()}
+"""The published RIHS01 hashes (tests/rosmsg), by DDS type name."""
 TOPICS = {
     "joint_states": "sensor_msgs::msg::dds_::JointState_",
     "tf": "tf2_msgs::msg::dds_::TFMessage_",
@@ -81,12 +76,7 @@ def key(topic: str, dds: str, ns: str = "", domain: int = 0) -> str:
 
 
 def wait_until(pred: Callable[[], bool], timeout_s: float = DEADLINE_S) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.01)
-    return pred()
+    return deploy_wait_until(pred, timeout_s)
 
 
 @dataclass
