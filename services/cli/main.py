@@ -30,6 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("services.cli.demo", "run a task scenario with the console"),
     "workcell": ("services.workcell.__main__", "the simulated workcell (objects, gripper, bottle)"),
     "tasks": ("services.tasks.__main__", "run the paper's evaluation tasks (1, 2, 3)"),
+    "ros2": ("services.ros2.__main__", "show the system to ROS 2 (rmw_zenoh), no ROS needed"),
 }
 
 
