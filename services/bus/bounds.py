@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import math
 import reprlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import NoReturn
 
-from services.bus.errors import ErrorCode, RpcError
+from services.bus.errors import ConfigError, ErrorCode, RpcError
 
 MAX_PAYLOAD_BYTES = 64 * 1024
 """A message on any key but the stereo frames, or one call's arguments (bytes)."""
@@ -141,3 +141,20 @@ def check_each(
     if why is not None:
         refuse(why, code)
     return v
+
+
+def check_config(section: str, cfg: object, kinds: Mapping[str, str]) -> None:
+    """Every field named in `kinds` of a configuration (a number, or a tuple of numbers
+    checked one by one) lies within its bound, else ConfigError naming `section.field`."""
+    for name, kind in kinds.items():
+        value = getattr(cfg, name)
+        items = value if isinstance(value, tuple | list) else (value,)
+        for i, x in enumerate(items):
+            field = (
+                name if len(items) == 1 and not isinstance(value, tuple | list) else f"{name}[{i}]"
+            )
+            if isinstance(x, bool) or not isinstance(x, int | float):
+                raise ConfigError(f"{section}.{name}", f"{field} must be a number")
+            why = out_of_bounds(field, float(x), kind)
+            if why is not None:
+                raise ConfigError(f"{section}.{name}", why)

@@ -12,6 +12,7 @@ import math
 from dataclasses import dataclass, fields
 from typing import Any
 
+from services.bus.bounds import check_config
 from services.bus.errors import ConfigError
 
 Vec3T = tuple[float, float, float]
@@ -46,6 +47,35 @@ _NON_NEGATIVE = (
     "tool_tip_radius_m",
     "grip_time_s",
 )
+
+
+#: the physical bound (services/bus/bounds.py) each numeric setting must respect
+_KINDS: dict[str, str] = {
+    "rate_hz": "rate_hz",
+    "watchdog_ms": "period_ms",
+    "stale_ms": "period_ms",
+    "state_stale_ms": "period_ms",
+    "max_force_n": "force_n",
+    "max_torque_nm": "torque_nm",
+    "admittance_m_per_n_s": "admittance_m_n_s",
+    "admittance_rad_per_nm_s": "admittance_rad_nm_s",
+    "admittance_deadband_n": "force_n",
+    "admittance_deadband_nm": "torque_nm",
+    "workspace_min": "position_m",
+    "workspace_max": "position_m",
+    "max_tool_speed_m_s": "speed_m_s",
+    "max_tool_rot_speed_rad_s": "rot_speed_rad_s",
+    "rpc_timeout_s": "timeout_s",
+    "wait_timeout_s": "timeout_s",
+    "task_speed_m_s": "speed_m_s",
+    "guarded_speed_m_s": "speed_m_s",
+    "guarded_max_force_n": "force_n",
+    "guarded_max_distance_m": "distance_m",
+    "tool_tip_radius_m": "distance_m",
+    "arrive_tol_m": "distance_m",
+    "grip_time_s": "duration_s",
+    "event_interval_s": "duration_s",
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,6 +167,7 @@ class DecisionConfig:
                     "workspace_max",
                     f"axis {'xyz'[i]}: max {hi} must be above min {lo}",
                 )
+        check_config("decision", self, _KINDS)
         if self.guarded_speed_m_s > self.max_tool_speed_m_s:
             raise _err("guarded_speed_m_s", "must not exceed max_tool_speed_m_s")
         if self.task_speed_m_s > self.max_tool_speed_m_s:

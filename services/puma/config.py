@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, Literal
 
+from services.bus.bounds import check_config
 from services.bus.errors import ConfigError
 from services.puma.arm import (
     ARM_MAX_JOINT_ACCEL_RAD_S2,
@@ -26,6 +27,21 @@ HOME_Q_RAD: Joint6 = (0.276321, 1.193707, -3.260341, 0.0, -1.074959, 0.276321)
 tool z axis pointing down (R_wt = diag(−1, 1, −1)) with the default tool eMt; branch `rum`,
 no joint within 25° of a limit, away from every singularity (manipulability 0.086 vs 0.079 at
 qn). Computed with `Puma560.ik` and rounded to 1 µrad; tests/puma/test_proxy.py checks it."""
+
+
+#: the physical bound (services/bus/bounds.py) each numeric setting must respect
+_KINDS: dict[str, str] = {
+    "state_rate_hz": "rate_hz",
+    "control_rate_hz": "rate_hz",
+    "max_tool_speed_m_s": "speed_m_s",
+    "max_tool_rot_speed_rad_s": "rot_speed_rad_s",
+    "serial_timeout_s": "timeout_s",
+    "sim_calibration_s": "duration_s",
+    "max_following_error_rad": "joint_rad",
+    "max_dp_m": "displacement_m",
+    "teleop_settle_s": "duration_s",
+    "event_interval_s": "duration_s",
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -93,6 +109,7 @@ class PumaConfig:
         if self.serial_cycle_ms > 28.0:
             raise ConfigError("puma.serial_cycle_ms", "must be ≤ 28 ms (the PUMA setpoint cycle)")
         _non_negative(self, "sim_calibration_s")
+        check_config("puma", self, _KINDS)
 
     @classmethod
     def from_mapping(cls, table: Mapping[str, Any]) -> PumaConfig:
