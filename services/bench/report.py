@@ -155,15 +155,17 @@ def _get(d: Mapping[str, Any], path: str) -> float | None:
 
 
 def _reason(phases: Mapping[str, Any], path: str) -> str:
-    """Why `path` has no value: the phase's own `na` entry for that figure (or for the whole
-    phase, `"*"`), else that the phase did not run."""
+    """Why `path` has no value: the phase's own `na` entry for a part of the path (e.g.
+    `setpoint_ms` of `commands_1000hz.setpoint_ms.p50`, `console` of
+    `cpu_idle.services.console`) or for the whole phase (`"*"`), else that the phase did
+    not run."""
     parts = path.split(".")
     phase = phases.get(parts[0])
     if not isinstance(phase, Mapping):
         return f"phase {parts[0]} did not run (see the run's notes and logs)"
     na = phase.get("na")
     if isinstance(na, Mapping):
-        for key in (parts[1] if len(parts) > 1 else "*", "*"):
+        for key in (*parts[1:], "*"):
             if isinstance(na.get(key), str):
                 return str(na[key])
     return "nothing was measured (see the run's notes and logs)"

@@ -246,6 +246,7 @@ def test_table_lists_every_figure_and_says_plainly_what_misses() -> None:
     phases["commands_1000hz"]["setpoint_ms"] = _summary(math.nan, math.nan)
     phases["commands_1000hz"]["setpoint_ms"].update(p50=None, p99=None)
     phases["cpu_teleop"] = {"na": {"*": "cpu_teleop failed: no stereo frames from vision"}}
+    phases["cpu_idle"] = _cpu(**IDLE)  # vision, workcell and console were not running
     doc = document(phases, machine(), SETTINGS, ["the note"])
     text = table(doc)
     for f in doc["figures"].values():
@@ -279,6 +280,14 @@ def test_table_lists_every_figure_and_says_plainly_what_misses() -> None:
         "MISSES THE TARGET: IK solves/s, analytic (8 branches): ours 3000 vs 20,000 1/s "
         "(issue 16; 85 % short)." in text
     )
+    assert (
+        "NOT MEASURED: idle CPU: whole sim system (+ vision, workcell, console): not running "
+        "through the whole window: vision, workcell, console" in text
+    )
+    assert "NOT MEASURED: idle CPU: console: console was not running through the whole window" in (
+        text
+    )
+    assert "cpu_idle_sim" in doc["target_misses"] and "cpu_idle_core" not in doc["target_misses"]
     assert "Note: the note" in text
     assert "video_fps_vga" in doc["misses"] and "rpc_decision_status_p50" in doc["misses"]
     assert "force_rate_alone" not in doc["misses"]
