@@ -175,10 +175,12 @@ class SimRun:
         self.say(f"[cpu_teleop] robot/cmd at {rate_hz:g} Hz + stereo decoded for {window_s:g} s …")
         marks: dict[str, CpuMark] = {}
         video = VideoProbe(self.node).start()
+        t0 = time.monotonic()
         try:
             if not video.wait_frames(VIDEO_FRAMES_FIRST, self.startup_timeout_s):
                 raise TimeoutError("no stereo frames from vision")
             time.sleep(VIDEO_WARMUP_S)  # the subscriber's first frames: vision resuming
+            self.say(f"    stereo decoded after {time.monotonic() - t0:.1f} s; streaming commands")
 
             def mark(what: str) -> None:
                 marks[what] = self.mark()
