@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 from xmlrpc.server import SimpleXMLRPCRequestHandler, SimpleXMLRPCServer
 
+import msgpack
 import numpy as np
 
 from services.bus import codec
@@ -37,17 +38,19 @@ XMLRPC_INT_MAX = 2**31 - 1
 STARTUP_TIMEOUT_S = 20.0
 
 
+FORCE_F_N = (0.12, -0.05, -2.45)
+FORCE_C_NM = (0.011, 0.024, -0.002)
+FORCE_RAW = (0.0012, -0.0004, 0.0251, 0.0011, 0.0024, -0.0002)
+
+
 def force_payload(seq: int, t_ns: int) -> bytes:
-    """The msgpack bytes of a ForceSample as the force service sends it (all fields)."""
-    return codec.encode(
-        ForceSample(
-            seq=seq,
-            t_ns=t_ns,
-            f=(0.12, -0.05, -2.45),
-            c=(0.011, 0.024, -0.002),
-            raw=(0.0012, -0.0004, 0.0251, 0.0011, 0.0024, -0.0002),
-        )
-    )
+    """The msgpack bytes of a ForceSample with every field, exactly as `codec.encode` gives
+    them (a test holds them equal), packed directly: a floor sender does no validation."""
+    return msgpack.packb(
+        {"seq": seq, "t_ns": t_ns, "f": list(FORCE_F_N), "c": list(FORCE_C_NM),
+         "raw": list(FORCE_RAW)},
+        use_bin_type=True,
+    )  # fmt: skip
 
 
 # --- the TCP floor ----------------------------------------------------------------------

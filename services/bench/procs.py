@@ -15,11 +15,12 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
-from services.bench.cpu import process_cpu_s
+from services.bench.cpu import cpu_by_group
 
 STOP_TIMEOUT_S = 5.0
 POLL_S = 0.02
@@ -104,10 +105,17 @@ class Children:
         self.children[name] = child
         return child
 
+    def cpu_by_child(self) -> dict[str, float]:
+        """CPU time (s) each running child has used so far, with anything it started (its
+        process group). A reaped child's time is in the bench's own
+        `getrusage(RUSAGE_CHILDREN)` instead, so it is left out here."""
+        live = {name: c.proc.pid for name, c in self.children.items() if c.alive()}
+        used = cpu_by_group(live.values())
+        return {name: used[pid] for name, pid in live.items()}
+
     def cpu_s(self) -> float:
-        """CPU time (s) the running children have used so far (a reaped child's time is in
-        the bench's own `getrusage(RUSAGE_CHILDREN)` instead)."""
-        return sum(process_cpu_s(c.proc.pid) for c in self.children.values() if c.alive())
+        """CPU time (s) the running children have used so far (see `cpu_by_child`)."""
+        return sum(self.cpu_by_child().values())
 
     def check(self, *names: str) -> None:
         """Raise ChildFailed if one of `names` (default: every child) has exited."""
@@ -165,6 +173,19 @@ def wait_log(child: Child, marker: str, timeout_s: float) -> None:
         if time.monotonic() >= deadline:
             raise TimeoutError(f"{child.name}: no {marker!r} after {timeout_s:g} s")
         time.sleep(POLL_S)
+
+
+def wait_alive(
+    kids: Children, alive: Callable[[str, float], bool], name: str, timeout_s: float
+) -> None:
+    """Block until `alive(name, timeout)` (a liveliness wait, e.g. `node.alive.wait`) says
+    `alive/<name>` is up; raise ChildFailed as soon as a child exits, TimeoutError after
+    `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while not alive(name, 0.5):
+        kids.check()
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"alive/{name} never appeared within {timeout_s:g} s")
 
 
 def free_port() -> int:

@@ -4,17 +4,20 @@ Topology (as deploy/robot.toml runs it): the embedded router on 127.0.0.1:PORT, 
 (sim arm, autostart), force (sim sensor, 1 kHz), decision, a master station (virtual
 device, not engaged) and, in the video phases, vision — each a separate process in client
 mode connected to the router. The bench itself is one more client: the operator's side.
+The CPU phases at the end run the sim profile's set instead (services.bench.system).
 
 Phases, in order (each `phase_s` long): IK throughput (in the bench process, before any
-child runs); force alone; the TCP floor; commands at 100 Hz and at 1 kHz; method calls and
-the XML-RPC baseline; force + stereo at the paper's setting; force + stereo at 640×480@30.
+child runs); force alone; the raw-TCP floor; the bare-Zenoh floor; commands at 100 Hz and at
+1 kHz (services.bench.commands); method calls, the bare-Zenoh get→reply floor and the
+XML-RPC baseline; force + stereo at the paper's setting; force + stereo at 640×480@30; CPU
+per service idle, then during 1 kHz teleop with VGA stereo.
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
 import time
-from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -23,15 +26,24 @@ from typing import Any
 
 import numpy as np
 
-from services.bench import cpu, stats
-from services.bench.baselines import tcp_floor, xmlrpc_round_trips
+from services.bench import cpu, floor, stats, system
+from services.bench.baselines import force_payload, tcp_floor, xmlrpc_round_trips
+from services.bench.commands import CALL_TIMEOUT_S, phase_commands
 from services.bench.probes import CommandDriver, FrameRecord, StreamProbe, VideoProbe, time_calls
-from services.bench.procs import Children, free_port, telerobot_argv, wait_log
-from services.bench.report import PAPER_SIZE
+from services.bench.procs import (
+    ChildFailed,
+    Children,
+    free_port,
+    telerobot_argv,
+    wait_alive,
+    wait_log,
+)
+from services.bench.report import PAPER_SIZE, ms_text
+from services.bus import codec
 from services.bus.config import NodeConfig
 from services.bus.errors import RpcError, Unavailable
-from services.bus.keys import EVENTS, FORCE, PUMA_CMD, STATE, VISION_STATS
-from services.bus.messages import Event, ForceSample, OperatorCommand, RobotState, VisionStats
+from services.bus.keys import FORCE, STATE, VISION_STATS
+from services.bus.messages import ForceSample, VisionStats
 from services.bus.node import Node
 from services.force.priority import PriorityLevel
 
@@ -40,18 +52,8 @@ Trace = tuple[np.ndarray, np.ndarray]
 
 MASTER_ID = "bench"
 STATION_ID = "station"
-CMD_TRAVEL_M = 0.02
-"""How far one command phase moves the tool (m, world x; alternately + and −)."""
-CMD_MAX_STEP_M = 5e-6
-"""dp step per command (m): k · step must stay far below the supervisor's speed limit."""
-DRAIN_TIMEOUT_S = 2.0
-CALL_TIMEOUT_S = 5.0
-HOLD_KINDS = ("watchdog", "rejected", "limit", "contact", "estop", "busy")
-"""Decision event kinds that mean the bench's commands were held back, refused or altered
-("lease" events also announce the lease being taken and released, so they are left out;
-lease refusals are in the decision's intervention counters)."""
-MAX_MESSAGES = 10
 VIDEO_WARMUP_S = 1.0
+FLOOR_DRAIN_S = 2.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,11 +78,20 @@ class BenchOptions:
     settle_s: float = 1.0
     force_priority: PriorityLevel = "highest"
     """The force sampler's thread priority, as deploy/robot.toml runs it."""
+    cpu_settle_s: float = 5.0
+    """After the sim profile's services are up, before the idle CPU window (s)."""
+    teleop_rate_hz: float = 1000.0
 
     @staticmethod
     def quick_options(**overrides: Any) -> BenchOptions:
         """`--quick`: 5 s phases, fewer calls and IK poses (under 2 min on 2 cores)."""
-        base: dict[str, Any] = {"phase_s": 5.0, "quick": True, "rpc_calls": 200, "ik_n": 2000}
+        base: dict[str, Any] = {
+            "phase_s": 5.0,
+            "quick": True,
+            "rpc_calls": 200,
+            "ik_n": 2000,
+            "cpu_settle_s": 3.0,
+        }
         base.update(overrides)
         return BenchOptions(**base)
 
@@ -98,24 +109,30 @@ class RunResult:
 
 class CpuLog:
     """CPU use of the whole run and of each phase: the bench's processes vs the others
-    (services.bench.cpu). `kids` is set once the children exist."""
+    (services.bench.cpu), and each running service's share of one core (`services_pct`).
+    `kids` is set once the children exist."""
 
     def __init__(self) -> None:
         self.kids: Children | None = None
         self.cpus = os.cpu_count() or 1
         self.start = self._now()
-        self.phases: dict[str, dict[str, float | int]] = {}
+        self.phases: dict[str, dict[str, Any]] = {}
 
     def _now(self) -> cpu.CpuSample | None:
         return cpu.sample(self.kids.cpu_s() if self.kids is not None else 0.0)
 
+    def _by_child(self) -> dict[str, float]:
+        return self.kids.cpu_by_child() if self.kids is not None else {}
+
     @contextmanager
     def phase(self, name: str) -> Iterator[None]:
-        a = self._now()
+        a, kids_a, t_a = self._now(), self._by_child(), time.monotonic()
         yield
-        b = self._now()
+        b, kids_b, t_b = self._now(), self._by_child(), time.monotonic()
         if a is not None and b is not None:
-            self.phases[name] = cpu.usage(a, b, self.cpus).as_dict()
+            use: dict[str, Any] = dict(cpu.usage(a, b, self.cpus).as_dict())
+            use["services_pct"] = cpu.percent_of_core(kids_a, kids_b, t_b - t_a)
+            self.phases[name] = use
 
     def total(self) -> dict[str, float | int] | None:
         b = self._now()
@@ -149,6 +166,8 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
         "vga_fps": opts.vga_fps,
         "command_rates_hz": list(opts.command_rates_hz),
         "force_priority": opts.force_priority,
+        "cpu_settle_s": opts.cpu_settle_s,
+        "teleop_rate_hz": opts.teleop_rate_hz,
         "loadavg_start": _loadavg(),
     }
 
@@ -174,17 +193,22 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
             # are not what an operator works with.
             time.sleep(opts.settle_s)
             with log.phase("force_alone"):
-                _phase_force(node, opts, res, "force_alone", say)
+                _phase_force(kids, node, opts, res, "force_alone", say)
             kids.check()
             with log.phase("baseline_tcp"):
                 _phase_tcp(opts, res, say)
+            with log.phase("baseline_zenoh"):
+                _phase_zenoh_floor(kids, node, endpoint, opts, res, say)
             driver = CommandDriver(node, MASTER_ID)
             for i, rate in enumerate(opts.command_rates_hz):
                 with log.phase(f"commands_{rate:.0f}hz"):
-                    _phase_commands(node, driver, rate, -1.0 if i % 2 else 1.0, opts, res, say)
+                    sign = -1.0 if i % 2 else 1.0
+                    fig, notes = phase_commands(node, driver, rate, sign, opts.phase_s, say)
+                    res.phases[f"commands_{rate:.0f}hz"] = fig
+                    res.notes.extend(notes)
                 kids.check()
             with log.phase("rpc"):
-                _phase_rpc(node, opts, res, say)
+                _phase_rpc(kids, node, endpoint, opts, res, say)
             for key, size, fps in (
                 ("paper", opts.paper_size, opts.paper_fps),
                 ("vga", opts.vga_size, opts.vga_fps),
@@ -192,6 +216,13 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
                 with log.phase(f"video_{key}"):
                     _phase_video(kids, node, zargs, key, size, fps, opts, res, say)
                 kids.check()
+            sim = system.SimRun(
+                kids, node, driver, zargs, opts.vga_size, opts.vga_fps, opts.startup_timeout_s, say
+            )
+            res.notes.extend(
+                sim.run(opts.cpu_settle_s, opts.phase_s, opts.teleop_rate_hz, log.phase)
+            )
+            res.phases.update(sim.phases)
         finally:
             node.close()
     log.kids = None  # every child is reaped: its time is in getrusage(RUSAGE_CHILDREN)
@@ -266,7 +297,7 @@ def _start_services(
     kids.spawn("decision", telerobot_argv("decision", *zargs))
     kids.spawn("master", telerobot_argv("master", "--config", str(station), *zargs))
     for name in ("puma", "force", "decision", f"master/{STATION_ID}"):
-        _wait_alive(kids, node, name, opts.startup_timeout_s)
+        wait_alive(kids, node.alive.wait, name, opts.startup_timeout_s)
     status = StreamProbe(node, STATE, lambda m: (m.status,)).start()
     try:
         deadline = time.monotonic() + opts.startup_timeout_s
@@ -288,14 +319,6 @@ def _force_priority(node: Node) -> dict[str, Any] | None:
     except (Unavailable, RpcError):
         return None
     return dict(got) if isinstance(got, dict) else None
-
-
-def _wait_alive(kids: Children, node: Node, name: str, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not node.alive.wait(name, 0.5):
-        kids.check()
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"alive/{name} never appeared within {timeout_s:g} s")
 
 
 # --- force --------------------------------------------------------------------------------
@@ -364,30 +387,37 @@ def _delta(a: dict[str, int] | None, b: dict[str, int] | None) -> dict[str, int]
     return {k: b[k] - a[k] for k in b if k in a}
 
 
-def _phase_force(node: Node, opts: BenchOptions, res: RunResult, key: str, say: Say) -> None:
+def _phase_force(
+    kids: Children, node: Node, opts: BenchOptions, res: RunResult, key: str, say: Say
+) -> None:
     say(f"[{key}] force stream alone for {opts.phase_s:g} s …")
     probe = _force_probe(node)
     before = _force_counters(node)
-    t0, t1 = _measure_window(lambda: probe.wait_count(1, 10.0), opts.phase_s)
+    if not probe.wait_count(1, 10.0):
+        raise TimeoutError("no sample arrived on robot/force")
+    cpu_a, t0 = kids.cpu_by_child(), time.time_ns()
+    # The phase's length is the measurement itself, not a wait for a condition.
+    time.sleep(opts.phase_s)
+    cpu_b, t1 = kids.cpu_by_child(), time.time_ns()
     after = _force_counters(node)
     fig, trace = force_figures(probe.stop(), t0, t1)
     fig["rejected"] = probe.rejected
     fig["service"] = _delta(before, after)
+    pct = cpu.percent_of_core(cpu_a, cpu_b, (t1 - t0) / stats.NS_PER_S)
+    fig["service_cpu_pct"] = pct.get("force")
+    fig["router_cpu_pct"] = pct.get("router")
     res.phases[key] = fig
     res.traces["force alone"] = trace
-    say(_force_line(fig))
+    cpu_text = f", force service {pct['force']:.1f} % of a core" if "force" in pct else ""
+    say(_force_line(fig) + cpu_text)
 
 
 def _force_line(fig: dict[str, Any]) -> str:
     lat = fig["latency_ms"]
     return (
-        f"    {fig['rate_hz']:.0f} Hz received, latency p50 {_ms(lat['p50'])} p99 "
-        f"{_ms(lat['p99'])} max {_ms(lat['max'])}, lost {fig['loss']['lost']}"
+        f"    {fig['rate_hz']:.0f} Hz received, latency p50 {ms_text(lat['p50'])} p99 "
+        f"{ms_text(lat['p99'])} max {ms_text(lat['max'])}, lost {fig['loss']['lost']}"
     )
-
-
-def _ms(x: float | None) -> str:
-    return "n/a" if x is None else f"{x:.3f} ms"
 
 
 # --- TCP floor ----------------------------------------------------------------------------
@@ -413,156 +443,61 @@ def _phase_tcp(opts: BenchOptions, res: RunResult, say: Say) -> None:
     say(_force_line(res.phases["baseline_tcp"]))
 
 
-# --- commands -----------------------------------------------------------------------------
+# --- bare-Zenoh floor -------------------------------------------------------------------
 
 
-class HoldWatch:
-    """Tells the command driver when the decision stopped following the bench's current
-    engagement: an inactive puma command of the engagement it was following (a hold), or
-    no active one at all `refused_after_s` after the engagement began (a refusal).
-
-    `newest()` gives the newest robot/puma/cmd record `(rx_ns, (seq, master, active, dp_x,
-    engage))`, as the command phase's probe records them."""
-
-    def __init__(
-        self,
-        newest: Callable[[], tuple[int, tuple[Any, ...]] | None],
-        refused_after_s: float = 1.0,
-    ) -> None:
-        self.newest = newest
-        self.refused_after_ns = int(refused_after_s * stats.NS_PER_S)
-        self._started = -1
-        self._following: int | None = None
-
-    def __call__(self, started_ns: int) -> bool:
-        if started_ns != self._started:
-            self._started, self._following = started_ns, None
-        newest = self.newest()
-        waited = time.time_ns() - started_ns > self.refused_after_ns
-        if newest is None or newest[0] < started_ns or newest[1][1] != "decision":
-            return waited and self._following is None
-        _seq, _master, active, _dp, engage = newest[1]
-        if active:
-            self._following = engage
-            return False
-        if self._following is not None:
-            return bool(engage == self._following)
-        return waited
-
-
-def _phase_commands(
-    node: Node,
-    driver: CommandDriver,
-    rate_hz: float,
-    sign: float,
-    opts: BenchOptions,
-    res: RunResult,
-    say: Say,
+def _phase_zenoh_floor(
+    kids: Children, node: Node, endpoint: str, opts: BenchOptions, res: RunResult, say: Say
 ) -> None:
-    key = f"commands_{rate_hz:.0f}hz"
-    say(f"[{key}] robot/cmd at {rate_hz:g} Hz through decision to puma for {opts.phase_s:g} s …")
-    n_planned = max(1, round(rate_hz * opts.phase_s))
-    step = sign * min(CMD_MAX_STEP_M, CMD_TRAVEL_M / n_planned)
-
-    def fwd_fields(m: OperatorCommand) -> tuple[Any, ...]:
-        return (m.seq, m.master, m.active, m.dp[0], m.engage)
-
-    def state_fields(m: RobotState) -> tuple[Any, ...]:
-        return (m.t_ns, m.cmd_seq, m.status)
-
-    def event_fields(m: Event) -> tuple[Any, ...]:
-        return (m.source, m.kind, m.message)
-
-    fwd = StreamProbe(node, PUMA_CMD, fwd_fields).start()
-    states = StreamProbe(node, STATE, state_fields).start()
-    events = StreamProbe(node, EVENTS, event_fields).start()
-    if not states.wait_count(1, 5.0):
-        raise TimeoutError("no robot/state before the command phase")
-    before = _interventions(node)
-    run = driver.stream(rate_hz, opts.phase_s, step, held=HoldWatch(fwd.newest))
-    sent = run.sent
-    t_first, t_last = sent[0][1], sent[-1][1]
-    k0s = [k0 for _, k0 in run.starts]
-
-    def decision_active(rows: Sequence[tuple[int, tuple[Any, ...]]]) -> list[tuple[int, int, int]]:
-        """(rx_ns, seq, k) of the decision's active puma commands since the first sent, k
-        decoded from dp within the bench engagement the decision engagement follows."""
-        active = [(rx, f) for rx, f in rows if f[1] == "decision" and f[2] and rx >= t_first]
-        first_seen: dict[int, int] = {}
-        for rx, f in active:
-            first_seen.setdefault(int(f[4]), rx)
-        follows = stats.assign_engagements([t for t, _ in run.starts], first_seen)
-        return [
-            (rx, int(f[0]), k0s[follows[int(f[4])]] + stats.dp_index(float(f[3]), step))
-            for rx, f in active
-            if int(f[4]) in follows
-        ]
-
-    last_seq = max((r[1] for r in decision_active(fwd.snapshot())), default=None)
-    if last_seq is not None:
-        # Wait (with a deadline) until the puma reports the last forwarded command applied.
-        deadline = time.monotonic() + DRAIN_TIMEOUT_S
-        while time.monotonic() < deadline:
-            newest = states.newest()
-            if newest is not None and newest[1][1] >= last_seq:
-                break
-            time.sleep(0.01)
-    fwd_rec = fwd.stop()
-    st_rec = states.stop()
-    ev_rec = [e for rx, e in events.stop() if rx >= t_first and e[0] == "decision"]
-    after = _interventions(node)
-    forwarded = [r for r in decision_active(fwd_rec) if 0 <= r[2] < len(sent)]
-    st_rows = [(rx, int(s[0]), int(s[1])) for rx, s in st_rec if rx >= t_first]
-    m = stats.match_commands(sent, forwarded, st_rows)
-    duration_s = (t_last - t_first) / stats.NS_PER_S
-    fwd_rx = [r[0] for r in forwarded if r[0] <= t_last + DRAIN_TIMEOUT_S * stats.NS_PER_S]
-    res.phases[key] = {
-        "rate_hz_target": rate_hz,
-        "sent": m.sent,
-        "sent_rate_hz": stats.rate_hz(max(m.sent - 1, 0), duration_s),
-        "step_m": step,
-        "engagements": len(run.starts),
-        "forwarded_distinct": m.forwarded_distinct,
-        "forwarded_rate_hz": stats.rate_hz(m.forwarded_distinct, duration_s),
-        "puma_cmd_rate_hz": stats.rate_from_times(fwd_rx),
-        "matched": m.matched,
-        "unforwarded": m.unforwarded,
-        "forward_ms": stats.summarize(m.forward_ms).as_dict(),
-        "applied_ms": stats.summarize(m.applied_ms).as_dict(),
-        "seen_ms": stats.summarize(m.seen_ms).as_dict(),
-        "states_moving": sum(1 for _, s in st_rec if s[2] == "moving"),
-        "decision_events": dict(Counter(e[1] for e in ev_rec)),
-        "decision_interventions": (
-            {k: after[k] - before.get(k, 0) for k in after if after[k] != before.get(k, 0)}
-            if before is not None and after is not None
-            else None
-        ),
-        "decision_messages": [e[2] for e in ev_rec if e[1] != "status"][:MAX_MESSAGES],
-    }
-    f = res.phases[key]
-    held = [e[2] for e in ev_rec if e[1] in HOLD_KINDS]
-    if held or len(run.starts) > 1:
-        res.notes.append(
-            f"{key}: the decision intervened {len(held)} time(s) (first: "
-            f"{held[0] if held else 'none reported'}); the bench engaged "
-            f"{len(run.starts)} time(s), as an operator engages again after a hold."
-        )
+    """The same ForceSample bytes from a minimal zenoh-python publisher at 1 kHz through the
+    router to the bench's force probe (services.bench.floor)."""
     say(
-        f"    sent {m.sent} ({f['sent_rate_hz']:.0f} Hz) in {len(run.starts)} engagement(s), "
-        f"{m.forwarded_distinct} reached the puma ({f['forwarded_rate_hz']:.0f} Hz); "
-        f"master→puma p50 {_ms(f['forward_ms']['p50'])} p99 {_ms(f['forward_ms']['p99'])}; "
-        f"applied p50 {_ms(f['applied_ms']['p50'])} p99 {_ms(f['applied_ms']['p99'])}"
+        f"[baseline_zenoh] the same force packets from a bare Zenoh publisher at 1 kHz for "
+        f"{opts.phase_s:g} s …"
     )
-
-
-def _interventions(node: Node) -> dict[str, int] | None:
-    """The decision's intervention counters (its `status`), to difference around a phase;
-    None when the decision did not answer."""
+    probe = StreamProbe(node, floor.FLOOR_TOPIC, lambda m: (m.seq, m.t_ns)).start()
     try:
-        got = node.call("decision", "status", {}, CALL_TIMEOUT_S).get("interventions", {})
-    except (Unavailable, RpcError):
-        return None
-    return {str(k): int(v) for k, v in got.items() if isinstance(v, int)}
+        pub = kids.spawn("zenoh-floor", floor.pub_argv(endpoint, 1000.0, opts.phase_s))
+        deadline = time.monotonic() + opts.startup_timeout_s
+        while not probe.wait_count(1, 0.1):
+            kids.check("zenoh-floor")
+            if time.monotonic() > deadline:
+                raise TimeoutError("no sample from the bare Zenoh publisher")
+        # The bench's own CPU while it receives: the subscriber's side of the floor.
+        own_a, cpu_a, t_a = cpu.process_cpu_s(os.getpid()), kids.cpu_by_child(), time.monotonic()
+        try:
+            code = pub.proc.wait(timeout=opts.phase_s + opts.startup_timeout_s)
+        except subprocess.TimeoutExpired:
+            raise TimeoutError("the bare Zenoh publisher did not finish") from None
+        own_b, cpu_b, t_b = cpu.process_cpu_s(os.getpid()), kids.cpu_by_child(), time.monotonic()
+        if code != 0:
+            raise ChildFailed(f"the bare Zenoh publisher exited with {code}:\n{pub.tail()}")
+        sent = floor.parse_sent(pub.output())
+        probe.wait_count(sent.sent, FLOOR_DRAIN_S)
+    finally:
+        records = probe.stop()
+        kids.stop("zenoh-floor")
+    rx = np.array([r[0] for r in records], dtype=np.int64)
+    seqs = [int(r[1][0]) for r in records]
+    lat = stats.latencies_ms(rx, [r[1][1] for r in records])
+    loss = stats.seq_loss(seqs)
+    wall_s = t_b - t_a
+    router = cpu.percent_of_core(cpu_a, cpu_b, wall_s).get("router")
+    res.phases["baseline_zenoh"] = {
+        "duration_s": sent.wall_s,
+        "sent": sent.sent,
+        "received": len(seqs),
+        "rate_hz": stats.rate_from_times(rx),
+        "payload_bytes": len(force_payload(max(seqs, default=1), time.time_ns())),
+        "latency_ms": stats.summarize(lat).as_dict(),
+        "loss": {**loss.as_dict(), "lost": sent.sent - loss.unique},
+        "rejected": probe.rejected,
+        "publisher_cpu_pct": sent.cpu_pct,
+        "subscriber_cpu_pct": (own_b - own_a) / wall_s * 100.0 if wall_s > 0 else None,
+        "router_cpu_pct": router,
+    }
+    f = res.phases["baseline_zenoh"]
+    say(_force_line(f) + f"; publisher {f['publisher_cpu_pct']:.1f} % of a core")
 
 
 def _puma_status(node: Node, attempts: int = 3) -> dict[str, Any]:
@@ -579,7 +514,9 @@ def _puma_status(node: Node, attempts: int = 3) -> dict[str, Any]:
 # --- method calls -------------------------------------------------------------------------
 
 
-def _phase_rpc(node: Node, opts: BenchOptions, res: RunResult, say: Say) -> None:
+def _phase_rpc(
+    kids: Children, node: Node, endpoint: str, opts: BenchOptions, res: RunResult, say: Say
+) -> None:
     n = opts.rpc_calls
     for key, service, method in (
         ("rpc_decision_status", "decision", "status"),
@@ -591,7 +528,7 @@ def _phase_rpc(node: Node, opts: BenchOptions, res: RunResult, say: Say) -> None
         res.phases[key] = {**stats.summarize(times.ms).as_dict(), "failures": times.failures}
         failed = sum(times.failures.values())
         say(
-            f"    p50 {_ms(res.phases[key]['p50'])} p99 {_ms(res.phases[key]['p99'])}"
+            f"    p50 {ms_text(res.phases[key]['p50'])} p99 {ms_text(res.phases[key]['p99'])}"
             + (f", {failed} failed: {times.failures}" if failed else "")
         )
         if failed:
@@ -600,11 +537,28 @@ def _phase_rpc(node: Node, opts: BenchOptions, res: RunResult, say: Say) -> None
                 "ones are timed."
             )
     reply = _puma_status(node)
+    say(f"[baseline_zenoh_query] {n} bare-Zenoh gets of a queryable replying puma's status map …")
+    reply_file = opts.logs_dir / "floor-reply.msgpack"
+    reply_file.write_bytes(codec.pack(reply))
+    server = kids.spawn("zenoh-floor-rpc", floor.serve_argv(endpoint, reply_file))
+    try:
+        wait_log(server, floor.SERVING, opts.startup_timeout_s)
+        got = floor.time_gets(node.session, n)
+    finally:
+        kids.stop("zenoh-floor-rpc")
+    res.phases["baseline_zenoh_query"] = {
+        "latency_ms": stats.summarize(got.ms).as_dict(),
+        "calls": n,
+        "failures": got.failures,
+        "reply_bytes": len(codec.pack(reply)),
+    }
+    lat = res.phases["baseline_zenoh_query"]["latency_ms"]
+    say(f"    p50 {ms_text(lat['p50'])} p99 {ms_text(lat['p99'])}")
     say(f"[baseline_xmlrpc] {n} XML-RPC calls returning puma's status map …")
     rtt = xmlrpc_round_trips(reply, n)
     res.phases["baseline_xmlrpc"] = {"latency_ms": stats.summarize(rtt).as_dict(), "calls": n}
     lat = res.phases["baseline_xmlrpc"]["latency_ms"]
-    say(f"    p50 {_ms(lat['p50'])} p99 {_ms(lat['p99'])}")
+    say(f"    p50 {ms_text(lat['p50'])} p99 {ms_text(lat['p99'])}")
 
 
 # --- video --------------------------------------------------------------------------------
@@ -627,7 +581,7 @@ def _phase_video(
         "vision", telerobot_argv("vision", "--size", f"{w}x{h}", "--fps", f"{fps:g}", *zargs)
     )
     try:
-        _wait_alive(kids, node, "vision", opts.startup_timeout_s)
+        wait_alive(kids, node.alive.wait, "vision", opts.startup_timeout_s)
         video = VideoProbe(node).start()
         vstats = StreamProbe(node, VISION_STATS, lambda m: (m,)).start()
         if not video.wait_frames(3, opts.startup_timeout_s):
@@ -664,6 +618,8 @@ def _phase_video(
         "covered_s": inflight.covered_s,
         "rate_hz": inflight.rate_hz if inflight.covered_s > 0 else None,
     }
+    if inflight.covered_s <= 0:
+        ffig["na"] = {"in_flight": "no stereo pair was complete inside the window"}
     res.phases[f"video_{key}"] = vfig
     res.phases[f"force_stereo_{key}"] = ffig
     res.traces[f"with stereo {w}x{h}@{fps:g}"] = trace
@@ -671,7 +627,7 @@ def _phase_video(
     lat = vfig["latency_ms"]
     say(
         f"    video {vfig['fps_l']:.1f}/{vfig['fps_r']:.1f} fps (l/r), capture→decoded p50 "
-        f"{_ms(lat['p50'])} p99 {_ms(lat['p99'])}, {vfig['mbit_s']:.1f} Mbit/s"
+        f"{ms_text(lat['p50'])} p99 {ms_text(lat['p99'])}, {vfig['mbit_s']:.1f} Mbit/s"
     )
 
 
@@ -716,7 +672,6 @@ def video_figures(
 
 __all__ = [
     "BenchOptions",
-    "HoldWatch",
     "RunResult",
     "force_figures",
     "force_note",

@@ -9,7 +9,7 @@ recorded, so each function is tested on hand-worked inputs.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -318,3 +318,79 @@ def dp_index(dp_x_m: float, step_m: float) -> int:
     """The command index the bench encoded as dp_x = k · step (rounded: the decision's
     (p0 + dp) − p0 differs from dp by a few ulps, far below step/2)."""
     return round(dp_x_m / step_m)
+
+
+@dataclass(frozen=True, slots=True)
+class StampedCommands:
+    """The operator's path timed from the contract-extension fields (docs/protocol-extensions.md),
+    every figure on the machine's one clock.
+
+    reached: distinct bench commands (by `t_ns`) that a `robot/puma/cmd` carried as its
+      `origin_t_ns`: what the puma was given;
+    puma_ms: per command `robot/state` showed, `cmd_rx_ns − cmd_origin_t_ns`: master → puma;
+    setpoint_ms: per command `robot/state` showed with a `setpoint_ns`, `setpoint_ns −
+      cmd_origin_t_ns`: master → the first arm setpoint computed from it;
+    sampled: commands `robot/state` showed (a sample: the state stream runs slower than a
+      1 kHz master, so it shows only the command newest at each state).
+    """
+
+    reached: int
+    puma_ms: np.ndarray
+    setpoint_ms: np.ndarray
+    sampled: int
+
+
+def first_carriers(puma_cmds: Sequence[tuple[int, int | None]]) -> dict[int, int]:
+    """`origin_t_ns` → the lowest `robot/puma/cmd` seq that carried it, from `(seq,
+    origin_t_ns)` records (those without an origin, holds and task steps, are left out)."""
+    out: dict[int, int] = {}
+    for seq, origin in puma_cmds:
+        if origin is not None and (origin not in out or seq < out[origin]):
+            out[origin] = seq
+    return out
+
+
+def stamped_commands(
+    sent_t_ns: Collection[int],
+    puma_cmds: Sequence[tuple[int, int | None]],
+    states: Sequence[tuple[int, int | None, int | None, int | None]],
+) -> StampedCommands:
+    """The operator's path from the extension fields.
+
+    sent_t_ns: the `t_ns` of every command the bench sent in the phase;
+    puma_cmds: `(seq, origin_t_ns)` per `robot/puma/cmd` seen (any order);
+    states: `(cmd_seq, cmd_rx_ns, setpoint_ns, cmd_origin_t_ns)` per `robot/state`, in
+      arrival order.
+
+    Each bench command counts once, through the first puma command that carried it: a later
+    puma command carrying the same origin (a re-send) arrived later than the operator's
+    command did, so its receive time would overstate the path. Where the puma commands
+    were not seen (an empty `puma_cmds`), every state whose origin is ours counts, by its
+    first `cmd_seq`. The first state with `cmd_rx_ns` gives master → puma, the first with
+    `setpoint_ns` gives master → setpoint (it may come a state later than the receive).
+    """
+    ours = set(sent_t_ns)
+    carriers = first_carriers(puma_cmds)
+    reached = sum(1 for origin in carriers if origin in ours)
+    rx: dict[int, int] = {}
+    setpoint: dict[int, int] = {}
+    seq_of: dict[int, int] = {}
+    for cmd_seq, cmd_rx_ns, setpoint_ns, origin in states:
+        if origin is None or origin not in ours:
+            continue
+        want = carriers.get(origin) if carriers else seq_of.setdefault(origin, cmd_seq)
+        if want != cmd_seq:
+            continue
+        if cmd_rx_ns is not None:
+            rx.setdefault(origin, cmd_rx_ns)
+        if setpoint_ns is not None:
+            setpoint.setdefault(origin, setpoint_ns)
+    shown = set(rx) | set(setpoint)
+    return StampedCommands(
+        reached=reached,
+        puma_ms=np.array([(rx[o] - o) / NS_PER_MS for o in sorted(rx)], dtype=float),
+        setpoint_ms=np.array(
+            [(setpoint[o] - o) / NS_PER_MS for o in sorted(setpoint)], dtype=float
+        ),
+        sampled=len(shown),
+    )

@@ -1,10 +1,12 @@
-"""`telerobot bench`: the paper's §3 figures measured on the real services, beside baselines.
+"""`telerobot bench`: the paper's §3 figures and issue 16's targets measured on the real
+services, beside the floor.
 
 Starts the router and the services as separate processes on 127.0.0.1 (client mode, as
-deployed), measures force, video, commands, method calls and IK, runs a raw-TCP floor and
-an XML-RPC baseline in the same run, and prints one table: ours, the baseline's, the
-paper's, the ratios, and plainly which figures miss the paper. Writes the JSON (--json)
-and a force-latency plot (--plot). See docs/bench.md.
+deployed), measures force, video, commands, method calls, IK and each service's CPU (idle,
+and during 1 kHz teleop with VGA stereo), runs a bare-Zenoh floor (pub/sub and get→reply),
+a raw-TCP floor and an XML-RPC baseline in the same run, and prints one table: ours, the
+floor's, the baseline's, the paper's, the target, the ratios, and plainly which figures
+miss. Writes the JSON (--json) and a force-latency plot (--plot). See docs/bench.md.
 """
 
 from __future__ import annotations
@@ -34,7 +36,9 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument(
-        "--quick", action="store_true", help="5 s phases and fewer calls (under 2 min on 2 cores)"
+        "--quick",
+        action="store_true",
+        help="5 s phases and windows, fewer calls (about 2 min on 2 cores)",
     )
     p.add_argument("--phase-s", type=float, default=None, help="length of each phase (s)")
     p.add_argument("--rpc-calls", type=int, default=None, help="calls per method")
@@ -88,10 +92,11 @@ def main(argv: list[str] | None = None) -> int:
     res.settings["wall_s"] = round(time.monotonic() - t0, 1)
     notes = [
         *res.notes,
-        "force latency: bench arrival − ForceSample.t_ns (the sensor read), one clock.",
-        "master→arm applied: bench robot/cmd t_ns → t_ns of the first robot/state whose "
-        "cmd_seq shows the decision's command carrying it; robot/state is sent at 250 Hz.",
-        "decision status calls puma status and force sensor_status inside (2 nested calls).",
+        "force latency: bench arrival − ForceSample.t_ns (the sensor read), one clock; the "
+        "bare-Zenoh floor sends the same bytes from a minimal zenoh-python process through "
+        "the same router to the same probe.",
+        "ours/floor: one-way latencies against the bare-Zenoh pub/sub floor's same "
+        "percentile, calls against its get→reply floor; CPU in % of one core.",
     ]
     doc = document(res.phases, machine(), res.settings, notes)
     json_path = Path(args.json)

@@ -10,6 +10,7 @@ import pytest
 from services.bench import cpu
 from services.bench.report import document, machine, table
 from services.bench.run import busy_note
+from services.bench.system import cpu_figures
 
 STAT = """cpu  1000 10 200 5000 40 0 30 20 0 0
 cpu0 500 5 100 2500 20 0 15 10 0 0
@@ -83,3 +84,47 @@ def test_table_header_reports_the_cpu_split() -> None:
         in text
     )
     assert "phases of 20.0 s." in text
+
+
+def test_parse_pid_stat_reads_group_and_times_past_an_odd_name() -> None:
+    # comm may hold spaces and parentheses: fields are counted after the last ")"
+    line = "4242 (py (x) y) S 1 777 777 0 -1 4194560 10 0 0 0 250 50 3 4 20 0 9 0 1 2 3\n"
+    assert cpu.parse_pid_stat(line, 100.0) == (777, pytest.approx(3.0))
+
+
+def test_cpu_by_group_sums_this_process_group() -> None:
+    x = 0
+    for i in range(2_000_000):  # burn a little CPU so the tick counter moves
+        x += i
+    group = os.getpgrp()
+    own = cpu.process_cpu_s(os.getpid())  # read first: CPU time only grows
+    got = cpu.cpu_by_group([group, 2**22 + 12345])
+    assert got[group] >= own > 0.0
+    assert got[2**22 + 12345] == 0.0  # no such group
+
+
+def test_percent_of_core_and_budget_sum() -> None:
+    before = {"a": 1.0, "b": 2.0, "gone": 5.0}
+    after = {"a": 1.5, "b": 1.99, "new": 1.0}  # b: tick jitter below zero
+    pct = cpu.percent_of_core(before, after, wall_s=2.0)
+    assert pct == {"a": pytest.approx(25.0), "b": 0.0}
+    assert cpu.percent_of_core(before, after, wall_s=0.0) == {}
+    assert cpu.budget_sum(pct, ["a", "b"]) == pytest.approx(25.0)
+    assert cpu.budget_sum(pct, ["a", "gone"]) is None  # a partial sum is no sum
+
+
+def test_cpu_figures_budget_sums_and_missing_services() -> None:
+    names = ("router", "puma", "force", "decision", "vision", "workcell", "console")
+    before = dict.fromkeys(names, 100.0)
+    after = {n: 100.0 + 0.1 * (i + 1) for i, n in enumerate(names)}  # 10 %, 20 %, … over 10 s
+    fig = cpu_figures(before, after, bench_s=0.5, wall_s=10.0)
+    assert fig["services"]["router"] == pytest.approx(1.0)
+    assert fig["core_pct"] == pytest.approx(1.0 + 2.0 + 3.0 + 4.0)
+    assert fig["sim_pct"] == pytest.approx(28.0)
+    assert fig["bench_pct"] == pytest.approx(5.0)
+    assert fig["na"] == {} and fig["window_s"] == 10.0
+    del after["console"]  # stopped inside the window
+    fig = cpu_figures(before, after, bench_s=0.0, wall_s=10.0)
+    assert fig["core_pct"] == pytest.approx(10.0) and fig["sim_pct"] is None
+    assert fig["na"]["sim_pct"] == "not running through the whole window: console"
+    assert "console" in fig["na"] and "console" not in fig["services"]

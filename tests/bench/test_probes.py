@@ -7,8 +7,8 @@ import time
 
 import pytest
 
+from services.bench.commands import HoldWatch
 from services.bench.probes import CommandDriver, StreamProbe, time_calls
-from services.bench.run import HoldWatch
 from services.bus.errors import RpcError
 from services.bus.keys import CMD, FORCE
 from services.bus.messages import IDENTITY_R, ForceSample, OperatorCommand
@@ -91,7 +91,7 @@ def _warm_up_cmd(node: Node, got: list[OperatorCommand], lock: threading.Lock) -
 
 
 def _rec(rx: int, active: bool, engage: int, master: str = "decision") -> tuple[int, tuple]:
-    return (rx, (1, master, active, 0.0, engage))
+    return (rx, (1, master, active, 0.0, engage, None))
 
 
 def test_hold_watch() -> None:

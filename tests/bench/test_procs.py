@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
-from services.bench.procs import ChildFailed, Children, wait_log
+from services.bench.procs import ChildFailed, Children, wait_alive, wait_log
 
 IGNORES_TERM = (
     "import signal, sys, time\n"
@@ -45,3 +46,41 @@ def test_a_dead_child_is_reported_with_its_log(tmp_path: Path) -> None:
             kids.check()
         with pytest.raises(ChildFailed, match="boom"):
             wait_log(child, "never printed", 5.0)
+
+
+GRANDCHILD_BURNS = (
+    "import subprocess, sys, time\n"
+    "burn = 'import time\\nend = time.time() + 60\\nwhile time.time() < end: pass\\n'\n"
+    "subprocess.Popen([sys.executable, '-c', burn])\n"
+    "print('up and ' + 'running', flush=True)\n"
+    "while True: time.sleep(0.05)\n"
+)
+
+
+def test_cpu_by_child_counts_what_a_child_started(tmp_path: Path) -> None:
+    with Children(tmp_path) as kids:
+        parent = kids.spawn("parent", [sys.executable, "-c", GRANDCHILD_BURNS])
+        idle = kids.spawn("idle", [sys.executable, "-c", BEHAVES])
+        wait_log(parent, "up and running", 20.0)
+        wait_log(idle, "up and running", 20.0)
+        deadline = time.monotonic() + 20.0
+        while kids.cpu_by_child()["parent"] < 0.2 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        used = kids.cpu_by_child()
+        # the sleeping parent alone would take far less: the burning grandchild is counted
+        assert used["parent"] >= 0.2
+        assert set(used) == {"parent", "idle"}
+        assert kids.cpu_s() == pytest.approx(sum(kids.cpu_by_child().values()), abs=0.5)
+    assert parent.proc.poll() is not None
+
+
+def test_wait_alive_fails_fast_on_a_dead_child(tmp_path: Path) -> None:
+    with Children(tmp_path) as kids:
+        child = kids.spawn("crash", [sys.executable, "-c", "raise SystemExit(4)"])
+        child.proc.wait(timeout=20.0)
+        with pytest.raises(ChildFailed, match="crash exited with 4"):
+            wait_alive(kids, lambda name, timeout_s: False, "crash", 30.0)
+    with Children(tmp_path) as kids, pytest.raises(TimeoutError, match="alive/x never"):
+        wait_alive(kids, lambda name, timeout_s: False, "x", 0.0)
+    with Children(tmp_path) as kids:
+        wait_alive(kids, lambda name, timeout_s: name == "x", "x", 0.0)

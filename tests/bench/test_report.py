@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
 import pytest
@@ -13,6 +14,9 @@ from services.bench.report import (
     FIGURE_KEYS,
     PAPER,
     PHASE_KEYS,
+    SPECS,
+    TABLE_HEADER,
+    TARGETS,
     Figure,
     document,
     figures,
@@ -20,6 +24,7 @@ from services.bench.report import (
     table,
 )
 from services.bench.run import force_figures, force_note, video_figures
+from services.bench.system import cpu_figures
 
 MS = stats.NS_PER_MS
 S = stats.NS_PER_S
@@ -52,26 +57,40 @@ def _summary(p50: float, p99: float) -> dict[str, Any]:
     return {"n": 100, "p50": p50, "p99": p99, "max": p99 * 2, "mean": p50, "min": p50 / 2}
 
 
+def _cpu(**pct: float) -> dict[str, Any]:
+    before = dict.fromkeys(pct, 10.0)
+    after = {name: 10.0 + p / 100.0 * 5.0 for name, p in pct.items()}  # a 5 s window
+    return cpu_figures(before, after, bench_s=0.25, wall_s=5.0)
+
+
+IDLE = {"router": 3.0, "puma": 4.0, "force": 9.0, "decision": 2.0}
+IDLE_SIM = {**IDLE, "vision": 1.0, "workcell": 5.0, "console": 6.0}
+
+
 def full_phases() -> dict[str, Any]:
     vp, _ = _video(17.0, 360, 288)
     vv, _ = _video(30.0, 640, 480)
     with_video = _force(1000.0, 0.4)
     with_video["in_flight"] = {"count": 12, "covered_s": 0.2, "rate_hz": 60.0}
+    alone = _force(1000.0, 0.2)
+    alone["service_cpu_pct"] = 12.0
     return {
-        "force_alone": _force(1000.0, 0.2),
+        "force_alone": alone,
         "force_stereo_paper": with_video,
         "force_stereo_vga": {**_force(500.0, 1.0, lose=(3, 4)), "in_flight": None},
         "video_paper": vp,
         "video_vga": vv,
         "commands_100hz": {
-            "forwarded_rate_hz": 98.0,
-            "forward_ms": _summary(0.8, 2.0),
-            "applied_ms": _summary(3.0, 6.0),
+            "reached_rate_hz": 98.0,
+            "puma_counter": {"commands": 490, "window_s": 5.0, "rate_hz": 98.0},
+            "puma_ms": _summary(0.8, 2.0),
+            "setpoint_ms": _summary(3.0, 6.0),
         },
         "commands_1000hz": {
-            "forwarded_rate_hz": 480.0,
-            "forward_ms": _summary(0.7, 2.5),
-            "applied_ms": _summary(3.1, 7.0),
+            "reached_rate_hz": 480.0,
+            "puma_counter": {"commands": 2500, "window_s": 5.0, "rate_hz": 500.0},
+            "puma_ms": _summary(0.7, 2.5),
+            "setpoint_ms": _summary(3.1, 7.0),
         },
         "rpc_decision_status": _summary(2.0, 5.0),
         "rpc_decision_supervisor": _summary(0.6, 1.5),
@@ -83,6 +102,15 @@ def full_phases() -> dict[str, Any]:
             "loss": {"lost": 0},
         },
         "baseline_xmlrpc": {"latency_ms": _summary(0.35, 1.1), "calls": 100},
+        "baseline_zenoh": {
+            "rate_hz": 1000.0,
+            "latency_ms": _summary(0.1, 0.4),
+            "loss": {"lost": 0},
+            "publisher_cpu_pct": 8.0,
+        },
+        "baseline_zenoh_query": {"latency_ms": _summary(0.25, 0.5), "calls": 100},
+        "cpu_idle": _cpu(**IDLE_SIM),
+        "cpu_teleop": _cpu(**{k: 2 * v for k, v in IDLE_SIM.items()}),
     }
 
 
@@ -107,9 +135,9 @@ def test_reducers_on_synthetic_streams() -> None:
 
 def test_document_has_every_figure_and_phase_and_is_strict_json() -> None:
     doc = document(full_phases(), machine(), SETTINGS, ["a note"])
-    assert doc["schema"] == "telerobot-bench/1"
-    assert set(FIGURE_KEYS) <= set(doc["figures"])
+    assert doc["schema"] == "telerobot-bench/2"
     assert list(doc["figures"]) == list(FIGURE_KEYS)
+    assert len(set(FIGURE_KEYS)) == len(FIGURE_KEYS)
     assert set(PHASE_KEYS) <= set(doc["phases"])
     fields = {
         "key",
@@ -120,35 +148,77 @@ def test_document_has_every_figure_and_phase_and_is_strict_json() -> None:
         "baseline",
         "baseline_name",
         "paper",
+        "floor",
+        "floor_name",
+        "target",
+        "target_name",
+        "reason",
         "vs_paper",
         "vs_baseline",
+        "vs_floor",
+        "vs_target",
         "verdict",
+        "target_verdict",
     }
     for key in FIGURE_KEYS:
         assert set(doc["figures"][key]) == fields
     assert set(doc["machine"]) >= {"nproc", "cpu_model", "python", "zenoh"}
-    assert doc["paper"] == PAPER
+    assert doc["paper"] == PAPER and doc["targets"] == TARGETS
     json.loads(json.dumps(doc, allow_nan=False))
     # every figure of a complete run has a value
-    assert [k for k in FIGURE_KEYS if doc["figures"][k]["ours"] is None] == [
-        "force_rate_in_flight_vga"  # set to None above: no pair was in flight
-    ]
+    assert list(doc["not_measured"]) == ["force_rate_in_flight_vga"]  # None above
+    assert "force_rate_in_flight_vga" in doc["target_misses"]
 
 
-def test_figures_compare_with_paper_and_baseline() -> None:
+def test_every_target_of_issue_16_has_a_row() -> None:
+    targeted = {f.key: f for f in figures(full_phases()) if f.target_name == "issue 16"}
+    assert {f.target for f in targeted.values()} <= set(TARGETS.values())
+    used = {s.target for s in SPECS if s.target is not None}
+    assert used == set(TARGETS)
+    assert {s.key for s in SPECS if s.target_run is not None} == {
+        "rpc_decision_status_vs_xmlrpc",
+        "rpc_puma_status_vs_xmlrpc",
+    }
+
+
+def test_figures_compare_with_paper_floor_baseline_and_target() -> None:
     rows = {f.key: f for f in figures(full_phases())}
     alone = rows["force_rate_alone"]
     assert alone.paper == 1000.0 and alone.baseline == 999.0 and alone.baseline_name == "raw TCP"
-    assert alone.verdict == "meets"
+    assert alone.floor == 1000.0 and alone.floor_name == "bare Zenoh"
+    assert alone.verdict == "meets" and alone.target == 995.0 and alone.target_verdict == "meets"
+    assert rows["force_latency_alone_p50"].vs_floor == pytest.approx(0.2 / 0.1)
+    assert rows["force_latency_alone_p99"].vs_floor == pytest.approx(0.2 / 0.4)
+    assert rows["force_latency_alone_p99"].target_verdict == "meets"  # 0.2 ≤ 0.5
+    assert rows["force_cpu_alone"].vs_floor == pytest.approx(12.0 / 8.0)
     assert rows["force_rate_in_flight_paper"].ours == 60.0
     assert rows["force_rate_in_flight_paper"].verdict == "MISSES"  # 60 < 76
+    assert rows["force_rate_in_flight_paper"].target_verdict == "n/a"
     assert rows["force_rate_stereo_vga"].verdict == "meets"  # 998 Hz > 250
+    assert rows["force_latency_stereo_vga_p99"].target_verdict == "meets"  # 1.0 ≤ 1 ms
     assert rows["force_lost_stereo_vga"].ours == 2.0
     assert rows["rpc_puma_status_p50"].vs_baseline == pytest.approx(0.5 / 0.35)
+    assert rows["rpc_puma_status_p50"].vs_floor == pytest.approx(0.5 / 0.25)
+    assert rows["rpc_puma_status_p50"].target_verdict == "MISSES"  # 0.5 > 0.4
+    assert rows["rpc_puma_status_vs_xmlrpc"].target == 0.35
+    assert rows["rpc_puma_status_vs_xmlrpc"].target_verdict == "MISSES"  # 0.5 > 0.35
     assert rows["rpc_decision_status_p50"].verdict == "MISSES"  # 2 ms > ~1 ms
     assert rows["rpc_decision_supervisor_p50"].verdict == "meets"
     assert rows["cmd_rate_100"].verdict == "meets"  # 98 ≥ 50
+    assert rows["cmd_rate_100"].target_verdict == "n/a"  # the target is at 1 kHz
+    assert rows["cmd_rate_1000"].target_verdict == "MISSES"  # 480 < 990
+    assert rows["cmd_puma_counter_1000"].ours == 500.0
+    assert rows["cmd_setpoint_1000_p99"].target == 3.0
+    assert rows["cmd_setpoint_1000_p99"].vs_floor == pytest.approx(7.0 / 0.4)
+    assert rows["video_latency_vga_p50"].target_verdict == "meets"  # 8.25 ms ≤ 15
     assert rows["ik_analytic_per_s"].verdict == "n/a"
+    assert rows["ik_analytic_per_s"].target_verdict == "MISSES"  # 3000 < 20 000
+    assert rows["cpu_idle_core"].ours == pytest.approx(18.0)
+    assert rows["cpu_idle_core"].target_verdict == "meets"  # 18 ≤ 25
+    assert rows["cpu_idle_sim"].ours == pytest.approx(30.0)
+    assert rows["cpu_teleop_sim"].ours == pytest.approx(60.0)
+    assert rows["cpu_teleop_sim"].target_verdict == "n/a"  # only idle is budgeted
+    assert rows["cpu_idle_console"].ours == pytest.approx(6.0)
 
 
 def test_verdict_rules() -> None:
@@ -159,42 +229,97 @@ def test_verdict_rules() -> None:
     assert Figure("k", "x", "", None, "higher", paper=1.0).verdict == "no data"
     assert Figure("k", "x", "", 3.0, "higher").verdict == "n/a"
     assert Figure("k", "x", "", 3.0, "lower", baseline=0.0).vs_baseline is None
+    met = Figure("k", "x", "ms", 0.4, "lower", target=0.4, target_name="issue 16")
+    assert met.target_verdict == "meets" and met.verdict == "n/a"
+    assert Figure("k", "x", "ms", 0.41, "lower", target=0.4, target_name="t").target_verdict == (
+        "MISSES"
+    )
+    # a same-run target that was not measured cannot be met
+    assert Figure("k", "x", "ms", 0.1, "lower", target_name="XML-RPC").target_verdict == "no data"
+    assert Figure("k", "x", "ms", 0.1, "lower").target_verdict == "n/a"
 
 
 def test_table_lists_every_figure_and_says_plainly_what_misses() -> None:
     phases = full_phases()
     del phases["video_vga"]
+    phases["commands_1000hz"]["na"] = {"setpoint_ms": "robot/state showed no setpoint_ns"}
+    phases["commands_1000hz"]["setpoint_ms"] = _summary(math.nan, math.nan)
+    phases["commands_1000hz"]["setpoint_ms"].update(p50=None, p99=None)
+    phases["cpu_teleop"] = {"na": {"*": "cpu_teleop failed: no stereo frames from vision"}}
+    phases["cpu_idle"] = _cpu(**IDLE)  # vision, workcell and console were not running
     doc = document(phases, machine(), SETTINGS, ["the note"])
     text = table(doc)
     for f in doc["figures"].values():
         assert f"| {f['label']} |" in text
     assert "eclipse-zenoh" in text and "CPUs" in text and "(--quick)" in text
     assert (
-        "MISSES THE PAPER: call decision status p50 (2 nested calls): ours 2 vs the paper's "
-        "1 ms (2× the paper's)." in text
+        "MISSES THE PAPER: call decision status p50: ours 2 vs the paper's 1 ms (2× the "
+        "paper's)." in text
     )
     assert (
         "MISSES THE PAPER: force rate while a 360×288 pair is in flight: ours 60 vs the "
         "paper's 76 Hz (21 % short)." in text
     )
-    assert "NOT MEASURED: stereo fps per eye, 640×480 (30 asked)" in text
+    assert (
+        "MISSES THE TARGET: commands reaching the puma, sent at 1 kHz: ours 480 vs 990 Hz "
+        "(issue 16; 52 % short)." in text
+    )
+    assert (
+        "MISSES THE TARGET: call puma status p50, faster than XML-RPC: ours 0.5 vs 0.35 ms "
+        "(XML-RPC p50, same run; 1.43× the target)." in text
+    )
+    assert (
+        "NOT MEASURED: stereo fps per eye, 640×480 (30 asked): phase video_vga did not run "
+        "(see the run's notes and logs)" in text
+    )
+    assert "NOT MEASURED: master→setpoint p50, 1 kHz: robot/state showed no setpoint_ns" in text
+    assert (
+        "NOT MEASURED: teleop CPU: console: cpu_teleop failed: no stereo frames from vision" in text
+    )
+    assert (
+        "MISSES THE TARGET: IK solves/s, analytic (8 branches): ours 3000 vs 20,000 1/s "
+        "(issue 16; 85 % short)." in text
+    )
+    assert (
+        "NOT MEASURED: idle CPU: whole sim system (+ vision, workcell, console): not running "
+        "through the whole window: vision, workcell, console" in text
+    )
+    assert "NOT MEASURED: idle CPU: console: console was not running through the whole window" in (
+        text
+    )
+    assert "cpu_idle_sim" in doc["target_misses"] and "cpu_idle_core" not in doc["target_misses"]
     assert "Note: the note" in text
     assert "video_fps_vga" in doc["misses"] and "rpc_decision_status_p50" in doc["misses"]
     assert "force_rate_alone" not in doc["misses"]
+    assert "cmd_setpoint_1000_p50" in doc["target_misses"]
     header = [line for line in text.splitlines() if line.startswith("| figure")]
-    assert header == [
-        "| figure | ours | baseline (same run) | ours/baseline | paper | ours/paper | verdict |"
-    ]
+    assert header == [TABLE_HEADER]
+    row = next(line for line in text.splitlines() if line.startswith("| force latency p50, alone"))
+    assert row == (
+        "| force latency p50, alone | 0.20 ms | 0.10 (bare Zenoh) | 2× | 0.060 (raw TCP) | 3.3× "
+        "|  |  |  |  |  |"
+    )
+    row = next(line for line in text.splitlines() if line.startswith("| idle CPU: router"))
+    assert row == (
+        "| idle CPU: router + puma + force + decision | 18.0 % |  |  |  |  |  |  |  | ≤ 25.0 "
+        "| meets |"
+    )
 
 
 def test_a_run_that_meets_everything_says_so() -> None:
     phases = full_phases()
     phases["force_stereo_paper"]["in_flight"]["rate_hz"] = 500.0
-    phases["force_stereo_vga"]["in_flight"] = {"rate_hz": 400.0}
-    phases["rpc_decision_status"] = _summary(0.9, 2.0)
+    phases["force_stereo_vga"] = {**_force(1000.0, 0.3), "in_flight": {"rate_hz": 995.0}}
+    phases["rpc_decision_status"] = _summary(0.3, 2.0)
+    phases["rpc_puma_status"] = _summary(0.3, 1.0)
+    phases["commands_1000hz"]["reached_rate_hz"] = 999.0
+    phases["commands_1000hz"]["puma_ms"] = _summary(0.3, 0.9)
+    phases["commands_1000hz"]["setpoint_ms"] = _summary(0.8, 2.5)
+    phases["ik"]["analytic_ik_per_s"] = 25_000.0
     text = table(document(phases, machine(), SETTINGS))
     assert "Every figure with a counterpart in the paper meets it." in text
-    assert "MISSES" not in text
+    assert "Every figure with a target meets it." in text
+    assert "MISSES" not in text and "NOT MEASURED" not in text
 
 
 def test_force_note_tells_source_from_transport() -> None:

@@ -224,3 +224,42 @@ def test_assign_engagements_follows_the_latest_start_before() -> None:
     # refused), 5 was seen before the bench engaged at all
     assert stats.assign_engagements(starts, {7: 150, 9: 310, 5: 50}) == {7: 0, 9: 2}
     assert stats.assign_engagements([], {1: 10}) == {}
+
+
+def test_first_carriers_keeps_the_lowest_seq_per_origin() -> None:
+    cmds = [(12, 500), (10, 500), (11, None), (13, 700), (14, 700)]
+    assert stats.first_carriers(cmds) == {500: 10, 700: 13}
+    assert stats.first_carriers([]) == {}
+
+
+def test_stamped_commands_hand_worked() -> None:
+    sent = [_ms(1), _ms(2), _ms(3), _ms(4)]
+    # Puma commands (seq, origin): 20 carries 1 ms, 21 carries 2 ms, 22 re-sends 2 ms, 23 is a
+    # hold, 24 carries 4 ms; 3 ms was superseded before the decision sent it; 9 ms is not ours.
+    puma = [(20, _ms(1)), (21, _ms(2)), (22, _ms(2)), (23, None), (24, _ms(4)), (25, _ms(9))]
+    states = [
+        (20, _ms(1.3), None, _ms(1)),  # received, no setpoint yet
+        (20, _ms(1.3), _ms(1.9), _ms(1)),  # its setpoint, one state later
+        (22, _ms(2.9), _ms(3.1), _ms(2)),  # a re-send of 2 ms: its times overstate the path
+        (23, _ms(3.2), _ms(3.3), None),  # a hold
+        (24, _ms(4.2), _ms(4.6), _ms(4)),
+        (25, _ms(9.2), _ms(9.5), _ms(9)),  # another master's
+    ]
+    got = stats.stamped_commands(sent, puma, states)
+    assert got.reached == 3  # 1, 2 and 4 ms
+    assert got.sampled == 2  # 1 and 4 ms: 2 ms was only shown through its re-send
+    np.testing.assert_allclose(got.puma_ms, [0.3, 0.2])
+    np.testing.assert_allclose(got.setpoint_ms, [0.9, 0.6])
+
+
+def test_stamped_commands_without_the_puma_stream_takes_each_origins_first_state() -> None:
+    states = [(5, _ms(1.5), None, _ms(1)), (6, _ms(1.8), _ms(2.0), _ms(1)), (7, None, None, None)]
+    got = stats.stamped_commands([_ms(1)], [], states)
+    assert (got.reached, got.sampled) == (0, 1)
+    np.testing.assert_allclose(got.puma_ms, [0.5])  # seq 5, the first to show it
+    assert got.setpoint_ms.size == 0  # seq 5 never showed a setpoint; 6 is a later carrier
+
+
+def test_stamped_commands_of_services_without_the_fields_is_empty() -> None:
+    got = stats.stamped_commands([1, 2], [(1, None)], [(1, None, None, None)])
+    assert (got.reached, got.sampled, got.puma_ms.size, got.setpoint_ms.size) == (0, 0, 0, 0)
