@@ -60,6 +60,7 @@ BOUNDS: dict[str, Bound] = {
     "timeout_s": Bound(0.0, 3600.0, "s", "a timeout"),
     "duration_s": Bound(0.0, 3600.0, "s", "a duration"),
     "period_ms": Bound(0.1, 1000.0, "ms", "a sampling or loop period"),
+    "watchdog_ms": Bound(1.0, 60_000.0, "ms", "a watchdog or staleness window"),
     "rate_hz": Bound(1.0, 10_000.0, "Hz", "a loop or stream rate"),
     "fraction": Bound(0.0, 1.0, "", "a fraction"),
 }

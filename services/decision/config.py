@@ -52,9 +52,9 @@ _NON_NEGATIVE = (
 #: the physical bound (services/bus/bounds.py) each numeric setting must respect
 _KINDS: dict[str, str] = {
     "rate_hz": "rate_hz",
-    "watchdog_ms": "period_ms",
-    "stale_ms": "period_ms",
-    "state_stale_ms": "period_ms",
+    "watchdog_ms": "watchdog_ms",
+    "stale_ms": "watchdog_ms",
+    "state_stale_ms": "watchdog_ms",
     "max_force_n": "force_n",
     "max_torque_nm": "torque_nm",
     "admittance_m_per_n_s": "admittance_m_n_s",
