@@ -657,3 +657,63 @@ def test_rate_loop_tolerance_and_rate_changes() -> None:
         RateLoop(0.0)
     with pytest.raises(ValueError):
         loop.set_rate(-1.0)
+
+
+# --- hostile input ----------------------------------------------------------------------------
+
+
+def test_an_oversized_payload_is_refused_unread_and_never_echoed(net: Net) -> None:
+    a, b = net.node("rogue"), net.node("watch")
+    sub = b.subscribe(keys.FORCE)
+    events = Events(a, b)
+    huge = codec.pack({"seq": 1, "t_ns": 1, "f": [0.0] * 3, "c": [0.0] * 3, "x": "A" * 200_000})
+    wait_matched(a.publisher(keys.FORCE))
+    a.session.put(keys.FORCE.key, huge)
+    ev = events.wait(lambda e: e.kind == "rejected")
+    assert "more than the 65536 allowed" in ev.message and len(ev.message) < 400
+    assert sub.rejected == 1 and sub.latest is None
+    assert "AAAA" not in ev.message
+
+
+def test_a_huge_argument_gets_a_short_error_and_a_short_event(puma: Puma) -> None:
+    client, events = puma.client, puma.events
+    with pytest.raises(RpcError) as info:
+        client.call("puma", "move_joints", {"q": "x" * 10_000_000}, timeout_s=DEADLINE_S)
+    assert info.value.code == "bad_request" and len(info.value.message) < 400
+    with pytest.raises(RpcError) as info:  # just under the cap: decoded, then refused short
+        client.call("puma", "move_joints", {"q": "y" * 60_000}, timeout_s=DEADLINE_S)
+    assert info.value.code == "bad_request" and len(info.value.message) < 400
+    ev = events.wait(lambda e: e.kind == "rejected")
+    assert len(codec.pack(codec.to_fields(ev))) < 2_000
+
+
+def test_a_flood_of_unknown_methods_is_a_trickle_of_events_in_bounded_memory(
+    puma: Puma,
+) -> None:
+    client, service, events = puma.client, puma.service, puma.events
+    for i in range(600):
+        with pytest.raises(RpcError):
+            client.call("puma", f"no_such_method_{i}", {}, timeout_s=DEADLINE_S)
+    rejected = [e for e in events.seen if e.kind == "rejected"]
+    assert 1 <= len(rejected) <= 5 * 10  # ≤ REJECT_EVENTS_PER_S for each second it took
+    assert len(service.rejected) <= 257 and sum(service.rejected.values()) == 600
+
+
+def test_a_first_action_runs_whatever_the_arguments(net: Net) -> None:
+    client, service = net.node("console"), net.node("arm")
+    latched: list[bool] = []
+    service.serve(
+        "arm",
+        {"estop": lambda args: {"estop": bool(latched)}},
+        first={"estop": lambda: latched.append(True)},
+    )
+    service.announce()
+    deep: Any = []
+    for _ in range(1000):
+        deep = [deep]
+    assert client.call("arm", "estop", {"reason": deep}) == {"estop": True}
+    with pytest.raises(RpcError) as info:  # garbage that is not even msgpack
+        client.session.get(keys.rpc_key("arm", "estop"), payload=b"\xc1\xc1")
+        client.call("arm", "estop", {"reason": "x" * 100_000})
+    assert info.value.code == "bad_request"
+    assert wait_until(lambda: len(latched) == 3)  # latched each time, first

@@ -38,6 +38,15 @@ any_float = st.one_of(
 )
 small = st.lists(st.floats(-0.3, 0.3), min_size=3, max_size=3)
 jump = st.lists(st.floats(-2.0, 2.0), min_size=3, max_size=3)  # huge jumps
+#: valid floats, absurd magnitudes: 1e308, subnormals, anything finite (issue: they moved it)
+absurd = st.lists(
+    st.one_of(
+        st.floats(allow_nan=False, allow_infinity=False),
+        st.sampled_from([1e308, -1e308, 1e300, 5e-324, -5e-324, 2.2250738585072014e-308]),
+    ),
+    min_size=3,
+    max_size=3,
+)
 garbage = st.one_of(
     st.lists(any_float, min_size=3, max_size=3),
     st.lists(any_float, max_size=5),
@@ -70,7 +79,7 @@ valid_cmd = st.fixed_dictionaries(
         "engage": st.integers(0, 3),
         "active": st.sampled_from([True, True, True, False]),
         "frame": st.sampled_from(["world", "tool"]),
-        "dp": st.one_of(small, small, jump),
+        "dp": st.one_of(small, small, jump, absurd),
         "dR": rotation,
     },
     optional={"grip": st.floats(0, 1)},

@@ -401,3 +401,51 @@ def test_stop_holds_teleoperation() -> None:
 
 def test_tick_timing_uses_the_nominal_period() -> None:
     assert int(DecisionConfig().period_s * 1e9) == TICK_NS
+
+
+# --- hostile input -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("dp", "frame"),
+    [
+        ((1e308, 0.0, 0.0), "world"),
+        ((0.0, 0.0, 1e300), "world"),
+        ((1e308, 1e308, 1e308), "tool"),  # R0·dp would overflow to inf, then NaN
+        ((2.5, 0.0, 0.0), "world"),  # finite, sane-looking, but beyond any engagement
+    ],
+)
+def test_an_absurd_command_is_refused_before_arithmetic_and_the_hold_goes_on(
+    dp: tuple[float, float, float], frame: str
+) -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    rig.run(10, lambda i: [rig.cmd(dp=(0.0, 0.0002 * i, 0.0))])
+    assert rig.sup.counters["limit"] == 0
+    target = rig.sup.p_sup.copy()
+    n = len(rig.outputs)
+    rig.run(20, lambda i: [rig.cmd(dp=dp, frame=frame)], dt_ns=10_000_000)  # 20 at 100 Hz
+    assert rig.sup.mode is Mode.HOLD and rig.sup.lease is None
+    assert np.array_equal(rig.sup.p_sup, target)  # not a nanometre
+    out = rig.outputs[n:]
+    assert out and not any(c.active for c in out)  # holds keep going out, finite
+    for c in out:
+        to_fields(c)
+    assert rig.sup.counters["limit"] == 20
+    (ev,) = [e for e in rig.notices_of("limit") if e.data.get("reason", "").startswith("dp")]
+    assert "exceeds 2 m" in ev.data["reason"]  # names the field and the bound
+
+
+def test_a_flood_of_master_ids_stays_a_trickle_of_events_in_bounded_memory() -> None:
+    rig = Rig(scene=EMPTY)
+    engaged(rig, "m1")
+    n0 = len(rig.notices_of("lease"))
+    for i in range(3000):  # 3000 masters, each refused once, within 60 ms
+        rig.step([rig.cmd(f"rogue{i}", dp=(0.05, 0, 0))], dt_ns=20_000)
+    refused = rig.notices_of("lease")[n0:]
+    assert len(refused) <= 5  # NOTICES_PER_S over all of them
+    assert rig.sup.counters["lease"] == 3000  # every one counted
+    assert len(rig.sup._last_notice_ns) <= 1024 and len(rig.sup._masters) <= 64
+    rig.run(600, lambda i: [rig.cmd("m1")])  # a second and more later, one says how many
+    rig.step([rig.cmd("late", dp=(0.05, 0, 0))])
+    assert rig.notices_of("lease")[-1].data.get("suppressed", 0) >= 2990
