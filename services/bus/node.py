@@ -544,10 +544,14 @@ class Node:
     def _call_retry(
         self, service: str, key: str, payload: bytes, deadline: float
     ) -> dict[str, Any]:
-        """The `get` loop after a first attempt saw no reply (pitfall 5)."""
+        """The `get` loop after a first attempt saw no reply (pitfall 5). No reply from a
+        service that is gone is `Unavailable`; from one still alive at the deadline,
+        `TimedOut` (what was asked may still be under way)."""
         while True:
-            if time.monotonic() >= deadline or not self.alive.is_alive(service):
-                raise Unavailable(f"no reply from {key}")
+            if not self.alive.is_alive(service):
+                raise Unavailable(f"no reply from {key}: the service is gone")
+            if time.monotonic() >= deadline:
+                raise TimedOut(f"{key}: timed out with no reply; it may still be running")
             time.sleep(min(CALL_RETRY_S, max(deadline - time.monotonic(), 0.0)))
             left = deadline - time.monotonic()
             replies = list(
