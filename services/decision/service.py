@@ -30,7 +30,7 @@ from typing import Any
 
 import zenoh
 
-from services.bus.bounds import short
+from services.bus.bounds import out_of_bounds, short
 from services.bus.codec import arg, jsonable
 from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
@@ -241,6 +241,11 @@ class DecisionService:
         if timeout_s is None:
             wait = args.get("wait") is True
             timeout_s = self.config.wait_timeout_s if wait else self.config.rpc_timeout_s
+            asked = args.get("timeout_s")
+            if wait and isinstance(asked, int | float) and not isinstance(asked, bool):
+                # The caller's own wait (the target checks its bounds): ours outlasts it.
+                if out_of_bounds("timeout_s", float(asked), "timeout_s") is None:
+                    timeout_s = max(timeout_s, float(asked) + self.config.rpc_timeout_s)
         if not self.node.alive.wait(service, min(ALIVE_WAIT_S, timeout_s)):
             raise RpcError("unavailable", f"the {service} service is not running")
         try:
