@@ -36,6 +36,13 @@ class NodeConfig:
     Multicast scouting is off unless asked: labs share networks, and tests must not leak.
     `zenoh_config` is an optional JSON5 file (TLS, auth) applied first; the fields here
     override it.
+
+    `shared_memory` is off by default (Zenoh's own default is on): with it, a payload of
+    3 KB or more between local processes travels in a shared buffer from a pool that the
+    publisher reuses once the reader's watchdog stops confirming it, and a subscriber
+    starved of CPU then reads another message's bytes (reproduced: 359 of 1 232 20 kB
+    payloads corrupt under starvation, 0 without; tests/bus/test_starvation.py). Our
+    streams are small or compressed; loopback TCP carries them easily.
     """
 
     mode: Mode = "peer"
@@ -46,6 +53,7 @@ class NodeConfig:
     multicast_scouting: bool = False
     zenoh_config: str = ""
     admin_space: bool = False
+    shared_memory: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -74,6 +82,7 @@ class NodeConfig:
             cfg.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
         cfg.insert_json5("transport/link/tx/lease", str(self.lease_ms))
+        cfg.insert_json5("transport/shared_memory/enabled", json.dumps(self.shared_memory))
         if self.ns:
             cfg.insert_json5("namespace", json.dumps(self.ns))
         if self.admin_space:

@@ -20,6 +20,7 @@ briefly; a task's caller waits on its condition.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 import traceback
@@ -28,14 +29,15 @@ from dataclasses import fields
 from functools import partial
 from typing import Any
 
+import numpy as np
 import zenoh
 
-from services.bus.bounds import out_of_bounds, short
+from services.bus.bounds import norm_out_of_bounds, out_of_bounds, short
 from services.bus.codec import arg, jsonable
 from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
 from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
-from services.bus.messages import ForceSample, OperatorCommand, RobotState
+from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3
 from services.bus.node import Node, PendingCall
 from services.decision.config import STARTUP_ONLY, DecisionConfig
 from services.decision.supervisor import INTERVENTIONS, Inputs, Mode, Notice, Supervisor, TaskRun
@@ -72,6 +74,9 @@ FORCE_METHODS: tuple[str, ...] = (
 #: forwarded methods that move the arm: refused while teleoperation or a task commands it
 #: (busy) and under the e-stop latch (estop)
 MOTION_METHODS: frozenset[str] = frozenset({"move_joints", "move_pose", "move_relative", "home"})
+SUPERVISED_BY = "supervised_by"
+"""The argument the decision adds to the motion calls it forwards (its service name): while a
+decision server is alive, the puma refuses motion calls without it."""
 ALIVE_WAIT_S = 0.5
 """How long a forwarded call waits for the target's liveliness token before `unavailable`."""
 STATUS_CALL_TIMEOUT_S = 1.0
@@ -179,7 +184,21 @@ class DecisionService:
             return (bug,)
         if res.command is not None:
             self._put(res.command)
+        if res.stop_arm:
+            self._stop_puma_soon()
         return res.notices
+
+    def _stop_puma_soon(self) -> None:
+        """A watched motion broke a limit: the puma's `stop`, from a worker (never from the
+        tick, which holds the lock)."""
+
+        def stop() -> None:
+            try:
+                self._forward("puma", "stop", {})
+            except RpcError as e:
+                log.warning("could not stop a forwarded motion: %s", e.message)
+
+        threading.Thread(target=stop, name="decision-stop", daemon=True).start()
 
     def _timer(self) -> None:
         """Sleep until the supervisor's next deadline (or an input re-plans it); tick."""
@@ -242,10 +261,14 @@ class DecisionService:
             wait = args.get("wait") is True
             timeout_s = self.config.wait_timeout_s if wait else self.config.rpc_timeout_s
             asked = args.get("timeout_s")
-            if wait and isinstance(asked, int | float) and not isinstance(asked, bool):
-                # The caller's own wait (the target checks its bounds): ours outlasts it.
-                if out_of_bounds("timeout_s", float(asked), "timeout_s") is None:
-                    timeout_s = max(timeout_s, float(asked) + self.config.rpc_timeout_s)
+            # The caller's own wait (the target checks its bounds): ours outlasts it.
+            if (
+                wait
+                and isinstance(asked, int | float)
+                and not isinstance(asked, bool)
+                and out_of_bounds("timeout_s", float(asked), "timeout_s") is None
+            ):
+                timeout_s = max(timeout_s, float(asked) + self.config.rpc_timeout_s)
         if not self.node.alive.wait(service, min(ALIVE_WAIT_S, timeout_s)):
             raise RpcError("unavailable", f"the {service} service is not running")
         try:
@@ -256,13 +279,65 @@ class DecisionService:
     def _puma_method(self, method: str, args: dict[str, Any]) -> dict[str, Any]:
         # `stop` held already, before its arguments were read (`_hold_first`).
         if method in MOTION_METHODS:
+            self._check_target(method, args)
             with self._cond:
-                self.supervisor.claim(method)
+                self.supervisor.claim(method, time.monotonic_ns())
+                self._cond.notify_all()  # the timer watches the motion
+            try:
+                return self._forward("puma", method, {**args, SUPERVISED_BY: SERVICE})
+            except RpcError:
+                with self._cond:
+                    self.supervisor.end_watch()
+                raise
         elif method == "set_tool":
             with self._cond:
                 if self.supervisor.mode in (Mode.FOLLOW, Mode.TASK):
                     raise RpcError("busy", "set_tool refused: the supervisor is commanding the arm")
         return self._forward("puma", method, args)
+
+    def _check_target(self, method: str, args: Mapping[str, Any]) -> None:
+        """Refuse (`limit`) a forwarded motion whose target tool point lies outside the
+        workspace box. Arguments the puma would refuse anyway are left to it."""
+        p: list[float] | None = None
+        if method == "move_pose":
+            p = _floats3(args.get("p"))
+        elif method == "move_relative":
+            p = self._relative_target(args)
+        elif method == "move_joints":
+            q = args.get("q")
+            if isinstance(q, list) and len(q) == 6 and all(_number(x) for x in q):
+                try:
+                    p = _floats3(self._forward("puma", "fk", {"q": q}).get("tool_p"))
+                except RpcError:
+                    p = None  # the puma will refuse the call for the same reason
+        if p is None:
+            return
+        with self._cond:
+            why = self.supervisor.target_problem(method, p)
+        if why is not None:
+            raise RpcError("limit", why)
+
+    def _relative_target(self, args: Mapping[str, Any]) -> list[float] | None:
+        """`move_relative`'s target tool point: p + R_f·dp (R_f of its frame; PROTOCOL §4
+        and the puma's `set_frame` default), from the newest robot/state."""
+        dp = _floats3(args.get("dp"))
+        with self._cond:
+            read = self._state.read()
+        if dp is None or read is None or norm_out_of_bounds("dp", dp, "displacement_m"):
+            return None
+        state = read[0]
+        frame = args.get("frame")
+        if frame is None:
+            frame = self._forward("puma", "status", {}).get("frame", "world")
+        if frame == "world":
+            R_f = np.eye(3)
+        elif frame == "wrist":
+            R_f = mat3(state.flange_R)
+        elif frame == "tool":
+            R_f = mat3(state.tool_R)
+        else:
+            return None
+        return [float(x) for x in np.asarray(state.tool_p) + R_f @ np.asarray(dp)]
 
     def rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
         """The superset status: robot (robot/state and puma's `status`), sensor (robot/force
@@ -458,6 +533,17 @@ class DecisionService:
             self.node.call("puma", "stop", {}, self.config.rpc_timeout_s)
         except (RpcError, Unavailable) as e:
             log.info("puma stop at close: %s", e)
+
+
+def _number(x: object) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _floats3(v: object) -> list[float] | None:
+    """3 finite numbers as floats, or None (the puma answers for malformed arguments)."""
+    if isinstance(v, list | tuple) and len(v) == 3 and all(_number(x) for x in v):
+        return [float(x) for x in v]
+    return None
 
 
 def _peek_result(call: PendingCall | dict[str, Any]) -> dict[str, Any]:

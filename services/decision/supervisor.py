@@ -34,7 +34,7 @@ one lock.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, Literal
@@ -53,6 +53,7 @@ from services.decision.filters import (
     effective_box,
     engagement_command,
     exp_so3,
+    in_box,
     log_so3,
     norm3,
     operator_target,
@@ -83,6 +84,12 @@ NOTICES_PER_S = 5
 """Rate-limited events of one kind sent per second, over all their keys."""
 MAX_NOTICE_KEYS = 1024
 """Rate-limit keys remembered (oldest forgotten first): memory stays bounded."""
+WATCH_PERIOD_NS = 5_000_000
+"""A forwarded motion is checked this often (200 Hz): at 0.5 m/s, 2.5 mm between checks."""
+WATCH_START_NS = 500_000_000
+"""A forwarded motion that has not shown `moving` this long after it was sent is over."""
+WATCH_BOX_TOL_M = 0.002
+"""A forwarded motion stops when the tool leaves the workspace box by more than this."""
 HOLD_RESEND_NS = 50_000_000
 """A hold is re-sent this often (20 Hz): one lost packet must not matter, and the puma needs
 nothing more while nothing changes."""
@@ -231,6 +238,18 @@ class TickResult:
     command: OperatorCommand | None
     notices: tuple[Notice, ...]
     finished: tuple[TaskRun, ...]
+    stop_arm: bool = False
+    """A forwarded motion broke a limit: the service must call the puma's `stop` now."""
+
+
+@dataclass(slots=True)
+class _Watch:
+    """A forwarded motion (`move_*`, `home`) the supervisor watches: the puma plans and
+    executes it, the decision stops it at a contact or at the workspace's edge."""
+
+    method: str
+    since_ns: int
+    moving: bool = False
 
 
 def _norm(v: Vec) -> float:
@@ -294,6 +313,8 @@ class Supervisor:
         self._lagging = False
         self._state_rx_ns = 0
         self._force_rx_ns = 0
+        self.watch: _Watch | None = None
+        self._stop_arm = False
 
     # --- settings ----------------------------------------------------------------------
     @property
@@ -346,9 +367,12 @@ class Supervisor:
             and self._hold_due()
         ):
             out = self._command(inp, active=False)
+        if self.watch is not None:
+            self._watch_step(inp, state_ok, force_ok)
         notices, self._notices = tuple(self._notices), []
         finished, self._finished = tuple(self._finished), []
-        return TickResult(out, notices, finished)
+        stop_arm, self._stop_arm = self._stop_arm, False
+        return TickResult(out, notices, finished, stop_arm)
 
     def _hold_due(self) -> bool:
         """The first hold after motion goes out at once, then every HOLD_RESEND_NS."""
@@ -378,6 +402,8 @@ class Supervisor:
             if last is None or self._last_out_active:
                 return now + 1
             return max(last + HOLD_RESEND_NS, now + 1)
+        if self.watch is not None:
+            return now + WATCH_PERIOD_NS
         return None
 
     def _state_fresh(self, inp: Inputs) -> bool:
@@ -595,6 +621,7 @@ class Supervisor:
                 self._hold("watchdog", "cannot_rebase", f"cannot start a new engagement: {why}")
             self._refuse("rejected", cmd, rec, str(why))
             return
+        self.watch = None  # teleoperation takes over from a forwarded motion
         if self.lease != cmd.master:
             self.lease = cmd.master
             self._notice(
@@ -840,6 +867,7 @@ class Supervisor:
         if self.task is not None:
             self._finish_task(self.task, error=("estop", f"pre-empted by emergency stop: {why}"))
         self._release_lease("estop")
+        self.watch = None
         self.mode = Mode.ESTOP
         self.hold_reason = "estop"
         self._intervene(
@@ -866,9 +894,12 @@ class Supervisor:
         elif self.mode is Mode.TASK:
             self.cancel_task(now_ns)
 
-    def claim(self, method: str) -> None:
+    def claim(self, method: str, now_ns: int | None = None) -> None:
         """Before forwarding a motion method: refuse it while the supervisor commands the
-        arm, otherwise stop re-sending the hold so the puma's own motion is not disturbed."""
+        arm, otherwise stop re-sending the hold so the puma's own motion is not disturbed,
+        and watch the motion (contact, workspace) until it is over."""
+        if now_ns is not None:
+            self._now_ns = now_ns
         if self.mode is Mode.ESTOP:
             raise RpcError("estop", f"{method} refused: emergency stop latched (call reset)")
         if self.mode is Mode.FOLLOW:
@@ -877,6 +908,61 @@ class Supervisor:
             name = self.task.name if self.task is not None else "task"
             raise RpcError("busy", f"{method} refused: task {name!r} running")
         self.mode = Mode.IDLE
+        self.watch = _Watch(method, self._now_ns)
+
+    def end_watch(self) -> None:
+        """The forwarded motion never started (its call failed): nothing to watch."""
+        self.watch = None
+
+    def target_problem(self, method: str, p: Sequence[float]) -> str | None:
+        """Why a forwarded motion's target tool point `p` (m, world) may not be reached
+        (outside the workspace box), or None."""
+        cfg = self._cfg
+        if in_box(p, cfg.workspace_min, cfg.workspace_max, tol=1e-9):
+            return None
+        return (
+            f"{method}: target {[round(float(x), 4) for x in p]} m is outside the workspace "
+            f"{list(cfg.workspace_min)} … {list(cfg.workspace_max)}"
+        )
+
+    def _watch_step(self, inp: Inputs, state_ok: bool, force_ok: bool) -> None:
+        """A forwarded motion: over once the robot shows it ended; stopped (the service
+        calls the puma's `stop`) at a contact above max_force_n or outside the box."""
+        watch = self.watch
+        state = inp.state
+        if watch is None or self.mode is not Mode.IDLE:
+            self.watch = None
+            return
+        if not state_ok or state is None:
+            return
+        if state.status == "moving":
+            watch.moving = True
+        elif watch.moving or inp.now_ns - watch.since_ns > WATCH_START_NS:
+            self.watch = None  # over (ready, or error: the puma already holds)
+            return
+        cfg = self._cfg
+        why: tuple[str, str, dict[str, Any]] | None = None
+        if force_ok and inp.force is not None:
+            f_w = mat3(state.tool_R) @ np.asarray(inp.force.f, dtype=float)
+            f_n = _norm(f_w)
+            if f_n > cfg.max_force_n:
+                why = (
+                    "contact",
+                    f"{watch.method} stopped: contact force {f_n:.1f} N > {cfg.max_force_n:g} N",
+                    {"reason": "force", "f": _list(f_w), "force_n": f_n},
+                )
+        lo, hi = cfg.workspace_min, cfg.workspace_max
+        if why is None and not in_box(state.tool_p, lo, hi, tol=WATCH_BOX_TOL_M):
+            why = (
+                "limit",
+                f"{watch.method} stopped: the tool left the workspace box",
+                {"reason": "workspace", "tool_p": list(state.tool_p)},
+            )
+        if why is not None:
+            kind, message, data = why
+            self.watch = None
+            self._stop_arm = True
+            self._intervene(kind, message, {**data, "method": watch.method}, f"watch:{kind}")
 
     def shutdown(self, now_ns: int, wall_ns: int, repeats: int) -> list[OperatorCommand]:
         """The service is closing: end any task, release the lease, and return `repeats`
@@ -911,6 +997,7 @@ class Supervisor:
                 f"teleoperation pre-empted by task {plan.name!r}",
                 intervention=False,
             )
+        self.watch = None
         self._task_ids += 1
         run = TaskRun(self._task_ids, plan, external)
         self.task = run

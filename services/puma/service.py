@@ -22,6 +22,7 @@ import numpy as np
 
 from services.bus import codec, keys
 from services.bus.bounds import check
+from services.bus.errors import RpcError
 from services.bus.messages import OperatorCommand, RobotState, mat3
 from services.bus.node import Node
 from services.puma.arm import open_arm
@@ -33,6 +34,8 @@ log = logging.getLogger("telerobot.puma")
 
 #: methods that start a motion and so accept `"wait": true` (initialize: until calibrated)
 MOTIONS = ("initialize", "move_joints", "move_pose", "move_relative", "home")
+#: motions the decision server supervises: while one is alive, only it may start them
+SUPERVISED = ("move_joints", "move_pose", "move_relative", "home")
 #: methods that never block (no I/O with the arm, no waiting): answered in Zenoh's callback
 INLINE = ("status", "set_frame", "stop", "fk", "ik", "limits")
 WAIT_TIMEOUT_S = 120.0
@@ -202,6 +205,16 @@ class PumaService:
         rpc = getattr(self.proxy, f"rpc_{name}")
 
         def handler(args: dict[str, Any]) -> dict[str, Any]:
+            if (
+                name in SUPERVISED
+                and args.get("supervised_by") != "decision"
+                and self.node.alive.is_alive("decision")
+            ):
+                raise RpcError(
+                    "busy",
+                    f"{name} refused: a decision server supervises this arm (workspace, "
+                    f"contact, speed); call robot/decision/rpc/{name} instead",
+                )
             wait = codec.arg(args, "wait", bool, False)
             timeout_s = check(
                 "timeout_s", codec.arg(args, "timeout_s", float, WAIT_TIMEOUT_S), "timeout_s"

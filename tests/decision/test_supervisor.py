@@ -449,3 +449,45 @@ def test_a_flood_of_master_ids_stays_a_trickle_of_events_in_bounded_memory() -> 
     rig.run(600, lambda i: [rig.cmd("m1")])  # a second and more later, one says how many
     rig.step([rig.cmd("late", dp=(0.05, 0, 0))])
     assert rig.notices_of("lease")[-1].data.get("suppressed", 0) >= 2990
+
+
+# --- forwarded motions ---------------------------------------------------------------------------
+
+
+def test_a_forwarded_motion_is_watched_and_stopped_at_a_contact() -> None:
+    rig = Rig(scene=EMPTY)
+    rig.sup.claim("move_relative", rig.now_ns)
+    assert rig.sup.watch is not None and rig.sup.next_wake_ns() is not None
+    rig.status = "moving"
+    rig.run(5)
+    assert rig.sup.watch is not None and not any(r.stop_arm for r in rig.results)
+    rig.push_w = np.array([0.0, 0.0, 60.0])  # the table pushes back: 60 N > 40 N
+    res = rig.step()
+    assert res.stop_arm and rig.sup.watch is None
+    (ev,) = rig.notices_of("contact")
+    assert ev.data["method"] == "move_relative" and ev.data["force_n"] > 40.0
+    assert rig.sup.counters["contact"] == 1
+
+
+def test_a_forwarded_motion_leaving_the_box_is_stopped_and_one_that_ends_is_not() -> None:
+    rig = Rig(scene=EMPTY)
+    rig.sup.claim("move_joints", rig.now_ns)
+    rig.status = "moving"
+    rig.run(3)
+    rig.p = np.array([0.6, 0.0, CFG.workspace_min[2] - 0.01])  # 1 cm under the box's floor
+    assert rig.step().stop_arm
+    assert rig.notices_of("limit")[-1].data["reason"] == "workspace"
+    rig2 = Rig(scene=EMPTY)
+    rig2.sup.claim("home", rig2.now_ns)
+    rig2.status = "moving"
+    rig2.run(3)
+    rig2.status = "ready"  # the motion is over
+    rig2.step()
+    assert rig2.sup.watch is None and rig2.sup.next_wake_ns() is None
+
+
+def test_a_forwarded_target_outside_the_workspace_is_named() -> None:
+    rig = Rig(scene=EMPTY)
+    assert rig.sup.target_problem("move_pose", (0.6, 0.0, 0.6)) is None
+    why = rig.sup.target_problem("move_relative", (0.6, 0.0, 0.3))
+    assert why is not None and why.startswith("move_relative: target") and "workspace" in why

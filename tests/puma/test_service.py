@@ -190,3 +190,23 @@ def test_at_rest_nothing_is_recomputed_and_the_state_keeps_flowing(net, puma) ->
     assert puma.arm.setpoints_accepted == setpoints0  # nothing re-sent to a resting arm
     assert puma.arm.t_s >= t0  # the simulated clock still follows the wall clock
     assert later.q == first.q  # not a nanoradian of drift
+
+
+def test_while_a_decision_server_runs_only_it_may_start_motions(net, puma) -> None:
+    client = net.node("operator")
+    state = client.subscribe(keys.STATE)
+    _ready(client, state)
+    move = {"dp": [0.0, 0.0, -0.01], "wait": True}
+    assert client.call("puma", "move_relative", move, timeout_s=20.0)["completed"] is True
+    decision = net.node("decision")
+    decision.announce()  # alive/decision: a supervisor is there now
+    assert client.alive.wait("decision", 10.0)
+    sent = puma.arm.setpoints_accepted
+    with pytest.raises(RpcError) as err:
+        client.call("puma", "move_relative", move, timeout_s=20.0)
+    assert err.value.code == "busy" and "robot/decision/rpc/move_relative" in err.value.message
+    assert puma.arm.setpoints_accepted == sent  # refused before anything was planned or sent
+    assert puma.proxy.rpc_status({})["motion"] is None
+    via = {**move, "supervised_by": "decision"}
+    assert client.call("puma", "move_relative", via, timeout_s=20.0)["completed"] is True
+    assert client.call("puma", "status", {}, timeout_s=5.0)["status"] == "ready"
