@@ -58,8 +58,10 @@ Motion = Callable[[float], HandPose]
 
 @dataclass(frozen=True, slots=True)
 class ReceivedForce:
-    """One `set_cursor_force` received: when (time.monotonic()), for which device, N."""
+    """One `set_cursor_force` received: its number n (1, 2, … since start), when
+    (time.monotonic()), for which device, the force in N."""
 
+    n: int
     t_s: float
     device_id: str
     force_n: Vec3
@@ -113,6 +115,7 @@ class FakeInverseService:
         self._connections = 0
         self._inject: collections.deque[str] = collections.deque()
         self._down = False
+        self._refused = 0
         self._mute = False
         self._live: set[Any] = set()
         self._server: Any = None
@@ -251,6 +254,17 @@ class FakeInverseService:
             return self._connections
 
     @property
+    def refused(self) -> int:
+        """Connections hung up on while down."""
+        with self._lock:
+            return self._refused
+
+    def forces_since(self, n: int) -> list[ReceivedForce]:
+        """The forces received after the n-th (those still remembered)."""
+        with self._lock:
+            return [r for r in self._forces if r.n > n]
+
+    @property
     def connected(self) -> int:
         """Connections open now."""
         with self._lock:
@@ -260,6 +274,7 @@ class FakeInverseService:
     def _handle(self, conn: Any) -> None:
         with self._lock:
             if self._down:
+                self._refused += 1
                 conn.socket.shutdown(socket.SHUT_RDWR)
                 return
             self._live.add(conn)
@@ -314,7 +329,9 @@ class FakeInverseService:
                 continue
             self._force = force
             self._n_forces += 1
-            self._forces.append(ReceivedForce(time.monotonic(), self._inverse3_id, force))
+            self._forces.append(
+                ReceivedForce(self._n_forces, time.monotonic(), self._inverse3_id, force)
+            )
 
     def _hand(self) -> HandPose:
         with self._lock:
@@ -406,15 +423,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"fake Haply Inverse Service on {fake.url} (Ctrl-C to stop)", flush=True)
         seen = 0
         while not stop.wait(1.0):
-            total = fake.forces_received
-            if total > seen:
-                recent = fake.forces[-(total - seen) :]
+            recent = fake.forces_since(seen)
+            if recent:
                 peak = max(math.hypot(*r.force_n) for r in recent)
                 print(
-                    f"{fake.connected} client(s), {total - seen} forces/s, peak {peak:.2f} N",
+                    f"{fake.connected} client(s), {len(recent)} forces/s, peak {peak:.2f} N",
                     flush=True,
                 )
-                seen = total
+                seen = recent[-1].n
     return 0
 
 
