@@ -13,6 +13,7 @@ master-side controller (passivity) can change the wrench before the device shows
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -40,7 +41,7 @@ class DisplayWrench:
 def saturate(v: ArrayLike, max_norm: float) -> tuple[Vec3, bool]:
     """v scaled down to norm max_norm when longer, direction kept; (v', was_saturated)."""
     x = np.asarray(v, dtype=float).reshape(3)
-    norm = float(np.linalg.norm(x))
+    norm = math.hypot(*x)  # no overflow for huge components, unlike a dot product
     if norm > max_norm:
         return x * (max_norm / norm), True
     return x, False

@@ -51,6 +51,9 @@ SESSION_PROFILE = "org.telerobot.master"
 _REJECT_NOTES = 64
 """Rejection reasons kept for the service to report; older ones are dropped (still counted)."""
 
+_MAX_DRAIN = 8
+"""Frames taken per read at most: a service that floods frames cannot hold the loop."""
+
 _ZERO3: NDArray[np.float64] = np.zeros(3)
 
 
@@ -169,6 +172,7 @@ class HaplyMaster:
         client = importlib.import_module("websockets.sync.client")
         errors = importlib.import_module("websockets.exceptions")
         self._closed_errors = (errors.WebSocketException, OSError)
+        self._drop()
         self._reset()
         try:
             self._ws = client.connect(
@@ -287,9 +291,9 @@ class HaplyMaster:
 
     def _receive(self) -> None:
         """Take the state frame of our message (waiting up to reply_timeout_s), then whatever
-        else has already arrived."""
+        else has already arrived (at most _MAX_DRAIN frames)."""
         timeout = self._reply_timeout_s
-        while True:
+        for _ in range(_MAX_DRAIN):
             try:
                 raw = self._ws.recv(timeout=timeout)
             except TimeoutError:

@@ -270,3 +270,35 @@ def test_a_hook_sees_the_wrench_and_cannot_exceed_the_limits() -> None:
     display.hook = lambda w, hand, dt: DisplayWrench(w.f * math.nan, w.c, False, False)
     assert not display.update(PUSH, "world", True, HAND, 0.02, 2.0).f.any()
     assert display.faults == 1
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    ticks=st.lists(
+        st.tuples(
+            st.booleans(),
+            st.floats(0.0, 0.2),
+            st.lists(st.floats(-1e6, 1e6), min_size=6, max_size=6),
+        ),
+        min_size=1,
+        max_size=40,
+    ),
+    ramp_s=st.floats(0.0, 2.0),
+)
+def test_the_displayed_wrench_is_bounded_zero_when_disengaged_and_never_above_the_ramp(
+    ticks: list[tuple[bool, float, list[float]]], ramp_s: float
+) -> None:
+    cfg = MasterConfig(force_ramp_s=ramp_s, max_force_n=3.0, max_torque_nm=0.5)
+    display = ForceDisplay(cfg)
+    now, since = 0.0, None
+    for engaged, dt, w in ticks:
+        now += dt
+        since = (since if since is not None else now) if engaged else None
+        out = display.update((w[:3], w[3:], np.eye(3).reshape(9)), "tool", engaged, HAND, dt, now)
+        assert np.linalg.norm(out.f) <= 3.0 * (1 + 1e-12)
+        assert np.linalg.norm(out.c) <= 0.5 * (1 + 1e-12)
+        if since is None:
+            assert not out.f.any() and not out.c.any()
+        else:
+            limit = 3.0 * ramp_gain(now - since, ramp_s)
+            assert np.linalg.norm(out.f) <= limit * (1 + 1e-9) + 1e-12

@@ -466,3 +466,27 @@ def test_hostile_frames_never_move_the_slave(
         np.testing.assert_array_equal(slave.R, start[1])
     assert device.stats.rejected >= rejected
     device.take_rejected()
+
+
+@settings(
+    max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(f=st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=3, max_size=3))
+def test_no_force_asked_for_ever_reaches_the_device_above_the_maximum(
+    engaged: tuple[FakeInverseService, HaplyMaster], f: list[float], wait_until: Waiter
+) -> None:
+    fake, device = engaged
+    assert wait_until(lambda: not device.read(0.01).clutch)
+    n = fake.forces_received
+    device.display_force(f, [0.0, 0.0, 0.0])
+
+    def sent() -> bool:  # a read sends it, or the next one when the previous frame is late
+        if not fake.forces_since(n):
+            device.read(0.01)
+        return bool(fake.forces_since(n))
+
+    assert wait_until(sent)
+    for r in fake.forces_since(n):
+        assert all(math.isfinite(v) for v in r.force_n)
+        assert math.hypot(*r.force_n) <= 3.0 * (1 + 1e-12)
+    device.take_rejected()
