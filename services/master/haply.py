@@ -4,7 +4,8 @@ It talks to the Haply Inverse Service (the Haply Hub runs it on the operator's m
 the service's simulation channel, a WebSocket carrying JSON (`haply_protocol`). The service
 answers every client message with exactly one state frame, so the master's loop sets the
 rate: each `read` sends one `set_cursor_force` (the force `display_force` asked for during
-the previous tick, else zero: the keepalive) and waits briefly for its state frame.
+the previous tick, else zero: the keepalive) and waits briefly for a state frame; a second
+message may go before the first is answered, never a third (`MAX_IN_FLIGHT`).
 
 Hand pose: the Inverse3 cursor is the hand position, the VerseGrip quaternion its
 orientation, both in Haply's frame (+x right, +y away from the operator, +z up), which is
@@ -51,6 +52,10 @@ SESSION_PROFILE = "org.telerobot.master"
 _REJECT_NOTES = 64
 """Rejection reasons kept for the service to report; older ones are dropped (still counted)."""
 
+MAX_IN_FLIGHT = 2
+"""Messages sent and not yet answered, at most: one late state frame does not cost a tick's
+force; a service further behind is not flooded (those ticks are counted `skipped`)."""
+
 _MAX_DRAIN = 8
 """Frames taken per read at most: a service that floods frames cannot hold the loop."""
 
@@ -61,13 +66,15 @@ _ZERO3: NDArray[np.float64] = np.zeros(3)
 class HaplyStats:
     """Counters since open(): state frames accepted, frames rejected (malformed, missing
     our device, non-finite, absurd), jumps (a cursor or grip step faster than a hand can
-    move: read as a master-shift for one tick), late replies (no state frame within
-    `reply_timeout_s`), forces sent, and the largest force magnitude sent (N)."""
+    move: read as a master-shift for one tick), late (reads that got no state frame within
+    `reply_timeout_s`), skipped (reads that sent nothing because two messages were still
+    unanswered), forces sent, and the largest force magnitude sent (N)."""
 
     frames: int = 0
     rejected: int = 0
     jumps: int = 0
     late: int = 0
+    skipped: int = 0
     forces_sent: int = 0
     max_force_sent_n: float = 0.0
 
@@ -137,7 +144,7 @@ class HaplyMaster:
         self._buttons = 0
         self._has_grip = False
         self._valid_t = time.monotonic()
-        self._outstanding = False
+        self._in_flight = 0
         self._pending_f = _ZERO3
         self._jumped = False
         self._engaged_hand = False
@@ -160,6 +167,11 @@ class HaplyMaster:
     def stats(self) -> HaplyStats:
         """A snapshot of the link counters."""
         return HaplyStats(**self._stats)
+
+    @property
+    def in_flight(self) -> int:
+        """Messages sent whose state frame has not been read yet (0 … MAX_IN_FLIGHT)."""
+        return self._in_flight
 
     @property
     def session_id(self) -> int | None:
@@ -228,9 +240,11 @@ class HaplyMaster:
         if self._ws is None:
             raise DeviceLost("the Haply device is not open")
         try:
-            if not self._outstanding:
+            if self._in_flight < MAX_IN_FLIGHT:
                 force, self._pending_f = self._pending_f, _ZERO3
                 self._send(force)
+            else:
+                self._stats["skipped"] += 1
             self._receive()
         except self._closed_errors as e:
             self._drop()
@@ -283,16 +297,16 @@ class HaplyMaster:
     # --- internals --------------------------------------------------------------------
     def _send(self, force_n: NDArray[np.float64], configure: dict[str, Any] | None = None) -> None:
         self._ws.send(force_message(self._inverse3_id, force_n, configure))
-        self._outstanding = True
+        self._in_flight += 1
         self._stats["forces_sent"] += 1
         norm = float(np.linalg.norm(force_n))
         if norm > self._stats["max_force_sent_n"]:
             self._stats["max_force_sent_n"] = norm
 
     def _receive(self) -> None:
-        """Take the state frame of our message (waiting up to reply_timeout_s), then whatever
-        else has already arrived (at most _MAX_DRAIN frames)."""
-        timeout = self._reply_timeout_s
+        """Take the state frame of our oldest unanswered message (waiting up to
+        reply_timeout_s), then whatever else has already arrived (at most _MAX_DRAIN)."""
+        timeout = self._reply_timeout_s if self._in_flight else 0.0
         for _ in range(_MAX_DRAIN):
             try:
                 raw = self._ws.recv(timeout=timeout)
@@ -300,7 +314,7 @@ class HaplyMaster:
                 if timeout > 0.0:
                     self._stats["late"] += 1
                 return
-            self._outstanding = False
+            self._in_flight = max(self._in_flight - 1, 0)
             try:
                 frame = parse_frame(raw)
             except ProtocolError as e:
@@ -340,7 +354,7 @@ class HaplyMaster:
 
     def _drop(self) -> None:
         ws, self._ws = self._ws, None
-        self._outstanding = False
+        self._in_flight = 0
         if ws is not None:
             with contextlib.suppress(*self._closed_errors):  # a dead socket: nothing to release
                 ws.close()

@@ -24,10 +24,18 @@ from services.master.haply import HaplyMaster
 from services.master.service import MasterService
 from services.master.so3 import rot_z
 from tests.conftest import Net, free_port
+from tests.master.conftest import _wait_until
 
 pytestmark = pytest.mark.system
 
 Waiter = Callable[..., bool]
+
+
+@pytest.fixture
+def wait_until() -> Waiter:
+    """The shared helper with a 10 s default: several services share two loaded cores."""
+    return lambda condition, timeout_s=10.0: _wait_until(condition, timeout_s)
+
 
 ALIGN = rot_z(math.pi / 2)
 """Master x (operator's right) onto slave +y: hand-right moves the tool along +y."""
@@ -199,10 +207,17 @@ def test_forces_arrive_every_tick_finite_clipped_ramped_and_zero_when_released(
         assert len(ramp) >= 3, "no ramp-in"
         assert ramp == sorted(ramp)
 
-        # One force message per command tick: the force rate is the master's rate.
-        ticks0, forces0 = s.master.ticks, s.fake.forces_received
+        # One force message per command tick — the force rate is the master's rate — but
+        # for the ticks a loaded machine left two messages unanswered (counted, skipped).
+        def counts() -> tuple[int, int, int]:
+            stats = s.master._status()["device_stats"]
+            return s.master.ticks, stats["forces_sent"], stats["skipped"]
+
+        ticks0, sent0, skipped0 = counts()
         assert wait_until(lambda: s.master.ticks >= ticks0 + 100, timeout_s=30.0)
-        assert abs((s.fake.forces_received - forces0) - (s.master.ticks - ticks0)) <= 3
+        ticks1, sent1, skipped1 = counts()
+        assert abs((sent1 - sent0) + (skipped1 - skipped0) - (ticks1 - ticks0)) <= 2
+        assert wait_until(lambda: s.fake.forces_received >= sent1)
 
         s.fake.set_pose(a=False)
         assert wait_until(lambda: s.fake.forces[-1].force_n == (0.0, 0.0, 0.0))
