@@ -43,6 +43,19 @@ SCALE_T = 0.5
 HOME = (0.0, -0.12, 0.15)
 
 
+def haply_master(net: Net, fake: FakeInverseService, **config: float) -> MasterService:
+    """Master `h1` on the fake's Inverse3: s_t = 0.5, A = Rz(90°)."""
+    cfg = MasterConfig(
+        master_id="h1",
+        device="haply",
+        haply_url=fake.url,
+        scale_t=SCALE_T,
+        alignment=tuple(ALIGN.reshape(9)),
+        **config,  # type: ignore[arg-type]
+    )
+    return MasterService(net.node("master", instance="h1"), cfg)
+
+
 @dataclass
 class Station:
     fake: FakeInverseService
@@ -85,15 +98,7 @@ def station(net: Net) -> Iterator[Station]:
 
         observer.subscribe(keys.CMD, keep(commands))
         observer.subscribe(keys.EVENTS, keep(events))
-        cfg = MasterConfig(
-            master_id="h1",
-            device="haply",
-            haply_url=fake.url,
-            scale_t=SCALE_T,
-            alignment=tuple(ALIGN.reshape(9)),
-            force_ramp_s=0.2,
-        )
-        master = MasterService(net.node("master", instance="h1"), cfg)
+        master = haply_master(net, fake, force_ramp_s=0.2)
         try:
             yield Station(fake, master, commands, events, lock)
         finally:

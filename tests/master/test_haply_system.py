@@ -4,7 +4,6 @@ the next engagement after the reconnect starts where the tool is (no jump)."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -19,14 +18,13 @@ from services.decision.config import DecisionConfig
 from services.decision.service import DecisionService
 from services.force.config import ForceConfig
 from services.force.service import ForceService
-from services.master.config import MasterConfig
 from services.master.fake_haply import FakeInverseService, HandPose
 from services.master.service import MasterService
-from services.master.so3 import rot_z
 from services.puma.config import PumaConfig
 from services.puma.service import PumaService
 from tests.conftest import Net
 from tests.master.conftest import _wait_until
+from tests.master.test_haply_service import ALIGN, HOME, SCALE_T, haply_master
 
 pytestmark = pytest.mark.system
 
@@ -39,9 +37,6 @@ def wait_until() -> Waiter:
     return lambda condition, timeout_s=10.0: _wait_until(condition, timeout_s)
 
 
-HOME = (0.0, -0.12, 0.15)
-ALIGN = rot_z(math.pi / 2)
-SCALE_T = 0.5
 TOL_M = 1e-3
 """How close the simulated arm's tool must come to its target (it tracks within µm)."""
 
@@ -82,14 +77,7 @@ def cell(net: Net) -> Iterator[Cell]:
             op.call("decision", "connect", {}, timeout_s=10.0)
             op.call("decision", "initialize", {"wait": True}, timeout_s=20.0)
             assert state.wait_for(lambda s: s.status == "ready", 20.0) is not None
-            cfg = MasterConfig(
-                master_id="h1",
-                device="haply",
-                haply_url=fake.url,
-                scale_t=SCALE_T,
-                alignment=tuple(ALIGN.reshape(9)),
-            )
-            master = MasterService(net.node("master", instance="h1"), cfg)
+            master = haply_master(net, fake)
             services.append(master)
             yield Cell(fake, master, state, op)
         finally:
