@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "force": ("services.force.__main__", "the force sensor service"),
     "decision": ("services.decision.__main__", "the DecisionServer (supervisor)"),
     "master": ("services.master.__main__", "the master station"),
+    "haply-fake": ("services.master.fake_haply", "a fake Haply Inverse Service (no device)"),
     "vision": ("services.vision.__main__", "the stereo vision service"),
     "console": ("services.console.__main__", "the web console"),
     "bench": ("services.cli.bench", "measure the system against the paper's figures"),

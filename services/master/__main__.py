@@ -1,5 +1,6 @@
-"""`telerobot master`: the master station (a SpaceMouse, a serial master arm, the keyboard,
-a scripted operator or the web console's virtual master)."""
+"""`telerobot master`: the master station (a SpaceMouse, a serial master arm, a Haply
+Inverse3 with its VerseGrip, the keyboard, a scripted operator or the web console's virtual
+master)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ DEVICES = {
     "script": "scripted",
     "scripted": "scripted",
     "virtual": "virtual",
+    "haply": "haply",
 }
 
 
@@ -37,6 +39,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scale-t", type=float, default=None)
     p.add_argument("--scale-r", type=float, default=None)
     p.add_argument("--frame", choices=["world", "tool"], default=None)
+    p.add_argument(
+        "--haply-url",
+        default=None,
+        help="haply: the Inverse Service's WebSocket (default ws://localhost:10001)",
+    )
     add_node_args(p)
     args = p.parse_args(argv)
     log = setup_logging("master")
@@ -50,6 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         "scale_t": args.scale_t,
         "scale_r": args.scale_r,
         "frame": args.frame,
+        "haply_url": args.haply_url,
     }
     table = service_table(deploy, "master", overrides)
     config = MasterConfig.from_mapping(table)

@@ -7,6 +7,7 @@ so a misspelt or out-of-range setting stops the service before it commands anyth
 from __future__ import annotations
 
 import math
+import urllib.parse
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from typing import Any, Literal, get_args
@@ -15,9 +16,10 @@ import numpy as np
 
 from services.bus.errors import ConfigError
 from services.master.arm_kinematics import DEFAULT_MASTER_DH, DhRow
+from services.master.haply_protocol import BUTTONS, DEFAULT_URL
 from services.master.so3 import is_rotation
 
-DeviceKind = Literal["spacemouse", "serial_arm", "keyboard", "scripted", "virtual"]
+DeviceKind = Literal["spacemouse", "serial_arm", "keyboard", "scripted", "virtual", "haply"]
 DEVICE_KINDS: tuple[str, ...] = get_args(DeviceKind)
 Frame = Literal["world", "tool"]
 FRAMES: tuple[str, ...] = get_args(Frame)
@@ -27,8 +29,12 @@ IDENTITY9: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 _ID_FORBIDDEN = set("/*$?#@ ")
 _MAX_NAME = 128
 """Names on the wire (`master`, `device`) are at most 128 characters."""
+HAPLY_BUTTONS = len(BUTTONS)
+"""The VerseGrip's buttons a, b, c are bits 0, 1, 2."""
+MAX_RAMP_S = 10.0
 _POSITIVE_KEYS = (
     "max_force_n",
+    "haply_max_force_n",
     "max_torque_nm",
     "sensitivity",
     "full_speed_m_s",
@@ -70,12 +76,18 @@ class MasterConfig:
     sensitivity: rate devices: multiplier on the full-deflection speeds, > 0.
     full_speed_m_s, full_rate_rad_s: rate devices: hand speed at full deflection.
     clutch_button, grip_button: bit numbers of the master-shift and grip-toggle buttons.
+        For `haply` the clutch button is a dead-man: held = engaged, released =
+        master-shift; bits 0, 1, 2 are the VerseGrip's a, b, c.
     engage_on_start: engage at the first tick (True) or only after the operator has
         pressed and released the master-shift (False). None: True for `scripted` and
         `virtual` masters, False for devices an operator holds.
     arm_dh: `serial_arm`: the master arm's standard DH table, 6 rows (d_m, a_m, alpha_rad).
     baudrate: `serial_arm` line speed.
     max_joint_torque_nm: `serial_arm`: clamp of each displayed joint torque.
+    force_ramp_s: the displayed wrench ramps from zero to full over this time after each
+        engagement (0 = at once); it is zero whenever the master is not engaged.
+    haply_url: `haply`: the Inverse Service's WebSocket, `ws://HOST:PORT`.
+    haply_max_force_n: `haply`: the largest force ever sent to the Inverse3 (N).
     """
 
     master_id: str = "master"
@@ -100,6 +112,9 @@ class MasterConfig:
     arm_dh: tuple[DhRow, ...] = field(default=DEFAULT_MASTER_DH)
     baudrate: int = 115200
     max_joint_torque_nm: float = 1.0
+    force_ramp_s: float = 0.5
+    haply_url: str = DEFAULT_URL
+    haply_max_force_n: float = 3.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.master_id, str) or not self.master_id:
@@ -110,7 +125,7 @@ class MasterConfig:
             raise _err("master_id", "must not contain '/', '*', '$', '?', '#', '@' or spaces")
         if self.device not in DEVICE_KINDS:
             raise _err("device", f"must be one of {', '.join(DEVICE_KINDS)}")
-        for key in ("port", "script"):
+        for key in ("port", "script", "haply_url"):
             if not isinstance(getattr(self, key), str):
                 raise _err(key, "must be a string")
         if not 1.0 <= _number("rate_hz", self.rate_hz) <= 1000.0:
@@ -134,6 +149,13 @@ class MasterConfig:
                 raise _err(key, "must be a button bit number 0 … 63")
         if self.clutch_button == self.grip_button:
             raise _err("grip_button", "must differ from clutch_button")
+        if self.device == "haply":
+            for key in ("clutch_button", "grip_button"):
+                if getattr(self, key) >= HAPLY_BUTTONS:
+                    raise _err(key, "must be 0, 1 or 2 for haply (VerseGrip a, b, c)")
+        if not 0.0 <= _number("force_ramp_s", self.force_ramp_s) <= MAX_RAMP_S:
+            raise _err("force_ramp_s", f"must be within 0 … {MAX_RAMP_S:g} s")
+        self._check_url()
         if self.engage_on_start is None:
             object.__setattr__(self, "engage_on_start", self.device in ("scripted", "virtual"))
         elif not isinstance(self.engage_on_start, bool):
@@ -143,6 +165,15 @@ class MasterConfig:
             raise _err("baudrate", "must be an integer")
         if self.baudrate <= 0:
             raise _err("baudrate", "must be > 0")
+
+    def _check_url(self) -> None:
+        try:
+            url = urllib.parse.urlsplit(self.haply_url)
+            port = url.port
+        except ValueError as e:
+            raise _err("haply_url", f"not a URL: {e}") from None
+        if url.scheme not in ("ws", "wss") or not url.hostname or port is None:
+            raise _err("haply_url", "must be ws://HOST:PORT (or wss://)")
 
     def _check_alignment(self) -> None:
         values = self.alignment

@@ -4,7 +4,7 @@ A device reports the hand pose in its own base frame (the *master frame*: for th
 devices x to the operator's right, y away from the operator, z up), the state of the
 master-shift (clutch) and of the grip. Devices that can push back display a wrench given in
 that same frame. `open_device` picks a backend by name and imports its library lazily, so
-simulation and the tests of pure logic never load hidapi or pyserial.
+simulation and the tests of pure logic never load hidapi, pyserial or websockets.
 """
 
 from __future__ import annotations
@@ -103,9 +103,9 @@ def open_device(kind: str, **opts: Any) -> MasterDevice:
     """Build the backend `kind` with `opts`, open it and return it.
 
     kind: `spacemouse` (HidSpaceMouse), `serial_arm` (SerialMasterArm), `keyboard`
-    (KeyboardMaster), `scripted` (ScriptedMaster), `virtual` (VirtualMaster); `opts` are the
-    backend's constructor arguments. Raises DeviceNotFound when the device is absent and
-    ValueError for an unknown kind.
+    (KeyboardMaster), `scripted` (ScriptedMaster), `virtual` (VirtualMaster), `haply`
+    (HaplyMaster); `opts` are the backend's constructor arguments. Raises DeviceNotFound
+    when the device is absent and ValueError for an unknown kind.
     """
     device: MasterDevice
     if kind == "spacemouse":
@@ -128,6 +128,10 @@ def open_device(kind: str, **opts: Any) -> MasterDevice:
         from services.master.virtual import VirtualMaster
 
         device = VirtualMaster(**opts)
+    elif kind == "haply":
+        from services.master.haply import HaplyMaster
+
+        device = HaplyMaster(**opts)
     else:
         raise ValueError(f"unknown master device {kind!r}; one of {', '.join(DEVICE_KINDS)}")
     device.open()
@@ -161,6 +165,13 @@ def device_options(config: MasterConfig) -> dict[str, Any]:
         return {"tty_path": config.port or None, "sensitivity": config.sensitivity}
     if config.device == "scripted":
         return {"script": config.script}
+    if config.device == "haply":
+        return {
+            "url": config.haply_url,
+            "deadman_button": config.clutch_button,
+            "grip_button": config.grip_button,
+            "max_force_n": config.haply_max_force_n,
+        }
     return {}
 
 

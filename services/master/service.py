@@ -1,9 +1,12 @@
 """The `master` service on the bus: device → eq. 5 → `robot/cmd`, force → operator's hand.
 
 One loop thread owns the device (franka-node's rule): it reads the hand at `rate_hz`,
-publishes the command, and displays the newest force. Subscriptions only store. The master
-talks to the robot only through the decision server (commands on `robot/cmd`, calls to
+publishes the command, and displays the newest force (`ForceDisplay`: zero unless engaged,
+ramped in after each engagement). Subscriptions only store. The master talks to the robot
+only through the decision server (commands on `robot/cmd`, calls to
 `robot/decision/rpc/…`). Every exit path publishes a disengaged command, so the slave holds.
+A device that is lost is reopened with a growing back-off while the process stays up; the
+operator then engages afresh.
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import asdict
+from dataclasses import asdict, is_dataclass
 from typing import Any
 
 from services.bus import codec, keys
@@ -28,29 +31,39 @@ from services.bus.messages import (
 from services.bus.node import Node
 from services.bus.rate import RateLoop
 from services.master.config import MasterConfig
-from services.master.devices import DeviceLost, MasterDevice, open_master
-from services.master.feedback import ForceFeedback
+from services.master.devices import DeviceLost, HandReading, MasterDevice, open_master
+from services.master.feedback import ForceDisplay, ForceFeedback, WrenchHook
 from services.master.teleop import Teleop
 
 log = logging.getLogger("telerobot.master")
 
 STATE_RATE_HZ = 50.0
 FORCE_STALE_S = 0.1
-REOPEN_S = 1.0
+REOPEN_FIRST_S = 0.25
+REOPEN_MAX_S = 2.0
+"""A lost device is reopened after 0.25 s, then 0.5, 1, 2, 2 … s until it answers."""
 HOLD_REPEATS = 3
 
 
 class MasterService:
-    """Runs one master station; `close()` leaves the slave holding."""
+    """Runs one master station; `close()` leaves the slave holding.
+
+    force_hook: a master-side stage on the displayed wrench (see `ForceDisplay`), e.g. a
+    passivity controller.
+    """
 
     def __init__(
-        self, node: Node, config: MasterConfig, device: MasterDevice | None = None
+        self,
+        node: Node,
+        config: MasterConfig,
+        device: MasterDevice | None = None,
+        force_hook: WrenchHook | None = None,
     ) -> None:
         self.node = node
         self.config = config
         self.device = device if device is not None else open_master(config)
         self.teleop = Teleop(config, self.device.name)
-        self.feedback = ForceFeedback(config)
+        self.force_display = ForceDisplay(config, force_hook)
         self._cmd = node.publisher(keys.CMD)
         self._state = node.publisher(keys.MASTER_STATE)
         self._fb = node.publisher(keys.MASTER_FEEDBACK)
@@ -58,9 +71,13 @@ class MasterService:
         self._robot = node.subscribe(keys.STATE)
         self._stop = threading.Event()
         self._device_ok = True
+        self._reopen_at = 0.0
+        self._reopen_wait_s = REOPEN_FIRST_S
+        self.reopens = 0
+        self._stale = True
         self._fb_seq = 0
         self.ticks = 0
-        self.displayed = self.feedback.zero()
+        self.displayed = ForceFeedback.zero()
         self.service_name = f"master/{config.master_id}"
         node.serve(
             self.service_name,
@@ -99,41 +116,63 @@ class MasterService:
                 self._reopen()
             reading = self.device.read(dt_s)
         except (DeviceLost, TelerobotError, OSError) as e:
+            self._report_rejected()
             if self._device_ok:
                 self._device_ok = False
-                self._reopen_at = time.monotonic() + REOPEN_S
+                self._reopen_wait_s = REOPEN_FIRST_S
+                self._reopen_at = time.monotonic() + self._reopen_wait_s
                 self.node.event(
                     "error",
                     f"master device {self.device.name} lost: {e}",
                     {"device": self.device.name},
                 )
             self._cmd.put(OperatorCommand(**asdict(self.teleop.hold(t_ns, rearm=False))))
+            self.displayed = ForceFeedback.zero()
             return
+        self._report_rejected()
         self._cmd.put(OperatorCommand(**asdict(self.teleop.tick(reading, t_ns))))
-        self._display_force()
+        self._display_force(reading, dt_s)
 
     def _reopen(self) -> None:
-        if time.monotonic() < self._reopen_at:
+        now = time.monotonic()
+        if now < self._reopen_at:
             raise DeviceLost("waiting to reopen")
-        self._reopen_at = time.monotonic() + REOPEN_S
+        self._reopen_wait_s = min(2.0 * self._reopen_wait_s, REOPEN_MAX_S)
+        self._reopen_at = now + self._reopen_wait_s
         self.device.close()
         self.device.open()
         self._device_ok = True
+        self.reopens += 1
         self.node.event(
             "status",
             f"master device {self.device.name} back; press and release the master-shift to engage",
             {"device": self.device.name},
         )
 
-    def _display_force(self) -> None:
+    def _report_rejected(self) -> None:
+        """Count and report (rate-limited) what the device refused from its own link."""
+        take = getattr(self.device, "take_rejected", None)
+        if take is not None:
+            for reason in take():
+                self.node.report_rejected(f"master/{self.config.master_id}/device", reason)
+
+    def _display_force(self, reading: HandReading, dt_s: float) -> None:
         sample, state = self._force.latest, self._robot.latest
         stale = (
             sample is None or state is None or time.time_ns() - sample.t_ns > FORCE_STALE_S * 1e9
         )
-        if stale or sample is None or state is None:
-            shown = self.feedback.zero()
-        else:
-            shown = self.feedback.compute(sample.f, sample.c, state.tool_R, self.teleop.frame)
+        measured = (
+            None
+            if stale or sample is None or state is None
+            else (
+                sample.f,
+                sample.c,
+                state.tool_R,
+            )
+        )
+        shown = self.force_display.update(
+            measured, self.teleop.frame, self.teleop.engaged, reading, dt_s, time.monotonic()
+        )
         if self.device.can_display_force:
             self.device.display_force(shown.f, shown.c)
         self.displayed = shown
@@ -152,7 +191,7 @@ class MasterService:
                 f=vec(shown.f),
                 c=vec(shown.c),
                 saturated=bool(shown.force_saturated or shown.torque_saturated),
-                stale=bool(getattr(self, "_stale", True)),
+                stale=self._stale,
             )
         )
 
@@ -181,6 +220,8 @@ class MasterService:
             "rate_hz": self.config.rate_hz,
             "can_display_force": self.device.can_display_force,
             "ticks": self.ticks,
+            "reopens": self.reopens,
+            **_device_stats(self.device),
         }
 
     def _rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
@@ -220,3 +261,11 @@ class MasterService:
         if self._thread.is_alive():
             self._hold()
         self.device.close()
+
+
+def _device_stats(device: MasterDevice) -> dict[str, Any]:
+    """A backend's link counters (`stats`, a dataclass), when it keeps some."""
+    stats = getattr(device, "stats", None)
+    if stats is None or not is_dataclass(stats) or isinstance(stats, type):
+        return {}
+    return {"device_stats": asdict(stats)}

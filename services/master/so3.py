@@ -159,3 +159,19 @@ def slerp(R0: ArrayLike, R1: ArrayLike, u: float) -> Mat3:
     A = np.asarray(R0, dtype=float)
     B = np.asarray(R1, dtype=float)
     return np.asarray(A @ exp_so3(u * log_so3(A.T @ B)), dtype=float)
+
+
+def rot_from_quat(w: float, x: float, y: float, z: float) -> Mat3:
+    """The rotation of the quaternion w + xi + yj + zk (Hamilton, scalar first), normalised
+    first: exp of the rotation vector 2·atan2(|v|, w)·v/|v|. ValueError for a null or
+    non-finite quaternion."""
+    q = np.array([w, x, y, z], dtype=float)
+    norm = float(np.linalg.norm(q))
+    if not math.isfinite(norm) or norm < 1e-9:
+        raise ValueError("not a quaternion")
+    v = q[1:] / norm
+    sin_half = float(np.linalg.norm(v))
+    if sin_half < 1e-15:
+        return np.eye(3)
+    angle = 2.0 * math.atan2(sin_half, q[0] / norm)
+    return exp_so3(v * (angle / sin_half))

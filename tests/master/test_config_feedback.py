@@ -12,7 +12,15 @@ from numpy.typing import ArrayLike
 
 from services.bus.errors import ConfigError
 from services.master.config import Frame, MasterConfig
-from services.master.feedback import DisplayWrench, ForceFeedback, operator_wrench, saturate
+from services.master.devices import HandReading
+from services.master.feedback import (
+    DisplayWrench,
+    ForceDisplay,
+    ForceFeedback,
+    operator_wrench,
+    ramp_gain,
+    saturate,
+)
 from services.master.so3 import exp_so3, rot_x, rot_z
 
 
@@ -31,6 +39,7 @@ def test_defaults_are_valid() -> None:
         ("spacemouse", False),
         ("serial_arm", False),
         ("keyboard", False),
+        ("haply", False),
     ],
 )
 def test_engage_on_start_defaults_by_device(device: str, engages: bool) -> None:
@@ -68,12 +77,31 @@ def test_engage_on_start_defaults_by_device(device: str, engages: bool) -> None:
         ("engage_on_start", 1),
         ("arm_dh", ((0.0, 0.0, 0.0),) * 5),
         ("baudrate", 0),
+        ("force_ramp_s", -0.1),
+        ("force_ramp_s", 11.0),
+        ("haply_max_force_n", 0.0),
+        ("haply_max_force_n", math.nan),
+        ("haply_url", "localhost:10001"),
+        ("haply_url", "http://localhost:10001"),
+        ("haply_url", "ws://localhost"),
+        ("haply_url", "ws://localhost:99999"),
+        ("haply_url", "ws://:10001"),
+        ("haply_url", 10001),
     ],
 )
 def test_bad_values_name_their_key(key: str, value: object) -> None:
     with pytest.raises(ConfigError) as info:
         MasterConfig(**{key: value})  # type: ignore[arg-type]
     assert info.value.key == f"master.{key}"
+
+
+@pytest.mark.parametrize("key", ["clutch_button", "grip_button"])
+def test_haply_buttons_are_a_b_or_c(key: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        MasterConfig(device="haply", **{key: 3})  # type: ignore[arg-type]
+    assert info.value.key == f"master.{key}"
+    cfg = MasterConfig(device="haply", clutch_button=2, grip_button=0)
+    assert (cfg.clutch_button, cfg.haply_url) == (2, "ws://localhost:10001")
 
 
 def test_from_mapping_accepts_toml_lists_and_rejects_unknown_keys() -> None:
@@ -194,3 +222,83 @@ def test_saturate_passes_short_vectors_unchanged() -> None:
     v, sat = saturate((0.1, 0.2, 0.3), 1.0)
     np.testing.assert_array_equal(v, [0.1, 0.2, 0.3])
     assert not sat
+
+
+# --- the force path: gate, ramp, hook -------------------------------------------------------
+
+HAND = HandReading(np.zeros(3), np.eye(3), False)
+PUSH = ((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), np.eye(3).reshape(9))
+
+
+def test_ramp_gain_goes_from_zero_to_one_over_the_ramp() -> None:
+    assert [ramp_gain(t, 0.5) for t in (-1.0, 0.0, 0.25, 0.5, 9.0)] == [0.0, 0.0, 0.5, 1.0, 1.0]
+    assert ramp_gain(0.0, 0.0) == 1.0
+
+
+def test_force_is_zero_unless_engaged_and_ramps_in_at_each_engagement() -> None:
+    display = ForceDisplay(MasterConfig(force_ramp_s=1.0))
+    assert not display.update(PUSH, "world", False, HAND, 0.01, 10.0).f.any()
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 10.0).f, 0.0)
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 10.5).f[2], 2.0)
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 12.0).f[2], 4.0)
+    assert not display.update(PUSH, "world", False, HAND, 0.01, 13.0).f.any()  # master-shift
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 14.0).f, 0.0)
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 14.25).f[2], 1.0)
+    assert not display.update(None, "world", True, HAND, 0.01, 20.0).f.any()  # stale data
+
+
+def test_non_finite_input_shows_zero_and_counts_a_fault() -> None:
+    display = ForceDisplay(MasterConfig(force_ramp_s=0.0))
+    bad = ((math.nan, 0.0, 0.0), (0.0, 0.0, 0.0), np.eye(3).reshape(9))
+    assert not display.update(bad, "world", True, HAND, 0.01, 0.0).f.any()
+    assert display.faults == 1
+
+
+def test_a_hook_sees_the_wrench_and_cannot_exceed_the_limits() -> None:
+    seen: list[tuple[DisplayWrench, HandReading, float]] = []
+
+    def hook(w: DisplayWrench, hand: HandReading, dt_s: float) -> DisplayWrench:
+        seen.append((w, hand, dt_s))
+        return DisplayWrench(w.f * 100.0, w.c, False, False)
+
+    cfg = MasterConfig(force_ramp_s=0.0, max_force_n=10.0)
+    display = ForceDisplay(cfg, hook)
+    out = display.update(PUSH, "world", True, HAND, 0.02, 0.0)
+    np.testing.assert_allclose(out.f, [0.0, 0.0, 10.0])
+    assert out.force_saturated and seen[0][0].f[2] == 4.0 and seen[0][2] == 0.02
+    assert not display.update(PUSH, "world", False, HAND, 0.02, 1.0).f.any() and len(seen) == 1
+    display.hook = lambda w, hand, dt: DisplayWrench(w.f * math.nan, w.c, False, False)
+    assert not display.update(PUSH, "world", True, HAND, 0.02, 2.0).f.any()
+    assert display.faults == 1
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    ticks=st.lists(
+        st.tuples(
+            st.booleans(),
+            st.floats(0.0, 0.2),
+            st.lists(st.floats(-1e6, 1e6), min_size=6, max_size=6),
+        ),
+        min_size=1,
+        max_size=40,
+    ),
+    ramp_s=st.floats(0.0, 2.0),
+)
+def test_the_displayed_wrench_is_bounded_zero_when_disengaged_and_never_above_the_ramp(
+    ticks: list[tuple[bool, float, list[float]]], ramp_s: float
+) -> None:
+    cfg = MasterConfig(force_ramp_s=ramp_s, max_force_n=3.0, max_torque_nm=0.5)
+    display = ForceDisplay(cfg)
+    now, since = 0.0, None
+    for engaged, dt, w in ticks:
+        now += dt
+        since = (since if since is not None else now) if engaged else None
+        out = display.update((w[:3], w[3:], np.eye(3).reshape(9)), "tool", engaged, HAND, dt, now)
+        assert np.linalg.norm(out.f) <= 3.0 * (1 + 1e-12)
+        assert np.linalg.norm(out.c) <= 0.5 * (1 + 1e-12)
+        if since is None:
+            assert not out.f.any() and not out.c.any()
+        else:
+            limit = 3.0 * ramp_gain(now - since, ramp_s)
+            assert np.linalg.norm(out.f) <= limit * (1 + 1e-9) + 1e-12

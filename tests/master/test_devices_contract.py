@@ -17,12 +17,13 @@ from services.master.devices import (
     open_device,
     open_master,
 )
+from services.master.fake_haply import FakeInverseService, HandPose
 from services.master.fake_hid import FakeHidApi, FakeHidInfo
 from services.master.fake_master_arm import FakeMasterArm
 from services.master.so3 import is_rotation
 
 NAVIGATOR = FakeHidInfo(b"/dev/hidraw1", 0x046D, 0xC626, "SpaceNavigator")
-BACKENDS = ["virtual", "scripted", "keyboard", "spacemouse", "serial_arm"]
+BACKENDS = ["virtual", "scripted", "keyboard", "spacemouse", "serial_arm", "haply"]
 
 
 @pytest.fixture(params=BACKENDS)
@@ -44,6 +45,11 @@ def device(request: pytest.FixtureRequest) -> Iterator[MasterDevice]:
     elif kind == "serial_arm":
         with FakeMasterArm() as arm:
             dev = open_device("serial_arm", url=arm.url)
+            yield dev
+            dev.close()
+    elif kind == "haply":
+        with FakeInverseService(pose=HandPose(a=True)) as service:
+            dev = open_device("haply", url=service.url)
             yield dev
             dev.close()
     else:
