@@ -67,8 +67,10 @@ class MasterService:
         self._cmd = node.publisher(keys.CMD)
         self._state = node.publisher(keys.MASTER_STATE)
         self._fb = node.publisher(keys.MASTER_FEEDBACK)
-        self._force = node.subscribe(keys.FORCE)
-        self._robot = node.subscribe(keys.STATE)
+        # Read when the loop displays force (its rate, not the sensor's 1 kHz): no Python
+        # work per sample (`Node.latest`).
+        self._force = node.latest(keys.FORCE)
+        self._robot = node.latest(keys.STATE)
         self._stop = threading.Event()
         self._device_ok = True
         self._reopen_at = 0.0
@@ -157,7 +159,9 @@ class MasterService:
                 self.node.report_rejected(f"master/{self.config.master_id}/device", reason)
 
     def _display_force(self, reading: HandReading, dt_s: float) -> None:
-        sample, state = self._force.latest, self._robot.latest
+        f_read, s_read = self._force.read(), self._robot.read()
+        sample = f_read[0] if f_read is not None else None
+        state = s_read[0] if s_read is not None else None
         stale = (
             sample is None or state is None or time.time_ns() - sample.t_ns > FORCE_STALE_S * 1e9
         )
