@@ -16,14 +16,15 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Any
+from collections import OrderedDict
+from typing import Annotated, Any
 
 import numpy as np
 
 from services.bus import codec, keys
 from services.bus.bounds import check
 from services.bus.errors import RpcError
-from services.bus.messages import OperatorCommand, RobotState, mat3
+from services.bus.messages import MaxLen, OperatorCommand, RobotState, mat3
 from services.bus.node import Node
 from services.puma.arm import open_arm
 from services.puma.config import PumaConfig
@@ -39,6 +40,10 @@ SUPERVISED = ("move_joints", "move_pose", "move_relative", "home")
 #: methods that never block (no I/O with the arm, no waiting): answered in Zenoh's callback
 INLINE = ("status", "set_frame", "stop", "fk", "ik", "limits")
 WAIT_TIMEOUT_S = 120.0
+MAX_REQUESTS = 256
+"""Motion request ids remembered (oldest forgotten first) so a retry never moves twice."""
+RequestId = Annotated[str, MaxLen(64)]
+"""A motion call's optional `request_id`: a retry with the same id gets the same motion."""
 IDLE_STATE_RATE_HZ = 100.0
 """robot/state's rate while the arm rests (PROTOCOL §3: ≥ 100 Hz)."""
 MIN_TICK_S = 1e-5
@@ -65,6 +70,8 @@ class PumaService:
         self._stop = threading.Event()
         self.late_ticks = 0
         self.late_max_ms = 0.0
+        self._requests: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        self._requests_lock = threading.Lock()
         node.subscribe(keys.PUMA_CMD, self._on_command)
         methods: dict[str, Any] = {
             name: getattr(self.proxy, f"rpc_{name}")
@@ -219,7 +226,22 @@ class PumaService:
             timeout_s = check(
                 "timeout_s", codec.arg(args, "timeout_s", float, WAIT_TIMEOUT_S), "timeout_s"
             )
-            reply: dict[str, Any] = rpc(args)
+            request = codec.arg(args, "request_id", RequestId, None)
+            reply: dict[str, Any] | None = None
+            if request is not None and name != "initialize":
+                with self._requests_lock:
+                    known = self._requests.get(request)
+                if known is not None:
+                    # A retry (the first call timed out, its motion may be running): the
+                    # same motion, never a second one.
+                    reply = {**known, "duplicate": True}
+            if reply is None:
+                reply = rpc(args)
+                if request is not None and "motion" in reply:
+                    with self._requests_lock:
+                        self._requests[request] = dict(reply)
+                        while len(self._requests) > MAX_REQUESTS:
+                            self._requests.popitem(last=False)
             if not wait:
                 return reply
             if name == "initialize":

@@ -210,3 +210,22 @@ def test_while_a_decision_server_runs_only_it_may_start_motions(net, puma) -> No
     via = {**move, "supervised_by": "decision"}
     assert client.call("puma", "move_relative", via, timeout_s=20.0)["completed"] is True
     assert client.call("puma", "status", {}, timeout_s=5.0)["status"] == "ready"
+
+
+def test_a_retried_motion_with_its_request_id_never_moves_twice(net, puma) -> None:
+    client = net.node("operator")
+    state = client.subscribe(keys.STATE)
+    st0 = _ready(client, state)
+    move = {"dp": [0.0, 0.0, -0.02], "request_id": "retry-1"}
+    first = client.call("puma", "move_relative", move, timeout_s=20.0)
+    again = client.call("puma", "move_relative", {**move, "wait": True}, timeout_s=20.0)
+    assert again["motion"] == first["motion"] and again["duplicate"] is True
+    assert again["completed"] is True
+    done = state.wait_for(lambda s: s.status == "ready" and s.seq > st0.seq + 20, 10.0)
+    assert done is not None
+    assert done.tool_p[2] == pytest.approx(st0.tool_p[2] - 0.02, abs=1e-3)  # once, not twice
+    other = client.call("puma", "move_relative", {**move, "request_id": "retry-2"}, 20.0)
+    assert other["motion"] != first["motion"] and "duplicate" not in other
+    with pytest.raises(RpcError) as err:
+        client.call("puma", "move_relative", {**move, "request_id": "x" * 65}, timeout_s=5.0)
+    assert err.value.code == "bad_request"
