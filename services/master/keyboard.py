@@ -29,6 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from services.master.devices import DeviceLost, DeviceNotFound, HandReading
 from services.master.jog import HandIntegrator, RateScale
+from services.master.status_line import StatusInfo, TerminalStatus
 
 KEY_AXES: Mapping[str, tuple[int, float]] = {
     "d": (0, +1.0),
@@ -146,6 +147,7 @@ class KeyboardMaster:
     tty_path: the terminal to read (None: this process's stdin). fd: an already open file
     descriptor to read instead (tests pass a pty). The terminal is put in cbreak mode while
     open (keys arrive without Enter, Ctrl-C still works) and restored on close().
+    status_fd: where the one-line status goes (`show_status`; default: standard error).
     """
 
     def __init__(
@@ -157,8 +159,10 @@ class KeyboardMaster:
         speed_m_s: float = 0.05,
         rate_rad_s: float = 0.3,
         hold_s: float = 0.5,
+        status_fd: int | None = None,
     ) -> None:
         self._tty_path = tty_path
+        self._status = TerminalStatus(sys.stderr.fileno() if status_fd is None else status_fd)
         self._given_fd = fd
         self._fd: int | None = None
         self._owns_fd = False
@@ -218,6 +222,10 @@ class KeyboardMaster:
 
     def display_force(self, f: ArrayLike, c: ArrayLike) -> None:
         """A keyboard cannot push back: nothing to do."""
+
+    def show_status(self, info: StatusInfo) -> None:
+        """The station's status on the terminal, one line (see status_line.py)."""
+        self._status.show(info)
 
     def close(self) -> None:
         if self._fd is None:

@@ -20,6 +20,7 @@ from typing import Any
 from services.bus import codec, keys
 from services.bus.errors import RpcError, TelerobotError
 from services.bus.messages import (
+    Event,
     MasterFeedback,
     MasterState,
     OperatorCommand,
@@ -33,6 +34,7 @@ from services.bus.rate import RateLoop
 from services.master.config import MasterConfig
 from services.master.devices import DeviceLost, HandReading, MasterDevice, open_master
 from services.master.feedback import ForceDisplay, ForceFeedback, WrenchHook
+from services.master.status_line import ADVICE, StatusInfo
 from services.master.teleop import Teleop
 
 log = logging.getLogger("telerobot.master")
@@ -71,6 +73,11 @@ class MasterService:
         # work per sample (`Node.latest`).
         self._force = node.latest(keys.FORCE)
         self._robot = node.latest(keys.STATE)
+        self._notice: tuple[str, str] | None = None
+        self._notice_engage = 0
+        self._grip: float | None = None
+        if hasattr(self.device, "show_status"):
+            node.subscribe(keys.EVENTS, self._on_event)
         self._stop = threading.Event()
         self._device_ok = True
         self._reopen_at = 0.0
@@ -132,6 +139,7 @@ class MasterService:
             self.displayed = ForceFeedback.zero()
             return
         self._report_rejected()
+        self._grip = reading.grip
         self._cmd.put(OperatorCommand(**asdict(self.teleop.tick(reading, t_ns))))
         self._display_force(reading, dt_s)
 
@@ -182,7 +190,36 @@ class MasterService:
         self.displayed = shown
         self._stale = stale
 
+    def _on_event(self, ev: Event) -> None:
+        """The decision's last word about this master (a hold, a refusal, a limit), for a
+        terminal's status line; a new engagement clears it."""
+        about = (ev.data or {}).get("master")
+        if ev.source == "decision" and ev.kind in ADVICE and about in (None, self.config.master_id):
+            self._notice = (ev.kind, ev.message)
+            self._notice_engage = self.teleop.state(0).engage
+
+    def _show_status(self) -> None:
+        show = getattr(self.device, "show_status", None)
+        if show is None:
+            return
+        engaged = self.teleop.engaged
+        state = self.teleop.state(0)
+        if engaged and self._notice is not None and state.engage > self._notice_engage:
+            self._notice = None  # a new engagement since: the news is history
+        show(
+            StatusInfo(
+                device=self.device.name,
+                engaged=engaged,
+                scale_t=state.scale_t,
+                scale_r=state.scale_r,
+                frame=state.frame,
+                grip=self._grip,
+                notice=self._notice,
+            )
+        )
+
     def _publish_state(self) -> None:
+        self._show_status()
         t_ns = time.time_ns()
         self._state.put(MasterState(**asdict(self.teleop.state(t_ns))))
         self._fb_seq += 1

@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 import os
+import select
 from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from services.bus import keys
+from services.master.config import MasterConfig
 from services.master.keyboard import (
     KEY_AXES,
     KeyboardMaster,
@@ -15,6 +19,9 @@ from services.master.keyboard import (
     key_action,
     parse_keys,
 )
+from services.master.service import MasterService
+from services.master.status_line import WIDTH, StatusInfo, render
+from tests.conftest import Net
 
 Waiter = Callable[..., bool]
 
@@ -99,3 +106,52 @@ def test_keyboard_on_a_pty(wait_until: Waiter) -> None:
         kb.close()
         os.close(operator)
         os.close(terminal)
+
+
+def test_the_keyboard_station_shows_its_status_line_on_its_terminal(
+    net: Net, wait_until: Waiter
+) -> None:
+    keys_in, terminal = os.openpty()
+    screen, status_tty = os.openpty()
+    kb = KeyboardMaster(fd=terminal, status_fd=status_tty, hold_s=0.5)
+    kb.open()  # a device handed to the service comes open, as open_master() gives it
+    seen: list[str] = []
+
+    def screen_has(text: str) -> bool:
+        while select.select([screen], [], [], 0.0)[0]:
+            seen.append(os.read(screen, 65536).decode(errors="replace"))
+        return text in "".join(seen)
+
+    station = MasterService(
+        net.node("master", instance="kb"),
+        MasterConfig(device="keyboard", master_id="kb"),
+        device=kb,
+    )
+    decision = net.node("decision")
+    try:
+        assert wait_until(lambda: screen_has("SHIFT: slave holds"), 10.0)
+        assert screen_has("wasd rf move")  # the keys, until there is news
+        os.write(keys_in, b" ")
+        assert wait_until(lambda: screen_has("ENGAGED"), 10.0)
+        events = decision.publisher(keys.EVENTS)
+        assert wait_until(lambda: bool(events._pub.matching_status.matching), 10.0)
+        decision.event(
+            "watchdog", "no command from master 'kb' for 100 ms: holding", {"master": "kb"}
+        )
+        assert wait_until(lambda: screen_has("held: engage again (space twice)"), 10.0)
+        assert "\n" not in "".join(seen)  # one line, rewritten in place
+    finally:
+        station.close()
+        kb.close()
+        for fd in (keys_in, terminal, screen, status_tty):
+            os.close(fd)
+
+
+def test_the_status_line_says_what_to_do() -> None:
+    info = StatusInfo("keyboard", False, 0.5, 1.0, "world", 0.0)
+    line = render(info)
+    assert line.startswith("SHIFT: slave holds") and "scale 0.50/1.00 · world" in line
+    assert "grip open" in line and "space engage" in line and "x stop" in line
+    held = render(replace(info, engaged=True, notice=("estop", "emergency stop: " + "x" * 500)))
+    assert "ENGAGED" in held and "E-STOP latched: reset it first" in held
+    assert len(held) <= WIDTH
