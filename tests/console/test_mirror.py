@@ -86,6 +86,7 @@ def test_mirror_over_the_bus(net: Any) -> None:
     pub_node = net.node("puma")
     mirror_node = net.node("console")
     mirror = BusMirror(mirror_node, events=3, force_capacity=100)
+    mirror.watch_page(True)  # robot/puma/cmd is subscribed to while a page is shown
     state_pub = pub_node.publisher(keys.STATE)
     cmd_pub = pub_node.publisher(keys.PUMA_CMD)
     assert mirror.target() is None
