@@ -142,7 +142,7 @@ class BusMirror:
         self._page_subs: list[Any] = []
         self._video_subs: list[Any] = []
         # eye → (frames arrived, the newest one's payload, undecoded)
-        self._frames: dict[str, tuple[int, zenoh.ZBytes | None]] = {"l": (0, None), "r": (0, None)}
+        self._frames: dict[str, tuple[int, bytes | None]] = {"l": (0, None), "r": (0, None)}
         self.state: Subscription[RobotState] = node.subscribe(STATE)
         self.vision: Subscription[VisionStats] = node.subscribe(VISION_STATS)
         node.subscribe(EVENTS, self._on_event)
@@ -200,9 +200,12 @@ class BusMirror:
 
     def _frame_store(self, eye: str) -> Callable[[zenoh.Sample], None]:
         def store(sample: zenoh.Sample) -> None:
+            # Copied now (a memcpy), decoded later: a payload kept by reference may sit in a
+            # shared-memory buffer its publisher reuses.
+            data = sample.payload.to_bytes()
             with self._lock:
                 n = self._frames[eye][0]
-                self._frames[eye] = (n + 1, sample.payload)
+                self._frames[eye] = (n + 1, data)
 
         return store
 
@@ -219,7 +222,7 @@ class BusMirror:
         if payload is None:
             return None
         try:
-            return codec.decode(StereoFrame, payload.to_bytes())
+            return codec.decode(StereoFrame, payload)
         except ProtocolError as e:
             key = (STEREO_L if eye == "l" else STEREO_R).key
             self.node.report_rejected(key, str(e))

@@ -1,6 +1,6 @@
 """Nobody watching, no work: the console without a browser sleeps and subscribes to no video
 (so vision renders nothing), wakes for a browser, and takes robot/force downsampled by
-Zenoh itself. A browser here is `FakeBrowser`, a websocket client as viser counts them."""
+Zenoh itself. A browser here is `support.FakeBrowser`, a websocket client as viser counts them."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 
 from services.bus import keys
 from services.bus.config import NodeConfig
-from services.bus.messages import IDENTITY_R, ForceSample, RobotState, VisionStats
+from services.bus.messages import ForceSample, VisionStats
 from services.bus.node import Node, Subscription
 from services.bus.rate import RateLoop
 from services.console.__main__ import console_node_config, master_node_config
@@ -26,7 +26,7 @@ from services.master.service import MasterService
 from services.vision.config import VisionConfig
 from services.vision.service import VisionService
 
-from .fake_browser import FakeBrowser, wait_until
+from .support import FakeBrowser, ready_state, wait_until
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
 
@@ -110,21 +110,6 @@ def test_video_off_drops_the_subscription_and_vision_sleeps(cell: Cell) -> None:
         assert wait_until(lambda: console.frames_shown > shown, 20.0)
 
 
-def _state(seq: int) -> RobotState:
-    return RobotState(
-        seq=seq,
-        t_ns=time.time_ns(),
-        status="ready",
-        q=(0.0,) * 6,
-        tool_p=TOOL_P,
-        tool_R=IDENTITY_R,
-        flange_p=TOOL_P,
-        flange_R=IDENTITY_R,
-        engage=0,
-        cmd_seq=0,
-    )
-
-
 def test_the_last_browser_leaving_clutches_an_engaged_hand(net: Any) -> None:
     """An engagement does not outlive its operator: the hand is clutched when the page
     closes, and parked on the tool (not engaged) when a page comes back."""
@@ -139,7 +124,7 @@ def test_the_last_browser_leaving_clutches_an_engaged_hand(net: Any) -> None:
         )
         console = Console(net.node("console"), ConsoleConfig(port=0, shadows=False))
         closers.append(console)
-        puma.publisher(keys.STATE).put(_state(1))
+        puma.publisher(keys.STATE).put(ready_state(1, TOOL_P))
         assert console.mirror.state.wait_for(lambda s: True, 10.0) is not None
         hand = console.hand
         with FakeBrowser(console.port):

@@ -1,4 +1,5 @@
-"""A browser as viser sees one, without a browser: a websocket client of the page.
+"""Helpers of the console tests: waiting on a condition, a ready robot state, and a browser
+as viser sees one, without a browser.
 
 viser counts a client as connected once its websocket (subprotocol `viser-v<version>`) has
 sent the first camera message, and as gone when the socket closes. `FakeBrowser` does just
@@ -18,6 +19,8 @@ import viser
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
+from services.bus.messages import IDENTITY_R, RobotState
+
 
 def wait_until(pred: Callable[[], bool], timeout_s: float = 10.0, poll_s: float = 0.01) -> bool:
     """Poll `pred` until it holds or the deadline passes; returns the last answer."""
@@ -27,6 +30,22 @@ def wait_until(pred: Callable[[], bool], timeout_s: float = 10.0, poll_s: float 
             return False
         time.sleep(poll_s)
     return True
+
+
+def ready_state(seq: int, tool_p: tuple[float, float, float]) -> RobotState:
+    """A `ready` robot/state with the tool (and the flange) at `tool_p`, axes as the world's."""
+    return RobotState(
+        seq=seq,
+        t_ns=time.time_ns(),
+        status="ready",
+        q=(0.0,) * 6,
+        tool_p=tool_p,
+        tool_R=IDENTITY_R,
+        flange_p=tool_p,
+        flange_R=IDENTITY_R,
+        engage=0,
+        cmd_seq=0,
+    )
 
 
 class FakeBrowser:
