@@ -90,7 +90,7 @@ def system(net: Any) -> Iterator[System]:
         closers.append(
             DecisionService(
                 net.node("decision"),
-                DecisionConfig(rate_hz=200.0, watchdog_ms=2000.0, state_stale_ms=2000.0),
+                DecisionConfig(rate_hz=200.0, watchdog_ms=1000.0, state_stale_ms=1000.0),
             )
         )
         closers.append(
