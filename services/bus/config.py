@@ -43,6 +43,11 @@ class NodeConfig:
     starved of CPU then reads another message's bytes (reproduced: 359 of 1 232 20 kB
     payloads corrupt under starvation, 0 without; tests/bus/test_starvation.py). Our
     streams are small or compressed; loopback TCP carries them easily.
+
+    `downsampling`: (key, max_hz) pairs, keys relative to `ns`: this node takes each key at
+    most `max_hz` times a second; Zenoh drops the rest as they arrive (its ingress
+    `downsampling`), before any Python runs. For a slow consumer of a fast stream (a plot
+    of the 1 kHz force); never for commands or events, every one of which matters.
     """
 
     mode: Mode = "peer"
@@ -54,6 +59,7 @@ class NodeConfig:
     zenoh_config: str = ""
     admin_space: bool = False
     shared_memory: bool = False
+    downsampling: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -68,6 +74,11 @@ class NodeConfig:
             raise ConfigError("zenoh.ns", f"{self.ns!r}: no leading/trailing '/' or wildcards")
         if self.zenoh_config and not Path(self.zenoh_config).is_file():
             raise ConfigError("zenoh.zenoh_config", f"no such file {self.zenoh_config!r}")
+        for key, max_hz in self.downsampling:
+            if not key or key.startswith("/") or key.endswith("/"):
+                raise ConfigError("zenoh.downsampling", f"bad key {key!r}")
+            if not 0.0 < max_hz < float("inf"):
+                raise ConfigError("zenoh.downsampling", f"{key}: max_hz must be > 0, got {max_hz}")
 
     def to_zenoh(self) -> zenoh.Config:
         """The zenoh.Config for this node."""
@@ -87,6 +98,12 @@ class NodeConfig:
             cfg.insert_json5("namespace", json.dumps(self.ns))
         if self.admin_space:
             cfg.insert_json5("adminspace/enabled", "true")
+        if self.downsampling:
+            # Zenoh matches these rules against the namespaced key: add the prefix here.
+            prefix = f"{self.ns}/" if self.ns else ""
+            rules = [{"key_expr": prefix + k, "freq": hz} for k, hz in self.downsampling]
+            flow = {"flows": ["ingress"], "messages": ["put"], "rules": rules}
+            cfg.insert_json5("downsampling", json.dumps([flow]))
         return cfg
 
 

@@ -12,6 +12,7 @@ import contextlib
 import sys
 from dataclasses import replace
 
+from services.bus import keys
 from services.bus.config import (
     NodeConfig,
     add_node_args,
@@ -29,13 +30,30 @@ MASTER_TAKEN_WAIT_S = 0.5
 """How long start-up looks for a master already using the console's master id."""
 
 
-def master_node_config(cfg: NodeConfig) -> NodeConfig:
+def console_node_config(cfg: NodeConfig, config: ConsoleConfig) -> NodeConfig:
+    """The console's session. Zenoh hands it robot/force at `force_rate_hz` (the plots show
+    fewer points than that), robot/state and robot/puma/cmd at twice the GUI rate (the page
+    is drawn at the GUI rate): the rest is dropped on arrival, before any Python runs,
+    instead of a thousand callbacks a second."""
+    mirror_hz = 2.0 * config.gui_rate_hz
+    rules = (
+        (keys.FORCE.key, config.force_rate_hz),
+        (keys.STATE.key, mirror_hz),
+        (keys.PUMA_CMD.key, mirror_hz),
+    )
+    return replace(cfg, downsampling=(*cfg.downsampling, *rules))
+
+
+def master_node_config(cfg: NodeConfig, rate_hz: float | None = None) -> NodeConfig:
     """The in-process master's session: the console's, minus its listeners (one process
-    cannot listen twice on a port); a console that only listens is reached on loopback."""
+    cannot listen twice on a port); a console that only listens is reached on loopback.
+    The master reads the newest force and robot state once per tick: with `rate_hz` (its
+    tick rate), Zenoh hands it those at that rate, not at theirs."""
     connect = cfg.connect or tuple(
         ep.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]") for ep in cfg.listen
     )
-    return replace(cfg, listen=(), connect=connect)
+    rules = () if rate_hz is None else ((keys.FORCE.key, rate_hz), (keys.STATE.key, rate_hz))
+    return replace(cfg, listen=(), connect=connect, downsampling=(*cfg.downsampling, *rules))
 
 
 def run(node_cfg: NodeConfig, config: ConsoleConfig, stop: Shutdown) -> int:
@@ -44,7 +62,7 @@ def run(node_cfg: NodeConfig, config: ConsoleConfig, stop: Shutdown) -> int:
     from services.console.app import Console
 
     with contextlib.ExitStack() as stack:
-        node = stack.enter_context(Node("console", node_cfg))
+        node = stack.enter_context(Node("console", console_node_config(node_cfg, config)))
         if config.master:
             from services.master.config import MasterConfig
             from services.master.service import MasterService
@@ -56,12 +74,16 @@ def run(node_cfg: NodeConfig, config: ConsoleConfig, stop: Shutdown) -> int:
                     file=sys.stderr,
                 )
                 return 2
-            mnode = stack.enter_context(
-                Node("master", master_node_config(node_cfg), instance=config.master_id)
-            )
             # A virtual device that engages only when the console says so (once the hand is
             # at the tool pose), never at start-up.
             mcfg = MasterConfig(master_id=config.master_id, device="virtual", engage_on_start=False)
+            mnode = stack.enter_context(
+                Node(
+                    "master",
+                    master_node_config(node_cfg, mcfg.rate_hz),
+                    instance=config.master_id,
+                )
+            )
             master = MasterService(mnode, mcfg)
             stack.callback(master.close)
         console = Console(node, config)

@@ -9,6 +9,12 @@ for their status every `status_period_s`; the hand link's thread feeds the virtu
 
 The console talks to the robot only through the decision server (`robot/decision/rpc/…`)
 and to the operator's station through the master's methods (`robot/master/<id>/rpc/…`).
+
+Nobody watching, no work: the GUI thread and the poller run only while a browser is
+connected (viser's connect/disconnect callbacks); without one they sleep, and the force,
+the supervised command and the video are not even subscribed to (so vision, seeing nobody
+subscribe, renders nothing). An engaged virtual master is clutched when the last browser
+leaves and parked on the tool when one comes back.
 """
 
 from __future__ import annotations
@@ -134,6 +140,12 @@ class Console:
         self.gui_errors = 0
         self.video_errors = 0
         self.ticks = 0
+        self.frames_shown = 0
+        # Browsers connected now (viser's callbacks), and whether the hand was clutched
+        # because the last one left (then it is parked again when one comes back).
+        self._viewers = 0
+        self._viewers_cond = threading.Condition()
+        self._held_while_away = False
         self._last_q: tuple[float, ...] | None = None
         self._last_status: str | None = None
         self._events_seen = 0
@@ -167,6 +179,8 @@ class Console:
         )
         self._build_scene()
         self._build_gui()
+        self.server.on_client_connect(self._on_clients_changed)
+        self.server.on_client_disconnect(self._on_clients_changed)
         self._threads = [
             threading.Thread(target=self._gui_loop, name="console-gui", daemon=True),
             threading.Thread(target=self._action_loop, name="console-actions", daemon=True),
@@ -184,6 +198,48 @@ class Console:
     @property
     def url(self) -> str:
         return f"http://{self.config.host}:{self.port}"
+
+    @property
+    def viewers(self) -> int:
+        """How many browsers are connected."""
+        with self._viewers_cond:
+            return self._viewers
+
+    # --- browsers come and go -------------------------------------------------------------
+    def _on_clients_changed(self, _client: Any) -> None:
+        # viser's thread pool may run these out of order: count the clients it has now,
+        # under the lock, so the last one to run leaves the true count.
+        with self._viewers_cond:
+            self._viewers = len(self.server.get_clients())
+            self._viewers_cond.notify_all()
+
+    def _wait_viewers(self) -> bool:
+        """Block while no browser is connected; False once the console is closing."""
+        with self._viewers_cond:
+            while self._viewers == 0 and not self._stop.is_set():
+                self._viewers_cond.wait()
+            return not self._stop.is_set()
+
+    def _go_live(self) -> None:
+        """A browser came: subscribe to what the page shows, park a hand clutched while
+        nobody was there, and show the state from now on, not a backlog."""
+        self.mirror.watch_page(True)
+        self._events_seen = self.mirror.events_seen
+        self._gate.reset()
+        if self._held_while_away:
+            self._held_while_away = False
+            self.hand.resync()
+        log.info("a browser is connected: the page is live")
+
+    def _go_idle(self) -> None:
+        """The last browser left: nobody sees or drives anything any more."""
+        self.mirror.watch_video(False)
+        self.mirror.watch_page(False)
+        if self.hand.state == "engaged":
+            # The operator is gone: clutch, so no engagement outlives its operator.
+            self.hand.hold()
+            self._held_while_away = True
+        log.info("no browser: the page sleeps")
 
     # --- the page: scene ----------------------------------------------------------------
     def _build_scene(self) -> None:
@@ -433,7 +489,8 @@ class Console:
     # --- the poller -----------------------------------------------------------------------
     def _poll_loop(self) -> None:
         master_service = f"master/{self.config.master_id}"
-        while not self._stop.is_set():
+        # The status is for the page only: nobody connected, nothing asked.
+        while self._wait_viewers():
             decision: dict[str, Any] | None = None
             error: str | None = None
             master: dict[str, Any] | None = None
@@ -461,25 +518,28 @@ class Console:
         return ToolPose(np.asarray(st.tool_p, dtype=float), mat3(st.tool_R), st.status)
 
     def _gui_loop(self) -> None:
-        rate = RateLoop(self.config.gui_rate_hz)
-        next_panel = next_plot = 0.0
-        while not self._stop.is_set():
-            now = time.monotonic()
-            try:
-                with self.server.atomic():
-                    self._gui_tick()
-                    if now >= next_panel:
-                        next_panel = now + PANEL_EVERY_S
-                        self._update_panels()
-                    if now >= next_plot:
-                        next_plot = now + PLOT_EVERY_S
-                        self._update_plots()
-                self._update_video(now)
-            except Exception:  # a drawing bug must not stop the mirror: count, log, go on
-                self.gui_errors += 1
-                log.exception("console GUI tick failed")
-            self.ticks += 1
-            rate.sleep()
+        while self._wait_viewers():
+            self._go_live()
+            rate = RateLoop(self.config.gui_rate_hz)
+            next_panel = next_plot = 0.0
+            while not self._stop.is_set() and self.viewers > 0:
+                now = time.monotonic()
+                try:
+                    with self.server.atomic():
+                        self._gui_tick()
+                        if now >= next_panel:
+                            next_panel = now + PANEL_EVERY_S
+                            self._update_panels()
+                        if now >= next_plot:
+                            next_plot = now + PLOT_EVERY_S
+                            self._update_plots()
+                    self._update_video(now)
+                except Exception:  # a drawing bug must not stop the mirror: count, log, go on
+                    self.gui_errors += 1
+                    log.exception("console GUI tick failed")
+                self.ticks += 1
+                rate.sleep()
+            self._go_idle()
 
     def _gui_tick(self) -> None:
         with self._lock:
@@ -654,21 +714,23 @@ class Console:
 
     def _update_video(self, now: float) -> None:
         mode = self._view_mode
-        left, right = self.mirror.left.latest, self.mirror.right.latest
-        if mode == "off" or (left is None and right is None):
+        self.mirror.watch_video(mode != "off")
+        key = self.mirror.frame_counts()
+        if mode == "off" or key == (0, 0) or not self._gate.due(now, key):
             return
-        key = (left.seq if left else -1, right.seq if right else -1)
-        if not self._gate.due(now, key):
-            return
+        # Only the eyes this view shows are decoded, and only the frames it shows.
+        left = self.mirror.frame("l") if mode != "right" else None
+        right = self.mirror.frame("r") if mode != "left" else None
         try:
-            li: Image | None = decode(left) if left is not None and mode != "right" else None
-            ri: Image | None = decode(right) if right is not None and mode != "left" else None
+            li: Image | None = decode(left) if left is not None else None
+            ri: Image | None = decode(right) if right is not None else None
         except ValueError:
             self.video_errors += 1
             return
         img = compose(li, ri, mode, self.config.video_max_width_px)
         if img is not None:
             self._image.image = img
+            self.frames_shown += 1
 
     # --- shutdown -------------------------------------------------------------------------
     def close(self) -> None:
@@ -676,6 +738,8 @@ class Console:
         if self._stop.is_set():
             return
         self._stop.set()
+        with self._viewers_cond:
+            self._viewers_cond.notify_all()
         self._actions.put(None)
         self.hand.close()
         for t in self._threads:

@@ -15,6 +15,7 @@ _POSITIVE = (
     "gui_rate_hz",
     "video_fps",
     "plot_window_s",
+    "force_rate_hz",
     "status_period_s",
     "force_arrow_m_per_n",
     "gizmo_scale_m",
@@ -37,6 +38,8 @@ class ConsoleConfig:
       video_max_width_px: frames wider than this are decimated before sending.
     plot_window_s, plot_points: the force/moment plots show the last `plot_window_s`
       seconds, decimated to at most `plot_points` points.
+    force_rate_hz: the rate at which Zenoh hands the console robot/force (its session's
+      `downsampling`, 1 … 1000): the plots and the arrow need no more.
     events: how many events the log keeps (newest first).
     status_period_s: how often the decision server's and the master's status are polled.
     force_arrow_m_per_n: length of the force arrow per newton (m/N).
@@ -56,6 +59,7 @@ class ConsoleConfig:
     video_max_width_px: int = 640
     plot_window_s: float = 5.0
     plot_points: int = 400
+    force_rate_hz: float = 100.0
     events: int = 50
     status_period_s: float = 0.5
     force_arrow_m_per_n: float = 0.01
@@ -86,6 +90,8 @@ class ConsoleConfig:
             raise _err("video_fps", "must be ≤ 30 (the browser is not the video path to record)")
         if self.video_max_width_px < 64:
             raise _err("video_max_width_px", "must be ≥ 64 px")
+        if self.force_rate_hz > 1000.0:
+            raise _err("force_rate_hz", "must be ≤ 1000 Hz (the force's own rate)")
         if self.plot_points < 10:
             raise _err("plot_points", "must be ≥ 10")
         if not 1 <= self.events <= 1000:

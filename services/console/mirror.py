@@ -3,6 +3,11 @@ event log, the engagement reference of the commanded target, and the polled stat
 
 Zenoh's callbacks only store here (latest-wins or append, under a lock, O(1)); the GUI
 thread reads snapshots. Nothing here talks to the page.
+
+Nobody watching, no work: what only a page shows (the force, the supervised command, the
+video) is subscribed to only while a browser is connected (`watch_page`, `watch_video`).
+Video frames are stored as they arrive, undecoded; `frame()` decodes the newest one when
+the page is about to show it, so frames no browser will see are never decoded.
 """
 
 from __future__ import annotations
@@ -12,11 +17,14 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
+import zenoh
 from numpy.typing import NDArray
 
+from services.bus import codec
+from services.bus.errors import ProtocolError
 from services.bus.keys import (
     EVENTS,
     FORCE,
@@ -26,11 +34,13 @@ from services.bus.keys import (
     STEREO_L,
     STEREO_R,
     VISION_STATS,
+    Topic,
 )
 from services.bus.messages import (
     Event,
     ForceSample,
     MasterState,
+    Message,
     OperatorCommand,
     RobotState,
     StereoFrame,
@@ -39,6 +49,8 @@ from services.bus.messages import (
 )
 from services.bus.node import Node, Subscription
 from services.console.geometry import Mat, Vec, commanded_tool_pose
+
+M = TypeVar("M", bound=Message)
 
 TARGET_STALE_S = 1.0
 """The commanded target is drawn while robot/puma/cmd arrived within this time."""
@@ -105,7 +117,12 @@ class TargetRef:
 
 
 class BusMirror:
-    """Subscribes to every stream the console shows; polled status is stored here too."""
+    """Subscribes to the streams the console shows; polled status is stored here too.
+
+    Always: robot/state, master/state, robot/events, vision/stats (what the hand link and
+    the event log need, at low rates). While `watch_page(True)`: robot/force and
+    robot/puma/cmd. While `watch_video(True)`: vision/stereo/l and /r.
+    """
 
     def __init__(self, node: Node, events: int, force_capacity: int) -> None:
         self.node = node
@@ -122,14 +139,94 @@ class BusMirror:
         self.decision_status: dict[str, Any] | None = None
         self.decision_error: str | None = "no reply yet"
         self.master_status: dict[str, Any] | None = None
+        self._page_subs: list[Any] = []
+        self._video_subs: list[Any] = []
+        # eye → (frames arrived, the newest one's payload, undecoded)
+        self._frames: dict[str, tuple[int, bytes | None]] = {"l": (0, None), "r": (0, None)}
         self.state: Subscription[RobotState] = node.subscribe(STATE)
-        self.left: Subscription[StereoFrame] = node.subscribe(STEREO_L)
-        self.right: Subscription[StereoFrame] = node.subscribe(STEREO_R)
         self.vision: Subscription[VisionStats] = node.subscribe(VISION_STATS)
-        node.subscribe(FORCE, self._on_force)
         node.subscribe(EVENTS, self._on_event)
         node.subscribe(MASTER_STATE, self._on_master)
-        node.subscribe(PUMA_CMD, self._on_puma_cmd)
+
+    # --- what only a page shows ---------------------------------------------------------------
+    def watch_page(self, on: bool) -> None:
+        """Subscribe to the force and the supervised command (on) or drop them (off)."""
+        if on and not self._page_subs:
+            self._page_subs = [
+                self._subscribe(FORCE, self._on_force),
+                self._subscribe(PUMA_CMD, self._on_puma_cmd),
+            ]
+        elif not on:
+            subs, self._page_subs = self._page_subs, []
+            for sub in subs:
+                sub.undeclare()
+            self._force_latest = None
+
+    def watch_video(self, on: bool) -> None:
+        """Subscribe to both eyes (on) or drop them (off: vision, if nobody else watches,
+        then stops rendering and encoding)."""
+        if on and not self._video_subs:
+            self._video_subs = [
+                self.node.session.declare_subscriber(topic.key, self._frame_store(eye))
+                for eye, topic in (("l", STEREO_L), ("r", STEREO_R))
+            ]
+        elif not on:
+            subs, self._video_subs = self._video_subs, []
+            for sub in subs:
+                sub.undeclare()
+            with self._lock:
+                # Frames from before are stale by the time anyone watches again.
+                self._frames = {eye: (n, None) for eye, (n, _) in self._frames.items()}
+
+    @property
+    def watching(self) -> tuple[bool, bool]:
+        """(page streams subscribed, video subscribed)."""
+        return bool(self._page_subs), bool(self._video_subs)
+
+    def _subscribe(self, topic: Topic[M], on_message: Callable[[M], None]) -> Any:
+        """A subscription that can be dropped: decode, count a bad payload as the node's
+        own subscriptions do (rejected event), hand the message over."""
+
+        def callback(sample: zenoh.Sample) -> None:
+            try:
+                msg = codec.decode(topic.type, sample.payload.to_bytes())
+            except ProtocolError as e:
+                self.node.report_rejected(str(sample.key_expr), str(e))
+                return
+            on_message(msg)
+
+        # On the session, not through the node, so that it can be undeclared and forgotten.
+        return self.node.session.declare_subscriber(topic.key, callback)
+
+    def _frame_store(self, eye: str) -> Callable[[zenoh.Sample], None]:
+        def store(sample: zenoh.Sample) -> None:
+            # Copied now (a memcpy), decoded later: a payload kept by reference may sit in a
+            # shared-memory buffer its publisher reuses.
+            data = sample.payload.to_bytes()
+            with self._lock:
+                n = self._frames[eye][0]
+                self._frames[eye] = (n + 1, data)
+
+        return store
+
+    def frame_counts(self) -> tuple[int, int]:
+        """How many frames of each eye (left, right) arrived so far."""
+        with self._lock:
+            return self._frames["l"][0], self._frames["r"][0]
+
+    def frame(self, eye: str) -> StereoFrame | None:
+        """The newest frame of `eye` ("l" | "r"), decoded and validated now; None when none
+        arrived or it is bad (counted and reported as a rejected input)."""
+        with self._lock:
+            payload = self._frames[eye][1]
+        if payload is None:
+            return None
+        try:
+            return codec.decode(StereoFrame, payload)
+        except ProtocolError as e:
+            key = (STEREO_L if eye == "l" else STEREO_R).key
+            self.node.report_rejected(key, str(e))
+            return None
 
     # --- Zenoh's thread: store only -------------------------------------------------------
     def _on_force(self, msg: ForceSample) -> None:

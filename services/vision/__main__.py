@@ -4,12 +4,28 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 
-from services.bus.config import add_node_args, load_deploy, node_config, service_table
+from services.bus import keys
+from services.bus.config import (
+    NodeConfig,
+    add_node_args,
+    load_deploy,
+    node_config,
+    service_table,
+)
 from services.bus.lifecycle import Shutdown, setup_logging
 from services.bus.node import Node
 from services.cli.introspect import LOCAL_ROUTER
 from services.vision.config import VisionConfig
+
+
+def vision_node_config(cfg: NodeConfig, config: VisionConfig) -> NodeConfig:
+    """The vision session: the simulator draws the arm from `robot/state` at most twice a
+    frame, so Zenoh hands it no more than that (the puma publishes at ≥ 100 Hz)."""
+    if config.camera != "sim":
+        return cfg
+    return replace(cfg, downsampling=(*cfg.downsampling, (keys.STATE.key, 2.0 * config.fps)))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -39,7 +55,8 @@ def main(argv: list[str] | None = None) -> int:
     from services.vision.service import VisionService
 
     stop = Shutdown()
-    with Node("vision", node_config(args, deploy, connect=(LOCAL_ROUTER,))) as node:
+    node_cfg = vision_node_config(node_config(args, deploy, connect=(LOCAL_ROUTER,)), config)
+    with Node("vision", node_cfg) as node:
         svc = VisionService(node, config)
         log.info(
             "streaming %dx%d at %.0f fps (%s)",

@@ -92,6 +92,11 @@ class Camera(Protocol):
     `grab()` returns the next pair, or None when no new pair is available this time; it
     raises `CameraError` when the camera is gone (unplugged, end of file, not open).
     `close()` releases the device (idempotent; the camera may be opened again after).
+    `keep_alive()` is called instead of `grab()`, at the capture rate, while nobody watches
+    the stream: a device that must keep being read (its driver queue would go stale) reads
+    and discards a frame without decoding it and returns True; a camera that can simply
+    wait (the simulator, a file) does nothing and returns False, and is then left alone
+    until someone watches. It raises `CameraError` like `grab`.
     `name` identifies the camera in events and statistics.
     """
 
@@ -101,6 +106,8 @@ class Camera(Protocol):
     def open(self) -> None: ...
 
     def grab(self) -> StereoPair | None: ...
+
+    def keep_alive(self) -> bool: ...
 
     def close(self) -> None: ...
 

@@ -124,6 +124,17 @@ class OpenCVCamera:
         left, right = (self._fit(f) for f in frames)
         return StereoPair(left, right, stamps[0], stamps[-1], self.intrinsics, self.baseline_m)
 
+    def keep_alive(self) -> bool:
+        """Devices: grab (not decode) a frame from each, so their one-frame driver queue
+        stays fresh and the next `grab` returns a current picture; True. Files: nothing,
+        playback pauses where it is; False."""
+        if not self._caps:
+            raise CameraError(f"{self.name}: keep_alive() before open()")
+        if all(_is_file(s) for s in self.sources):
+            return False
+        self._grab_all()
+        return True
+
     def _grab_all(self) -> list[int]:
         """Grab every source back to back; returns each grab's completion time (ns)."""
         for attempt in range(2):

@@ -10,6 +10,10 @@ Timing: capture runs at the fixed rate `config.fps`; a tick later than one perio
 skipped rather than caught up (counted as `late_ticks`). Both eyes of a pair share `seq`
 (the pair number, counting captured pairs, so gaps mean drops) and `t_ns`, the LEFT eye's
 capture time; the left→right capture skew is measured and reported in the statistics.
+
+Nobody watching, no work: while `set_watched(False)` (the service follows Zenoh's matching
+status of its keys) nothing is grabbed, encoded or published; the camera's `keep_alive()`
+keeps a device's queue fresh, or the capture thread sleeps until someone watches.
 """
 
 from __future__ import annotations
@@ -157,6 +161,7 @@ class StereoPipeline:
         publish: PublishFn,
         emit: EmitFn,
         stall_s: float = 1.0,
+        watched: bool = True,
     ) -> None:
         self.camera = camera
         self.config = config
@@ -168,6 +173,12 @@ class StereoPipeline:
         self._to_publish: LatestSlot[_Encoded] = LatestSlot()
         self._threads: list[threading.Thread] = []
         self._lock = threading.Lock()
+        # Whether anyone watches the stream (set by `set_watched`); the capture thread
+        # sleeps on this condition while nobody does.
+        self._watch = threading.Condition()
+        self._watched = watched
+        self._kept_alive = 0
+        self._idle_waits = 0
         # Counters: each written by one thread, read under the lock by stats().
         self._seq = 0
         self._captured = 0
@@ -215,11 +226,26 @@ class StereoPipeline:
         """Stop the threads and close the camera; `publish` is not called once this returns
         (unless a publish call is stuck past `timeout_s`)."""
         self._stop.set()
+        with self._watch:
+            self._watch.notify_all()
         self._to_encode.close()
         self._to_publish.close()
         deadline = time.monotonic() + timeout_s
         for th in self._threads:
             th.join(max(0.0, deadline - time.monotonic()))
+
+    def set_watched(self, watched: bool) -> None:
+        """Whether anyone watches the stream (e.g. Zenoh's matching status of its keys).
+        While nobody does, nothing is grabbed, encoded or published: the camera's
+        `keep_alive()` runs at the capture rate instead, or, when it returns False, the
+        capture thread sleeps. When someone comes, the next pair is grabbed at once."""
+        with self._watch:
+            self._watched = watched
+            self._watch.notify_all()
+
+    @property
+    def watched(self) -> bool:
+        return self._watched
 
     @property
     def running(self) -> bool:
@@ -242,6 +268,7 @@ class StereoPipeline:
             out: dict[str, Any] = {
                 "camera": self.camera.name,
                 "camera_ok": self._camera_ok,
+                "idle": not self._watched,
                 "width": self._size[0],
                 "height": self._size[1],
                 "encoding": self.config.encoding,
@@ -256,6 +283,8 @@ class StereoPipeline:
                 "dropped_publish": self._to_publish.dropped,
                 "dropped": self._to_encode.dropped + self._to_publish.dropped,
                 "late_ticks": self._late_ticks,
+                "kept_alive": self._kept_alive,
+                "idle_waits": self._idle_waits,
                 "grab_errors": self._grab_errors,
                 "grab_misses": self._grab_misses,
                 "encode_errors": self._encode_errors,
@@ -313,9 +342,15 @@ class StereoPipeline:
                         self._camera_failed(f"cannot open camera {self.camera.name}: {exc}")
                         reopen_at = now + self.config.reopen_s
                 if opened:
+                    watched = self.watched
+                    pair: StereoPair | None = None
+                    ticking = True
                     try:
                         t0 = time.perf_counter()
-                        pair = self.camera.grab()
+                        if watched:
+                            pair = self.camera.grab()
+                        else:
+                            ticking = self.camera.keep_alive()
                         grab_ms = (time.perf_counter() - t0) * 1e3
                     except Exception as exc:
                         self._camera_failed(f"camera {self.camera.name} failed: {exc}")
@@ -323,17 +358,45 @@ class StereoPipeline:
                         opened = False
                         reopen_at = time.monotonic() + self.config.reopen_s
                     else:
-                        self._on_grab(pair, grab_ms)
+                        if watched:
+                            self._on_grab(pair, grab_ms)
+                        elif ticking:
+                            self._camera_recovered()
+                            with self._lock:
+                                self._kept_alive += 1
+                                self._camera_ok = True
+                        else:
+                            # Nothing to do until someone watches: sleep until then, and
+                            # grab at once when they come (within one frame).
+                            self._wait_watched()
+                            next_tick = time.monotonic()
+                            continue
                 next_tick += period
                 now = time.monotonic()
                 if now > next_tick + period:
                     # Over a period late: skip the missed ticks instead of bursting.
                     self._late_ticks += 1
                     next_tick = now
-                self._stop.wait(max(0.0, next_tick - now))
+                self._sleep_until(next_tick)
         finally:
             if opened:
                 self._close_camera()
+
+    def _wait_watched(self) -> None:
+        with self._watch:
+            self._idle_waits += 1
+            while not self._watched and not self._stop.is_set():
+                self._watch.wait()
+
+    def _sleep_until(self, t_s: float) -> None:
+        """Sleep until monotonic `t_s`; cut short by `stop()` or by the stream becoming
+        watched while idle (so a new viewer gets a frame at once, not a tick later)."""
+        with self._watch:
+            was_watched = self._watched
+            while not self._stop.is_set() and self._watched == was_watched:
+                left = t_s - time.monotonic()
+                if left <= 0 or not self._watch.wait(left):
+                    return
 
     def _on_grab(self, pair: StereoPair | None, grab_ms: float) -> None:
         if pair is None:
@@ -346,13 +409,7 @@ class StereoPipeline:
                     f"({self._misses * self.config.period_s:.1f} s)"
                 )
             return
-        if self._camera_failing:
-            self._camera_failing = False
-            self._send(
-                "status",
-                f"camera {self.camera.name} recovered",
-                {"camera": self.camera.name, "grab_errors": self._grab_errors},
-            )
+        self._camera_recovered()
         self._misses = 0
         self._seq += 1
         with self._lock:
@@ -362,6 +419,15 @@ class StereoPipeline:
             self._skew_ms.append(abs(pair.skew_ns) / 1e6)
             self._capture_times.append(time.monotonic())
         self._to_encode.put(_Captured(self._seq, pair))
+
+    def _camera_recovered(self) -> None:
+        if self._camera_failing:
+            self._camera_failing = False
+            self._send(
+                "status",
+                f"camera {self.camera.name} recovered",
+                {"camera": self.camera.name, "grab_errors": self._grab_errors},
+            )
 
     def _camera_failed(self, message: str) -> None:
         with self._lock:

@@ -35,6 +35,9 @@ GRID_HALF_WIDTH_M = 0.004
 DEPTH_STEP_M = 0.02
 """Longest depth extent (m) of one drawn piece of a link: bounds the occlusion error."""
 MAX_PIECES = 32
+_PIECE_IDS = 255
+"""Pieces are numbered in a uint8 layer: the PUMA's links (≤ 0.67 m) give ~100 at most;
+beyond 255 (a pose no arm can take) the farthest pieces are not drawn."""
 SHIFT = 4
 """Sub-pixel bits for OpenCV drawing: coordinates are sent as integers × 2**SHIFT."""
 _ONE = 1 << SHIFT
@@ -225,14 +228,29 @@ def _hit_cylinder(c: Cylinder, o: F64, d: F64, t_best: F64, normal: F64, albedo:
 
 
 @dataclass(frozen=True, slots=True)
-class _Piece:
-    """One drawable: a thick segment (p, q) or a disc (p, radius). Pixel coords, float."""
+class _Pieces:
+    """What is drawn of the arm, far to near: thick segments from `p` to `q` (width
+    `size_px`) and discs at `p` (`disc`; radius `size_px`, `q` = `p`), in pixels (float),
+    each with its nearest depth (m) and colour. Arrays of N rows."""
 
-    depth_m: float
-    p: tuple[float, float]
-    q: tuple[float, float] | None
-    size_px: float
-    bgr: tuple[int, int, int]
+    p: F64
+    q: F64
+    size_px: F64
+    depth_m: F64
+    bgr: NDArray[np.uint8]
+    disc: NDArray[np.bool_]
+
+    def __len__(self) -> int:
+        return len(self.depth_m)
+
+    @staticmethod
+    def join(parts: list[_Pieces]) -> _Pieces:
+        return _Pieces(
+            *(np.concatenate([getattr(pc, f) for pc in parts]) for f in _Pieces.__slots__)
+        )
+
+    def take(self, idx: NDArray[np.intp] | slice) -> _Pieces:
+        return _Pieces(*(getattr(self, f)[idx] for f in _Pieces.__slots__))
 
 
 class EyeRenderer:
@@ -243,9 +261,10 @@ class EyeRenderer:
         self.scene = scene
         self.background, self.depth = raycast_scene(scene, camera, supersample)
         h, w = camera.height, camera.width
-        self._layer = np.zeros((h, w, 3), np.uint8)
-        self._layer_depth = np.full((h, w), np.inf, np.float32)
+        self._ids = np.zeros((h, w), np.uint8)
         self._mask = np.zeros((h, w), np.uint8)
+        self._depth_lut = np.full((1, 256), np.inf, np.float32)
+        self._bgr_lut = np.zeros((1, 256, 3), np.uint8)
 
     def render(self, robot: RobotPose | None) -> Image:
         """The eye's image (H, W, 3) BGR uint8 of the scene with `robot` (None: no arm)."""
@@ -258,27 +277,36 @@ class EyeRenderer:
         if roi is None:
             return out
         y0, y1, x0, x1 = roi
-        layer, layer_depth = self._layer, self._layer_depth
-        layer[y0:y1, x0:x1] = 0
-        layer_depth[y0:y1, x0:x1] = np.inf
-        for pc in pieces:
-            _draw(layer, pc, pc.bgr)
-            _draw(layer_depth, pc, (pc.depth_m,))
-        shown = layer_depth[y0:y1, x0:x1] < self.depth[y0:y1, x0:x1]
-        out[y0:y1, x0:x1][shown] = layer[y0:y1, x0:x1][shown]
+        # Painted far to near into one layer of piece numbers (0: no piece), each piece
+        # drawn once; a pixel's colour and depth are its piece's, looked up by OpenCV.
+        pieces = pieces.take(slice(-_PIECE_IDS, None))
+        n = len(pieces)
+        ids = self._ids
+        ids[y0:y1, x0:x1] = 0
+        self._depth_lut[0, 1 : n + 1] = pieces.depth_m
+        self._bgr_lut[0, 1 : n + 1] = pieces.bgr
+        p = np.rint(pieces.p * _ONE).astype(np.int64).tolist()
+        q = np.rint(pieces.q * _ONE).astype(np.int64).tolist()
+        width = np.clip(np.rint(pieces.size_px), 1, 32000).astype(np.int64).tolist()
+        radius = np.maximum(1, np.rint(pieces.size_px * _ONE)).astype(np.int64).tolist()
+        for i, disc in enumerate(pieces.disc.tolist()):
+            if disc:
+                cv2.circle(ids, p[i], radius[i], (i + 1,), -1, cv2.LINE_8, SHIFT)
+            else:
+                cv2.line(ids, p[i], q[i], (i + 1,), width[i], cv2.LINE_8, SHIFT)
+        roi_ids = ids[y0:y1, x0:x1]
+        arm_depth = cv2.LUT(roi_ids, self._depth_lut)
+        shown = cv2.compare(arm_depth, self.depth[y0:y1, x0:x1], cv2.CMP_LT)
+        colour = cv2.LUT(cv2.merge((roi_ids, roi_ids, roi_ids)), self._bgr_lut)
+        cv2.copyTo(colour, shown, out[y0:y1, x0:x1])
         return out
 
-    def _pieces(self, robot: RobotPose) -> list[_Piece]:
+    def _pieces(self, robot: RobotPose) -> _Pieces:
         cam = self.camera
-        fx = cam.intrinsics.fx
         pts_c = cam.to_camera(robot.link_points)
-        pieces: list[_Piece] = []
-        for i, r in enumerate(LINK_RADII_M):
-            self._segment(pieces, pts_c[i], pts_c[i + 1], r, LINK_BGR[i % 2])
-        for i in range(1, 7):
-            self._disc(pieces, pts_c[i], 1.15 * LINK_RADII_M[min(i, 5)], JOINT_BGR)
         tool_c = cam.to_camera(robot.tool_p)
-        self._segment(pieces, pts_c[6], tool_c, SHAFT_RADIUS_M, SHAFT_BGR)
+        links = [(pts_c[i], pts_c[i + 1], r, LINK_BGR[i % 2]) for i, r in enumerate(LINK_RADII_M)]
+        tail = [(pts_c[6], tool_c, SHAFT_RADIUS_M, SHAFT_BGR)]
         if robot.grip is not None:
             x_t = robot.tool_R[:, 0] @ cam.wRc
             z_t = robot.tool_R[:, 2] @ cam.wRc
@@ -287,94 +315,125 @@ class EyeRenderer:
             for side in (-1.0, 1.0):
                 base = tool_c + side * gap * x_t
                 tops.append(base - 0.05 * z_t)
-                self._segment(pieces, tops[-1], base + 0.012 * z_t, FINGER_RADIUS_M, FINGER_BGR)
-            self._segment(pieces, tops[0], tops[1], FINGER_RADIUS_M, FINGER_BGR)
-        pieces.sort(key=lambda pc: -pc.depth_m)
+                tail.append((tops[-1], base + 0.012 * z_t, FINGER_RADIUS_M, FINGER_BGR))
+            tail.append((tops[0], tops[1], FINGER_RADIUS_M, FINGER_BGR))
+        joint_radii = np.array([1.15 * LINK_RADII_M[min(i, 5)] for i in range(1, 7)])
+        pieces = _Pieces.join(
+            [
+                self._segments(links),
+                self._discs(pts_c[1:7], joint_radii, JOINT_BGR),
+                self._segments(tail),
+            ]
+        )
+        pieces = pieces.take(np.argsort(-pieces.depth_m, kind="stable"))
         # The tool marker is a cursor the operator must always find: drawn over the arm's
         # own parts, yet still hidden by the scene in front of it (depth test at composite).
-        z = float(tool_c[2])
-        if z - TOOL_MARKER_RADIUS_M > NEAR_M:
-            uv = cam.project_camera(tool_c)[0]
-            rad = fx * TOOL_MARKER_RADIUS_M / z
-            if self._on_screen(float(uv[0]), float(uv[1]), rad):
-                pieces.append(
-                    _Piece(z - TOOL_MARKER_RADIUS_M, (uv[0], uv[1]), None, rad, TOOL_MARKER_BGR)
-                )
-        return pieces
+        marker = self._discs(tool_c[None], np.array([TOOL_MARKER_RADIUS_M]), TOOL_MARKER_BGR)
+        return _Pieces.join([pieces, marker])
 
-    def _segment(
-        self, out: list[_Piece], a: F64, b: F64, radius_m: float, bgr: tuple[int, int, int]
-    ) -> None:
-        za, zb = float(a[2]), float(b[2])
-        if za < NEAR_M and zb < NEAR_M:
-            return
-        if za < NEAR_M:
-            a = a + (NEAR_M - za) / (zb - za) * (b - a)
-        elif zb < NEAR_M:
-            b = b + (NEAR_M - zb) / (za - zb) * (a - b)
-        n = int(min(MAX_PIECES, max(1, math.ceil(abs(float(b[2] - a[2])) / DEPTH_STEP_M))))
-        pts = a + np.linspace(0.0, 1.0, n + 1)[:, None] * (b - a)
+    def _segments(self, segments: list[tuple[F64, F64, float, tuple[int, int, int]]]) -> _Pieces:
+        """Thick segments (camera frame, m) cut into pieces of at most DEPTH_STEP_M of depth
+        (MAX_PIECES per segment), clipped at the near plane and to the image."""
+        a = np.array([sg[0] for sg in segments], dtype=np.float64)
+        b = np.array([sg[1] for sg in segments], dtype=np.float64)
+        radius = np.array([sg[2] for sg in segments])
+        bgr = np.array([sg[3] for sg in segments], dtype=np.uint8)
+        keep = (a[:, 2] >= NEAR_M) | (b[:, 2] >= NEAR_M)
+        a, b, radius, bgr = a[keep], b[keep], radius[keep], bgr[keep]
+        za, zb = a[:, 2], b[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            clip_a = za < NEAR_M
+            clip_b = (zb < NEAR_M) & ~clip_a
+            a_near = a + ((NEAR_M - za) / (zb - za))[:, None] * (b - a)
+            b_near = b + ((NEAR_M - zb) / (za - zb))[:, None] * (a - b)
+        a = np.where(clip_a[:, None], a_near, a)
+        b = np.where(clip_b[:, None], b_near, b)
+        n = np.clip(np.ceil(np.abs(b[:, 2] - a[:, 2]) / DEPTH_STEP_M), 1, MAX_PIECES)
+        n = n.astype(np.int64)
+        # The n + 1 points of each segment, as np.linspace(0, 1, n + 1) places them.
+        seg = np.repeat(np.arange(len(n)), n + 1)
+        first = np.cumsum(n + 1) - (n + 1)
+        k = np.arange(len(seg)) - first[seg]
+        t = k * (1.0 / n[seg])
+        t[first + n] = 1.0
+        pts = a[seg] + t[:, None] * (b - a)[seg]
         uv = self.camera.project_camera(pts)
-        fx = self.camera.intrinsics.fx
-        for k in range(n):
-            z_mid = 0.5 * float(pts[k, 2] + pts[k + 1, 2])
-            width = 2.0 * fx * radius_m / z_mid
-            clipped = self._clip(uv[k], uv[k + 1], width)
-            if clipped is not None:
-                out.append(_Piece(z_mid - radius_m, clipped[0], clipped[1], width, bgr))
+        # Piece j of a segment joins its points j and j + 1.
+        start = np.ones(len(seg), bool)
+        start[first + n] = False
+        i0 = np.nonzero(start)[0]
+        owner = seg[i0]
+        z_mid = 0.5 * (pts[i0, 2] + pts[i0 + 1, 2])
+        width = 2.0 * self.camera.intrinsics.fx * radius[owner] / z_mid
+        p, q, ok = self._clip(uv[i0], uv[i0 + 1], width)
+        return _Pieces(
+            p[ok],
+            q[ok],
+            width[ok],
+            (z_mid - radius[owner])[ok],
+            bgr[owner][ok],
+            np.zeros(int(ok.sum()), bool),
+        )
 
-    def _disc(self, out: list[_Piece], c: F64, radius_m: float, bgr: tuple[int, int, int]) -> None:
-        z = float(c[2])
-        if z - radius_m <= NEAR_M:
-            return
-        uv = self.camera.project_camera(c)[0]
-        rad = self.camera.intrinsics.fx * radius_m / z
-        if self._on_screen(float(uv[0]), float(uv[1]), rad):
-            out.append(_Piece(z - radius_m, (float(uv[0]), float(uv[1])), None, rad, bgr))
-
-    def _on_screen(self, u: float, v: float, rad: float) -> bool:
+    def _discs(self, centres: F64, radii_m: F64, bgr: tuple[int, int, int]) -> _Pieces:
+        """Flat discs facing the camera at `centres` (camera frame, m), those in front of
+        the near plane and on screen."""
+        z = centres[:, 2]
+        front = z - radii_m > NEAR_M
+        centres, radii_m, z = centres[front], radii_m[front], z[front]
+        uv = self.camera.project_camera(centres)
+        rad = self.camera.intrinsics.fx * radii_m / z
         w, h = self.camera.width, self.camera.height
-        return -rad <= u <= w - 1 + rad and -rad <= v <= h - 1 + rad and rad < 4 * max(w, h)
+        u, v = uv[:, 0], uv[:, 1]
+        on = (
+            (-rad <= u)
+            & (u <= w - 1 + rad)
+            & (-rad <= v)
+            & (v <= h - 1 + rad)
+            & (rad < 4 * max(w, h))
+        )
+        n = int(on.sum())
+        return _Pieces(
+            uv[on],
+            uv[on],
+            rad[on],
+            (z - radii_m)[on],
+            np.tile(np.array(bgr, np.uint8), (n, 1)),
+            np.ones(n, bool),
+        )
 
-    def _clip(
-        self, p: F64, q: F64, width_px: float
-    ) -> tuple[tuple[float, float], tuple[float, float]] | None:
-        """Liang–Barsky clip of the segment to the image grown by the line's half width, so
-        that OpenCV only ever sees bounded coordinates."""
+    def _clip(self, p: F64, q: F64, width_px: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
+        """Liang–Barsky clip of each segment p → q (N, 2) to the image grown by its line's
+        half width, so that OpenCV only ever sees bounded coordinates: the clipped ends and
+        which segments are left."""
         m = 0.5 * width_px + 1.0
-        lo = (-m, -m)
+        lo = -m
         hi = (self.camera.width - 1 + m, self.camera.height - 1 + m)
-        t0, t1 = 0.0, 1.0
-        d = (float(q[0] - p[0]), float(q[1] - p[1]))
-        for axis in (0, 1):
-            for num, den in ((float(p[axis]) - lo[axis], -d[axis]), (hi[axis] - p[axis], d[axis])):
-                if den == 0.0:
-                    if num < 0.0:
-                        return None
-                    continue
-                t = num / den
-                if den < 0.0:
-                    t0 = max(t0, t)
-                else:
-                    t1 = min(t1, t)
-                if t0 > t1:
-                    return None
-        pu, pv = float(p[0]), float(p[1])
-        return (pu + t0 * d[0], pv + t0 * d[1]), (pu + t1 * d[0], pv + t1 * d[1])
+        t0 = np.zeros(len(p))
+        t1 = np.ones(len(p))
+        ok = np.ones(len(p), bool)
+        d = q - p
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for axis in (0, 1):
+                for num, den in (
+                    (p[:, axis] - lo, -d[:, axis]),
+                    (hi[axis] - p[:, axis], d[:, axis]),
+                ):
+                    ok &= ~((den == 0.0) & (num < 0.0))
+                    t = num / den
+                    t0 = np.where(den < 0.0, np.maximum(t0, t), t0)
+                    t1 = np.where(den > 0.0, np.minimum(t1, t), t1)
+                    ok &= ~(t0 > t1)
+        return p + t0[:, None] * d, p + t1[:, None] * d, ok
 
-    def _bbox(self, pieces: list[_Piece]) -> tuple[int, int, int, int] | None:
-        if not pieces:
+    def _bbox(self, pieces: _Pieces) -> tuple[int, int, int, int] | None:
+        if not len(pieces):
             return None
-        us: list[float] = []
-        vs: list[float] = []
-        for pc in pieces:
-            r = pc.size_px / 2.0 if pc.q is not None else pc.size_px
-            for pt in (pc.p, pc.q) if pc.q is not None else (pc.p,):
-                us += (pt[0] - r, pt[0] + r)
-                vs += (pt[1] - r, pt[1] + r)
+        r = np.where(pieces.disc, pieces.size_px, pieces.size_px / 2.0)[:, None]
+        ends = np.concatenate([pieces.p - r, pieces.p + r, pieces.q - r, pieces.q + r])
         w, h = self.camera.width, self.camera.height
-        x0, x1 = max(0, int(min(us)) - 2), min(w, int(max(us)) + 3)
-        y0, y1 = max(0, int(min(vs)) - 2), min(h, int(max(vs)) + 3)
+        x0, x1 = max(0, int(ends[:, 0].min()) - 2), min(w, int(ends[:, 0].max()) + 3)
+        y0, y1 = max(0, int(ends[:, 1].min()) - 2), min(h, int(ends[:, 1].max()) + 3)
         if x0 >= x1 or y0 >= y1:
             return None
         return y0, y1, x0, x1
@@ -428,17 +487,6 @@ def _support_z(scene: Scene, x: float, y: float, z: float) -> float | None:
         if math.hypot(x - c.base[0], y - c.base[1]) <= c.radius and best < top <= z:
             best = top
     return best
-
-
-def _draw(img: Image | F32, pc: _Piece, color: tuple[float, ...]) -> None:
-    p = (round(pc.p[0] * _ONE), round(pc.p[1] * _ONE))
-    if pc.q is None:
-        r = max(1, round(pc.size_px * _ONE))
-        cv2.circle(img, p, r, color, -1, cv2.LINE_8, SHIFT)
-    else:
-        q = (round(pc.q[0] * _ONE), round(pc.q[1] * _ONE))
-        thickness = int(min(32000, max(1, round(pc.size_px))))
-        cv2.line(img, p, q, color, thickness, cv2.LINE_8, SHIFT)
 
 
 class StereoRenderer:

@@ -91,5 +91,11 @@ class SimStereoCamera:
         left, right = renderer.render(robot)
         return StereoPair(left, right, t_ns, t_ns, self.rig.intrinsics, self.rig.baseline_m)
 
+    def keep_alive(self) -> bool:
+        """Nothing to keep alive: a simulator renders nothing while nobody watches."""
+        if self._renderer is None:
+            raise CameraError("sim camera: keep_alive() before open()")
+        return False
+
     def _build(self, scene: Scene) -> StereoRenderer:
         return StereoRenderer(scene, self.rig.left, self.rig.right, self._supersample)

@@ -90,7 +90,7 @@ def system(net: Any) -> Iterator[System]:
         closers.append(
             DecisionService(
                 net.node("decision"),
-                DecisionConfig(rate_hz=200.0, watchdog_ms=2000.0, state_stale_ms=2000.0),
+                DecisionConfig(rate_hz=200.0, watchdog_ms=1000.0, state_stale_ms=1000.0),
             )
         )
         closers.append(
@@ -237,7 +237,7 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             for close in notices.all():
                 close.click()
             expect(notices).to_have_count(0, timeout=10_000)  # gone, not fading out
-            assert console.mirror.left.latest is not None, "no stereo frame reached the console"
+            assert console.frames_shown > 0, "no stereo frame reached the page"
             cam = _camera(console, width_px=1400)
             canvas = page.locator("canvas").first.bounding_box()
             assert canvas is not None

@@ -25,6 +25,8 @@ def test_defaults() -> None:
         ({"video_fps": 60.0}, "console.video_fps"),
         ({"video_fps": 0.0}, "console.video_fps"),
         ({"events": 0}, "console.events"),
+        ({"force_rate_hz": 0.0}, "console.force_rate_hz"),
+        ({"force_rate_hz": 2000.0}, "console.force_rate_hz"),
         ({"camera_position_m": [1.0, 2.0]}, "console.camera_position_m"),
         ({"prot": 1}, "console.prot"),
     ],

@@ -103,7 +103,7 @@ def rig(net: Any) -> Iterator[Rig]:
         # link, not the supervisor's timing, is under test here.
         closers.append(
             DecisionService(
-                net.node("decision"), DecisionConfig(watchdog_ms=2000.0, state_stale_ms=2000.0)
+                net.node("decision"), DecisionConfig(watchdog_ms=1000.0, state_stale_ms=1000.0)
             )
         )
         closers.append(

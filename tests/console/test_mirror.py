@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -12,8 +11,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from services.bus import keys
-from services.bus.messages import IDENTITY_R, OperatorCommand, RobotState
+from services.bus.messages import IDENTITY_R, OperatorCommand
 from services.console.mirror import BusMirror, ForceHistory
+
+from .support import ready_state, wait_until
 
 
 def test_force_history_window_and_wrap_around() -> None:
@@ -44,31 +45,6 @@ def test_empty_history() -> None:
     assert t.shape == (0,) and w.shape == (0, 6)
 
 
-def _until(pred: Callable[[], bool], timeout_s: float = 5.0) -> bool:
-    """Poll a condition the mirror offers no wait for, up to a deadline."""
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
-
-
-def _state(seq: int, p: tuple[float, float, float]) -> RobotState:
-    return RobotState(
-        seq=seq,
-        t_ns=time.time_ns(),
-        status="ready",
-        q=(0.0,) * 6,
-        tool_p=p,
-        tool_R=IDENTITY_R,
-        flange_p=p,
-        flange_R=IDENTITY_R,
-        engage=0,
-        cmd_seq=0,
-    )
-
-
 def _cmd(seq: int, engage: int, dp: tuple[float, float, float]) -> OperatorCommand:
     return OperatorCommand(
         seq=seq,
@@ -86,14 +62,15 @@ def test_mirror_over_the_bus(net: Any) -> None:
     pub_node = net.node("puma")
     mirror_node = net.node("console")
     mirror = BusMirror(mirror_node, events=3, force_capacity=100)
+    mirror.watch_page(True)  # robot/puma/cmd is subscribed to while a page is shown
     state_pub = pub_node.publisher(keys.STATE)
     cmd_pub = pub_node.publisher(keys.PUMA_CMD)
     assert mirror.target() is None
 
-    state_pub.put(_state(1, (0.5, 0.0, 0.6)))
+    state_pub.put(ready_state(1, (0.5, 0.0, 0.6)))
     assert mirror.state.wait_for(lambda s: s.seq == 1, 5.0) is not None
     cmd_pub.put(_cmd(10, 7, (0.0, 0.1, 0.0)))
-    assert _until(lambda: mirror.target() is not None)
+    assert wait_until(lambda: mirror.target() is not None)
     target = mirror.target()
     assert target is not None
     p, R, active = target
@@ -102,7 +79,7 @@ def test_mirror_over_the_bus(net: Any) -> None:
 
     for i in range(5):
         pub_node.event("status", f"e{i}")
-    assert _until(lambda: mirror.events_seen == 5)
+    assert wait_until(lambda: mirror.events_seen == 5)
     assert [e.message for e in mirror.events()] == ["e2", "e3", "e4"]
     new, seen = mirror.events_since(3)
     assert [e.message for e in new] == ["e3", "e4"] and seen == 5

@@ -31,6 +31,8 @@ class FakeCamera:
 
     Each pair's pixels carry its frame number (mod 256). `fail` (an exception instance)
     makes grab raise it; `starve` makes grab return None; `fail_open` makes open raise.
+    `device` makes it a camera that must keep being read while nobody watches
+    (`keep_alive` returns True and counts `keep_alives`), like a real device.
     """
 
     def __init__(self, width: int = 16, height: int = 16, skew_ns: int = 1_000) -> None:
@@ -42,6 +44,8 @@ class FakeCamera:
         self.fail: Exception | None = None
         self.starve = False
         self.fail_open = False
+        self.device = False
+        self.keep_alives = 0
         self._lock = threading.Lock()
 
     @property
@@ -59,6 +63,14 @@ class FakeCamera:
         with self._lock:
             self.close_calls += 1
             self.is_open = False
+
+    def keep_alive(self) -> bool:
+        if not self.is_open:
+            raise CameraError("fake: not open")
+        if self.fail is not None:
+            raise self.fail
+        self.keep_alives += 1
+        return self.device
 
     def grab(self) -> StereoPair | None:
         if not self.is_open:

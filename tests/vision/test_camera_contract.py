@@ -60,11 +60,15 @@ def test_camera_contract(backend: str, tmp_path: Path) -> None:
         k = pair.intrinsics
         assert k.fx > 0 and k.fy > 0 and 0 <= k.cx < W and 0 <= k.cy < H
         assert pair.baseline_m > 0
+        # Simulators and files wait while nobody watches (only devices keep reading).
+        assert cam.keep_alive() is False
     finally:
         cam.close()
     cam.close()  # idempotent
     with pytest.raises(CameraError):
         cam.grab()
+    with pytest.raises(CameraError):
+        cam.keep_alive()
     cam.open()  # a closed camera can be opened again
     try:
         assert cam.grab() is not None

@@ -224,6 +224,82 @@ def test_stop_closes_the_camera_and_publishes_no_more() -> None:
         pipe.start()
 
 
+def test_nothing_is_grabbed_or_published_while_nobody_watches() -> None:
+    """A simulator-like camera: the capture thread sleeps while unwatched (no grab, no
+    keep-alive ticks), works while watched, and sleeps again when the viewer leaves."""
+    cfg = VisionConfig(width=16, height=16, fps=100.0)
+    cam, rec = FakeCamera(), Recorder()
+    with StereoPipeline(cam, cfg, rec.publish, rec.emit, watched=False) as pipe:
+        wait_for(lambda: pipe.stats()["idle_waits"] == 1, what="the capture thread asleep")
+        assert cam.is_open, "the camera is opened at start, ready for the first viewer"
+        assert (cam.frames, cam.keep_alives, len(rec.pairs)) == (0, 1, 0)
+        assert pipe.stats()["idle"] is True
+
+        pipe.set_watched(True)
+        wait_for(lambda: len(rec.pairs) >= 5, what="pairs once watched")
+        assert pipe.stats()["idle"] is False
+
+        pipe.set_watched(False)
+        wait_for(lambda: pipe.stats()["idle_waits"] == 2, what="the capture thread asleep")
+        frames, published = cam.frames, pipe.stats()["published"]
+        # Asleep on a condition, not polling: a second viewer coming and going wakes it
+        # exactly once more, and no frame was grabbed in between.
+        assert pipe.stats()["captured"] == frames and cam.keep_alives == 2
+
+        pipe.set_watched(True)
+        wait_for(lambda: pipe.stats()["published"] >= published + 3, what="resumed pairs")
+    assert not pipe.running and not cam.is_open
+
+
+def test_a_new_viewer_gets_a_pair_at_once_not_at_the_next_tick() -> None:
+    # One frame per 100 s: a pair within the wait's deadline can only come from the
+    # capture thread being woken by set_watched.
+    cfg = VisionConfig(width=16, height=16, fps=0.01)
+    cam, rec = FakeCamera(), Recorder()
+    with StereoPipeline(cam, cfg, rec.publish, rec.emit, watched=False) as pipe:
+        wait_for(lambda: pipe.stats()["idle_waits"] == 1, what="the capture thread asleep")
+        pipe.set_watched(True)
+        wait_for(lambda: len(rec.pairs) == 1, what="a pair for the new viewer")
+        assert cam.frames == 1
+
+
+def test_a_device_keeps_being_read_but_nothing_is_encoded_while_unwatched() -> None:
+    cfg = VisionConfig(width=16, height=16, fps=100.0)
+    cam, rec = FakeCamera(), Recorder()
+    cam.device = True
+    with StereoPipeline(cam, cfg, rec.publish, rec.emit, watched=False) as pipe:
+        wait_for(lambda: cam.keep_alives >= 10, what="the device kept fresh")
+        s = pipe.stats()
+        assert (cam.frames, s["captured"], s["encoded"], s["published"]) == (0, 0, 0, 0)
+        assert s["kept_alive"] >= 10 and s["idle_waits"] == 0 and rec.events == []
+        pipe.set_watched(True)
+        wait_for(lambda: len(rec.pairs) >= 3, what="pairs once watched")
+
+
+def test_a_device_that_dies_while_unwatched_is_reported_and_reopened() -> None:
+    cfg = VisionConfig(width=16, height=16, fps=100.0, reopen_s=0.01)
+    cam, rec = FakeCamera(), Recorder()
+    cam.device = True
+    with StereoPipeline(cam, cfg, rec.publish, rec.emit, watched=False):
+        wait_for(lambda: cam.keep_alives >= 2)
+        cam.fail = CameraError("fake: unplugged")
+        wait_for(lambda: cam.open_calls >= 3, what="reopen attempts")
+        assert rec.kinds() == ["error"]
+        cam.fail = None
+        wait_for(lambda: rec.kinds() == ["error", "status"], what="the recovered event")
+
+
+def test_stop_wakes_an_idle_pipeline() -> None:
+    cam, rec = FakeCamera(), Recorder()
+    pipe = StereoPipeline(
+        cam, VisionConfig(width=16, height=16), rec.publish, rec.emit, watched=False
+    )
+    pipe.start()
+    wait_for(lambda: pipe.stats()["idle_waits"] == 1)
+    pipe.stop()
+    assert not pipe.running and not cam.is_open
+
+
 @given(st.lists(st.one_of(st.just("take"), st.integers(0, 1000)), max_size=60))
 def test_latest_slot_keeps_only_the_newest(ops: list[str | int]) -> None:
     """Whatever the interleaving, a take gets the newest put, nothing is delivered twice,

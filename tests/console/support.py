@@ -1,0 +1,100 @@
+"""Helpers of the console tests: waiting on a condition, a ready robot state, and a browser
+as viser sees one, without a browser.
+
+viser counts a client as connected once its websocket (subprotocol `viser-v<version>`) has
+sent the first camera message, and as gone when the socket closes. `FakeBrowser` does just
+that and reads (and drops) whatever the server sends, as a page would, so the server's
+queue never backs up.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from types import TracebackType
+
+import msgpack
+import viser
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import ClientConnection, connect
+
+from services.bus.messages import IDENTITY_R, RobotState
+
+
+def wait_until(pred: Callable[[], bool], timeout_s: float = 10.0, poll_s: float = 0.01) -> bool:
+    """Poll `pred` until it holds or the deadline passes; returns the last answer."""
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(poll_s)
+    return True
+
+
+def ready_state(seq: int, tool_p: tuple[float, float, float]) -> RobotState:
+    """A `ready` robot/state with the tool (and the flange) at `tool_p`, axes as the world's."""
+    return RobotState(
+        seq=seq,
+        t_ns=time.time_ns(),
+        status="ready",
+        q=(0.0,) * 6,
+        tool_p=tool_p,
+        tool_R=IDENTITY_R,
+        flange_p=tool_p,
+        flange_R=IDENTITY_R,
+        engage=0,
+        cmd_seq=0,
+    )
+
+
+class FakeBrowser:
+    """A page connected to the console at `port` (127.0.0.1) until `close()`."""
+
+    def __init__(self, port: int) -> None:
+        self.received = 0
+        self._ws: ClientConnection = connect(
+            f"ws://127.0.0.1:{port}",
+            subprotocols=[f"viser-v{viser.__version__}"],  # type: ignore[list-item]
+            max_size=None,
+        )
+        self._ws.send(
+            msgpack.packb(
+                {
+                    "type": "ViewerCameraMessage",
+                    "wxyz": [1.0, 0.0, 0.0, 0.0],
+                    "position": [2.0, -1.5, 1.5],
+                    "fov": 1.0,
+                    "near": 0.01,
+                    "far": 100.0,
+                    "image_height": 480,
+                    "image_width": 640,
+                    "look_at": [0.45, 0.0, 0.55],
+                    "up_direction": [0.0, 0.0, 1.0],
+                }
+            )
+        )
+        self._reader = threading.Thread(target=self._read, name="fake-browser", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        try:
+            for _ in self._ws:
+                self.received += 1
+        except ConnectionClosed:
+            pass
+
+    def close(self) -> None:
+        self._ws.close()
+        self._reader.join(timeout=5.0)
+
+    def __enter__(self) -> FakeBrowser:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
