@@ -498,7 +498,12 @@ class DecisionService:
             result: dict[str, Any] | None = None
             error: tuple[ErrorCode, str] | None = None
             try:
-                reply = self._forward("puma", "home", {"wait": True}, self.config.wait_timeout_s)
+                reply = self._forward(
+                    "puma",
+                    "home",
+                    {"wait": True, SUPERVISED_BY: SERVICE},
+                    self.config.wait_timeout_s,
+                )
                 result = {"task": "home", "done": True, **reply}
             except RpcError as e:
                 error = (e.code, e.message)
