@@ -389,6 +389,8 @@ class Console:
     def _on_gizmo(self, ev: Any) -> None:
         p, R = hand_pose(ev.target.position, ev.target.wxyz)
         self.hand.set_gizmo(p, R)
+        if getattr(ev, "phase", None) == "end":
+            self.hand.release()  # let go: disengage cleanly, engage afresh at the next drag
 
     def _set_view(self, mode: str) -> None:
         if mode in VIEW_MODES:

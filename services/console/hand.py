@@ -100,6 +100,16 @@ class HandLink:
             self._version += 1
             self._cond.notify_all()
 
+    def release(self) -> None:
+        """The operator let go of the gizmo: the hand stays where it is, clutched (parked
+        there), so the master disengages cleanly instead of streaming a still hand, and the
+        next drag engages afresh from that pose (no jump, no watchdog)."""
+        with self._cond:
+            if self._held is None:
+                self._held = "parked"
+                self._version += 1
+                self._cond.notify_all()
+
     def set_shift(self, pressed: bool) -> None:
         """The operator's master-shift (clutch) checkbox."""
         with self._cond:
@@ -179,7 +189,11 @@ class HandLink:
         self.error = None
 
     def _follow(self, gizmo: Pose, shift: bool, held: str | None) -> None:
-        if held == "parked" and not shift and self._sent is not None:
+        moved = self._sent is not None and not (
+            np.array_equal(self._sent[0][0], gizmo[0])
+            and np.array_equal(self._sent[0][1], gizmo[1])
+        )
+        if held == "parked" and not shift and self._sent is not None and moved:
             tool = self._tool_pose()
             if tool is not None and tool.status in ("ready", "moving"):
                 # The operator moves the gizmo: release the master-shift where the hand was

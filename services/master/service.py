@@ -45,6 +45,10 @@ REOPEN_FIRST_S = 0.25
 REOPEN_MAX_S = 2.0
 """A lost device is reopened after 0.25 s, then 0.5, 1, 2, 2 … s until it answers."""
 HOLD_REPEATS = 3
+IDLE_RATE_HZ = 50.0
+"""A station whose device may idle (the virtual master), clutched and not engaged, ticks this
+often until the device wakes it: the contract's floor for robot/cmd (≥ 50 Hz) and, as
+master/state goes out each idle tick, above its floor (≥ 30 Hz)."""
 
 
 class MasterService:
@@ -76,6 +80,7 @@ class MasterService:
         self._notice: tuple[str, str] | None = None
         self._notice_engage = 0
         self._grip: float | None = None
+        self._clutched = False
         if hasattr(self.device, "show_status"):
             node.subscribe(keys.EVENTS, self._on_event)
         self._stop = threading.Event()
@@ -114,9 +119,28 @@ class MasterService:
                 if self.ticks % state_every == 0:
                     self._publish_state()
                 self.ticks += 1
+                if self._idle():
+                    wake = getattr(self.device, "wake", None)
+                    (wake if isinstance(wake, threading.Event) else self._stop).wait(
+                        1.0 / IDLE_RATE_HZ
+                    )
+                    if isinstance(wake, threading.Event):
+                        wake.clear()
+                    rate.set_rate(self.config.rate_hz)  # a fresh schedule, not a late one
+                    if self.ticks % state_every:
+                        self._publish_state()  # master/state with every slow tick
+                    continue
                 rate.sleep()
         finally:
             self._hold()
+
+    def _idle(self) -> bool:
+        """Clutched, not engaged, on a device that may idle: nothing to stream."""
+        return (
+            bool(getattr(self.device, "may_idle", False))
+            and self._clutched
+            and (not self.teleop.engaged)
+        )
 
     def _tick(self, dt_s: float) -> None:
         t_ns = time.time_ns()
@@ -140,6 +164,7 @@ class MasterService:
             return
         self._report_rejected()
         self._grip = reading.grip
+        self._clutched = bool(reading.clutch)
         self._cmd.put(OperatorCommand(**asdict(self.teleop.tick(reading, t_ns))))
         self._display_force(reading, dt_s)
 

@@ -19,8 +19,12 @@ class VirtualMaster:
     to `display_force` are kept for whoever draws them (`displayed_force`).
     """
 
+    may_idle = True
+    """While clutched and not engaged the station may tick slowly: `wake` brings it back."""
+
     def __init__(self, name: str = "virtual") -> None:
         self._name = name
+        self.wake = threading.Event()
         self._lock = threading.Lock()
         self._reading = HandReading(np.zeros(3), np.eye(3), False, None, 0)
         self._force = (np.zeros(3), np.zeros(3))
@@ -50,6 +54,7 @@ class VirtualMaster:
         reading = HandReading(np.asarray(p, dtype=float), hand_R, clutch, grip, buttons)
         with self._lock:
             self._reading = reading
+        self.wake.set()
 
     def read(self, dt_s: float) -> HandReading:
         with self._lock:

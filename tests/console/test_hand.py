@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from services.bus import keys
-from services.bus.messages import RobotState, mat3
+from services.bus.messages import Event, RobotState, mat3
 from services.bus.node import Node
 from services.console.geometry import Mat, Vec
 from services.console.hand import HandLink, ToolPose
@@ -99,13 +99,8 @@ def rig(net: Any) -> Iterator[Rig]:
     closers: list[Any] = []
     try:
         closers.append(PumaService(net.node("puma"), PumaConfig(sim_calibration_s=0.05)))
-        # Watchdogs widened: other test processes may share the two cores; the console's
-        # link, not the supervisor's timing, is under test here.
-        closers.append(
-            DecisionService(
-                net.node("decision"), DecisionConfig(watchdog_ms=1000.0, state_stale_ms=1000.0)
-            )
-        )
+        # The default watchdogs (100 ms command, 200 ms state), as deployed.
+        closers.append(DecisionService(net.node("decision"), DecisionConfig()))
         closers.append(
             MasterService(
                 net.node("master", instance="console"),
@@ -190,6 +185,42 @@ def test_park_engage_follow_and_master_shift(rig: Rig) -> None:
         assert rig.mirror.wait_master("console", lambda m: m.active, 5.0)
         link.set_gizmo(moved_hand + _d(0.0, 0.0, -0.03), R_home)
         assert rig.wait_tool(goal + _d(0.0, 0.0, -0.03)) is not None, rig.tool_p()
+    finally:
+        link.close()
+
+
+def test_letting_go_of_the_gizmo_disengages_cleanly_and_the_next_drag_engages_afresh(
+    rig: Rig,
+) -> None:
+    link = rig.link("console")
+    events: list[Event] = []
+    rig.client.subscribe(keys.EVENTS, events.append)
+    try:
+        home = _ready_at_home(rig)
+        R_home = mat3(rig.mirror.state.latest.tool_R)  # type: ignore[union-attr]
+        link.resync()
+        _wait_link(link, "parked", resyncs=1)
+        goal = home + _d(0.0, 0.03, 0.0)
+        link.set_gizmo(goal, R_home)
+        assert rig.wait_tool(goal) is not None, (rig.tool_p(), link.state, link.error)
+        engaged_state = rig.mirror.master("console")
+        assert engaged_state is not None
+        first = engaged_state.engage
+        link.release()  # the mouse button comes up
+        assert rig.mirror.wait_master("console", lambda m: not m.active, 5.0)
+        _wait_link(link, "parked")
+        lease = [
+            e for e in events if e.kind == "lease" and (e.data or {}).get("master") == "console"
+        ]
+        assert rig.client.call("decision", "status", {}, 5.0)["lease"] is None
+        rig.settle(60)  # well past the 100 ms watchdog: a released hand trips nothing
+        assert not [e for e in events if e.kind == "watchdog"], [e.message for e in events]
+        assert lease and (lease[-1].data or {}).get("reason") == "disengaged"
+        rig.drift.reset(rig.tool_p())
+        again = goal + _d(0.0, 0.0, 0.02)  # the next drag: a new engagement, relative motion
+        link.set_gizmo(again, R_home)
+        assert rig.wait_tool(again) is not None, rig.tool_p()
+        assert rig.mirror.wait_master("console", lambda m: m.active and m.engage > first, 5.0)
     finally:
         link.close()
 
