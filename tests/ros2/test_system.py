@@ -189,10 +189,7 @@ def make_cell(make_net: Callable[..., Net]) -> Iterator[Callable[..., Cell]]:
             arm=SimArm(HOME_Q_RAD, calibration_s=0.05),
         )
         force = ForceService(net.node("force"), ForceConfig(seed=7, period_ms=2.0, spin_us=0.0))
-        decision = DecisionService(
-            net.node("decision"),
-            DecisionConfig(watchdog_ms=1000.0, state_stale_ms=2000.0, stale_ms=500.0),
-        )
+        decision = DecisionService(net.node("decision"), DecisionConfig())  # default watchdogs
         console = net.node("console")
         history = History(console)
         vision = Vision(net.node("vision"))
