@@ -205,14 +205,21 @@ def config_of(q: ArrayLike) -> str:
 
 _LO: tuple[float, ...] = tuple(link.lo_rad for link in PUMA560_DH)
 _HI: tuple[float, ...] = tuple(link.hi_rad for link in PUMA560_DH)
-_Limits = tuple[float, float, float, float, bool]
+_Limits = tuple[float, float, float, float, float, float]
 _JOINTS: tuple[_Limits, ...] = tuple(
-    (lo, hi, lo - 1e-12, hi + 1e-12, hi - lo + 2e-12 < TWO_PI)
+    (
+        lo,
+        hi,
+        lo - 1e-12,
+        hi + 1e-12,
+        max(lo - 1e-12, hi + 1e-12 - TWO_PI + 1e-9),
+        min(hi + 1e-12, lo - 1e-12 + TWO_PI - 1e-9),
+    )
     for lo, hi in zip(_LO, _HI, strict=True)
 )
-"""Per joint: (lo, hi, lo − 1e-12, hi + 1e-12, one turn at most). A joint whose widened range
-is under one turn (1–5; joint 6 spans 532°) has q itself as its only in-limits representative
-whenever q is inside that range."""
+"""Per joint: (lo, hi, lo − 1e-12, hi + 1e-12, then the range where q itself is the only
+representative in [lo − 1e-12, hi + 1e-12], i.e. k = 0 for sure: all of it for joints 1–5,
+which span less than a turn; |q| ≲ 1.64 rad for joint 6, which spans 532°)."""
 _WRIST_JOINTS = _JOINTS[3:]
 _PI = math.pi
 
@@ -226,11 +233,12 @@ def _reps(
     q: Sequence[float], ref: Sequence[float], limits: Sequence[_Limits] = _JOINTS
 ) -> list[float] | None:
     """Each joint of `q` (with its `limits`) shifted by 2πk into its limits nearest `ref`; None
-    if one has no such representative (±1e-12, then clipped into the limits): `wrap_pi`'s
-    numpy twin, joint by joint, with the one-turn joints' common case first."""
+    if one has no such representative (±1e-12, then clipped into the limits): numpy's
+    ceil/floor/round/clip formula joint by joint, skipped where k = 0 is the only choice."""
     out: list[float] = []
-    for x, r, (lo, hi, lo_e, hi_e, one_turn) in zip(q, ref, limits, strict=False):
-        if not (one_turn and lo_e <= x <= hi_e):
+    # zip's `strict` keyword alone costs ~0.2 µs a call here; callers pass matching lengths.
+    for x, r, (lo, hi, lo_e, hi_e, only_lo, only_hi) in zip(q, ref, limits):  # noqa: B905
+        if not only_lo <= x <= only_hi:
             k_lo = math.ceil((lo_e - x) / TWO_PI)
             k_hi = math.floor((hi_e - x) / TWO_PI)
             if k_lo > k_hi:
@@ -359,25 +367,31 @@ def _ik_floats(
             c23, s23 = math.cos(q2 + q3), math.sin(q2 + q3)
             m00, m02 = c23 * u0 + s23 * r20, c23 * u2 + s23 * r22
             m20, m22 = c23 * r20 - s23 * u0, c23 * r22 - s23 * u2
-            w1, w2, w3 = _wrap(q1), _wrap(q2), _wrap(q3)
+            w1 = -((-q1 + _PI) % TWO_PI - _PI)  # _wrap, inline: ~40 calls a solve
+            w2 = -((-q2 + _PI) % TWO_PI - _PI)
+            w3 = -((-q3 + _PI) % TWO_PI - _PI)
             arm = [w1, w2, w3]
             arm_rep = _reps(arm, ref)
             letters = _arm_letters(w2, w3)
             # The wrist R_36 = Rz(q4)·Ry(−q5)·Rz(q6) (Rx(90)Rz(q5)Rx(−90) = Ry(−q5)): both flips
             # (q5 ≥ 0 first), or one with q4 = q_ref[3] when exactly singular. q6 is taken from
             # the residual Ry(q5)·Rz(−q4)·R_36 so FK stays exact however small sin q5 is.
+            # The flip (q4 + π, −q5) negates both atan2 arguments of q6: q6 + π.
             s5 = math.hypot(m02, m12)
             if s5 < _EXACT_WRIST_SINGULAR:
-                wrists = [(q4_ref, math.atan2(s5, m22))]
+                q4, q5 = q4_ref, math.atan2(s5, m22)
+                wrists = [(q4, q5, 1.0)]
             else:
                 q4, q5 = math.atan2(-m12, -m02), math.atan2(s5, m22)
-                wrists = [(q4, q5), (q4 + _PI, -q5)]
-            for q4, q5 in wrists:
-                c4, s4 = math.cos(q4), math.sin(q4)
-                a = c4 * m00 + s4 * m10
-                q6 = math.atan2(c4 * m10 - s4 * m00, math.cos(q5) * a + math.sin(q5) * m20)
-                wrist = [_wrap(q4), _wrap(q5), _wrap(q6)]
-                config = letters + ("p" if _wrap(wrist[1]) >= 0.0 else "m")
+                wrists = [(q4, q5, 1.0), (q4 + _PI, -q5, -1.0)]
+            c4, s4 = math.cos(q4), math.sin(q4)
+            a = c4 * m00 + s4 * m10
+            n10, n00 = c4 * m10 - s4 * m00, math.cos(q5) * a + math.sin(q5) * m20
+            for q4, q5, sign in wrists:
+                q6 = math.atan2(sign * n10, sign * n00)
+                w5 = -((-q5 + _PI) % TWO_PI - _PI)
+                wrist = [-((-q4 + _PI) % TWO_PI - _PI), w5, -((-q6 + _PI) % TWO_PI - _PI)]
+                config = letters + ("p" if _wrap(w5) >= 0.0 else "m")
                 wrist_rep = None if arm_rep is None else _reps(wrist, ref_wrist, _WRIST_JOINTS)
                 if arm_rep is None or wrist_rep is None:
                     out.append((arm + wrist, config, False))
