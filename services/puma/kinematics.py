@@ -121,6 +121,13 @@ class IkSolution:
     in_limits: bool
 
 
+_NEW = object.__new__
+_SET_Q, _SET_CONFIG, _SET_IN_LIMITS = (
+    IkSolution.__dict__[name].__set__ for name in ("q", "config", "in_limits")
+)
+assert not hasattr(IkSolution, "__post_init__"), "ik() builds IkSolution without __init__"
+
+
 @dataclass(frozen=True, slots=True)
 class Solve:
     """What `Puma560.solve` commands: joints (rad, within limits) and how they were found.
@@ -205,22 +212,12 @@ def config_of(q: ArrayLike) -> str:
 
 _LO: tuple[float, ...] = tuple(link.lo_rad for link in PUMA560_DH)
 _HI: tuple[float, ...] = tuple(link.hi_rad for link in PUMA560_DH)
-_Limits = tuple[float, float, float, float, float, float]
-_JOINTS: tuple[_Limits, ...] = tuple(
-    (
-        lo,
-        hi,
-        lo - 1e-12,
-        hi + 1e-12,
-        max(lo - 1e-12, hi + 1e-12 - TWO_PI + 1e-9),
-        min(hi + 1e-12, lo - 1e-12 + TWO_PI - 1e-9),
-    )
+_SURE: tuple[tuple[float, float], ...] = tuple(
+    (max(lo, hi + 1e-12 - TWO_PI + 1e-9), min(hi, lo - 1e-12 + TWO_PI - 1e-9))
     for lo, hi in zip(_LO, _HI, strict=True)
 )
-"""Per joint: (lo, hi, lo − 1e-12, hi + 1e-12, then the range where q itself is the only
-representative in [lo − 1e-12, hi + 1e-12], i.e. k = 0 for sure: all of it for joints 1–5,
-which span less than a turn; |q| ≲ 1.64 rad for joint 6, which spans 532°)."""
-_WRIST_JOINTS = _JOINTS[3:]
+"""Per joint, the range where q is its own (and only) in-limits representative: all of
+[lo, hi] for joints 1–5, which span less than a turn; |q| ≲ 1.64 rad for joint 6 (532°)."""
 _PI = math.pi
 
 
@@ -229,23 +226,29 @@ def _wrap(a: float) -> float:
     return -((-a + _PI) % TWO_PI - _PI)
 
 
-def _reps(
-    q: Sequence[float], ref: Sequence[float], limits: Sequence[_Limits] = _JOINTS
-) -> list[float] | None:
-    """Each joint of `q` (with its `limits`) shifted by 2πk into its limits nearest `ref`; None
-    if one has no such representative (±1e-12, then clipped into the limits): numpy's
-    ceil/floor/round/clip formula joint by joint, skipped where k = 0 is the only choice."""
+def _rep(x: float, r: float, j: int) -> float:
+    """Joint j's angle x shifted by 2πk into its limits (±1e-12, then clipped) nearest `r`,
+    or NaN if it has no such representative: numpy's ceil/floor/round/clip, one joint."""
+    lo, hi = _LO[j], _HI[j]
+    k_lo = math.ceil((lo - 1e-12 - x) / TWO_PI)
+    k_hi = math.floor((hi + 1e-12 - x) / TWO_PI)
+    if k_lo > k_hi:
+        return math.nan
+    k = round((r - x) / TWO_PI)
+    x = x + TWO_PI * (k_lo if k < k_lo else k_hi if k > k_hi else k)
+    return lo if x < lo else hi if x > hi else x
+
+
+def _reps(q: Sequence[float], ref: Sequence[float]) -> list[float] | None:
+    """Every joint's in-limits representative nearest `ref` (`_rep`), or None."""
     out: list[float] = []
-    # zip's `strict` keyword alone costs ~0.2 µs a call here; callers pass matching lengths.
-    for x, r, (lo, hi, lo_e, hi_e, only_lo, only_hi) in zip(q, ref, limits):  # noqa: B905
-        if not only_lo <= x <= only_hi:
-            k_lo = math.ceil((lo_e - x) / TWO_PI)
-            k_hi = math.floor((hi_e - x) / TWO_PI)
-            if k_lo > k_hi:
-                return None
-            k = round((r - x) / TWO_PI)
-            x = x + TWO_PI * (k_lo if k < k_lo else k_hi if k > k_hi else k)
-        out.append(lo if x < lo else hi if x > hi else x)
+    for j, x in enumerate(q):
+        lo, hi = _SURE[j]
+        r = ref[j]
+        y = x if lo <= x <= hi else _rep(x, r, j)
+        if y != y:
+            return None
+        out.append(y)
     return out
 
 
@@ -353,7 +356,10 @@ def _ik_floats(
         for q3 in q3s
     ]
     r00, _, r02, r10, _, r12, r20, _, r22 = r
-    q4_ref, ref_wrist = ref[3], ref[3:]
+    r1, r2, r3, r4, r5, r6 = ref
+    # `_reps` unrolled (a loop over 6 joints was 40% of this function): a joint inside its
+    # `_SURE` range is its own representative, else `_rep` decides (NaN: none in limits).
+    (a1, b1), (a2, b2), (a3, b3), (a4, b4), (a5, b5), (a6, b6) = _SURE
     out: list[tuple[list[float], str, bool]] = []
     for q1 in q1s:
         c1, s1 = math.cos(q1), math.sin(q1)
@@ -362,16 +368,18 @@ def _ik_floats(
         # R_36 = R_03ᵀ·R_06; only its first and third columns are needed (m_i0, m_i2).
         u0, u2 = c1 * r00 + s1 * r10, c1 * r02 + s1 * r12
         m10, m12 = c1 * r10 - s1 * r00, c1 * r12 - s1 * r02
+        w1 = -((-q1 + _PI) % TWO_PI - _PI)  # _wrap, inline: ~40 calls a solve
+        x1 = w1 if a1 <= w1 <= b1 else _rep(w1, r1, 0)
         for q3, forearm_angle in forearm:
             q2 = reach - forearm_angle
             c23, s23 = math.cos(q2 + q3), math.sin(q2 + q3)
             m00, m02 = c23 * u0 + s23 * r20, c23 * u2 + s23 * r22
             m20, m22 = c23 * r20 - s23 * u0, c23 * r22 - s23 * u2
-            w1 = -((-q1 + _PI) % TWO_PI - _PI)  # _wrap, inline: ~40 calls a solve
             w2 = -((-q2 + _PI) % TWO_PI - _PI)
             w3 = -((-q3 + _PI) % TWO_PI - _PI)
-            arm = [w1, w2, w3]
-            arm_rep = _reps(arm, ref)
+            x2 = w2 if a2 <= w2 <= b2 else _rep(w2, r2, 1)
+            x3 = w3 if a3 <= w3 <= b3 else _rep(w3, r3, 2)
+            arm_in = x1 == x1 and x2 == x2 and x3 == x3
             letters = _arm_letters(w2, w3)
             # The wrist R_36 = Rz(q4)·Ry(−q5)·Rz(q6) (Rx(90)Rz(q5)Rx(−90) = Ry(−q5)): both flips
             # (q5 ≥ 0 first), or one with q4 = q_ref[3] when exactly singular. q6 is taken from
@@ -379,7 +387,7 @@ def _ik_floats(
             # The flip (q4 + π, −q5) negates both atan2 arguments of q6: q6 + π.
             s5 = math.hypot(m02, m12)
             if s5 < _EXACT_WRIST_SINGULAR:
-                q4, q5 = q4_ref, math.atan2(s5, m22)
+                q4, q5 = r4, math.atan2(s5, m22)
                 wrists = [(q4, q5, 1.0)]
             else:
                 q4, q5 = math.atan2(-m12, -m02), math.atan2(s5, m22)
@@ -389,14 +397,19 @@ def _ik_floats(
             n10, n00 = c4 * m10 - s4 * m00, math.cos(q5) * a + math.sin(q5) * m20
             for q4, q5, sign in wrists:
                 q6 = math.atan2(sign * n10, sign * n00)
+                w4 = -((-q4 + _PI) % TWO_PI - _PI)
                 w5 = -((-q5 + _PI) % TWO_PI - _PI)
-                wrist = [-((-q4 + _PI) % TWO_PI - _PI), w5, -((-q6 + _PI) % TWO_PI - _PI)]
-                config = letters + ("p" if _wrap(w5) >= 0.0 else "m")
-                wrist_rep = None if arm_rep is None else _reps(wrist, ref_wrist, _WRIST_JOINTS)
-                if arm_rep is None or wrist_rep is None:
-                    out.append((arm + wrist, config, False))
-                else:
-                    out.append((arm_rep + wrist_rep, config, True))
+                w6 = -((-q6 + _PI) % TWO_PI - _PI)
+                p = -((-w5 + _PI) % TWO_PI - _PI) >= 0.0  # _wrap(w5), as config_of has it
+                config = letters + ("p" if p else "m")
+                if arm_in:
+                    x4 = w4 if a4 <= w4 <= b4 else _rep(w4, r4, 3)
+                    x5 = w5 if a5 <= w5 <= b5 else _rep(w5, r5, 4)
+                    x6 = w6 if a6 <= w6 <= b6 else _rep(w6, r6, 5)
+                    if x4 == x4 and x5 == x5 and x6 == x6:
+                        out.append(([x1, x2, x3, x4, x5, x6], config, True))
+                        continue
+                out.append(([w1, w2, w3, w4, w5, w6], config, False))
     return out
 
 
@@ -413,7 +426,7 @@ def _choose(
         if rep is None:
             continue
         d = 0.0
-        for x, n in zip(rep, now, strict=True):
+        for x, n in zip(rep, now):  # noqa: B905 (both 6 long; strict= costs 0.2 µs a call)
             d += (x - n) * (x - n)
         if d < best_d:
             best, best_d = (rep, config), d
@@ -422,9 +435,8 @@ def _choose(
 
 def _pose_floats(oMt: pin.SE3, eMt: pin.SE3) -> tuple[list[float], float, float, float]:
     """(R06 row-major, wx, wy, wz) of the flange target oMe = oMt·eMt⁻¹."""
-    oMe = oMt * eMt.inverse()
-    (r0, r1, r2), (wx, wy, wz) = oMe.rotation.tolist(), oMe.translation.tolist()
-    return r0 + r1 + r2, wx, wy, wz
+    (a, b, c, wx), (d, e, f, wy), (g, h, i, wz), _ = oMt.act(eMt.inverse()).homogeneous.tolist()
+    return [a, b, c, d, e, f, g, h, i], wx, wy, wz
 
 
 class Puma560:
@@ -540,10 +552,16 @@ class Puma560:
         wrapped into (−π, π].
         """
         ref = [0.0] * 6 if q_ref is None else self._floats(q_ref)
-        return [
-            IkSolution(np.array(q), config, in_limits)
-            for q, config, in_limits in _ik_floats(*_pose_floats(oMt, eMt), ref)
-        ]
+        out = []
+        for q, config, in_limits in _ik_floats(*_pose_floats(oMt, eMt), ref):
+            # IkSolution(q, config, in_limits) with its slots set directly: the frozen
+            # dataclass __init__ costs a third of a solve's 8 objects (0.35 µs each).
+            s = _NEW(IkSolution)
+            _SET_Q(s, np.array(q))
+            _SET_CONFIG(s, config)
+            _SET_IN_LIMITS(s, in_limits)
+            out.append(s)
+        return out
 
     def choose(self, sols: list[IkSolution], q_now: ArrayLike) -> IkSolution | None:
         """The in-limits solution nearest `q_now` (Euclidean, rad), or None.
