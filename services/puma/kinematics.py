@@ -388,20 +388,22 @@ def _ik_floats(
             s5 = math.hypot(m02, m12)
             if s5 < _EXACT_WRIST_SINGULAR:
                 q4, q5 = r4, math.atan2(s5, m22)
-                wrists = [(q4, q5, 1.0)]
+                wrists = [(-((-q4 + _PI) % TWO_PI - _PI), q5, 1.0)]
             else:
                 q4, q5 = math.atan2(-m12, -m02), math.atan2(s5, m22)
-                wrists = [(q4, q5, 1.0), (q4 + _PI, -q5, -1.0)]
+                # atan2 gives [−π, π] (q5: [0, π]); (−π, π] needs only ±π folded, not `_wrap`.
+                wrists = [
+                    (q4 if q4 > -_PI else _PI, q5, 1.0),
+                    (q4 - _PI if q4 > 0.0 else q4 + _PI, -q5 if q5 < _PI else _PI, -1.0),
+                ]
             c4, s4 = math.cos(q4), math.sin(q4)
             a = c4 * m00 + s4 * m10
             n10, n00 = c4 * m10 - s4 * m00, math.cos(q5) * a + math.sin(q5) * m20
-            for q4, q5, sign in wrists:
-                q6 = math.atan2(sign * n10, sign * n00)
-                w4 = -((-q4 + _PI) % TWO_PI - _PI)
-                w5 = -((-q5 + _PI) % TWO_PI - _PI)
-                w6 = -((-q6 + _PI) % TWO_PI - _PI)
-                p = -((-w5 + _PI) % TWO_PI - _PI) >= 0.0  # _wrap(w5), as config_of has it
-                config = letters + ("p" if p else "m")
+            for w4, w5, sign in wrists:
+                w6 = math.atan2(sign * n10, sign * n00)
+                if w6 <= -_PI:
+                    w6 = _PI
+                config = letters + ("p" if w5 >= 0.0 else "m")
                 if arm_in:
                     x4 = w4 if a4 <= w4 <= b4 else _rep(w4, r4, 3)
                     x5 = w5 if a5 <= w5 <= b5 else _rep(w5, r5, 4)
