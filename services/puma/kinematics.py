@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -99,6 +100,8 @@ DLS_ITERATIONS = 5
 MAX_ANALYTIC_STEP_RAD = 0.25
 """An analytic solution farther than this from the current joints (any joint) is a jump."""
 
+_SIN_WRIST = math.sin(WRIST_SINGULAR_RAD)
+_SIN_ELBOW = math.sin(ELBOW_SINGULAR_RAD)
 _COINCIDENT = 1e-12
 _EXACT_WRIST_SINGULAR = 1e-12
 _CONVERGED = 1e-12
@@ -116,6 +119,13 @@ class IkSolution:
     q: Vec
     config: str
     in_limits: bool
+
+
+_NEW = object.__new__
+_SET_Q, _SET_CONFIG, _SET_IN_LIMITS = (
+    IkSolution.__dict__[name].__set__ for name in ("q", "config", "in_limits")
+)
+assert not hasattr(IkSolution, "__post_init__"), "ik() builds IkSolution without __init__"
 
 
 @dataclass(frozen=True, slots=True)
@@ -183,12 +193,6 @@ def wrap_pi(x: ArrayLike) -> Vec:
     return np.asarray(-(np.remainder(-a + math.pi, TWO_PI) - math.pi), dtype=np.float64)
 
 
-def _reach_v(q: Vec) -> float:
-    """V = a2·c2 + a3·c23 − d4·s23: wrist centre ahead of the shoulder, m (PROTOCOL §1)."""
-    q23 = q[1] + q[2]
-    return A2_M * math.cos(q[1]) + A3_M * math.cos(q23) - D4_M * math.sin(q23)
-
-
 def config_of(q: ArrayLike) -> str:
     """The 3-letter config string of a joint vector (PROTOCOL §1).
 
@@ -196,53 +200,245 @@ def config_of(q: ArrayLike) -> str:
     line is y = (Y/V)·x with the elbow at (a2 c2, a2 s2), which works out to
     sign(V)·(d4·c3 + a3·s3) < 0. `p` ⇔ q5 ≥ 0 (q5 wrapped into (−π, π]).
     """
-    qv = np.asarray(q, dtype=np.float64)
-    v = _reach_v(qv)
-    side = 1.0 if v > 0.0 else -1.0
-    elbow = D4_M * math.cos(qv[2]) + A3_M * math.sin(qv[2])
-    return (
-        ("r" if v > 0.0 else "l")
-        + ("u" if side * elbow < 0.0 else "d")
-        + ("p" if float(wrap_pi(qv[4])) >= 0.0 else "m")
-    )
+    return _config(np.asarray(q, dtype=np.float64).reshape(-1).tolist())
 
 
-def _rot_z(t: float) -> NDArray[np.float64]:
-    c, s = math.cos(t), math.sin(t)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+# --- plain-float kernels ---------------------------------------------------------------
+# `solve` runs once per operator command and `ik` up to 8 branches per call: with numpy a
+# call on a 6-vector costs ~1 µs, so the per-branch work below is scalar Python floats
+# (about 25× faster here than the numpy version; docs/kinematics.md "Throughput"). They
+# use the same IEEE operations as `wrap_pi` and numpy's clip/ceil/floor/round, so limits
+# and config letters come out the same bit for bit.
+
+_LO: tuple[float, ...] = tuple(link.lo_rad for link in PUMA560_DH)
+_HI: tuple[float, ...] = tuple(link.hi_rad for link in PUMA560_DH)
+_SURE: tuple[tuple[float, float], ...] = tuple(
+    (max(lo, hi + 1e-12 - TWO_PI + 1e-9), min(hi, lo - 1e-12 + TWO_PI - 1e-9))
+    for lo, hi in zip(_LO, _HI, strict=True)
+)
+"""Per joint, the range where q is its own (and only) in-limits representative: all of
+[lo, hi] for joints 1–5, which span less than a turn; |q| ≲ 1.64 rad for joint 6 (532°)."""
+_PI = math.pi
 
 
-def _rot_y(t: float) -> NDArray[np.float64]:
-    c, s = math.cos(t), math.sin(t)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+def _wrap(a: float) -> float:
+    """`wrap_pi` of one float, by the same operations (Python's % is numpy's remainder)."""
+    return -((-a + _PI) % TWO_PI - _PI)
 
 
-def _r03(q1: float, q2: float, q3: float) -> NDArray[np.float64]:
-    r = np.eye(3)
-    for link, qi in zip(PUMA560_DH[:3], (q1, q2, q3), strict=True):
-        r = r @ dh_transform(link, qi)[:3, :3]
-    return r
+def _rep(x: float, r: float, j: int) -> float:
+    """Joint j's angle x shifted by 2πk into its limits (±1e-12, then clipped) nearest `r`,
+    or NaN if it has no such representative: numpy's ceil/floor/round/clip, one joint."""
+    lo, hi = _LO[j], _HI[j]
+    k_lo = math.ceil((lo - 1e-12 - x) / TWO_PI)
+    k_hi = math.floor((hi + 1e-12 - x) / TWO_PI)
+    if k_lo > k_hi:
+        return math.nan
+    k = round((r - x) / TWO_PI)
+    x = x + TWO_PI * (k_lo if k < k_lo else k_hi if k > k_hi else k)
+    return lo if x < lo else hi if x > hi else x
 
 
-def _wrist(m36: NDArray[np.float64], q4_ref: float) -> list[tuple[float, float, float]]:
-    """Solve R_36 = Rz(q4)·Ry(−q5)·Rz(q6) (the PUMA wrist, Rx(90)Rz(q5)Rx(−90) = Ry(−q5)).
-
-    Returns both wrist flips (q5 ≥ 0 first), or one solution with q4 = `q4_ref` when exactly
-    singular. q6 is taken from the residual rotation so FK stays exact however small sin q5 is.
-    """
-    s5 = math.hypot(m36[0, 2], m36[1, 2])
-    c5 = m36[2, 2]
-    if s5 < _EXACT_WRIST_SINGULAR:
-        candidates = [(q4_ref, math.atan2(s5, c5))]
-    else:
-        q4 = math.atan2(-m36[1, 2], -m36[0, 2])
-        q5 = math.atan2(s5, c5)
-        candidates = [(q4, q5), (q4 + math.pi, -q5)]
-    out = []
-    for q4, q5 in candidates:
-        n = _rot_y(q5) @ _rot_z(-q4) @ m36
-        out.append((q4, q5, math.atan2(n[1, 0], n[0, 0])))
+def _reps(q: Sequence[float], ref: Sequence[float]) -> list[float] | None:
+    """Every joint's in-limits representative nearest `ref` (`_rep`), or None."""
+    out: list[float] = []
+    for j, x in enumerate(q):
+        lo, hi = _SURE[j]
+        r = ref[j]
+        y = x if lo <= x <= hi else _rep(x, r, j)
+        if y != y:
+            return None
+        out.append(y)
     return out
+
+
+def _arm_letters(q2: float, q3: float) -> str:
+    """The r|l and u|d letters of `config_of` from (wrapped) q2, q3."""
+    q23 = q2 + q3
+    v = A2_M * math.cos(q2) + A3_M * math.cos(q23) - D4_M * math.sin(q23)
+    elbow = D4_M * math.cos(q3) + A3_M * math.sin(q3)
+    side = 1.0 if v > 0.0 else -1.0
+    return ("r" if v > 0.0 else "l") + ("u" if side * elbow < 0.0 else "d")
+
+
+def _config(q: Sequence[float]) -> str:
+    return _arm_letters(q[1], q[2]) + ("p" if _wrap(q[4]) >= 0.0 else "m")
+
+
+def _singularities(q: Sequence[float]) -> list[SingularityKind]:
+    out: list[SingularityKind] = []
+    if abs(math.sin(q[4])) < _SIN_WRIST:
+        out.append("wrist")
+    q23 = q[1] + q[2]
+    if abs(A2_M * math.cos(q[1]) + A3_M * math.cos(q23) - D4_M * math.sin(q23)) < (
+        SHOULDER_SINGULAR_M
+    ):
+        out.append("shoulder")
+    if abs(math.sin(q[2] + FOREARM_ANGLE_RAD)) < _SIN_ELBOW:
+        out.append("elbow")
+    return out
+
+
+def _flange_floats(q: Sequence[float]) -> tuple[list[float], list[float]]:
+    """(R06 row-major, wrist centre) of the flange in the world, closed form.
+
+    R03 = Rz(q1)Rx(90°)·Rz(q2 + q3)Rx(−90°) and R36 = Rz(q4)·Ry(−q5)·Rz(q6) (the α of the
+    table); the wrist centre is (V, Y, d3) in DH frame 1 (see `Puma560.ik`).
+    """
+    q1, q2, q3, q4, q5, q6 = q
+    c1, s1 = math.cos(q1), math.sin(q1)
+    c23, s23 = math.cos(q2 + q3), math.sin(q2 + q3)
+    c4, s4 = math.cos(q4), math.sin(q4)
+    c5, s5 = math.cos(q5), math.sin(q5)
+    c6, s6 = math.cos(q6), math.sin(q6)
+    v = A2_M * math.cos(q2) + A3_M * c23 - D4_M * s23
+    y = A2_M * math.sin(q2) + A3_M * s23 + D4_M * c23
+    # R36 = Rz(q4)·Ry(−q5)·Rz(q6)
+    m00 = c4 * c5 * c6 - s4 * s6
+    m01 = -c4 * c5 * s6 - s4 * c6
+    m02 = -c4 * s5
+    m10 = s4 * c5 * c6 + c4 * s6
+    m11 = -s4 * c5 * s6 + c4 * c6
+    m12 = -s4 * s5
+    m20 = s5 * c6
+    m21 = -s5 * s6
+    m22 = c5
+    # R03 = [[c1 c23, −s1, −c1 s23], [s1 c23, c1, −s1 s23], [s23, 0, c23]]
+    a0, a1, a2 = c1 * c23, -s1, -c1 * s23
+    b0, b1, b2 = s1 * c23, c1, -s1 * s23
+    rot = [
+        a0 * m00 + a1 * m10 + a2 * m20,
+        a0 * m01 + a1 * m11 + a2 * m21,
+        a0 * m02 + a1 * m12 + a2 * m22,
+        b0 * m00 + b1 * m10 + b2 * m20,
+        b0 * m01 + b1 * m11 + b2 * m21,
+        b0 * m02 + b1 * m12 + b2 * m22,
+        s23 * m00 + c23 * m20,
+        s23 * m01 + c23 * m21,
+        s23 * m02 + c23 * m22,
+    ]
+    return rot, [c1 * v + s1 * D3_M, s1 * v - c1 * D3_M, D1_M + y]
+
+
+def _ik_floats(
+    r: Sequence[float], wx: float, wy: float, wz: float, ref: Sequence[float]
+) -> list[tuple[list[float], str, bool]]:
+    """Every closed-form solution (q, config, in_limits) for the flange rotation `r` (R06,
+    row-major) and wrist centre (wx, wy, wz); see `Puma560.ik` for the method."""
+    r_xy = math.hypot(wx, wy)
+    if r_xy < D3_M * (1.0 - _COINCIDENT):
+        return []
+    phi = math.atan2(wy, wx)
+    shoulder = math.asin(min(1.0, D3_M / r_xy))
+    y = wz - D1_M
+    d_sq = r_xy * r_xy - D3_M * D3_M + y * y
+    k = (d_sq - A2_M * A2_M - FOREARM_M * FOREARM_M) / (2.0 * A2_M * FOREARM_M)
+    if abs(k) > 1.0 + 1e-12:
+        return []
+    elbow = math.acos(min(1.0, max(-1.0, k)))
+    # Branches that coincide (wrist centre on the d3 cylinder, arm straight or folded) are
+    # given once; asin/acos near ±1 put their twins ~1e-6 rad apart, both exact.
+    q1s = [phi + shoulder]
+    if D3_M / r_xy < 1.0 - _COINCIDENT:
+        q1s.append(phi + _PI - shoulder)
+    q3s = [-FOREARM_ANGLE_RAD - elbow]
+    if abs(k) < 1.0 - _COINCIDENT:
+        q3s.append(-FOREARM_ANGLE_RAD + elbow)
+    # (V, Y) = Rot(q2)·(u, w): the forearm's angle atan2(w, u) depends on q3 only.
+    forearm = [
+        (
+            q3,
+            math.atan2(
+                A3_M * math.sin(q3) + D4_M * math.cos(q3),
+                A2_M + A3_M * math.cos(q3) - D4_M * math.sin(q3),
+            ),
+        )
+        for q3 in q3s
+    ]
+    r00, _, r02, r10, _, r12, r20, _, r22 = r
+    r1, r2, r3, r4, r5, r6 = ref
+    # `_reps` unrolled (a loop over 6 joints was 40% of this function): a joint inside its
+    # `_SURE` range is its own representative, else `_rep` decides (NaN: none in limits).
+    (a1, b1), (a2, b2), (a3, b3), (a4, b4), (a5, b5), (a6, b6) = _SURE
+    out: list[tuple[list[float], str, bool]] = []
+    for q1 in q1s:
+        c1, s1 = math.cos(q1), math.sin(q1)
+        # V is the wrist centre's x in DH frame 1: ±sqrt(r² − d3²) by branch.
+        reach = math.atan2(y, wx * c1 + wy * s1)
+        # R_36 = R_03ᵀ·R_06; only its first and third columns are needed (m_i0, m_i2).
+        u0, u2 = c1 * r00 + s1 * r10, c1 * r02 + s1 * r12
+        m10, m12 = c1 * r10 - s1 * r00, c1 * r12 - s1 * r02
+        w1 = -((-q1 + _PI) % TWO_PI - _PI)  # _wrap, inline: ~40 calls a solve
+        x1 = w1 if a1 <= w1 <= b1 else _rep(w1, r1, 0)
+        for q3, forearm_angle in forearm:
+            q2 = reach - forearm_angle
+            c23, s23 = math.cos(q2 + q3), math.sin(q2 + q3)
+            m00, m02 = c23 * u0 + s23 * r20, c23 * u2 + s23 * r22
+            m20, m22 = c23 * r20 - s23 * u0, c23 * r22 - s23 * u2
+            w2 = -((-q2 + _PI) % TWO_PI - _PI)
+            w3 = -((-q3 + _PI) % TWO_PI - _PI)
+            x2 = w2 if a2 <= w2 <= b2 else _rep(w2, r2, 1)
+            x3 = w3 if a3 <= w3 <= b3 else _rep(w3, r3, 2)
+            arm_in = x1 == x1 and x2 == x2 and x3 == x3
+            letters = _arm_letters(w2, w3)
+            # The wrist R_36 = Rz(q4)·Ry(−q5)·Rz(q6) (Rx(90)Rz(q5)Rx(−90) = Ry(−q5)): both flips
+            # (q5 ≥ 0 first), or one with q4 = q_ref[3] when exactly singular. q6 is taken from
+            # the residual Ry(q5)·Rz(−q4)·R_36 so FK stays exact however small sin q5 is.
+            # The flip (q4 + π, −q5) negates both atan2 arguments of q6: q6 + π.
+            s5 = math.hypot(m02, m12)
+            if s5 < _EXACT_WRIST_SINGULAR:
+                q4, q5 = r4, math.atan2(s5, m22)
+                wrists = [(-((-q4 + _PI) % TWO_PI - _PI), q5, 1.0)]
+            else:
+                q4, q5 = math.atan2(-m12, -m02), math.atan2(s5, m22)
+                # atan2 gives [−π, π] (q5: [0, π]); (−π, π] needs only ±π folded, not `_wrap`.
+                wrists = [
+                    (q4 if q4 > -_PI else _PI, q5, 1.0),
+                    (q4 - _PI if q4 > 0.0 else q4 + _PI, -q5 if q5 < _PI else _PI, -1.0),
+                ]
+            c4, s4 = math.cos(q4), math.sin(q4)
+            a = c4 * m00 + s4 * m10
+            n10, n00 = c4 * m10 - s4 * m00, math.cos(q5) * a + math.sin(q5) * m20
+            for w4, w5, sign in wrists:
+                w6 = math.atan2(sign * n10, sign * n00)
+                if w6 <= -_PI:
+                    w6 = _PI
+                config = letters + ("p" if w5 >= 0.0 else "m")
+                if arm_in:
+                    x4 = w4 if a4 <= w4 <= b4 else _rep(w4, r4, 3)
+                    x5 = w5 if a5 <= w5 <= b5 else _rep(w5, r5, 4)
+                    x6 = w6 if a6 <= w6 <= b6 else _rep(w6, r6, 5)
+                    if x4 == x4 and x5 == x5 and x6 == x6:
+                        out.append(([x1, x2, x3, x4, x5, x6], config, True))
+                        continue
+                out.append(([w1, w2, w3, w4, w5, w6], config, False))
+    return out
+
+
+def _choose(
+    sols: Sequence[tuple[Sequence[float], str, bool]], now: Sequence[float]
+) -> tuple[list[float], str] | None:
+    """`Puma560.choose` on floats: the in-limits solution nearest `now`, re-represented."""
+    best: tuple[list[float], str] | None = None
+    best_d = math.inf
+    for q, config, in_limits in sols:
+        if not in_limits:
+            continue
+        rep = _reps(q, now)
+        if rep is None:
+            continue
+        d = 0.0
+        for x, n in zip(rep, now):  # noqa: B905 (both 6 long; strict= costs 0.2 µs a call)
+            d += (x - n) * (x - n)
+        if d < best_d:
+            best, best_d = (rep, config), d
+    return best
+
+
+def _pose_floats(oMt: pin.SE3, eMt: pin.SE3) -> tuple[list[float], float, float, float]:
+    """(R06 row-major, wx, wy, wz) of the flange target oMe = oMt·eMt⁻¹."""
+    (a, b, c, wx), (d, e, f, wy), (g, h, i, wz), _ = oMt.act(eMt.inverse()).homogeneous.tolist()
+    return [a, b, c, d, e, f, g, h, i], wx, wy, wz
 
 
 class Puma560:
@@ -255,8 +451,10 @@ class Puma560:
     def __init__(self) -> None:
         self.model: pin.Model = build_model()
         self.data: pin.Data = self.model.createData()
-        self.q_lo: Vec = np.array(self.model.lowerPositionLimit, dtype=np.float64)
-        self.q_hi: Vec = np.array(self.model.upperPositionLimit, dtype=np.float64)
+        self.q_lo: Vec = _named(*self.model.lowerPositionLimit)
+        """Joint lower limits, rad (read-only: the float kernels hold the same table)."""
+        self.q_hi: Vec = _named(*self.model.upperPositionLimit)
+        """Joint upper limits, rad (read-only)."""
         self._flange = self.model.getFrameId("flange")
         self._dh = [self.model.getFrameId(f"dh{i}") for i in range(1, 7)]
 
@@ -267,10 +465,18 @@ class Puma560:
             raise ValueError(f"expected 6 finite joint angles, got {q!r}")
         return v
 
+    @staticmethod
+    def _floats(q: ArrayLike) -> list[float]:
+        """`_vec(q)` as a list of 6 Python floats (ValueError unless 6 finite angles)."""
+        v = np.asarray(q, dtype=np.float64).reshape(-1).tolist()
+        if len(v) != 6 or not all(map(math.isfinite, v)):
+            raise ValueError(f"expected 6 finite joint angles, got {q!r}")
+        return v
+
     def fk_flange(self, q: ArrayLike) -> pin.SE3:
         """oMe: the flange (DH frame 6, origin at the wrist centre) in the world."""
-        pin.framesForwardKinematics(self.model, self.data, self._vec(q))
-        return pin.SE3(self.data.oMf[self._flange])
+        rot, p = _flange_floats(self._floats(q))
+        return pin.SE3(np.array(rot).reshape(3, 3), np.array(p))
 
     def fk_tool(self, q: ArrayLike, eMt: pin.SE3 = DEFAULT_eMt) -> pin.SE3:
         """oMt = oMe·eMt: the tool frame in the world (eq. 1: T_w = E_w + M_w^e M_e^t T_t)."""
@@ -301,9 +507,17 @@ class Puma560:
         return j
 
     def manipulability(self, q: ArrayLike) -> float:
-        """Yoshikawa's sqrt(det(J Jᵀ)) = |det J|; the same for every tool point of a 6×6 J."""
-        j = self.jacobian(q, pin.SE3.Identity())
-        return float(math.sqrt(max(np.linalg.det(j @ j.T), 0.0)))
+        """Yoshikawa's sqrt(det(J Jᵀ)) = |det J|; the same for every tool point of a 6×6 J.
+
+        Closed form: |det J| = |a2 · (d4·c3 + a3·s3) · V · s5| (the arm's 3×3 position block
+        at the wrist centre times the wrist's), exact where the determinant of J Jᵀ loses
+        digits near a singularity.
+        """
+        _, q2, q3, _, q5, _ = self._floats(q)
+        q23 = q2 + q3
+        v = A2_M * math.cos(q2) + A3_M * math.cos(q23) - D4_M * math.sin(q23)
+        elbow = D4_M * math.cos(q3) + A3_M * math.sin(q3)
+        return abs(A2_M * elbow * v * math.sin(q5))
 
     def within_limits(self, q: ArrayLike, tol: float = 0.0) -> bool:
         """Every joint in [lo − tol, hi + tol] as given (no 2π shifting), rad."""
@@ -312,19 +526,11 @@ class Puma560:
 
     def config(self, q: ArrayLike) -> str:
         """The config string (PROTOCOL §1) of a joint vector; see `config_of`."""
-        return config_of(self._vec(q))
+        return _config(self._floats(q))
 
     def singularities(self, q: ArrayLike) -> list[SingularityKind]:
         """Every singularity q is near, in the order wrist, shoulder, elbow (see `singularity`)."""
-        qv = self._vec(q)
-        out: list[SingularityKind] = []
-        if abs(math.sin(qv[4])) < math.sin(WRIST_SINGULAR_RAD):
-            out.append("wrist")
-        if abs(_reach_v(qv)) < SHOULDER_SINGULAR_M:
-            out.append("shoulder")
-        if abs(math.sin(qv[2] + FOREARM_ANGLE_RAD)) < math.sin(ELBOW_SINGULAR_RAD):
-            out.append("elbow")
-        return out
+        return _singularities(self._floats(q))
 
     def singularity(self, q: ArrayLike) -> SingularityKind | None:
         """The first singularity q is near, checked in the order wrist, shoulder, elbow, or None.
@@ -335,15 +541,6 @@ class Puma560:
         """
         kinds = self.singularities(q)
         return kinds[0] if kinds else None
-
-    def _representatives(self, q: Vec, ref: Vec) -> Vec | None:
-        """Per joint, q + 2πk inside the limits nearest `ref`; None if some joint has none."""
-        k_lo = np.ceil((self.q_lo - 1e-12 - q) / TWO_PI)
-        k_hi = np.floor((self.q_hi + 1e-12 - q) / TWO_PI)
-        if np.any(k_lo > k_hi):
-            return None
-        k = np.clip(np.round((ref - q) / TWO_PI), k_lo, k_hi)
-        return np.asarray(np.clip(q + TWO_PI * k, self.q_lo, self.q_hi), dtype=np.float64)
 
     def ik(
         self, oMt: pin.SE3, eMt: pin.SE3 = DEFAULT_eMt, q_ref: ArrayLike | None = None
@@ -356,48 +553,16 @@ class Puma560:
         given as its in-limits representative (mod 2π) nearest `q_ref` when one exists, else
         wrapped into (−π, π].
         """
-        ref = np.zeros(6) if q_ref is None else self._vec(q_ref)
-        oMe = oMt * eMt.inverse()
-        wx, wy, wz = (float(x) for x in oMe.translation)
-        r_xy = math.hypot(wx, wy)
-        if r_xy < D3_M * (1.0 - _COINCIDENT):
-            return []
-        phi = math.atan2(wy, wx)
-        shoulder = math.asin(min(1.0, D3_M / r_xy))
-        y = wz - D1_M
-        d_sq = r_xy * r_xy - D3_M * D3_M + y * y
-        k = (d_sq - A2_M * A2_M - FOREARM_M * FOREARM_M) / (2.0 * A2_M * FOREARM_M)
-        if abs(k) > 1.0 + 1e-12:
-            return []
-        elbow = math.acos(min(1.0, max(-1.0, k)))
-        r06 = oMe.rotation
-        # Branches that coincide (wrist centre on the d3 cylinder, arm straight or folded) are
-        # given once; asin/acos near ±1 put their twins ~1e-6 rad apart, both exact.
-        q1s = [phi + shoulder]
-        if D3_M / r_xy < 1.0 - _COINCIDENT:
-            q1s.append(phi + math.pi - shoulder)
-        q3s = [-FOREARM_ANGLE_RAD - elbow]
-        if abs(k) < 1.0 - _COINCIDENT:
-            q3s.append(-FOREARM_ANGLE_RAD + elbow)
-        out: list[IkSolution] = []
-        for q1 in q1s:
-            # V is the wrist centre's x in DH frame 1: ±sqrt(r² − d3²) by branch.
-            v = wx * math.cos(q1) + wy * math.sin(q1)
-            for q3 in q3s:
-                u = A2_M + A3_M * math.cos(q3) - D4_M * math.sin(q3)
-                w = A3_M * math.sin(q3) + D4_M * math.cos(q3)
-                q2 = math.atan2(y, v) - math.atan2(w, u)
-                m36 = _r03(q1, q2, q3).T @ r06
-                for q4, q5, q6 in _wrist(m36, float(ref[3])):
-                    q = wrap_pi(np.array([q1, q2, q3, q4, q5, q6]))
-                    rep = self._representatives(q, ref)
-                    out.append(
-                        IkSolution(
-                            q=q if rep is None else rep,
-                            config=config_of(q),
-                            in_limits=rep is not None,
-                        )
-                    )
+        ref = [0.0] * 6 if q_ref is None else self._floats(q_ref)
+        out = []
+        for q, config, in_limits in _ik_floats(*_pose_floats(oMt, eMt), ref):
+            # IkSolution(q, config, in_limits) with its slots set directly: the frozen
+            # dataclass __init__ costs a third of a solve's 8 objects (0.35 µs each).
+            s = _NEW(IkSolution)
+            _SET_Q(s, np.array(q))
+            _SET_CONFIG(s, config)
+            _SET_IN_LIMITS(s, in_limits)
+            out.append(s)
         return out
 
     def choose(self, sols: list[IkSolution], q_now: ArrayLike) -> IkSolution | None:
@@ -407,19 +572,8 @@ class Puma560:
         6 spans 532°), so the choice never spins a joint a full turn; away from singularities a
         smoothly moving target keeps its branch.
         """
-        now = self._vec(q_now)
-        best: IkSolution | None = None
-        best_d = math.inf
-        for s in sols:
-            if not s.in_limits:
-                continue
-            rep = self._representatives(s.q, now)
-            if rep is None:
-                continue
-            d = float(np.sum((rep - now) ** 2))
-            if d < best_d:
-                best, best_d = IkSolution(rep, s.config, True), d
-        return best
+        best = _choose([(s.q.tolist(), s.config, s.in_limits) for s in sols], self._floats(q_now))
+        return None if best is None else IkSolution(np.array(best[0]), best[1], True)
 
     def pose_error(
         self, q: ArrayLike, oMt_target: pin.SE3, eMt: pin.SE3 = DEFAULT_eMt
@@ -471,21 +625,24 @@ class Puma560:
         of stopping. Raises `Unreachable` otherwise (out of reach, out of the limits, or only
         through a branch change). The result is always within the joint limits.
         """
-        now = np.clip(self._vec(q_now), self.q_lo, self.q_hi)
-        sols = self.ik(oMt_target, eMt, q_ref=now)
-        best = self.choose(sols, now)
-        config_now = config_of(now)
-        near_now = self.singularities(now)
-        near_best = [] if best is None else self.singularities(best.q)
+        now = [
+            lo if x < lo else hi if x > hi else x
+            for x, lo, hi in zip(self._floats(q_now), _LO, _HI, strict=True)
+        ]
+        sols = _ik_floats(*_pose_floats(oMt_target, eMt), now)
+        best = _choose(sols, now)
+        config_now = _config(now)
+        near_now = _singularities(now)
+        near_best = [] if best is None else _singularities(best[0])
         if (
             best is not None
             and not near_now
             and not near_best
-            and best.config == config_now
-            and float(np.max(np.abs(best.q - now))) <= MAX_ANALYTIC_STEP_RAD
+            and best[1] == config_now
+            and max(abs(x - n) for x, n in zip(best[0], now, strict=True)) <= MAX_ANALYTIC_STEP_RAD
         ):
-            return Solve(best.q, best.config, False, "analytic")
-        q = now
+            return Solve(np.array(best[0]), best[1], False, "analytic")
+        q = np.array(now)
         for _ in range(DLS_ITERATIONS):
             e_p, e_r = self.pose_error(q, oMt_target, eMt)
             if e_p < _CONVERGED and e_r < _CONVERGED:
@@ -505,13 +662,11 @@ class Puma560:
         # r|l and (by its definition) u|d.
         crossable = {"shoulder": (0, 1), "elbow": (1,), "wrist": (2,)}
         explained = {i for k in near for i in crossable[k]}
-        for s in sols:
-            changed = {i for i in range(3) if s.config[i] != config_now[i]}
-            if s.in_limits and changed <= explained:
+        for _, config, in_limits in sols:
+            changed = {i for i in range(3) if config[i] != config_now[i]}
+            if in_limits and changed <= explained:
                 return Solve(q, config_of(q), bool(near), "dls", e_p, e_r)
-        raise Unreachable(
-            f"target needs a branch change {config_now} -> {best.config}; use move_pose"
-        )
+        raise Unreachable(f"target needs a branch change {config_now} -> {best[1]}; use move_pose")
 
 
 def _random_q(rng: np.random.Generator, arm: Puma560, n: int) -> NDArray[np.float64]:

@@ -11,6 +11,7 @@ leaves optional fields out or nil. Ours must decode all of it.
 
 from __future__ import annotations
 
+from dataclasses import fields
 from typing import Any
 
 import msgpack
@@ -205,6 +206,35 @@ def test_golden_bytes_are_plain_msgpack_maps_in_field_order(msg: Message, hex_by
     assert isinstance(data, dict)
     assert list(data) == list(codec.to_fields(msg))
     assert msgpack.packb(data, use_bin_type=True).hex() == hex_bytes
+
+
+@pytest.mark.parametrize(("msg", "hex_bytes"), GOLDEN, ids=IDS)
+def test_golden_bytes_take_the_codec_fast_path(msg: Message, hex_bytes: str) -> None:
+    """Our own traffic is what the compiled validators accept without the general path."""
+    schema = codec._schema(type(msg))
+    assert schema.fast_from(msgpack.unpackb(bytes.fromhex(hex_bytes), raw=False)) == msg
+    assert schema.fast_to(msg) is not None
+
+
+def test_extension_timing_fields_follow_the_contract_fields_in_order() -> None:
+    """docs/protocol-extensions.md: the optional timing fields, as any msgpack writes them."""
+    cmd = GOLDEN[0][0]
+    assert isinstance(cmd, OperatorCommand)
+    with_origin = OperatorCommand(**{**_fields(cmd), "origin_t_ns": 1_700_000_000_000_000_000})
+    expected = {**codec.to_fields(cmd), "origin_t_ns": 1_700_000_000_000_000_000}
+    assert codec.encode(with_origin) == msgpack.packb(expected, use_bin_type=True)
+    state = GOLDEN[1][0]
+    assert isinstance(state, RobotState)
+    timing = {"cmd_rx_ns": 2**63 - 1, "setpoint_ns": 0, "cmd_origin_t_ns": 17}
+    timed = RobotState(**{**_fields(state), **timing})
+    assert codec.encode(timed) == msgpack.packb(
+        {**codec.to_fields(state), **timing}, use_bin_type=True
+    )
+    assert codec.decode(RobotState, codec.encode(timed)) == timed
+
+
+def _fields(msg: Message) -> dict[str, Any]:
+    return {f.name: getattr(msg, f.name) for f in fields(msg)}
 
 
 def test_optional_none_fields_are_left_out() -> None:
