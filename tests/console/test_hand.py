@@ -209,12 +209,12 @@ def test_letting_go_of_the_gizmo_disengages_cleanly_and_the_next_drag_engages_af
         link.release()  # the mouse button comes up
         assert rig.mirror.wait_master("console", lambda m: not m.active, 5.0)
         _wait_link(link, "parked")
-        lease = [
-            e for e in events if e.kind == "lease" and (e.data or {}).get("master") == "console"
-        ]
         assert rig.client.call("decision", "status", {}, 5.0)["lease"] is None
         rig.settle(60)  # well past the 100 ms watchdog: a released hand trips nothing
         assert not [e for e in events if e.kind == "watchdog"], [e.message for e in events]
+        lease = [
+            e for e in events if e.kind == "lease" and (e.data or {}).get("master") == "console"
+        ]
         assert lease and (lease[-1].data or {}).get("reason") == "disengaged"
         rig.drift.reset(rig.tool_p())
         again = goal + _d(0.0, 0.0, 0.02)  # the next drag: a new engagement, relative motion
