@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from services.bus.bounds import norm_out_of_bounds, out_of_bounds, short
+from services.bus.bounds import each_out_of_bounds, norm_out_of_bounds, out_of_bounds, short
 from services.bus.codec import arg, jsonable
 from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
@@ -301,6 +301,8 @@ class DecisionService:
         p: list[float] | None = None
         if method == "move_pose":
             p = _floats3(args.get("p"))
+            if p is not None and each_out_of_bounds("p", p, "position_m"):
+                p = None  # absurd, not merely outside the box: the puma says `bad_request`
         elif method == "move_relative":
             p = self._relative_target(args)
         elif method == "move_joints":

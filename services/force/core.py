@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from services.bus.bounds import check_each, short
 from services.bus.errors import ProtocolError, RpcError
 from services.force.config import ForceConfig
 from services.force.events import EventSink, EventThrottle
@@ -376,8 +377,10 @@ def _stiffness(key: str, value: Any) -> Vec:
         and all(isinstance(x, int | float) and not isinstance(x, bool) for x in value)
     )
     if not (ok_number or ok_list):
-        raise RpcError("bad_request", f"{key}: a number or 3 numbers, got {value!r}")
+        raise RpcError("bad_request", f"{key}: a number or 3 numbers, got {short(value)}")
     try:
-        return as_vec3(value, key)
+        v = as_vec3(value, key)
     except ValueError as e:
-        raise RpcError("bad_request", str(e)) from None
+        raise RpcError("bad_request", short(str(e))) from None
+    check_each(key, [float(x) for x in v], "stiffness_n_m" if key == "K_l" else "stiffness_nm_rad")
+    return v

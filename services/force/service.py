@@ -12,6 +12,7 @@ import logging
 from typing import Any
 
 from services.bus import codec, keys
+from services.bus.bounds import check_norm
 from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import IDENTITY_R, ForceSample, RobotState, Rot, Vec3
 from services.bus.node import Node
@@ -67,7 +68,9 @@ class ForceService:
 
     def _rpc_set_tool(self, args: dict[str, Any]) -> dict[str, Any]:
         """The tool placement eMt (as puma's `set_tool {p, R}`); also followed from robot/state."""
-        self.core.set_tool(codec.arg(args, "p", Vec3), codec.arg(args, "R", Rot, IDENTITY_R))
+        p = codec.arg(args, "p", Vec3)
+        check_norm("p", p, "tool_offset_m")  # as the puma's set_tool: a tool within 1 m
+        self.core.set_tool(p, codec.arg(args, "R", Rot, IDENTITY_R))
         return self.core.rpc_sensor_status({})
 
     def close(self) -> None:

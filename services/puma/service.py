@@ -58,6 +58,9 @@ class PumaService:
     def __init__(self, node: Node, config: PumaConfig, arm: Any = None) -> None:
         self.node = node
         self.config = config
+        # the liveliness watch starts now, not at the first motion call: a set created on
+        # demand has not yet heard of a decision that is already alive (unsupervised moves)
+        _ = node.alive
         self.arm = (
             arm if arm is not None else open_arm(config.arm, config.port, **config.arm_options())
         )

@@ -188,7 +188,9 @@ def test_estop_latches_whatever_its_call_carries_and_initialize_waits(
     assert reply == {"status": "ready"}, reply
     moved = short_error(
         attacker.call(
-            "puma", "move_relative", {"dp": [0, 0, 0.001], "wait": True, "timeout_s": 1e10}
+            "puma",
+            "move_relative",
+            {"dp": [0, 0, 0.001], "wait": True, "timeout_s": 1e10, "supervised_by": "decision"},
         )
     )
     assert "timeout_s" in moved.message
@@ -199,14 +201,20 @@ def test_a_call_that_fails_starts_no_motion(cell: tuple[Cell, Observer, Attacker
     c, obs, attacker = cell
     q0 = joints(obs)
     target = [float(x) + 0.05 for x in q0]
-    for service in ("decision", "puma"):
+    short_error(attacker.call("puma", "move_joints", {"q": target}), "busy")  # unsupervised
+    for service, extra in (("decision", {}), ("puma", {"supervised_by": "decision"})):
+        # the attacker forges the decision's mark: the puma still refuses absurd arguments
         err = short_error(
-            attacker.call(service, "move_joints", {"q": target, "wait": True, "timeout_s": 1e10})
+            attacker.call(
+                service, "move_joints", {"q": target, "wait": True, "timeout_s": 1e10, **extra}
+            )
         )
         assert "timeout_s" in err.message
-        short_error(attacker.call(service, "move_relative", {"dp": [1e308, 0, 0]}))
+        short_error(attacker.call(service, "move_relative", {"dp": [1e308, 0, 0], **extra}))
         short_error(
-            attacker.call(service, "move_pose", {"p": [1e308, 0, 0], "R": list(IDENTITY_R)})
+            attacker.call(
+                service, "move_pose", {"p": [1e308, 0, 0], "R": list(IDENTITY_R), **extra}
+            )
         )
         short_error(attacker.call(service, "set_tool", {"p": [1e308] * 3, "R": list(IDENTITY_R)}))
     short_error(attacker.call("force", "set_tool", {"p": [1e308] * 3, "R": list(IDENTITY_R)}))
