@@ -101,7 +101,8 @@ def cmd_echo(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     with lock:
         got = count
     if got == 0 and not stop.is_set():
-        _say(f"no sample on {args.key} in {time.monotonic() - start:.1f} s")
+        _say(f"no sample on {args.key} in {args.timeout:g} s")
+        return 1
     return 0 if (not args.count or got >= args.count) else 1
 
 
@@ -368,7 +369,7 @@ def add_parsers(sub: Any) -> None:
         type=_non_negative,
         default=0.0,
         metavar="S",
-        help="give up after S seconds (exit 1 if fewer than --count came; 0: never)",
+        help="give up after S seconds (exit 1 if nothing or fewer than --count came; 0: never)",
     )
     p.add_argument(
         "--hint-after",
