@@ -11,6 +11,7 @@ import argparse
 import json
 import subprocess
 import sys
+import threading
 from typing import Any
 
 import pytest
@@ -201,3 +202,23 @@ def test_call_an_absent_service_lists_who_is_alive(net: Net, service: Node) -> N
     code, rows, _ = run(net, "call", "decision", "status", "--timeout", "1")
     assert code == 2 and rows[0]["error"] == "unavailable"
     assert rows[0]["message"].endswith("alive: puma")
+
+
+def test_call_that_times_out_says_the_request_may_be_running(net: Net) -> None:
+    node = net.node("puma")
+    release = threading.Event()
+    started = threading.Event()
+
+    def slow(args: dict[str, Any]) -> dict[str, Any]:
+        started.set()
+        release.wait(DEADLINE_S)
+        return {}
+
+    node.serve("puma", {"move_joints": slow})
+    node.announce()
+    try:
+        code, rows, _ = run(net, "call", "puma", "move_joints", "--timeout", "1")
+    finally:
+        release.set()
+    assert started.is_set() and code == 2 and len(rows) == 1
+    assert rows[0]["error"] == "timed_out" and "may still be running" in rows[0]["message"]
