@@ -18,9 +18,9 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services.bus import keys, zenoh_cli_codec
+from services.bus import codec, keys, zenoh_cli_codec
 from services.bus.config import NodeConfig
-from services.bus.messages import IDENTITY_R, Event
+from services.bus.messages import IDENTITY_R, Event, ForceSample
 from services.bus.node import Node
 from services.force.config import ForceConfig
 from services.force.service import ForceService
@@ -174,3 +174,29 @@ def test_put_of_a_broken_message_fails_loudly_and_sends_nothing(cell: Cell) -> N
         assert child.wait(DEADLINE_S) == 0, child.errors
     assert arrived.wait(DEADLINE_S)
     assert len(raw) == 1 and json.loads(zenoh_cli_codec.decode("robot/cmd", raw[0]))["seq"] == 2
+
+
+def test_the_codec_takes_a_key_expr_as_zenoh_cli_passes_it() -> None:
+    sample = ForceSample(seq=3, t_ns=9, f=(1.0, 2.0, 3.0), c=(0.0, 0.0, 0.5))
+    payload = zenoh_cli_codec.encode(
+        zenoh.KeyExpr("cell2/robot/force"),
+        json.dumps({"seq": 3, "t_ns": 9, "f": [1.0, 2.0, 3.0], "c": [0.0, 0.0, 0.5]}),
+    )
+    assert codec.decode(ForceSample, payload) == sample
+    shown = json.loads(zenoh_cli_codec.decode(zenoh.KeyExpr("cell2/robot/force"), payload))
+    assert shown == {"seq": 3, "t_ns": 9, "f": [1.0, 2.0, 3.0], "c": [0.0, 0.0, 0.5], "raw": None}
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("robot/force", "{seq: 1}", "telerobot encoder: not JSON"),
+        ("lab/x", "[1, 2]", "the value must be a JSON object"),
+        ("robot/force", '{"seq": 1, "t_ns": 1, "f": [0, 0], "c": [0, 0, 0]}', "ForceSample: f"),
+    ],
+)
+def test_the_encoder_refuses_what_would_break_the_contract(
+    key: str, value: str, message: str
+) -> None:
+    with pytest.raises(ValueError, match=message):
+        zenoh_cli_codec.encode(key, value)
