@@ -19,7 +19,7 @@ import pytest
 import zenoh
 
 from services.bus import codec, keys, zenoh_cli_codec
-from services.bus.config import NodeConfig
+from services.bus.config import Mode, NodeConfig
 from services.bus.messages import IDENTITY_R, Event, ForceSample
 from services.bus.node import Node
 from services.force.config import ForceConfig
@@ -34,12 +34,13 @@ ZENOH = shutil.which("zenoh", path=str(Path(sys.executable).parent)) or "zenoh"
 
 
 class Cell:
-    """A router and the force service, as a robot host runs them, on loopback."""
+    """A router and the force service on loopback: a client of the router as on the robot
+    host (robot.toml), or a peer connected to it as in the simulation profile (sim.toml)."""
 
-    def __init__(self) -> None:
+    def __init__(self, service_mode: Mode = "client") -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.router = Node("router", NodeConfig(mode="router", listen=(self.endpoint,)))
-        self.force_node = self.client("force")
+        self.force_node = Node("force", NodeConfig(mode=service_mode, connect=(self.endpoint,)))
         # 200 Hz is plenty to see a stream and keeps the test light on a shared machine.
         self.force = ForceService(self.force_node, ForceConfig(seed=3, period_ms=5.0))
         # The sim sensor senses once it knows where the tool is (robot/state from a puma).
@@ -59,8 +60,8 @@ class Cell:
 
 
 @pytest.fixture
-def cell() -> Iterator[Cell]:
-    c = Cell()
+def cell(request: pytest.FixtureRequest) -> Iterator[Cell]:
+    c = Cell(getattr(request, "param", "client"))
     try:
         yield c
     finally:
@@ -75,6 +76,7 @@ def json_line(line: str) -> dict[str, object]:
     return value if isinstance(value, dict) else {}
 
 
+@pytest.mark.parametrize("cell", ["client", "peer"], indirect=True)
 def test_subscribe_prints_decoded_force_samples(cell: Cell) -> None:
     argv = cell.zenoh("subscribe", "-k", "robot/force", "--decoder", "telerobot")
     seen = 0
