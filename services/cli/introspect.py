@@ -57,6 +57,7 @@ def _say(text: str) -> None:
 
 def cmd_echo(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     from services.bus.node import Node
+    from services.bus.zenoh_cli_codec import readable  # here, not in the first callback
 
     stop = Shutdown()
     done = threading.Event()
@@ -67,7 +68,7 @@ def cmd_echo(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     def on_sample(sample: zenoh.Sample) -> None:
         nonlocal count
         key = str(sample.key_expr)
-        body = decode_sample(key, sample.payload.to_bytes())
+        body = readable(key, sample.payload.to_bytes())
         if wildcard and isinstance(body, dict):
             body = {"_key": key, **body}
         with lock:
