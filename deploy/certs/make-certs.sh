@@ -3,6 +3,9 @@
 #
 #   deploy/certs/make-certs.sh [-o DIR] [-d DAYS] [-c CLIENT]... ROBOT_HOST [ROBOT_HOST...]
 #
+# Options may come anywhere (`make-certs.sh robot.lab.example 10.0.0.5 -c operator1` works);
+# anything else that starts with "-" is refused, and nothing is written.
+#
 # ROBOT_HOST: every name or address an operator will use to reach the robot host's router
 #   (tls/ROBOT_HOST:7448), e.g. `robot.lab.example.org 192.168.10.5`. Each one goes into the
 #   router certificate's subjectAltName (DNS or IP), because clients check the name they dialled
@@ -19,26 +22,64 @@
 set -euo pipefail
 
 usage() {
-  sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//' >&2
+  sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//' >&2
+  exit "${1:-2}"
+}
+
+die() {
+  echo "make-certs.sh: $*" >&2
+  echo "usage: make-certs.sh [-o DIR] [-d DAYS] [-c CLIENT]... ROBOT_HOST [ROBOT_HOST...] (-h: help)" >&2
   exit 2
 }
 
+# Options may come before, between or after the host names (the README writes
+# `make-certs.sh robot.lab.example 10.0.0.5 -c operator1`); getopts would stop at the first
+# host and put "-c" and "operator1" into the router certificate. `--` ends the options.
 out="."
 days=825
 clients=()
-while getopts "o:d:c:h" opt; do
-  case "$opt" in
-    o) out="$OPTARG" ;;
-    d) days="$OPTARG" ;;
-    c) clients+=("$OPTARG") ;;
-    *) usage ;;
+hosts=()
+while [ "$#" -gt 0 ]; do
+  case "$1" in
+    -h | --help) usage 0 ;;
+    -o | -d | -c)
+      [ "$#" -ge 2 ] && [ -n "$2" ] && [ "${2#-}" = "$2" ] || die "$1 needs a value"
+      case "$1" in
+        -o) out="$2" ;;
+        -d) days="$2" ;;
+        -c) clients+=("$2") ;;
+      esac
+      shift 2
+      ;;
+    -o?* | -d?* | -c?*) set -- "${1:0:2}" "${1:2}" "${@:2}" ;;  # -coperator1 → -c operator1
+    --)
+      shift
+      hosts+=("$@")
+      break
+      ;;
+    -*) die "unknown option '$1'" ;;
+    *)
+      hosts+=("$1")
+      shift
+      ;;
   esac
 done
-shift $((OPTIND - 1))
-[ "$#" -ge 1 ] || usage
+[ "${#hosts[@]}" -ge 1 ] || die "give at least one ROBOT_HOST (the robot's name or address)"
+for host in "${hosts[@]}"; do
+  case "$host" in
+    '' | -* | *[!A-Za-z0-9.:-]*) die "'$host' is not a host name or an IP address" ;;
+  esac
+done
+set -- "${hosts[@]}"
 [ "${#clients[@]}" -gt 0 ] || clients=(operator observer)
 command -v openssl >/dev/null || { echo "make-certs.sh: needs openssl (apt-get install openssl)" >&2; exit 1; }
-case "$days" in '' | *[!0-9]*) echo "make-certs.sh: -d takes a number of days" >&2; exit 2 ;; esac
+case "$days" in '' | *[!0-9]*) die "-d takes a number of days" ;; esac
+for client in "${clients[@]}"; do
+  case "$client" in
+    '' | *[!A-Za-z0-9._-]*) die "bad client name '$client'" ;;
+    router | ca) die "'$client' is reserved" ;;
+  esac
+done
 
 mkdir -p "$out"
 umask 077  # private keys readable by their owner only
@@ -88,10 +129,6 @@ sign() {
 leaf="basicConstraints=critical,CA:FALSE\nkeyUsage=critical,digitalSignature\nsubjectKeyIdentifier=hash\nauthorityKeyIdentifier=keyid"
 sign router telerobot-router "$leaf\nextendedKeyUsage=serverAuth\nsubjectAltName=$san" "SAN $san"
 for client in "${clients[@]}"; do
-  case "$client" in
-    '' | *[!A-Za-z0-9._-]*) echo "make-certs.sh: bad client name '$client'" >&2; exit 2 ;;
-    router | ca) echo "make-certs.sh: '$client' is reserved" >&2; exit 2 ;;
-  esac
   sign "$client" "$client" "$leaf\nextendedKeyUsage=clientAuth"
 done
 

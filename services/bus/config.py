@@ -16,11 +16,12 @@ import typing
 from collections.abc import Mapping, Sequence
 from dataclasses import MISSING, dataclass, fields, is_dataclass, replace
 from pathlib import Path
-from typing import Any, Literal, TypeVar, get_args, get_origin, get_type_hints
-
-import zenoh
+from typing import TYPE_CHECKING, Any, Literal, TypeVar, get_args, get_origin, get_type_hints
 
 from services.bus.errors import ConfigError
+
+if TYPE_CHECKING:  # zenoh is imported where a session is configured: `--help` stays instant
+    import zenoh
 
 Mode = Literal["peer", "client", "router"]
 MAX_LEASE_MS = 2000
@@ -82,6 +83,8 @@ class NodeConfig:
 
     def to_zenoh(self) -> zenoh.Config:
         """The zenoh.Config for this node."""
+        import zenoh
+
         try:
             cfg = zenoh.Config.from_file(self.zenoh_config) if self.zenoh_config else zenoh.Config()
         except zenoh.ZError as e:
@@ -126,7 +129,13 @@ def add_node_args(parser: argparse.ArgumentParser) -> None:
         metavar="ENDPOINT",
         help="endpoint to listen on, e.g. tcp/0.0.0.0:7448 (repeatable)",
     )
-    g.add_argument("--mode", "-m", choices=["peer", "client", "router"], default=None)
+    g.add_argument(
+        "--mode",
+        "-m",
+        choices=["peer", "client", "router"],
+        default=None,
+        help="Zenoh session mode (tools default to a peer that connects to the local router)",
+    )
     g.add_argument("--ns", default=None, help="namespace prefix, e.g. cell2")
     g.add_argument(
         "--config",

@@ -1,7 +1,8 @@
 """`telerobot`: one command for the router, the launcher, every service and introspection.
 
 Service subcommands (`telerobot puma …`) are dispatched to `services.<name>.__main__` and
-imported only when used, so `telerobot topic echo` starts without loading Pinocchio or cv2.
+imported only when used; the introspection commands import Zenoh only once their arguments
+are parsed and checked, so `--help`, `--version` and a bad `call` argument answer at once.
 """
 
 from __future__ import annotations
@@ -49,6 +50,42 @@ def _available() -> dict[str, tuple[str, str]]:
     return out
 
 
+def version() -> str:
+    """The installed package's version (the source tree's when not installed)."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as dist_version
+
+    try:
+        return dist_version("telerobot")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+class _Version(argparse.Action):
+    """`--version`, reading the package metadata only when asked."""
+
+    def __init__(self, option_strings: list[str], dest: str, help: str | None = None) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
+
+    def __call__(self, parser: argparse.ArgumentParser, *_args: object) -> None:
+        print(f"telerobot {version()}")
+        parser.exit()
+
+
+def build_parser(commands: dict[str, tuple[str, str]]) -> argparse.ArgumentParser:
+    """The top-level parser: the service subcommands (parsed by their own modules) and the
+    introspection commands. Builds without importing Zenoh, numpy or any service."""
+    from services.cli import introspect
+
+    p = argparse.ArgumentParser(prog="telerobot", description=__doc__)
+    p.add_argument("--version", action=_Version, help="print the version and exit")
+    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    for name, (_module, help_) in commands.items():
+        sub.add_parser(name, help=help_, add_help=False)
+    introspect.add_parsers(sub)
+    return p
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     commands = _available()
@@ -59,14 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError as e:
             print(f"telerobot {argv[0]}: {e}", file=sys.stderr)
             return 2
-    from services.cli import introspect
-
-    p = argparse.ArgumentParser(prog="telerobot", description=__doc__)
-    sub = p.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
-    for name, (_module, help_) in commands.items():
-        sub.add_parser(name, help=help_, add_help=False)
-    introspect.add_parsers(sub)
-    args = p.parse_args(argv)
+    args = build_parser(commands).parse_args(argv)
     try:
         return int(args.func(args))
     except ConfigError as e:

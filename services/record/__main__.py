@@ -14,10 +14,10 @@ import time
 from services.bus.config import add_node_args, node_config
 from services.bus.lifecycle import Shutdown, setup_logging
 from services.bus.node import Node
-from services.record.recorder import Recorder, RecorderConfig
+from services.record.recorder import Recorder, RecorderConfig, RecorderStats
 
 LOCAL_ROUTER = "tcp/127.0.0.1:7447"
-STATUS_INTERVAL_S = 10.0
+PROGRESS_S = 3.0
 POLL_S = 0.1
 
 
@@ -54,8 +54,22 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--compression", choices=["zstd", "lz4", "none"], default="zstd")
     p.add_argument("--queue-len", type=int, default=50_000, help="inbox bound (samples)")
+    p.add_argument(
+        "--progress-s",
+        type=float,
+        default=PROGRESS_S,
+        metavar="S",
+        help=f"log the samples per topic every S seconds ({PROGRESS_S:g}; 0: never)",
+    )
     p.add_argument("--verbose", "-v", action="store_true", help="debug logging")
     return p
+
+
+def progress(st: RecorderStats, elapsed_s: float) -> str:
+    """One progress line: samples received per topic, written, dropped, the file."""
+    per_key = ", ".join(f"{k} {v.received}" for k, v in sorted(st.keys.items())) or "no sample"
+    where = st.files[-1] if st.files else "-"
+    return f"{elapsed_s:.0f} s: {per_key}; {st.written} written, {st.dropped} dropped → {where}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -77,15 +91,14 @@ def main(argv: list[str] | None = None) -> int:
     stop = Shutdown()
     with Node("record", node_cfg) as node:
         recorder = Recorder(node, config)
-        next_status = time.monotonic() + STATUS_INTERVAL_S
+        start = time.monotonic()
+        every = args.progress_s if args.progress_s > 0 else float("inf")
+        next_status = start + every
         try:
             while not stop.is_set() and not recorder.ended.wait(POLL_S):
                 if time.monotonic() >= next_status:
-                    next_status += STATUS_INTERVAL_S
-                    st = recorder.stats()
-                    log.info(
-                        "%d messages written, %d dropped, %s", st.written, st.dropped, st.files[-1]
-                    )
+                    next_status += every
+                    log.info("%s", progress(recorder.stats(), time.monotonic() - start))
         finally:
             final = recorder.stop()
     summary = final.as_dict()
