@@ -3,11 +3,18 @@
 `telerobot router` listens on `tcp/0.0.0.0:7447` by default with the admin space on. A
 JSON5 router configuration (TLS, user/password, ACL; see deploy/) is applied first with
 `--zenoh-config`, exactly as zenohd would read it; flags override it.
+
+A router that listens beyond loopback says so loudly at start-up (log warning and a line on
+stdout): who can join it (anyone who reaches the port, unless a login and an access-control
+list are configured) and that its admin space (`@/**`: every session, publisher and
+subscriber) is readable by them. The simulation profile listens on 127.0.0.1 only.
 """
 
 from __future__ import annotations
 
 import argparse
+import ipaddress
+import json
 import logging
 
 import zenoh
@@ -38,6 +45,48 @@ def router_config(args: argparse.Namespace) -> NodeConfig:
     return section(NodeConfig, table, "router")
 
 
+def is_loopback(endpoint: str) -> bool:
+    """True for an endpoint bound to a loopback address (127.0.0.0/8, ::1, localhost)."""
+    rest = endpoint.partition("/")[2].split("#", 1)[0]
+    host = rest.rpartition(":")[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def exposure_note(cfg: NodeConfig) -> str | None:
+    """The loud note for a router listening beyond loopback, or None when it does not."""
+    zcfg = cfg.to_zenoh()
+    listen = json.loads(zcfg.get_json("listen/endpoints"))
+    if isinstance(listen, dict):  # Zenoh's per-mode default
+        listen = listen.get("router", [])
+    exposed = [e for e in listen if not is_loopback(e)]
+    if not exposed:
+        return None
+    acl = json.loads(zcfg.get_json("access_control/enabled")) is True
+    login = json.loads(zcfg.get_json("transport/auth/usrpwd/dictionary_file")) is not None
+    admin = json.loads(zcfg.get_json("adminspace/enabled")) is True
+    who = (
+        "only sessions that log in, with the rights the access-control list gives them"
+        if acl and login
+        else "ANYONE who reaches the port can join and publish robot/puma/cmd "
+        "(no login and access-control list configured)"
+    )
+    admin_note = ""
+    if admin:
+        admin_note = "; the admin space @/** (every session, publisher, subscriber) is " + (
+            "on: the access-control list decides who reads it" if acl else "readable by all"
+        )
+    return (
+        f"NOTE: this router listens beyond loopback on {', '.join(exposed)}: {who}{admin_note}. "
+        "For one machine listen on tcp/127.0.0.1:7447 (deploy/sim.toml); for a cell see "
+        "docs/deploy.md"
+    )
+
+
 def open_router(cfg: NodeConfig) -> zenoh.Session:
     """Open the router session (the caller closes it)."""
     return zenoh.open(cfg.to_zenoh())
@@ -51,10 +100,13 @@ def main(argv: list[str] | None = None) -> int:
     # RUST_LOG=info,zenoh::net::routing::interceptor::access_control=trace shows ACL denials.
     zenoh.try_init_log_from_env()
     cfg = router_config(args)
+    note = exposure_note(cfg)
     stop = Shutdown()
     with open_router(cfg) as session:
         log.info("router %s listening on %s", session.zid(), ", ".join(cfg.listen) or "config")
         print(f"router up: zid={session.zid()} listen={list(cfg.listen)}", flush=True)
+        if note:
+            log.warning(note)
         stop.wait()
     log.info("router stopped")
     return 0
