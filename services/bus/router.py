@@ -13,13 +13,18 @@ subscriber) is readable by them. The simulation profile listens on 127.0.0.1 onl
 from __future__ import annotations
 
 import argparse
+import errno
 import ipaddress
 import json
 import logging
+import socket
+import sys
 
 import zenoh
 
+from services.bus.bounds import short
 from services.bus.config import NodeConfig, add_node_args, load_deploy, section
+from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown, setup_logging
 
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
@@ -87,6 +92,45 @@ def exposure_note(cfg: NodeConfig) -> str | None:
     )
 
 
+def tcp_host_port(endpoint: str) -> tuple[str, int] | None:
+    """(host, port) of a `tcp/HOST:PORT` endpoint (IPv6 hosts in brackets), else None."""
+    proto, _, rest = endpoint.partition("/")
+    host, _, port = rest.split("#", 1)[0].rpartition(":")
+    if proto != "tcp" or not host or not port.isdigit() or int(port) > 65535:
+        return None
+    return host.strip("[]"), int(port)
+
+
+def endpoint_taken(endpoint: str) -> bool:
+    """True when something already listens on this TCP endpoint's port: a bind with
+    SO_REUSEADDR fails only against a listener (not against TIME_WAIT leftovers of a
+    router that has just stopped). Other protocols and port 0 are never 'taken'."""
+    hp = tcp_host_port(endpoint)
+    if hp is None or hp[1] == 0:
+        return False
+    host, port = hp
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind((host, port))
+        except OSError as e:
+            if e.errno in (errno.EADDRINUSE, errno.EACCES):
+                return True
+            raise ConfigError("router.listen", f"cannot listen on {endpoint}: {e}") from None
+    return False
+
+
+def already_running(taken: list[str]) -> str:
+    """What to tell a user whose router endpoint is taken (issue 23, item 5)."""
+    hp = tcp_host_port(taken[0])
+    port = hp[1] if hp is not None else taken[0]
+    return (
+        f"a router already listens on {port}; another Telerobot is running — stop it or use "
+        "--listen/--ns"
+    )
+
+
 def open_router(cfg: NodeConfig) -> zenoh.Session:
     """Open the router session (the caller closes it)."""
     return zenoh.open(cfg.to_zenoh())
@@ -101,8 +145,17 @@ def main(argv: list[str] | None = None) -> int:
     zenoh.try_init_log_from_env()
     cfg = router_config(args)
     note = exposure_note(cfg)
+    taken = [e for e in cfg.listen if endpoint_taken(e)]
+    if taken:
+        print(f"telerobot router: {already_running(taken)}", file=sys.stderr, flush=True)
+        return 1
     stop = Shutdown()
-    with open_router(cfg) as session:
+    try:
+        session = open_router(cfg)
+    except zenoh.ZError as e:
+        print(f"telerobot router: cannot start: {short(str(e), 400)}", file=sys.stderr, flush=True)
+        return 1
+    with session:
         log.info("router %s listening on %s", session.zid(), ", ".join(cfg.listen) or "config")
         print(f"router up: zid={session.zid()} listen={list(cfg.listen)}", flush=True)
         if note:

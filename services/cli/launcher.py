@@ -33,10 +33,8 @@ import argparse
 import contextlib
 import ctypes
 import ctypes.util
-import errno
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -48,7 +46,7 @@ from typing import IO, Any
 from services.bus.config import load_deploy, section
 from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown
-from services.bus.router import DEFAULT_LISTEN
+from services.bus.router import DEFAULT_LISTEN, already_running, endpoint_taken, tcp_host_port
 
 #: the exit status of a process whose configuration is wrong (`telerobot …` on ConfigError)
 CONFIG_EXIT = 2
@@ -182,7 +180,7 @@ class Overrides:
     ns: str = ""
 
     def __post_init__(self) -> None:
-        if self.listen and _tcp_host_port(self.listen) is None:
+        if self.listen and tcp_host_port(self.listen) is None:
             raise ConfigError("--listen", f"{self.listen!r} is not tcp/HOST:PORT")
         if self.ns and (self.ns.startswith("/") or self.ns.endswith("/") or "*" in self.ns):
             raise ConfigError("--ns", f"{self.ns!r}: no leading/trailing '/' or wildcards")
@@ -211,15 +209,6 @@ def child_argv(
     ]
 
 
-def _tcp_host_port(endpoint: str) -> tuple[str, int] | None:
-    """(host, port) of a `tcp/HOST:PORT` endpoint (IPv6 hosts in brackets), else None."""
-    proto, _, rest = endpoint.partition("/")
-    host, _, port = rest.split("#", 1)[0].rpartition(":")
-    if proto != "tcp" or not host or not port.isdigit() or int(port) > 65535:
-        return None
-    return host.strip("[]"), int(port)
-
-
 def dialable(endpoint: str) -> str:
     """The endpoint a local service dials to reach a router listening on `endpoint`."""
     return endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
@@ -235,39 +224,9 @@ def router_endpoints(deploy: dict[str, Any], overrides: Overrides) -> list[str]:
     return [] if table.get("zenoh_config") else [DEFAULT_LISTEN]
 
 
-def endpoint_taken(endpoint: str) -> bool:
-    """True when something already listens on this TCP endpoint's port: a bind with
-    SO_REUSEADDR fails only against a listener (not against TIME_WAIT leftovers of a
-    router that has just stopped). Other protocols and port 0 are never 'taken'."""
-    hp = _tcp_host_port(endpoint)
-    if hp is None or hp[1] == 0:
-        return False
-    host, port = hp
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    with socket.socket(family, socket.SOCK_STREAM) as s:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            s.bind((host, port))
-        except OSError as e:
-            if e.errno in (errno.EADDRINUSE, errno.EACCES):
-                return True
-            raise ConfigError("router.listen", f"cannot listen on {endpoint}: {e}") from None
-    return False
-
-
 def taken_router_endpoints(deploy: dict[str, Any], overrides: Overrides) -> list[str]:
     """The profile router's endpoints that something already listens on."""
     return [e for e in router_endpoints(deploy, overrides) if endpoint_taken(e)]
-
-
-def already_running(taken: list[str]) -> str:
-    """What to tell a user whose router endpoint is taken (issue 23, item 5)."""
-    hp = _tcp_host_port(taken[0])
-    port = hp[1] if hp is not None else taken[0]
-    return (
-        f"a router already listens on {port}; another Telerobot is running — stop it or use "
-        "--listen/--ns"
-    )
 
 
 def _say(out: IO[str], text: str) -> None:

@@ -525,3 +525,19 @@ def test_listen_and_ns_reach_every_service(tmp_path: Path) -> None:
         assert info.value.key == "--listen"
     with pytest.raises(ConfigError):
         launcher.Overrides(ns="a/*")
+
+
+def test_a_router_on_a_taken_port_says_so_without_a_traceback() -> None:
+    """Two launches started at once both pass the launcher's check; the second router then
+    finds its port taken and exits 1 with the same sentence (no Rust traceback), which
+    stops its launch as a child that could not start."""
+    port = free_port()
+    argv = telerobot("router", "--listen", f"tcp/127.0.0.1:{port}")
+    with listening(port), spawned(argv, merge_stderr=False) as router:
+        assert router.wait(DEADLINE_S) == 1
+        lines = router.rest()
+    assert lines == []
+    assert router.errors == [
+        f"telerobot router: a router already listens on {port}; another Telerobot is "
+        "running — stop it or use --listen/--ns"
+    ]
