@@ -19,13 +19,15 @@ import json
 import logging
 import socket
 import sys
-
-import zenoh
+from typing import TYPE_CHECKING
 
 from services.bus.bounds import short
 from services.bus.config import NodeConfig, add_node_args, load_deploy, section
 from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown, setup_logging
+
+if TYPE_CHECKING:  # zenoh is imported where a session opens: `up --help` stays instant
+    import zenoh
 
 DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
 
@@ -133,6 +135,8 @@ def already_running(taken: list[str]) -> str:
 
 def open_router(cfg: NodeConfig) -> zenoh.Session:
     """Open the router session (the caller closes it)."""
+    import zenoh
+
     return zenoh.open(cfg.to_zenoh())
 
 
@@ -140,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="telerobot router", description=__doc__)
     add_node_args(p)
     args = p.parse_args(argv)
+    import zenoh
+
     setup_logging("router")
     # RUST_LOG=info,zenoh::net::routing::interceptor::access_control=trace shows ACL denials.
     zenoh.try_init_log_from_env()
