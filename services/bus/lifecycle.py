@@ -18,12 +18,15 @@ class Shutdown:
 
     Services poll `is_set()` in their loops and leave through their `finally` blocks, which
     hold the arm and close the Zenoh session. A signal also arms a last-resort timer: a
-    process still there `EXIT_GRACE_S` later prints every thread's stack and exits.
+    process still there `grace_s` (default `EXIT_GRACE_S`) later prints every thread's
+    stack and exits. A process whose orderly stop takes longer by design (the launcher
+    stops its children one by one) raises `grace_s` before any signal can come.
     """
 
-    def __init__(self, install: bool = True) -> None:
+    def __init__(self, install: bool = True, grace_s: float = EXIT_GRACE_S) -> None:
         self._event = threading.Event()
         self.signal: int | None = None
+        self.grace_s = grace_s
         if install and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, self._handle)
             signal.signal(signal.SIGTERM, self._handle)
@@ -31,7 +34,7 @@ class Shutdown:
     def _handle(self, signum: int, frame: FrameType | None) -> None:
         self.signal = signum
         if not self._event.is_set():
-            faulthandler.dump_traceback_later(EXIT_GRACE_S, exit=True)
+            faulthandler.dump_traceback_later(self.grace_s, exit=True)
         self._event.set()
 
     def set(self) -> None:

@@ -7,22 +7,33 @@ scripted operator at a master of its own (id `operator`) drives the arm through 
 decision server while the workcell simulation (started here unless one is up) moves the
 objects; the run's metrics are printed when it ends (docs/tasks.md). The system keeps
 running, so the console's virtual master can take over. Ctrl-C stops everything.
+
+Every line a service prints carries its `[service]` prefix; the demo's own log lines carry
+`[demo]`, and no line is ever cut by another. When another Telerobot already runs (its
+router holds the port), the demo says so and exits before starting anything: stop it, or
+use `--listen tcp/127.0.0.1:PORT` (a second system beside it) or `--ns NS`.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import re
 import sys
 import threading
+import time
+from dataclasses import replace
+from typing import IO, Any
 
-from services.bus.config import NodeConfig, load_deploy
+from services.bus.config import NodeConfig, load_deploy, section
 from services.bus.errors import TelerobotError
 from services.bus.lifecycle import Shutdown
 from services.bus.node import Node
 from services.cli import launcher
 
-CONSOLE_WAIT_S = 60.0
+#: the console's start-up, imports included, on a loaded 2-core machine (3–13 s each for
+#: eight services starting together), with margin
+CONSOLE_WAIT_S = 90.0
 TASKS = ("1", "2", "3", "none")
 _URL = re.compile(r"\[console\] console: (http://\S+)")
 
@@ -31,7 +42,8 @@ class _UrlWatch:
     """The launcher's output, passed through; remembers the URL the console prints (viser
     moves to the next free port when the configured one is taken)."""
 
-    def __init__(self) -> None:
+    def __init__(self, out: IO[str]) -> None:
+        self.out = out
         self.url: str | None = None
         self.seen = threading.Event()
 
@@ -40,10 +52,50 @@ class _UrlWatch:
         if m and self.url is None:
             self.url = m.group(1)
             self.seen.set()
-        return sys.stdout.write(text)
+        return self.out.write(text)
 
     def flush(self) -> None:
-        sys.stdout.flush()
+        self.out.flush()
+
+
+class _Lines:
+    """A text stream that writes whole lines only, under the launcher's output lock: the
+    demo's own prints and logs never cut a service's line (nor one another's). Each thread
+    gathers its partial line apart."""
+
+    def __init__(self, out: IO[str]) -> None:
+        self.out = out
+        self._partial = threading.local()
+
+    def write(self, text: str) -> int:
+        buf = getattr(self._partial, "text", "") + text
+        head, sep, tail = buf.rpartition("\n")
+        self._partial.text = tail
+        if sep:
+            with launcher.OUT_LOCK:
+                self.out.write(head + sep)
+                self.out.flush()
+        return len(text)
+
+    def flush(self) -> None:
+        self.out.flush()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.out, name)
+
+
+def demo_node_config(deploy: dict[str, Any], overrides: launcher.Overrides) -> NodeConfig:
+    """The demo's own sessions (and the task's): the profile's `[zenoh]` table (loopback
+    listeners in the sim profile) with the `--listen/--ns` overrides the services got."""
+    base = section(
+        NodeConfig, {"connect": ["tcp/127.0.0.1:7447"], **deploy.get("zenoh", {})}, "zenoh"
+    )
+    cfg = replace(base, mode="peer" if base.mode == "router" else base.mode)
+    if overrides.listen:
+        cfg = replace(cfg, connect=(launcher.dialable(overrides.listen),))
+    if overrides.ns:
+        cfg = replace(cfg, ns=overrides.ns)
+    return cfg
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -57,24 +109,59 @@ def main(argv: list[str] | None = None) -> int:
         "3 bottled liquid, none",
     )
     p.add_argument("--json", action="store_true", help="print the task's metrics as JSON")
+    launcher.add_override_args(p)
     args = p.parse_args(argv)
     profile = launcher.resolve_profile(args.profile)
+    overrides = launcher.Overrides(listen=args.listen, ns=args.ns)
     deploy = load_deploy(profile)
     port = int(deploy.get("console", {}).get("port", 8080))
+    node_cfg = demo_node_config(deploy, overrides)
+    ups = deploy.get("up", {}).get("services", [])
+    taken = launcher.taken_router_endpoints(deploy, overrides) if "router" in ups else []
+    if taken and not overrides.ns:
+        # before anything starts: no service of ours joins the other system
+        print(f"telerobot demo: {launcher.already_running(taken)}", file=sys.stderr, flush=True)
+        return 1
+    real_out = sys.stdout
+    sys.stdout = _Lines(real_out)
+    logging.basicConfig(
+        stream=sys.stdout,
+        level=logging.INFO,
+        format="[demo] %(asctime)s %(levelname)-7s %(name)s: %(message)s",
+        force=True,
+    )
+    try:
+        return _run(args, profile, overrides, node_cfg, port, real_out)
+    finally:
+        sys.stdout = real_out
+
+
+def _run(
+    args: argparse.Namespace,
+    profile: Any,
+    overrides: launcher.Overrides,
+    node_cfg: NodeConfig,
+    port: int,
+    real_out: IO[str],
+) -> int:
     stop = Shutdown()
     status: list[int] = []
-    watch = _UrlWatch()
-    runner = threading.Thread(
-        target=lambda: status.append(launcher.run(profile, out=watch, stop=stop)),  # type: ignore[arg-type]
-        name="launcher",
-    )
+    watch = _UrlWatch(real_out)
+    out: Any = watch  # a text stream as far as the launcher is concerned
+
+    def launch() -> None:
+        status.append(launcher.run(profile, out=out, stop=stop, overrides=overrides))
+
+    runner = threading.Thread(target=launch, name="launcher")
     runner.start()
-    connect = tuple(deploy.get("zenoh", {}).get("connect", ["tcp/127.0.0.1:7447"]))
-    node_cfg = NodeConfig(mode="peer", connect=connect)
     up = False
     with Node("demo", node_cfg) as node:
-        if node.alive.wait("console", CONSOLE_WAIT_S):
-            up = True
+        deadline = time.monotonic() + CONSOLE_WAIT_S
+        while runner.is_alive() and not stop.is_set() and time.monotonic() < deadline:
+            if node.alive.wait("console", 0.5):
+                up = True
+                break
+        if up:
             watch.seen.wait(5.0)
             url = watch.url or f"http://127.0.0.1:{port}"
             bar = "=" * 60
@@ -87,12 +174,16 @@ def main(argv: list[str] | None = None) -> int:
                 f"  Ctrl-C stops everything.\n{bar}\n",
                 flush=True,
             )
-        elif not stop.is_set():
+        elif runner.is_alive() and not stop.is_set():
             print(
-                "telerobot demo: the console did not come up; see the logs above",
+                f"telerobot demo: the console did not come up within {CONSOLE_WAIT_S:.0f} s; "
+                "stopping everything (see the logs above)",
                 file=sys.stderr,
                 flush=True,
             )
+            stop.set()
+            runner.join()
+            return 1
     if up and args.task != "none" and not stop.is_set():
         run_task(int(args.task), node_cfg, stop, args.json)
     runner.join()

@@ -11,10 +11,20 @@ A profile is a deployment TOML with an `[up]` table:
 
 Each child gets `--config PROFILE` (so it reads its own table and `[zenoh]`), its output is
 prefixed with its name, a child that crashes is restarted with exponential backoff, and
-Ctrl-C / SIGTERM stops all (SIGTERM, then SIGKILL after `stop_timeout_s`). A child that
-exits within `startup_s` of its first start cannot start: everything is stopped and `up`
-exits non-zero. Children stop one by one in reverse start order. Children are spawned,
-never forked (ZENOH_NOTES.md pitfall 3).
+Ctrl-C / SIGTERM stops all (SIGTERM, then SIGKILL after `stop_timeout_s`). Children stop
+one by one in reverse start order. Children are spawned, never forked (ZENOH_NOTES.md
+pitfall 3).
+
+What stops the whole launch (everything is stopped and `up` exits non-zero):
+- before anything starts, the profile's router endpoint is taken (another Telerobot runs);
+- a child exits with the configuration status (2): its configuration is wrong and a
+  restart cannot mend it; the child and its last line (which names the key) are reported;
+- a child exits within `startup_s` of its first start (it cannot start). Importing a
+  service takes 3–13 s on a loaded 2-core machine, so the default is 30 s.
+
+`--listen ENDPOINT` moves the profile's router to another endpoint (its services connect
+there); `--ns NS` runs every service under a namespace and, when the router endpoint is
+already taken, joins that router instead of starting one (several robots on one network).
 """
 
 from __future__ import annotations
@@ -36,8 +46,13 @@ from typing import IO, Any
 from services.bus.config import load_deploy, section
 from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown
+from services.bus.router import DEFAULT_LISTEN, already_running, endpoint_taken, tcp_host_port
 
-_OUT_LOCK = threading.Lock()
+#: the exit status of a process whose configuration is wrong (`telerobot …` on ConfigError)
+CONFIG_EXIT = 2
+#: held while a whole line is written: children's pump threads and the demo's own output
+#: share one stream, and a line must never be cut by another's.
+OUT_LOCK = threading.RLock()
 _PR_SET_PDEATHSIG = 1
 _LIBC = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
 
@@ -62,7 +77,7 @@ class UpConfig:
     restart: bool = True
     backoff_s: float = 0.5
     backoff_max_s: float = 10.0
-    startup_s: float = 1.0
+    startup_s: float = 30.0
     stop_timeout_s: float = 5.0
 
     def __post_init__(self) -> None:
@@ -76,6 +91,10 @@ class UpConfig:
                 raise ConfigError(f"up.commands.{name}", "must be a non-empty list of strings")
         if self.backoff_s <= 0 or self.backoff_max_s < self.backoff_s:
             raise ConfigError("up.backoff_s", "need 0 < backoff_s ≤ backoff_max_s")
+        if self.startup_s < 0:
+            raise ConfigError("up.startup_s", "must be ≥ 0")
+        if self.stop_timeout_s <= 0:
+            raise ConfigError("up.stop_timeout_s", "must be > 0")
 
 
 def resolve_profile(name: str) -> Path:
@@ -103,6 +122,8 @@ class Child:
         self.next_start = 0.0
         #: exited and not to be restarted (restart = false): no longer supervised
         self.finished = False
+        #: the last non-empty line the child printed (a configuration error names its key)
+        self.last_line = ""
         self._pump: threading.Thread | None = None
 
     def start(self) -> None:
@@ -126,11 +147,14 @@ class Child:
     def _copy(self, proc: subprocess.Popen[str]) -> None:
         assert proc.stdout is not None
         for line in proc.stdout:
-            self.say(line.rstrip("\n"))
+            text = line.rstrip("\n")
+            if text.strip():
+                self.last_line = text.strip()
+            self.say(text)
 
     def say(self, text: str) -> None:
         # One lock for every child: their pump threads share one output stream.
-        with _OUT_LOCK:
+        with OUT_LOCK:
             self.out.write(f"[{self.name}] {text}\n")
             self.out.flush()
 
@@ -147,9 +171,32 @@ class Child:
             self._pump.join(timeout=2.0)
 
 
-def child_argv(name: str, profile: Path, cfg: UpConfig) -> list[str]:
+@dataclass(frozen=True, slots=True)
+class Overrides:
+    """What `up --listen/--ns` changes in a profile: the router's endpoint (its services
+    connect there) and a namespace for every service."""
+
+    listen: str = ""
+    ns: str = ""
+
+    def __post_init__(self) -> None:
+        if self.listen and tcp_host_port(self.listen) is None:
+            raise ConfigError("--listen", f"{self.listen!r} is not tcp/HOST:PORT")
+        if self.ns and (self.ns.startswith("/") or self.ns.endswith("/") or "*" in self.ns):
+            raise ConfigError("--ns", f"{self.ns!r}: no leading/trailing '/' or wildcards")
+
+
+def child_argv(
+    name: str, profile: Path, cfg: UpConfig, overrides: Overrides = Overrides()
+) -> list[str]:
     if name in cfg.commands:
         return list(cfg.commands[name])
+    extra: list[str] = []
+    if overrides.listen:
+        extra += ["--listen", overrides.listen] if name == "router" else []
+        extra += [] if name == "router" else ["--connect", dialable(overrides.listen)]
+    if overrides.ns and name != "router":
+        extra += ["--ns", overrides.ns]
     return [
         sys.executable,
         "-m",
@@ -157,17 +204,64 @@ def child_argv(name: str, profile: Path, cfg: UpConfig) -> list[str]:
         name,
         "--config",
         str(profile),
+        *extra,
         *cfg.args.get(name, []),
     ]
 
 
-def run(profile: Path, out: IO[str] = sys.stdout, stop: Shutdown | None = None) -> int:
+def dialable(endpoint: str) -> str:
+    """The endpoint a local service dials to reach a router listening on `endpoint`."""
+    return endpoint.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]")
+
+
+def router_endpoints(deploy: dict[str, Any], overrides: Overrides) -> list[str]:
+    """The endpoints the profile's router will listen on (as `telerobot router` reads them)."""
+    if overrides.listen:
+        return [overrides.listen]
+    table = deploy.get("router", {})
+    if "listen" in table:
+        return [str(e) for e in table["listen"]]
+    return [] if table.get("zenoh_config") else [DEFAULT_LISTEN]
+
+
+def taken_router_endpoints(deploy: dict[str, Any], overrides: Overrides) -> list[str]:
+    """The profile router's endpoints that something already listens on."""
+    return [e for e in router_endpoints(deploy, overrides) if endpoint_taken(e)]
+
+
+def _say(out: IO[str], text: str) -> None:
+    with OUT_LOCK:
+        out.write(f"[up] {text}\n")
+        out.flush()
+
+
+def run(
+    profile: Path,
+    out: IO[str] = sys.stdout,
+    stop: Shutdown | None = None,
+    overrides: Overrides = Overrides(),
+) -> int:
     """Start every child of `profile`, supervise them until stopped; the exit status."""
     deploy = load_deploy(profile)
     cfg = section(UpConfig, deploy.get("up"), "up")
     stop = stop or Shutdown()
     names = [*cfg.services, *cfg.commands]
-    children = [Child(n, child_argv(n, profile, cfg), out) for n in names]
+    # The stop sequence takes up to stop_timeout_s per child: the last-resort thread dump
+    # must not fire while it runs as designed (a SIGTERM from systemd or `timeout`).
+    stop.grace_s = max(stop.grace_s, len(names) * (cfg.stop_timeout_s + 1.0) + 10.0)
+    if "router" in cfg.services:
+        taken = taken_router_endpoints(deploy, overrides)
+        if taken and not overrides.ns:
+            print(f"telerobot up: {already_running(taken)}", file=sys.stderr, flush=True)
+            return 1
+        if taken:
+            names.remove("router")
+            _say(
+                out,
+                f"a router already listens on {', '.join(taken)}: joining it under "
+                f"namespace {overrides.ns!r} (no router of our own)",
+            )
+    children = [Child(n, child_argv(n, profile, cfg, overrides), out) for n in names]
     status = 0
     try:
         for c in children:
@@ -182,6 +276,15 @@ def run(profile: Path, out: IO[str] = sys.stdout, stop: Shutdown | None = None) 
                     c.next_start = 0.0
                     c.start()
                     continue
+                if code == CONFIG_EXIT:
+                    c.join_output()
+                    c.say(
+                        f"configuration error (exit {code}): {c.last_line or 'no message'}; "
+                        "stopping everything"
+                    )
+                    status = 1
+                    stop.set()
+                    break
                 if c.starts == 1 and now - c.started_at < cfg.startup_s and code != 0:
                     c.join_output()
                     c.say(f"could not start (exit {code}); stopping everything")
@@ -214,6 +317,23 @@ def run(profile: Path, out: IO[str] = sys.stdout, stop: Shutdown | None = None) 
     return status
 
 
+def add_override_args(p: argparse.ArgumentParser) -> None:
+    """`--listen` and `--ns`, shared by `telerobot up` and `telerobot demo`."""
+    p.add_argument(
+        "--listen",
+        default="",
+        metavar="ENDPOINT",
+        help="the router's endpoint instead of the profile's, e.g. tcp/127.0.0.1:7450; "
+        "every service connects there (run a second system beside a running one)",
+    )
+    p.add_argument(
+        "--ns",
+        default="",
+        help="a namespace for every service (e.g. cell2); if the router endpoint is "
+        "taken, join that router instead of starting one",
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="telerobot up",
@@ -226,10 +346,12 @@ def main(argv: list[str] | None = None) -> int:
         default="sim",
         help="a profile file or a name in deploy/ (default: sim)",
     )
+    add_override_args(p)
     args = p.parse_args(argv)
     try:
         profile = resolve_profile(args.profile)
+        overrides = Overrides(listen=args.listen, ns=args.ns)
     except ConfigError as e:
         print(f"telerobot up: {e}", file=sys.stderr)
         return 2
-    return run(profile)
+    return run(profile, overrides=overrides)

@@ -53,7 +53,10 @@ def master_node_config(cfg: NodeConfig, rate_hz: float | None = None) -> NodeCon
         ep.replace("0.0.0.0", "127.0.0.1").replace("[::]", "[::1]") for ep in cfg.listen
     )
     rules = () if rate_hz is None else ((keys.FORCE.key, rate_hz), (keys.STATE.key, rate_hz))
-    return replace(cfg, listen=(), connect=connect, downsampling=(*cfg.downsampling, *rules))
+    # a free-port listener (deploy/sim.toml's loopback one) can be opened twice: keep it, or
+    # Zenoh's default would listen on every interface
+    listen = tuple(ep for ep in cfg.listen if ep.endswith(":0"))
+    return replace(cfg, listen=listen, connect=connect, downsampling=(*cfg.downsampling, *rules))
 
 
 def run(node_cfg: NodeConfig, config: ConsoleConfig, stop: Shutdown) -> int:

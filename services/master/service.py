@@ -102,13 +102,14 @@ class MasterService:
                 "set_hand": self._rpc_set_hand,
             },
         )
+        self._rate = RateLoop(self.config.rate_hz, on_late=self._on_late)
         self._thread = threading.Thread(target=self._loop, name="master-loop", daemon=True)
         self._thread.start()
         node.announce()
 
     # --- the loop (owns the device) -------------------------------------------------
     def _loop(self) -> None:
-        rate = RateLoop(self.config.rate_hz, on_late=self._on_late)
+        rate = self._rate
         state_every = max(1, round(self.config.rate_hz / STATE_RATE_HZ))
         last = time.perf_counter()
         try:
@@ -270,7 +271,7 @@ class MasterService:
                 log.warning("could not send the hold command", exc_info=True)
 
     def _on_late(self, late_s: float, n_late: int) -> None:
-        log.warning("master loop late by %.1f ms (%d late ticks)", late_s * 1e3, n_late)
+        log.warning("master loop late by up to %.1f ms (%d late ticks)", late_s * 1e3, n_late)
 
     # --- methods --------------------------------------------------------------------
     def _status(self) -> dict[str, Any]:
@@ -287,6 +288,7 @@ class MasterService:
             "can_display_force": self.device.can_display_force,
             "ticks": self.ticks,
             "reopens": self.reopens,
+            "loop": self._rate.stats(),
             **_device_stats(self.device),
         }
 

@@ -107,6 +107,7 @@ def ros_side_config(base: NodeConfig) -> zenoh.Config:
     plain = NodeConfig(
         mode="client" if base.mode == "client" else "peer",
         connect=endpoints,
+        listen=tuple(e for e in base.listen if e.endswith(":0")),  # loopback stays loopback
         lease_ms=base.lease_ms,
         multicast_scouting=base.multicast_scouting,
         zenoh_config=base.zenoh_config,

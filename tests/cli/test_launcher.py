@@ -12,6 +12,7 @@ import io
 import json
 import re
 import signal
+import socket
 import sys
 import threading
 import time
@@ -26,6 +27,7 @@ from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown
 from services.cli import launcher
 from tests.bus.test_router import spawned, telerobot
+from tests.conftest import free_port
 
 DEADLINE_S = 20.0
 PY = sys.executable
@@ -146,13 +148,15 @@ class Launch:
 
 
 @contextmanager
-def running(path: Path) -> Iterator[Launch]:
+def running(path: Path, overrides: launcher.Overrides | None = None) -> Iterator[Launch]:
     """launcher.run(path) in a thread; stopped and joined on exit."""
     launch = Launch(Output(), Shutdown(install=False))
 
     def target() -> None:
         try:
-            launch.status = launcher.run(path, launch.out, launch.stop)
+            launch.status = launcher.run(
+                path, launch.out, launch.stop, overrides or launcher.Overrides()
+            )
         except BaseException as e:  # handed to the test thread, which re-raises it
             launch.error = e
         finally:
@@ -338,3 +342,202 @@ def test_children_die_with_a_killed_launcher(tmp_path: Path) -> None:
         up.wait(DEADLINE_S)
     assert len(pids) == 1
     assert wait_gone(pids), "a child outlived its SIGKILLed launcher"
+
+
+# --- issue 23, items 5 and 6 -------------------------------------------------------------
+
+CONFIG_TYPO = (
+    "import sys, time\n"
+    "time.sleep(0.5)\n"  # past startup_s: the startup rule is not what stops the launch
+    "print('telerobot puma: puma.bogus: unknown key (known: arm, port)', file=sys.stderr)\n"
+    "sys.exit(2)\n"
+)
+
+
+def test_a_configuration_error_stops_everything_and_names_the_key(tmp_path: Path) -> None:
+    path = profile(
+        tmp_path,
+        {"hello": [PY, "-c", HELLO], "typo": [PY, "-c", CONFIG_TYPO]},
+        startup_s=0.1,
+        backoff_s=0.1,
+        backoff_max_s=0.1,
+    )
+    out, stop = Output(), Shutdown(install=False)
+    status = launcher.run(path, out, stop)  # returns on its own: no stop needed
+    lines = out.snapshot()
+    assert status == 1
+    assert (
+        "[typo] configuration error (exit 2): telerobot puma: puma.bogus: unknown key "
+        "(known: arm, port); stopping everything"
+    ) in lines
+    assert len(started_pids(lines, "typo")) == 1  # never restarted
+    assert not any("restarting" in line for line in lines)
+    assert any(line.startswith("[hello] stopped (exit") for line in lines)
+    assert wait_gone(started_pids(lines, "hello"))
+
+
+def test_a_real_service_with_a_misspelt_key_fails_the_launch(tmp_path: Path) -> None:
+    """The real puma, its import included (seconds under load): exit 2 names `puma.bogus`."""
+    path = tmp_path / "typo.toml"
+    path.write_text('[puma]\narm = "sim"\nbogus = 1\n[up]\nservices = ["puma"]\n')
+    out, stop = Output(), Shutdown(install=False)
+    status = launcher.run(path, out, stop)
+    lines = out.snapshot()
+    assert status == 1
+    fatal = [line for line in lines if "configuration error (exit 2)" in line]
+    assert len(fatal) == 1 and fatal[0].startswith("[puma] ") and "puma.bogus" in fatal[0]
+    assert len(started_pids(lines, "puma")) == 1
+
+
+def test_a_child_dying_during_a_slow_start_up_stops_everything(tmp_path: Path) -> None:
+    """With the default startup_s, a child that dies after 1.5 s (an import under load
+    takes 3–13 s) still counts as one that could not start: the old 1 s missed it."""
+    assert launcher.UpConfig(services=("puma",)).startup_s >= 20.0
+    slow_death = "import sys, time; time.sleep(1.5); print('no device', flush=True); sys.exit(1)"
+    path = profile(tmp_path, {"hello": [PY, "-c", HELLO], "slow": [PY, "-c", slow_death]})
+    out, stop = Output(), Shutdown(install=False)
+    assert launcher.run(path, out, stop) == 1
+    lines = out.snapshot()
+    assert "[slow] could not start (exit 1); stopping everything" in lines
+    assert len(started_pids(lines, "slow")) == 1
+
+
+def test_the_stop_sequence_fits_in_the_exit_grace(tmp_path: Path) -> None:
+    """Children stop one by one, each up to stop_timeout_s: the last-resort thread dump of
+    a SIGTERMed launcher must wait longer than that sequence can take."""
+    path = profile(tmp_path, {f"c{i}": [PY, "-c", HELLO] for i in range(4)}, stop_timeout_s=6.0)
+    with running(path) as launch:
+        launch.out.wait_line("[c3] hello")
+        assert launch.stop.grace_s >= 4 * 6.0
+
+
+def test_sigterm_stops_up_cleanly_without_a_thread_dump(tmp_path: Path) -> None:
+    slow_stop = (
+        "import signal, sys, time\n"
+        "signal.signal(signal.SIGTERM, lambda *a: (time.sleep(1.0), sys.exit(0)))\n"
+        "print('ready', flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    path = profile(tmp_path, {"a": [PY, "-c", slow_stop], "b": [PY, "-c", slow_stop]})
+    with spawned(telerobot("up", str(path))) as up:
+        up.expect("[a] ready")
+        up.expect("[b] ready")
+        up.proc.send_signal(signal.SIGTERM)
+        assert up.wait(DEADLINE_S) == 0
+        lines = up.rest()
+    assert "[b] stopped (exit 0)" in lines and lines[-1] == "[a] stopped (exit 0)"
+    text = "\n".join(lines)
+    for dump in ("Traceback", "Thread 0x", "Current thread", "Fatal Python error"):
+        assert dump not in text, lines
+
+
+def listening(port: int) -> socket.socket:
+    """A listener on 127.0.0.1:port standing in for a running Telerobot's router."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    s.bind(("127.0.0.1", port))
+    s.listen()
+    return s
+
+
+def router_profile(tmp_path: Path, port: int) -> Path:
+    p = tmp_path / "two.toml"
+    p.write_text(
+        f'[router]\nlisten = ["tcp/127.0.0.1:{port}"]\n'
+        '[up]\nservices = ["router"]\n'
+        f"[up.commands]\nhello = {json.dumps([PY, '-c', HELLO])}\n"
+    )
+    return p
+
+
+def test_a_second_launch_is_refused_before_anything_starts(tmp_path: Path) -> None:
+    port = free_port()
+    path = router_profile(tmp_path, port)
+    with listening(port), spawned(telerobot("up", str(path)), merge_stderr=False) as up:
+        assert up.wait(DEADLINE_S) == 1
+        lines = up.rest()
+    assert lines == []  # no service started, not even the router
+    assert up.errors == [
+        f"telerobot up: a router already listens on {port}; another Telerobot is running — "
+        "stop it or use --listen/--ns"
+    ]
+
+
+def test_the_demo_refuses_a_second_run_before_anything_starts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from services.cli import demo
+
+    port = free_port()
+    path = router_profile(tmp_path, port)
+    with listening(port):
+        assert demo.main(["--profile", str(path), "--task", "none"]) == 1
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err == (
+        f"telerobot demo: a router already listens on {port}; another Telerobot is running — "
+        "stop it or use --listen/--ns\n"
+    )
+
+
+def test_with_a_namespace_a_second_launch_joins_the_running_router(tmp_path: Path) -> None:
+    port = free_port()
+    path = router_profile(tmp_path, port)
+    with listening(port), running(path, launcher.Overrides(ns="cell2")) as launch:
+        launch.out.wait_line("[hello] hello")
+        lines = launch.out.snapshot()
+    assert lines[0] == (
+        f"[up] a router already listens on tcp/127.0.0.1:{port}: joining it under namespace "
+        "'cell2' (no router of our own)"
+    )
+    assert started_pids(lines, "router") == []
+
+
+def test_a_free_port_is_not_taken_and_listen_moves_the_router(tmp_path: Path) -> None:
+    port, other = free_port(), free_port()
+    deploy = {"router": {"listen": [f"tcp/127.0.0.1:{port}"]}}
+    assert launcher.taken_router_endpoints(deploy, launcher.Overrides()) == []
+    with listening(port):
+        assert launcher.taken_router_endpoints(deploy, launcher.Overrides()) == [
+            f"tcp/127.0.0.1:{port}"
+        ]
+        moved = launcher.Overrides(listen=f"tcp/127.0.0.1:{other}")
+        assert launcher.taken_router_endpoints(deploy, moved) == []
+    assert launcher.router_endpoints({}, launcher.Overrides()) == ["tcp/0.0.0.0:7447"]
+    assert launcher.endpoint_taken("tls/127.0.0.1:7448") is False  # not checked
+    assert launcher.endpoint_taken("tcp/127.0.0.1:0") is False
+
+
+def test_listen_and_ns_reach_every_service(tmp_path: Path) -> None:
+    path = tmp_path / "p.toml"
+    cfg = launcher.UpConfig(services=("router", "puma"), commands={"rec": ["x"]})
+    o = launcher.Overrides(listen="tcp/0.0.0.0:7450", ns="cell2")
+    assert launcher.child_argv("router", path, cfg, o)[-2:] == ["--listen", "tcp/0.0.0.0:7450"]
+    assert launcher.child_argv("puma", path, cfg, o)[-4:] == [
+        "--connect",
+        "tcp/127.0.0.1:7450",
+        "--ns",
+        "cell2",
+    ]
+    assert launcher.child_argv("rec", path, cfg, o) == ["x"]
+    for bad in ("7450", "udp/1.2.3.4:5", "tcp/127.0.0.1:port"):
+        with pytest.raises(ConfigError) as info:
+            launcher.Overrides(listen=bad)
+        assert info.value.key == "--listen"
+    with pytest.raises(ConfigError):
+        launcher.Overrides(ns="a/*")
+
+
+def test_a_router_on_a_taken_port_says_so_without_a_traceback() -> None:
+    """Two launches started at once both pass the launcher's check; the second router then
+    finds its port taken and exits 1 with the same sentence (no Rust traceback), which
+    stops its launch as a child that could not start."""
+    port = free_port()
+    argv = telerobot("router", "--listen", f"tcp/127.0.0.1:{port}")
+    with listening(port), spawned(argv, merge_stderr=False) as router:
+        assert router.wait(DEADLINE_S) == 1
+        lines = router.rest()
+    assert lines == []
+    assert router.errors == [
+        f"telerobot router: a router already listens on {port}; another Telerobot is "
+        "running — stop it or use --listen/--ns"
+    ]
