@@ -35,8 +35,9 @@ POLL_S = 0.05
 
 
 def tool_config(args: argparse.Namespace) -> NodeConfig:
-    """Tools default to a peer that connects to the local router."""
-    return node_config(args, connect=(LOCAL_ROUTER,))
+    """Tools default to a peer that connects to the local router and listens on loopback
+    only (Zenoh's default listener is every interface: a tool need not be reachable)."""
+    return node_config(args, connect=(LOCAL_ROUTER,), listen=("tcp/127.0.0.1:0",))
 
 
 def decode_sample(key: str, payload: bytes) -> Any:
