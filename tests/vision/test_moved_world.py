@@ -1,0 +1,202 @@
+"""The sim cameras draw the workcell's live state: moved, stacked, tilted, filled objects."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from services.bus.errors import ProtocolError
+from services.bus.messages import vec
+from services.vision.config import VisionConfig
+from services.vision.objects import LIQUID_BGR
+from services.vision.service import VisionService
+from services.vision.sim_camera import SimStereoCamera
+from services.workcell.messages import M3_PER_ML, WORKCELL_STATE, WorkcellState
+from services.workcell.scene import BLOCK_SIZE_M, TABLE, default_scene
+
+from .fakes import wait_for
+
+SCENE = default_scene()
+TOP = TABLE.top_z
+H = BLOCK_SIZE_M
+BOTTLE = SCENE.cylinder("bottle")
+FULL_ML = math.pi * BOTTLE.radius**2 * BOTTLE.liquid_height_m / M3_PER_ML
+
+
+def _rx(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+
+
+def _obj(kind: str, p: Any, size: Any, R: Any = None, **extra: Any) -> dict[str, Any]:
+    R = np.eye(3) if R is None else np.asarray(R)
+    return {
+        "kind": kind,
+        "p": list(vec(p)),
+        "R": list(vec(R)),
+        "size": list(vec(size)),
+        "phase": "resting",
+        "on": "table",
+        "tilt_deg": 0.0,
+        "max_tilt_deg": 0.0,
+        **extra,
+    }
+
+
+def state(objects: dict[str, dict[str, Any]], seq: int = 1) -> WorkcellState:
+    return WorkcellState(
+        seq=seq, t_ns=seq, tool_p=(0.5, 0.0, 0.8), grip=0.0, held="", objects=objects
+    )
+
+
+STACK_XY = (0.50, -0.20)
+STACKED = {f"block{i}": _obj("box", (*STACK_XY, TOP + H / 2 + i * H), (H, H, H)) for i in range(3)}
+BOTTLE_UPRIGHT = _obj(
+    "cylinder",
+    BOTTLE.base,
+    (2 * BOTTLE.radius, 2 * BOTTLE.radius, BOTTLE.height),
+    liquid_ml=FULL_ML,
+    spilled_ml=0.0,
+)
+
+
+def _cos(pixel: np.ndarray, bgr: tuple[int, int, int]) -> float:
+    a = pixel.astype(float)
+    b = np.asarray(bgr, float)
+    return float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b) + 1e-12))
+
+
+@pytest.fixture(scope="module")
+def cam() -> SimStereoCamera:
+    c = SimStereoCamera(VisionConfig(), scene=SCENE)
+    c.open()
+    return c
+
+
+def _pixel(cam: SimStereoCamera, p: Any) -> tuple[int, int]:
+    """Where the left eye's intrinsics put world point `p`."""
+    renderer = cam._renderer
+    assert renderer is not None
+    uv, z = renderer.left.camera.project(np.asarray(p, float))
+    assert z[0] > 0
+    u, v = (round(float(x)) for x in uv[0])
+    assert 0 <= u < cam.config.width and 0 <= v < cam.config.height
+    return u, v
+
+
+def test_stacked_blocks_are_drawn_stacked_and_their_old_places_show_the_table(
+    cam: SimStereoCamera,
+) -> None:
+    cam.clear_robot()
+    before = cam.grab().left
+    # Before any state: the blocks where the scene description puts them.
+    for b in SCENE.movables():
+        if b.name.startswith("block"):
+            u, v = _pixel(cam, (b.center[0], b.center[1], b.top_z))  # type: ignore[union-attr]
+            assert _cos(before[v, u], b.color) > 0.99, b.name
+    cam.set_workcell(state({**STACKED, "bottle": BOTTLE_UPRIGHT}))
+    img = cam.grab().left
+    for i in range(3):
+        block = SCENE.box(f"block{i}")
+        top = TOP + (i + 1) * H
+        # The top face of the top block, and the camera-facing side (+x) of each block.
+        points = [(STACK_XY[0] + H / 2, STACK_XY[1], top - H / 2)]
+        if i == 2:
+            points.append((*STACK_XY, top))
+        for p in points:
+            u, v = _pixel(cam, p)
+            assert _cos(img[v, u], block.color) > 0.99, (block.name, p, img[v, u])
+    # Where blocks 1 and 2 stood, the table top is seen again.
+    for name in ("block1", "block2"):
+        old = SCENE.box(name)
+        u, v = _pixel(cam, (old.center[0], old.center[1], TOP))
+        assert _cos(before[v, u], old.color) > 0.99
+        assert _cos(img[v, u], TABLE.color) > 0.995, (name, img[v, u])
+        assert _cos(img[v, u], old.color) < 0.95
+
+
+def test_only_what_moved_is_ray_cast_again(cam: SimStereoCamera) -> None:
+    cam.clear_robot()
+    renderer = cam._renderer
+    assert renderer is not None
+    first = {**STACKED, "bottle": BOTTLE_UPRIGHT}
+    cam.set_workcell(state(first))
+    cam.grab()
+    n0 = renderer.left.recasts
+    for seq in range(2, 6):  # the same poses again: nothing is re-cast
+        cam.set_workcell(state(first, seq))
+        cam.grab()
+    assert renderer.left.recasts == n0
+    carried = dict(first)
+    carried["block2"] = _obj("box", (0.55, 0.0, 0.6), (H, H, H))
+    cam.set_workcell(state(carried, 7))
+    cam.grab()
+    assert renderer.left.recasts == n0 + 1
+    assert renderer.right.recasts == renderer.left.recasts
+
+
+def test_tilted_bottle_and_its_liquid_level(cam: SimStereoCamera) -> None:
+    cam.clear_robot()
+    base = np.asarray(BOTTLE.base)
+    r, h = BOTTLE.radius, BOTTLE.height
+    half = _obj("cylinder", base, (2 * r, 2 * r, h), liquid_ml=FULL_ML / 2, spilled_ml=0.0)
+    cam.set_workcell(state({**STACKED, "bottle": half}))
+    img = cam.grab().left
+    level = BOTTLE.liquid_height_m / 2
+    # The camera-facing side (+x) of the wall: liquid below the level, the bottle above.
+    u, v = _pixel(cam, base + np.array([r, 0.0, 0.5 * level]))
+    assert _cos(img[v, u], LIQUID_BGR) > 0.99, img[v, u]
+    assert _cos(img[v, u], BOTTLE.color) < 0.9, img[v, u]
+    u, v = _pixel(cam, base + np.array([r, 0.0, level + 0.5 * (h - level)]))
+    assert _cos(img[v, u], BOTTLE.color) > 0.99, img[v, u]
+    assert _cos(img[v, u], LIQUID_BGR) < 0.9, img[v, u]
+    # Tilted 60° about x (towards −y): its old upright top is empty, its axis is seen.
+    R = _rx(60.0)
+    tilted = _obj("cylinder", base, (2 * r, 2 * r, h), R=R, liquid_ml=0.0, spilled_ml=400.0)
+    cam.set_workcell(state({**STACKED, "bottle": tilted}, 2))
+    img = cam.grab().left
+    u, v = _pixel(cam, base + np.array([0.0, 0.0, 0.9 * h]))
+    assert _cos(img[v, u], BOTTLE.color) < 0.97, img[v, u]
+    u, v = _pixel(cam, base + R @ (r, 0.0, 0.7 * h))
+    assert _cos(img[v, u], BOTTLE.color) > 0.99, img[v, u]
+
+
+def test_bad_object_states_are_refused_and_the_last_poses_kept(cam: SimStereoCamera) -> None:
+    cam.clear_robot()
+    cam.set_workcell(state({**STACKED, "bottle": BOTTLE_UPRIGHT}))
+    good = cam.grab().left
+    huge = _obj("box", (0.5, 0.0, 0.5), (50.0, 1.0, 1.0))
+    far = _obj("box", (1e6, 0.0, 0.5), (H, H, H))
+    skew = _obj("box", (0.5, 0.0, 0.5), (H, H, H), R=2 * np.eye(3))
+    for bad in (huge, far, skew):
+        with pytest.raises(ValueError):
+            cam.set_workcell(state({"block0": bad}))
+    with pytest.raises(ProtocolError, match=r"objects\.block0"):
+        cam.set_workcell(state({"block0": {"kind": "box"}}))
+    assert np.array_equal(cam.grab().left, good)
+
+
+def test_vision_service_draws_published_workcell_state(net) -> None:
+    vision_node = net.node("vision")
+    workcell = net.node("workcell")
+    svc = VisionService(vision_node, VisionConfig(width=160, height=120, fps=20.0))
+    camera = svc.camera
+    assert isinstance(camera, SimStereoCamera)
+    pub = workcell.publisher(WORKCELL_STATE)
+    try:
+        pub.put(state({**STACKED, "bottle": BOTTLE_UPRIGHT}, 1))
+        wait_for(lambda: camera._objects is not None, what="workcell/state drawn")
+        objects = camera._objects
+        assert objects is not None
+        got = {o.name: o.p for o in objects}
+        for name, m in STACKED.items():
+            assert np.allclose(got[name], m["p"])
+        # A malformed object is rejected with an event, the last poses kept.
+        pub.put(state({"block0": _obj("box", (0.5, 0.0, 0.5), (99.0, H, H))}, 2))
+        wait_for(lambda: WORKCELL_STATE.key in vision_node.rejected, what="rejection")
+        assert camera._objects is objects
+    finally:
+        svc.close()
