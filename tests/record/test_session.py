@@ -123,7 +123,8 @@ def test_the_recording_is_valid_mcap_with_every_stream(session: Session) -> None
     for key in SESSION_KEYS:
         assert counts[key] == counts[schemas.raw_topic(key)] == session.stats.keys[key].written
     assert decoded == counts["robot/state"]
-    assert checked == SESSION_KEYS
+    assert checked == SESSION_KEYS | {"/tf", "/robot_model"}
+    assert counts["/tf"] == counts["robot/state"] and counts["/robot_model"] == 1
 
 
 def test_replay_republishes_the_same_bytes_in_the_same_order_per_key(
