@@ -23,9 +23,12 @@ from services.vision.camera import Image
 from services.vision.objects import (
     ObjectLayer,
     ObjectPose,
+    Region,
     composite,
     object_layer,
     objects_of_scene,
+    region_of,
+    union,
 )
 from services.vision.rig import PinholeCamera
 from services.workcell.scene import Box, Cylinder, Scene
@@ -272,7 +275,8 @@ class EyeRenderer:
         self.static_background, self.static_depth = raycast_scene(
             scene.fixtures(), camera, supersample
         )
-        self.background, self.depth = self.static_background, self.static_depth
+        self.background = self.static_background.copy()
+        self.depth = self.static_depth.copy()
         self._layers: dict[str, ObjectLayer | None] = {}
         self._keys: dict[str, tuple[object, ...]] = {}
         self._objects: tuple[ObjectPose, ...] | None = None
@@ -294,24 +298,36 @@ class EyeRenderer:
         self._objects = objects
         layers: dict[str, ObjectLayer | None] = {}
         keys: dict[str, tuple[object, ...]] = {}
-        changed = set(self._layers) != {o.name for o in objects}
+        dirty: list[Region] = []
+        for name in set(self._layers) - {o.name for o in objects}:
+            gone = self._layers[name]
+            if gone is not None:
+                dirty.append(region_of(gone))
         for obj in objects:
             key = keys[obj.name] = obj.key()
             if self._keys.get(obj.name) == key:
                 layers[obj.name] = self._layers[obj.name]
                 continue
-            layers[obj.name] = object_layer(obj, self.camera, self._ss)
+            old = self._layers.get(obj.name)
+            new = layers[obj.name] = object_layer(obj, self.camera, self._ss)
             self.recasts += 1
-            changed = True
+            dirty += [region_of(ly) for ly in (old, new) if ly is not None]
         self._keys = keys
         self._layers = layers
-        if changed:
-            drawn = [ly for ly in layers.values() if ly is not None]
-            self.background, self.depth = composite(
-                self.static_background, self.static_depth, drawn
-            )
-            fixtures = self.scene.fixtures()
-            self._support = replace(fixtures, boxes=(*fixtures.boxes, *(o.aabb() for o in objects)))
+        region = union(dirty)
+        if region is None:
+            return
+        drawn = [ly for ly in layers.values() if ly is not None]
+        # Only the region where something moved is redone (in place: `render` copies it).
+        composite(
+            self.static_background,
+            self.static_depth,
+            drawn,
+            (self.background, self.depth),
+            region,
+        )
+        fixtures = self.scene.fixtures()
+        self._support = replace(fixtures, boxes=(*fixtures.boxes, *(o.aabb() for o in objects)))
 
     def render(
         self, robot: RobotPose | None, objects: tuple[ObjectPose, ...] | None = None

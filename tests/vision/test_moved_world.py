@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from services.bus.errors import ProtocolError
 from services.bus.messages import vec
 from services.vision.config import VisionConfig
-from services.vision.objects import LIQUID_BGR
+from services.vision.objects import LIQUID_BGR, composite
 from services.vision.service import VisionService
 from services.vision.sim_camera import SimStereoCamera
 from services.workcell.messages import M3_PER_ML, WORKCELL_STATE, WorkcellState
@@ -200,3 +203,36 @@ def test_vision_service_draws_published_workcell_state(net) -> None:
         assert camera._objects is objects
     finally:
         svc.close()
+
+
+_xy = st.tuples(st.floats(0.3, 0.8), st.floats(-0.4, 0.4))
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 2), _xy, st.floats(0.0, 90.0)), min_size=1, max_size=6))
+def test_redrawing_only_what_moved_equals_drawing_everything(
+    moves: list[tuple[int, tuple[float, float], float]],
+) -> None:
+    """Patching the moved objects' regions in place gives the same image and depth as
+    compositing every object over the static background from scratch."""
+    cam = _tiny_cam()
+    renderer = cam._renderer
+    assert renderer is not None
+    objects = {**STACKED, "bottle": BOTTLE_UPRIGHT}
+    for seq, (i, (x, y), tilt) in enumerate(moves, start=1):
+        objects = dict(objects)
+        objects[f"block{i}"] = _obj("box", (x, y, TOP + H / 2), (H, H, H), R=_rx(tilt))
+        cam.set_workcell(state(objects, seq))
+        cam.grab()
+    eye = renderer.left
+    layers = [ly for ly in eye._layers.values() if ly is not None]
+    img, depth = composite(eye.static_background, eye.static_depth, layers)
+    assert np.array_equal(eye.background, img)
+    assert np.array_equal(eye.depth, depth)
+
+
+@functools.cache
+def _tiny_cam() -> SimStereoCamera:
+    c = SimStereoCamera(VisionConfig(width=64, height=48), scene=SCENE, supersample=1)
+    c.open()
+    return c
