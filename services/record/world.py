@@ -217,16 +217,6 @@ def rotation(q: Mapping[str, float]) -> F64:
     )
 
 
-def _rx(a: float) -> F64:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def _rz(a: float) -> F64:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def _time(t_ns: int) -> dict[str, int]:
     return {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
 
@@ -236,24 +226,39 @@ def _vec(v: Sequence[float] | F64) -> dict[str, float]:
     return {"x": x, "y": y, "z": z}
 
 
+def _joint_quaternion(alpha_rad: float, q_rad: float) -> dict[str, float]:
+    """The quaternion of Rx(α)·Rz(q), in closed form (w ≥ 0)."""
+    ca, sa = math.cos(0.5 * alpha_rad), math.sin(0.5 * alpha_rad)
+    cq, sq = math.cos(0.5 * q_rad), math.sin(0.5 * q_rad)
+    w, x, y, z = ca * cq, sa * cq, -sa * sq, ca * sq
+    sign = -1.0 if w < 0.0 else 1.0
+    return {"x": sign * x, "y": sign * y, "z": sign * z, "w": sign * w}
+
+
 def joint_transforms(
     q: Sequence[float], dh: Sequence[DHLink] = PUMA560_DH
-) -> list[tuple[str, str, F64, F64]]:
-    """(parent, child, translation, rotation) of the URDF's joints at joint angles `q`:
-    world → link1 … link6 → flange."""
-    out: list[tuple[str, str, F64, F64]] = []
+) -> list[tuple[str, str, dict[str, float], dict[str, float]]]:
+    """(parent, child, translation, rotation quaternion) of the URDF's joints at joint
+    angles `q` (rad): world → link1 … link6 → flange. Joint i is the fixed part of DH row
+    i − 1, Tz(d)·Tx(a)·Rx(α), then Rz(q_i)."""
+    out = []
     for i in range(1, len(dh) + 1):
-        prev = dh[i - 2] if i > 1 else None
-        p = np.array([prev.a_m, 0.0, prev.d_m]) if prev is not None else np.zeros(3)
-        R0 = _rx(prev.alpha_rad) if prev is not None else np.eye(3)
-        out.append((FRAMES.link(i - 1), FRAMES.link(i), p, R0 @ _rz(float(q[i - 1]))))
+        prev = dh[i - 2] if i > 1 else DHLink(0.0, 0.0, 0.0, 0.0, 0.0)
+        out.append(
+            (
+                FRAMES.link(i - 1),
+                FRAMES.link(i),
+                {"x": prev.a_m, "y": 0.0, "z": prev.d_m},
+                _joint_quaternion(prev.alpha_rad, float(q[i - 1])),
+            )
+        )
     last = dh[-1]
     out.append(
         (
             FRAMES.link(len(dh)),
             FRAMES.flange,
-            np.array([last.a_m, 0.0, last.d_m]),
-            _rx(last.alpha_rad),
+            {"x": last.a_m, "y": 0.0, "z": last.d_m},
+            _joint_quaternion(last.alpha_rad, 0.0),
         )
     )
     return out
@@ -267,15 +272,15 @@ def frame_transforms(state: Mapping[str, Any]) -> dict[str, Any]:
     Rt = np.asarray(state["tool_R"], dtype=np.float64).reshape(3, 3)
     pt = np.asarray(state["tool_p"], dtype=np.float64)
     tfs = joint_transforms(state["q"])
-    tfs.append((FRAMES.flange, FRAMES.tool, Rf.T @ (pt - pf), Rf.T @ Rt))
+    tfs.append((FRAMES.flange, FRAMES.tool, _vec(Rf.T @ (pt - pf)), quaternion(Rf.T @ Rt)))
     return {
         "transforms": [
             {
                 "timestamp": t,
                 "parent_frame_id": parent,
                 "child_frame_id": child,
-                "translation": _vec(p),
-                "rotation": quaternion(R),
+                "translation": p,
+                "rotation": R,
             }
             for parent, child, p, R in tfs
         ]
