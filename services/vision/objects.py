@@ -32,7 +32,8 @@ MAX_DIST_M = 10.0
 DEFAULT_BGR = (160, 160, 160)
 LIQUID_BGR = (40, 215, 240)
 """The liquid, seen through the bottle's wall: an amber no other object uses."""
-SPILL_BGR = (170, 110, 50)
+SPILL_BGR = (30, 170, 200)
+"""Spilled liquid on a surface: the liquid's amber, darker."""
 _LIGHT = np.array([0.5, -0.35, 1.0]) / np.linalg.norm([0.5, -0.35, 1.0])
 
 
@@ -148,6 +149,96 @@ def objects_of_state(scene: Scene, views: Mapping[str, ObjectView]) -> tuple[Obj
             )
         )
     return tuple(out)
+
+
+SPILL_THICKNESS_M = 0.003
+"""A puddle is drawn as a disc this thick would hold the spilled volume …"""
+MAX_PUDDLE_RADIUS_M = 0.15
+"""… up to this radius."""
+PUDDLE_MERGE_M = 0.04
+"""A drop landing this close to a puddle's centre joins it."""
+MAX_PUDDLES = 8
+
+
+@dataclass(slots=True)
+class Puddle:
+    x: float
+    y: float
+    z: float
+    volume_ml: float
+
+
+class Spills:
+    """Where spilled liquid lies, from the growth of each bottle's `spilled_ml`.
+
+    `workcell/state` says how much has spilled, not where it fell: each increase is taken
+    to fall from the lowest point of the bottle's rim at that moment straight down onto the
+    highest fixture below it (the table, else the floor), and joins the puddle within
+    PUDDLE_MERGE_M of it (or starts one). A decrease (the workcell was reset) dries them.
+    Not thread-safe: one owner.
+    """
+
+    def __init__(self, scene: Scene) -> None:
+        self._fixtures = scene.fixtures()
+        self._spilled: dict[str, float] = {}
+        self.puddles: list[Puddle] = []
+
+    def update(self, views: Mapping[str, ObjectView]) -> None:
+        for name, v in views.items():
+            if v.kind != "cylinder" or v.spilled_ml is None:
+                continue
+            before = self._spilled.get(name, 0.0)
+            now = max(0.0, float(v.spilled_ml))
+            self._spilled[name] = now
+            if now < before - 1e-9:
+                self.puddles.clear()
+            elif now > before:
+                self._drop(self._rim_low(v), now - before)
+
+    @staticmethod
+    def _rim_low(v: ObjectView) -> F64:
+        axis = v.R[:, 2]
+        top = v.p + axis * float(v.size[2])
+        down = np.array([0.0, 0.0, -1.0]) - axis * float(-axis[2])
+        n = float(np.linalg.norm(down))
+        return top + (0.5 * float(v.size[0]) * down / n if n > 1e-9 else 0.0)
+
+    def _drop(self, at: F64, volume_ml: float) -> None:
+        x, y = float(at[0]), float(at[1])
+        z = self._fixtures.floor_z
+        for b in self._fixtures.boxes:
+            lo, hi = b.lo, b.hi
+            if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and z < b.top_z <= at[2] + 1e-6:
+                z = b.top_z
+        for pd in self.puddles:
+            if abs(pd.z - z) < 1e-6 and math.hypot(pd.x - x, pd.y - y) <= PUDDLE_MERGE_M:
+                w = volume_ml / (pd.volume_ml + volume_ml)
+                pd.x, pd.y = pd.x + w * (x - pd.x), pd.y + w * (y - pd.y)
+                pd.volume_ml += volume_ml
+                return
+        if len(self.puddles) >= MAX_PUDDLES:
+            nearest = min(self.puddles, key=lambda pd: math.hypot(pd.x - x, pd.y - y))
+            nearest.volume_ml += volume_ml
+            return
+        self.puddles.append(Puddle(x, y, z, volume_ml))
+
+    def objects(self) -> tuple[ObjectPose, ...]:
+        """The puddles as flat discs to draw."""
+        out = []
+        for i, pd in enumerate(self.puddles):
+            r = math.sqrt(pd.volume_ml * M3_PER_ML / (math.pi * SPILL_THICKNESS_M))
+            r = min(max(r, 0.005), MAX_PUDDLE_RADIUS_M)
+            out.append(
+                ObjectPose(
+                    f"spill{i}",
+                    "cylinder",
+                    np.array([pd.x, pd.y, pd.z]),
+                    np.eye(3),
+                    np.array([2 * r, 2 * r, 0.002]),
+                    SPILL_BGR,
+                )
+            )
+        return tuple(out)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -9,7 +9,7 @@ from numpy.typing import ArrayLike
 
 from services.vision.camera import CameraError, StereoPair
 from services.vision.config import VisionConfig
-from services.vision.objects import ObjectPose, objects_of_state
+from services.vision.objects import ObjectPose, Spills, objects_of_state
 from services.vision.render import RobotPose, StereoRenderer
 from services.vision.rig import StereoRig
 from services.workcell.messages import WorkcellState, objects_of
@@ -38,6 +38,7 @@ class SimStereoCamera:
         self._renderer: StereoRenderer | None = None
         self._robot: RobotPose | None = None
         self._objects: tuple[ObjectPose, ...] | None = None
+        self._spills = Spills(self._scene)
         self._lock = threading.Lock()
 
     @property
@@ -83,14 +84,20 @@ class SimStereoCamera:
 
         Raises ProtocolError (a malformed object map) or ValueError (a size, position or
         rotation out of bounds), leaving the previous poses in place. Objects are coloured
-        by the scene description (`scene`); one it does not know is grey.
+        by the scene description (`scene`); one it does not know is grey. Spilled liquid
+        is drawn as puddles where it fell (`Spills`). Call from one thread at a time (the
+        bus delivers one subscription's messages in order).
         """
-        self._objects = objects_of_state(self._scene, objects_of(state))
+        views = objects_of(state)
+        objects = objects_of_state(self._scene, views)
+        self._spills.update(views)
+        self._objects = objects + self._spills.objects()
 
     def set_scene(self, scene: Scene) -> None:
         """Replace the workcell (re-ray-casts the background now if the camera is open)."""
         with self._lock:
             self._scene = scene
+            self._spills = Spills(scene)
             if self._renderer is not None:
                 self._renderer = self._build(scene)
 

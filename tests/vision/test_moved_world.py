@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from services.bus.errors import ProtocolError
 from services.bus.messages import vec
 from services.vision.config import VisionConfig
-from services.vision.objects import LIQUID_BGR, composite
+from services.vision.objects import LIQUID_BGR, SPILL_BGR, composite
 from services.vision.service import VisionService
 from services.vision.sim_camera import SimStereoCamera
 from services.workcell.messages import M3_PER_ML, WORKCELL_STATE, WorkcellState, object_map
@@ -218,6 +218,36 @@ def test_tilted_bottle_and_its_liquid_level(cam: SimStereoCamera) -> None:
     assert _cos(img[v, u], BOTTLE.color) < 0.97, img[v, u]
     u, v = _pixel(cam, base + R @ (r, 0.0, 0.7 * h))
     assert _cos(img[v, u], BOTTLE.color) > 0.99, img[v, u]
+
+
+def test_spilled_liquid_lies_where_it_fell_and_dries_on_reset() -> None:
+    cam = SimStereoCamera(VisionConfig(), scene=SCENE)
+    cam.open()
+    cam.clear_robot()
+    base = np.asarray(BOTTLE.base)
+    r, h = BOTTLE.radius, BOTTLE.height
+    R = _rx(60.0)  # tilted towards −y: the lowest point of the rim is at y ≈ 0.06
+
+    def bottle(spilled_ml: float) -> dict[str, Any]:
+        return _obj(
+            "cylinder", base, (2 * r, 2 * r, h), R=R, liquid_ml=100.0, spilled_ml=spilled_ml
+        )
+
+    mouth = base + R @ np.array([0.0, 0.0, h])
+    rim = mouth + r * np.array([0.0, -0.5, -math.sqrt(3) / 2])
+    spot = (rim[0] + 0.04, rim[1], TOP)  # on the table, on the cameras' side of the drop
+    cam.set_workcell(state({**STACKED, "bottle": bottle(0.0)}, 1))
+    u, v = _pixel(cam, spot)
+    assert _cos(cam.grab().left[v, u], TABLE.color) > 0.995
+    cam.set_workcell(state({**STACKED, "bottle": bottle(150.0)}, 2))
+    cam.set_workcell(state({**STACKED, "bottle": bottle(200.0)}, 3))
+    (puddle,) = cam._spills.puddles
+    assert (puddle.x, puddle.y, puddle.z) == pytest.approx((rim[0], rim[1], TOP), abs=1e-9)
+    assert puddle.volume_ml == pytest.approx(200.0)
+    assert _cos(cam.grab().left[v, u], SPILL_BGR) > 0.99
+    cam.set_workcell(state({**STACKED, "bottle": bottle(0.0)}, 4))  # the workcell was reset
+    assert cam._spills.puddles == []
+    assert _cos(cam.grab().left[v, u], TABLE.color) > 0.995
 
 
 def test_bad_object_states_are_refused_and_the_last_poses_kept(cam: SimStereoCamera) -> None:
