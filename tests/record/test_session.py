@@ -289,3 +289,29 @@ def test_telerobot_replay_command(session: Session) -> None:
     result = json.loads(out.getvalue())
     assert result["published"] == {"robot/events": len(events)} and result["unmatched"] == []
     assert got == events
+
+
+def test_the_live_arm_s_transforms_reproduce_its_tool_pose(session: Session) -> None:
+    """Over the real puma's states: each /tf message composes (world → … → tool) to the
+    tool pose of the robot/state it was derived from, within 1e-6."""
+    from services.puma.kinematics import Puma560
+
+    from .test_world import _compose
+
+    kin = Puma560()
+    with session.path.open("rb") as f:
+        reader = make_reader(f)
+        pairs: dict[int, dict[str, bytes]] = defaultdict(dict)
+        for _, channel, message in reader.iter_messages(topics=["robot/state", "/tf"]):
+            pairs[message.log_time].setdefault(channel.topic, message.data)
+    checked = 0
+    for both in pairs.values():
+        if len(both) != 2:
+            continue
+        st = json.loads(both["robot/state"])
+        poses = _compose(json.loads(both["/tf"])["transforms"])
+        assert np.allclose(poses["tool"][0], st["tool_p"], atol=1e-6)
+        assert np.allclose(poses["tool"][1], np.reshape(st["tool_R"], (3, 3)), atol=1e-6)
+        assert np.allclose(poses["flange"][0], kin.fk_flange(st["q"]).translation, atol=1e-9)
+        checked += 1
+    assert checked > 10
