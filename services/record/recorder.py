@@ -252,6 +252,8 @@ class McapSink:
         self._pos = 0
         self._pending = 0
         self._model_written = False
+        self._spills = world.Spills(world.SCENE)
+        """Puddles of spilled liquid, over the whole recording (all parts)."""
         self.derive_errors = 0
         self.ended = False
         self._open_part()
@@ -401,7 +403,7 @@ class McapSink:
                     self._write_model(item, doc, publish_ns)
                 out = [(world.TF_TOPIC, world.FRAME_TRANSFORMS, world.frame_transforms(doc))]
             else:
-                update = world.workcell_update(v.document)
+                update = world.workcell_update(v.document, spills=self._spills)
                 out = [(world.WORKCELL_TOPIC, world.SCENE_UPDATE, update)]
         except (ProtocolError, ValueError, KeyError, TypeError) as e:
             self.derive_errors += 1

@@ -15,7 +15,8 @@ in 3D"), as Foxglove's well-known JSON schemas:
   (`puma560.urdf`) for viewers that load one.
 - `/workcell` (`foxglove.SceneUpdate`), one message per `workcell/state`: the fixtures
   and every movable object at its pose, coloured as the scene description
-  (`services.workcell.scene.default_scene`) colours them; a bottle shows its liquid.
+  (`services.workcell.scene.default_scene`) colours them; a bottle shows its liquid, and
+  spilled liquid lies in puddles where the video draws them (`services.vision.objects.Spills`).
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from services.puma.urdf import (
     TOOL_RADIUS_M,
     UrdfFrames,
 )
+from services.vision.objects import Spills
 from services.workcell.messages import WORKCELL_STATE, WorkcellState, objects_of
 from services.workcell.scene import Box, Scene, default_scene
 
@@ -384,10 +386,13 @@ def _fixture(t: dict[str, int], b: Box) -> dict[str, Any]:
     return _entity(t, b.name, [cube], [], {"fixture": "true"})
 
 
-def workcell_update(state: Mapping[str, Any], scene: Scene | None = None) -> dict[str, Any]:
+def workcell_update(
+    state: Mapping[str, Any], scene: Scene | None = None, spills: Spills | None = None
+) -> dict[str, Any]:
     """The `foxglove.SceneUpdate` of one `workcell/state` (its wire fields, objects checked
-    by `services.workcell.messages.objects_of`): fixtures and objects, world frame."""
-    scene = scene if scene is not None else _SCENE
+    by `services.workcell.messages.objects_of`): fixtures and objects, world frame; with
+    `spills` (updated from this state), the puddles as one entity `workcell/spills`."""
+    scene = scene if scene is not None else SCENE
     msg = WorkcellState(
         seq=int(state["seq"]),
         t_ns=int(state["t_ns"]),
@@ -398,7 +403,24 @@ def workcell_update(state: Mapping[str, Any], scene: Scene | None = None) -> dic
     )
     t = _time(msg.t_ns)
     entities = [_fixture(t, b) for b in scene.fixtures().boxes]
-    for name, v in objects_of(msg).items():
+    views = objects_of(msg)
+    if spills is not None:
+        spills.update(views)
+        puddles = [
+            {
+                "pose": {
+                    "position": _vec(o.p + np.array([0.0, 0.0, 0.5 * o.size[2]])),
+                    "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                },
+                "size": _vec(o.size),
+                "bottom_scale": 1.0,
+                "top_scale": 1.0,
+                "color": _rgba(o.color, 0.9),
+            }
+            for o in spills.objects()
+        ]
+        entities.append(_entity(t, "spills", [], puddles, {}))
+    for name, v in views.items():
         try:
             bgr = scene.solid(name).color
         except KeyError:
@@ -443,4 +465,4 @@ def workcell_update(state: Mapping[str, Any], scene: Scene | None = None) -> dic
     return {"deletions": [], "entities": entities}
 
 
-_SCENE = default_scene()
+SCENE = default_scene()

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 from mcap.reader import make_reader
 
 from services.bus import codec
@@ -169,6 +170,7 @@ def test_workcell_objects_match_workcell_state(tmp_path: Path) -> None:
     topics, _ = _read(path)
     updates = topics[world.WORKCELL_TOPIC]
     assert len(updates) == 5
+    areas: list[float] = []
     for k, (schema, _, message) in enumerate(updates, start=1):
         assert schema.name == world.SCENE_UPDATE
         doc = json.loads(message.data)
@@ -193,6 +195,16 @@ def test_workcell_objects_match_workcell_state(tmp_path: Path) -> None:
             assert [prim["color"][c] for c in "rgb"] == [r / 255, g / 255, b / 255]
         meta = {m["key"]: m["value"] for m in entities["workcell/block2"]["metadata"]}
         assert meta["held"] == "true" and meta["phase"] == "held"
+        # 10 ml more spilled at each state, from a rim tilted more and more towards −y:
+        # puddles on the table beside the bottle on that side, their area growing.
+        puddles = entities["workcell/spills"]["cylinders"]
+        assert puddles
+        for pd in puddles:
+            pos = pd["pose"]["position"]
+            assert pos["z"] == pytest.approx(0.40 + 0.001)
+            assert abs(pos["x"] - 0.55) < 1e-9 and 0.1 < pos["y"] < 0.25 - 0.035
+        areas.append(sum(pd["size"]["x"] ** 2 for pd in puddles))
+    assert areas == sorted(areas) and areas[0] < areas[-1]
 
 
 def test_a_bad_workcell_state_is_kept_raw_with_no_3d_view(tmp_path: Path) -> None:
