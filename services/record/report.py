@@ -474,10 +474,10 @@ def format_report(report: Report, max_events: int = 50) -> str:
         )
     lines += [
         "",
-        "PUB→REC: the recorder's receive time − the sender's t_ns (mean, p95, max; ms): the "
-        "bus's share only, not end-to-end latency; across machines it includes clock offset.",
-        f"GAPS = SEQ (sequence gaps) + STALL (a periodic stream silent for > "
-        f"{STALL_PERIODS:g} of its median periods; longest: "
+        "PUB→REC: the recorder's receive time − the sender's t_ns (mean, p95, max; ms):",
+        "  the bus's share only, not end-to-end latency; across machines it includes clock offset.",
+        "GAPS = SEQ (sequence gaps) + STALL (a periodic stream silent for more than",
+        f"  {STALL_PERIODS:g} of its median periods; longest: "
         + (", ".join(f"{k.key} {k.max_stall_s:.3f} s" for k in report.keys if k.stalls) or "none")
         + ").",
     ]
