@@ -228,3 +228,17 @@ def test_quaternions_round_trip_every_rotation_branch() -> None:
         assert q["w"] >= 0.0
         assert np.isclose(sum(v * v for v in q.values()), 1.0)
         assert np.allclose(world.rotation(q), R, atol=1e-12)
+
+
+def test_no_3d_writes_only_the_bus_channels(tmp_path: Path) -> None:
+    from services.record.__main__ import parser
+
+    assert parser().parse_args(["-o", "s.mcap", "--no-3d"]).no_3d
+    path = tmp_path / "plain.mcap"
+    items = [("robot/state", robot_state(1, QS[0])), (WORKCELL_STATE.key, workcell_state(1))]
+    write_file(path, items, world=False)
+    topics, attachments = _read(path)
+    assert set(topics) == {
+        "robot/state", "/raw/robot/state", WORKCELL_STATE.key, "/raw/" + WORKCELL_STATE.key
+    }  # fmt: skip
+    assert attachments == []
