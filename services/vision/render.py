@@ -1,8 +1,10 @@
 """Rendering of the simulated workcell for one stereo eye.
 
-The workcell (`services.workcell.scene`) does not move, so it is ray-cast once per eye when
-the camera opens: shaded colour and a per-pixel depth image (z along the optical axis, m),
-supersampled for smooth edges. Each frame then copies that background, darkens the tool's
+The workcell's fixtures (`services.workcell.scene`, `Scene.fixtures()`) do not move, so they
+are ray-cast once per eye when the camera opens: shaded colour and a per-pixel depth image
+(z along the optical axis, m), supersampled for smooth edges. The movable objects are drawn
+over them where `workcell/state` puts them (`services.vision.objects`: each re-cast only
+when it moved, only its region redone). Each frame then copies that background, darkens the tool's
 drop shadow and draws the arm with OpenCV primitives (thick lines for links, discs for
 joints and the tool marker) into a colour layer and a depth layer, far to near. Long links
 are cut into short pieces so that each piece has nearly one depth; the arm shows wherever
