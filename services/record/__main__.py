@@ -35,6 +35,11 @@ def parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-video", action="store_true", help="leave out vision/stereo/*")
     p.add_argument(
+        "--no-3d",
+        action="store_true",
+        help="leave out /tf, /robot_model, /workcell (what a 3D viewer draws of the arm)",
+    )
+    p.add_argument(
         "--max-size-mb", type=float, default=0.0, help="end (or split) at this size (0: none)"
     )
     p.add_argument(
@@ -79,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         output=args.output,
         keys=tuple(args.keys),
         video=not args.no_video,
+        world=not args.no_3d,
         max_size_mb=args.max_size_mb,
         max_duration_s=args.max_duration_s,
         split=args.split,

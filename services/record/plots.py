@@ -70,18 +70,47 @@ def nice_ticks(lo: float, hi: float, max_ticks: int = 7) -> list[float]:
     return [round(first + i * step, 12) for i in range(max(n, 0))]
 
 
-def _range(values: Sequence[NDArray[np.float64]]) -> tuple[float, float]:
+def axis_range(values: Sequence[NDArray[np.float64]], min_span: float = 0.0) -> tuple[float, float]:
+    """The axis limits for `values` (finite ones): their range padded by 4 %, widened about
+    its centre to at least `min_span`, so that noise far below it is not blown up into
+    what looks like motion."""
     finite = [v[np.isfinite(v)] for v in values]
     finite = [v for v in finite if v.size]
     if not finite:
-        return 0.0, 1.0
+        return 0.0, max(1.0, min_span)
     lo = float(min(v.min() for v in finite))
     hi = float(max(v.max() for v in finite))
     if hi - lo < 1e-12:
-        pad = max(abs(lo) * 0.1, 1e-3)
+        pad = max(abs(lo) * 0.1, 1e-3, 0.5 * min_span)
         return lo - pad, hi + pad
     pad = (hi - lo) * 0.04
-    return lo - pad, hi + pad
+    lo, hi = lo - pad, hi + pad
+    if hi - lo < min_span:
+        c = 0.5 * (lo + hi)
+        lo, hi = c - 0.5 * min_span, c + 0.5 * min_span
+    return lo, hi
+
+
+def break_gaps(
+    x: ArrayLike, ys: Sequence[ArrayLike], max_step: float
+) -> tuple[NDArray[np.float64], list[NDArray[np.float64]]]:
+    """`x` and each of `ys` with a NaN point inserted wherever x jumps by more than
+    `max_step`, so a line drawn through them stops at the gap instead of bridging it."""
+    xs = np.asarray(x, dtype=float).ravel()
+    cols = [np.asarray(y, dtype=float).ravel() for y in ys]
+    if xs.size < 2 or not math.isfinite(max_step):
+        return xs, cols
+    at = np.nonzero(np.diff(xs) > max_step)[0] + 1
+    gap_x = 0.5 * (xs[at - 1] + xs[at])
+    return np.insert(xs, at, gap_x), [np.insert(c, at, np.nan) for c in cols]
+
+
+def runs(ok: NDArray[np.bool_]) -> list[tuple[int, int]]:
+    """The [start, end) index ranges where `ok` holds, in order."""
+    edges = np.diff(np.concatenate([[0], ok.astype(np.int8), [0]]))
+    return list(
+        zip(np.nonzero(edges == 1)[0].tolist(), np.nonzero(edges == -1)[0].tolist(), strict=True)
+    )
 
 
 def _label(v: float, step: float) -> str:
@@ -96,8 +125,10 @@ def panel(
     ylabel: str,
     size: tuple[int, int] = (900, 360),
     equal_aspect: bool = False,
+    min_span: tuple[float, float] = (0.0, 0.0),
 ) -> Image:
-    """One plot as a BGR image of `size` (width, height) px."""
+    """One plot as a BGR image of `size` (width, height) px. An axis spans at least its
+    `min_span` (x, y; data units). A non-finite point breaks its line there."""
     import cv2
 
     w, h = size
@@ -105,8 +136,8 @@ def panel(
     x0, x1 = MARGIN_LEFT, w - MARGIN_RIGHT
     y0, y1 = MARGIN_TOP, h - MARGIN_BOTTOM
     font = cv2.FONT_HERSHEY_SIMPLEX
-    xlo, xhi = _range([s.x for s in series])
-    ylo, yhi = _range([s.y for s in series])
+    xlo, xhi = axis_range([s.x for s in series], min_span[0])
+    ylo, yhi = axis_range([s.y for s in series], min_span[1])
     if equal_aspect:
         # Same metres per pixel on both axes, so a circle looks like one.
         scale = max((xhi - xlo) / (x1 - x0), (yhi - ylo) / (y1 - y0))
@@ -144,14 +175,15 @@ def panel(
         ok = np.isfinite(s.x) & np.isfinite(s.y)
         if ok.sum() == 0:
             continue
-        pts = px(s.x[ok], s.y[ok])
         sub = img[y0 : y1 + 1, x0 : x1 + 1]
-        shifted = (pts - np.array([x0, y0], np.int32)).reshape(-1, 1, 2)
-        if len(pts) == 1:
-            cv2.circle(sub, tuple(int(c) for c in shifted[0, 0]), 3, color, -1, cv2.LINE_AA)
-        else:
-            width = s.width_px or (1 if len(pts) > DENSE_POINTS else 2)
-            cv2.polylines(sub, [shifted], False, color, width, cv2.LINE_AA)
+        width = s.width_px or (1 if int(ok.sum()) > DENSE_POINTS else 2)
+        for a, b in runs(ok):
+            pts = px(s.x[a:b], s.y[a:b])
+            shifted = (pts - np.array([x0, y0], np.int32)).reshape(-1, 1, 2)
+            if len(pts) == 1:
+                cv2.circle(sub, tuple(int(c) for c in shifted[0, 0]), 3, color, -1, cv2.LINE_AA)
+            else:
+                cv2.polylines(sub, [shifted], False, color, width, cv2.LINE_AA)
         plotted += 1
     if plotted == 0:
         cv2.putText(

@@ -26,13 +26,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Literal
 
+import numpy as np
 import zenoh
 from mcap.writer import CompressionType, Writer
 
 from services.bus import keys
-from services.bus.errors import ConfigError
+from services.bus.errors import ConfigError, ProtocolError
 from services.bus.node import Node
-from services.record import schemas
+from services.puma.urdf import puma_urdf
+from services.record import schemas, world
 
 log = logging.getLogger("telerobot.record")
 
@@ -72,6 +74,8 @@ class RecorderConfig:
     chunk_size_kb: int = 1024
     chunk_interval_s: float = 1.0
     compression: Compression = "zstd"
+    world: bool = True
+    """Also write what a 3D viewer draws (`world.py`): `/tf`, `/robot_model`, `/workcell`."""
 
     def __post_init__(self) -> None:
         if not self.output.endswith(".mcap"):
@@ -247,6 +251,10 @@ class McapSink:
         self._last_flush_s = 0.0
         self._pos = 0
         self._pending = 0
+        self._model_written = False
+        self._spills = world.Spills(world.SCENE)
+        """Puddles of spilled liquid, over the whole recording (all parts)."""
+        self.derive_errors = 0
         self.ended = False
         self._open_part()
 
@@ -279,6 +287,7 @@ class McapSink:
         self._schemas.clear()
         self._channels.clear()
         self._sequence.clear()
+        self._model_written = False
         self._part_start_s = self._last_flush_s = self._monotonic_s()
         self._pos = self._file.tell()
         self._pending = 0
@@ -312,7 +321,8 @@ class McapSink:
         assert self._writer is not None
         sid = self._schemas.get(name)
         if sid is None:
-            data = json.dumps(schemas.json_schema(name), ensure_ascii=False).encode()
+            doc = world.SCHEMAS.get(name) or schemas.json_schema(name)
+            data = json.dumps(doc, ensure_ascii=False).encode()
             sid = self._writer.register_schema(name, schemas.SCHEMA_ENCODING, data)
             self._schemas[name] = sid
         return sid
@@ -364,9 +374,61 @@ class McapSink:
         else:
             cid = self._channel(item.key, schemas.ROLE_VIEW, v.schema)
             self._add(cid, item, publish_ns, schemas.dumps(v.document))
+            if self.config.world:
+                self._derive(item, v, publish_ns)
         st.written += 1
         st.bytes += len(item.payload)
         return True
+
+    def _derived_channel(self, topic: str, schema: str, key: str) -> int:
+        assert self._writer is not None
+        cid = self._channels.get((topic, world.ROLE_DERIVED))
+        if cid is None:
+            meta = {"key": key, "role": world.ROLE_DERIVED, "type": schema}
+            cid = self._writer.register_channel(
+                topic, schemas.VIEW_ENCODING, self._schema_id(schema), meta
+            )
+            self._channels[(topic, world.ROLE_DERIVED)] = cid
+        return cid
+
+    def _derive(self, item: Received, v: schemas.View, publish_ns: int) -> None:
+        """The 3D views of a robot/state or workcell/state (`world.py`)."""
+        assert self._writer is not None
+        if item.key not in (keys.STATE.key, world.WORKCELL_KEY):
+            return
+        try:
+            if item.key == keys.STATE.key:
+                doc = v.document
+                if not self._model_written:
+                    self._write_model(item, doc, publish_ns)
+                out = [(world.TF_TOPIC, world.FRAME_TRANSFORMS, world.frame_transforms(doc))]
+            else:
+                update = world.workcell_update(v.document, spills=self._spills)
+                out = [(world.WORKCELL_TOPIC, world.SCENE_UPDATE, update)]
+        except (ProtocolError, ValueError, KeyError, TypeError) as e:
+            self.derive_errors += 1
+            log.debug("no 3D view of %s: %s", item.key, e)
+            return
+        for topic, schema, body in out:
+            cid = self._derived_channel(topic, schema, item.key)
+            self._add(cid, item, publish_ns, schemas.dumps(body))
+
+    def _write_model(self, item: Received, doc: dict[str, Any], publish_ns: int) -> None:
+        """Once per file, at its first robot/state: the URDF (attachment, with this
+        state's tool placement) and its visuals locked to the link frames."""
+        assert self._writer is not None
+        Rf = np.asarray(doc["flange_R"], dtype=np.float64).reshape(3, 3)
+        eMt_p = Rf.T @ (np.asarray(doc["tool_p"], float) - np.asarray(doc["flange_p"], float))
+        eMt_R = Rf.T @ np.asarray(doc["tool_R"], float).reshape(3, 3)
+        urdf = puma_urdf(tool_p=eMt_p.tolist(), tool_R=eMt_R.reshape(9).tolist())
+        self._writer.add_attachment(
+            item.log_time_ns, item.log_time_ns, world.URDF_NAME, world.URDF_MEDIA_TYPE,
+            urdf.encode(),
+        )  # fmt: skip
+        cid = self._derived_channel(world.MODEL_TOPIC, world.SCENE_UPDATE, item.key)
+        model = world.robot_model(publish_ns, eMt_p.tolist())
+        self._add(cid, item, publish_ns, schemas.dumps(model))
+        self._model_written = True
 
     def tick(self) -> bool:
         """Close the chunk when `chunk_interval_s` has passed; apply the limits even when

@@ -3,17 +3,23 @@
 Read from the raw channels (the exact payloads), decoded with the contract's codec:
 
 - rate per key: (n − 1) / (last − first receive time);
-- latency per key: receive time − the sender's `t_ns` (publish → record). Across machines
-  this includes their clock offset;
-- gaps per key and sender (an Event's `source`, a command's `master`): a `seq` more than one
-  above the previous is a gap of `seq − prev − 1` missing messages; a `seq` not above the
-  previous is counted as out of order (or a restarted sender);
+- publish → record per key: receive time at the recorder − the sender's `t_ns`. Not an
+  end-to-end latency (nothing downstream of the bus is in it); across machines it includes
+  their clock offset;
+- sequence gaps per key and sender (an Event's `source`, a command's `master`): a `seq`
+  more than one above the previous is a gap of `seq − prev − 1` missing messages; a `seq`
+  not above the previous is counted as out of order (or a restarted sender);
+- stalls per periodic stream (every latest-wins key but the commands, which stop while
+  nobody is engaged): a wait of more than STALL_PERIODS median periods between two
+  samples. `gaps` counts both, so a stream that stopped for a while is never "0 gaps";
 - events: every `robot/events` message;
 - tracking: the distance from the arm's tool point (`robot/state` while `ready` or
   `moving`) to the newest supervised command target (`robot/puma/cmd`) at that moment.
 
-`--plots DIR` writes `force.png` (force and moment at the tool point over time) and
-`path.png` (the tool path against the command targets, top and side views).
+`--plots DIR` writes `force.png` (force and moment at the tool point over time; a line
+stops where the stream stalled instead of bridging the gap) and `path.png` (the tool path
+against the command targets, top and side views, each axis spanning at least
+MIN_PATH_SPAN_M so that sensor noise does not look like motion).
 """
 
 from __future__ import annotations
@@ -48,6 +54,33 @@ from services.record.archive import Recording
 COMMAND_KEYS = {keys.PUMA_CMD.key: "supervised command", keys.CMD.key: "operator command"}
 #: robot states whose tool pose is the arm's (before calibration it is not)
 POSED = ("ready", "moving")
+STALL_PERIODS = 10.0
+"""A periodic stream is stalled when no sample came for this many of its median periods."""
+MIN_STALL_SAMPLES = 10
+"""Fewer samples than this give no period to judge a stall by."""
+MIN_PATH_SPAN_M = 0.05
+"""The path plot's axes span at least 5 cm: a still arm's µm of noise stay a dot."""
+#: streams that pause by design (commands flow only while an operator is engaged)
+NOT_PERIODIC = frozenset({keys.CMD.key, keys.PUMA_CMD.key})
+
+
+def periodic(key: str) -> bool:
+    """Whether `key` is a stream expected to flow at a steady rate (stalls are counted)."""
+    topic = keys.topic_for(key)
+    return topic is not None and topic.latest_wins and key not in NOT_PERIODIC
+
+
+def stalls(times_ns: Sequence[int], periods: float = STALL_PERIODS) -> tuple[int, float, float]:
+    """(number of stalls, longest stall in s, the median period in s) of receive times: a
+    stall is a wait longer than `periods` median periods."""
+    if len(times_ns) < MIN_STALL_SAMPLES:
+        return 0, 0.0, 0.0
+    dt = np.diff(np.asarray(times_ns, dtype=np.int64)).astype(np.float64) / 1e9
+    period = float(np.median(dt))
+    if period <= 0.0:
+        return 0, 0.0, period
+    long = dt[dt > periods * period]
+    return int(long.size), float(long.max()) if long.size else 0.0, period
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,11 +121,17 @@ class KeyReport:
     last_s: float
     bytes: int
     rejected: int
-    latency_ms: Spread | None
+    publish_to_record_ms: Spread | None
+    """Receive time at the recorder − the sender's t_ns (not an end-to-end latency)."""
     senders: int
     gaps: int
+    """seq_gaps + stalls."""
     missing: int
     out_of_order: int
+    seq_gaps: int = 0
+    stalls: int = 0
+    """Waits longer than STALL_PERIODS median periods (periodic streams only)."""
+    max_stall_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -191,6 +230,7 @@ class _KeyAcc:
     bytes: int = 0
     rejected: int = 0
     latency_ms: list[float] = field(default_factory=list)
+    times_ns: list[int] = field(default_factory=list)
     last_seq: dict[str, int] = field(default_factory=dict)
     gaps: int = 0
     missing: int = 0
@@ -244,6 +284,7 @@ def analyze(paths: Sequence[str | Path], select: Callable[[str], bool] | None = 
                 a = acc[m.key] = _KeyAcc(topic.type.name if topic else "", first_ns=m.log_time_ns)
             a.count += 1
             a.last_ns = m.log_time_ns
+            a.times_ns.append(m.log_time_ns)
             a.bytes += len(m.payload)
             if topic is None:
                 continue
@@ -294,6 +335,7 @@ def analyze(paths: Sequence[str | Path], select: Callable[[str], bool] | None = 
     for key in sorted(acc):
         a = acc[key]
         span_s = (a.last_ns - a.first_ns) / 1e9
+        n_stalls, max_stall_s, _ = stalls(a.times_ns) if periodic(key) else (0, 0.0, 0.0)
         reports.append(
             KeyReport(
                 key=key,
@@ -304,11 +346,14 @@ def analyze(paths: Sequence[str | Path], select: Callable[[str], bool] | None = 
                 last_s=(a.last_ns - start) / 1e9,
                 bytes=a.bytes,
                 rejected=a.rejected,
-                latency_ms=Spread.of(a.latency_ms),
+                publish_to_record_ms=Spread.of(a.latency_ms),
                 senders=len(a.last_seq),
-                gaps=a.gaps,
+                gaps=a.gaps + n_stalls,
                 missing=a.missing,
                 out_of_order=a.out_of_order,
+                seq_gaps=a.gaps,
+                stalls=n_stalls,
+                max_stall_s=max_stall_s,
             )
         )
     return Report(
@@ -332,9 +377,14 @@ AXES = ("x", "y", "z")
 def force_plot(report: Report) -> plots.Image:
     """Force (N) and moment (N·m) at the tool point, tool frame, over time."""
     tr = report.traces
-    t = np.asarray(tr.force_t_s)
+    t = np.asarray(tr.force_t_s, dtype=float)
     f = np.asarray(tr.force_f, dtype=float).reshape(-1, 3)
     c = np.asarray(tr.force_c, dtype=float).reshape(-1, 3)
+    # A line stops where the stream stalled (as `stalls` counts them) instead of bridging.
+    _, _, period_s = stalls((t * 1e9).astype(np.int64).tolist())
+    if period_s > 0.0:
+        t, cols = plots.break_gaps(t, [*f.T, *c.T], STALL_PERIODS * period_s)
+        f, c = np.stack(cols[:3], axis=1), np.stack(cols[3:], axis=1)
     fs = [plots.Series.of(f"f{a}", t, f[:, i]) for i, a in enumerate(AXES)]
     fs.append(plots.Series.of("|f|", t, np.linalg.norm(f, axis=1), plots.BLACK))
     cs = [plots.Series.of(f"c{a}", t, c[:, i]) for i, a in enumerate(AXES)]
@@ -373,6 +423,7 @@ def path_plot(report: Report) -> plots.Image:
                 f"{AXES[j]} (m, world)",
                 size=(640, 560),
                 equal_aspect=True,
+                min_span=(MIN_PATH_SPAN_M, MIN_PATH_SPAN_M),
             )
         )
     return plots.stack(views, horizontal=True)
@@ -408,17 +459,28 @@ def format_report(report: Report, max_events: int = 50) -> str:
         )
     lines.append("")
     head = (
-        f"{'KEY':<22} {'TYPE':<16} {'COUNT':>7} {'RATE Hz':>9} {'LAT mean':>9} "
-        f"{'p95':>8} {'max ms':>8} {'GAPS':>5} {'MISSING':>8} {'OOO':>4} {'BAD':>4}"
+        f"{'KEY':<22} {'TYPE':<16} {'COUNT':>7} {'RATE Hz':>9} {'PUB→REC':>9} "
+        f"{'p95':>8} {'max ms':>8} {'GAPS':>5} {'SEQ':>4} {'STALL':>5} {'MISSING':>8} "
+        f"{'OOO':>4} {'BAD':>4}"
     )
     lines.append(head)
     for k in report.keys:
+        lat = k.publish_to_record_ms
         lines.append(
             f"{k.key:<22} {k.type or '?':<16} {k.count:>7} {k.rate_hz:>9.1f} "
-            f"{_ms(k.latency_ms, 'mean'):>9} {_ms(k.latency_ms, 'p95'):>8} "
-            f"{_ms(k.latency_ms, 'max'):>8} {k.gaps:>5} {k.missing:>8} {k.out_of_order:>4} "
+            f"{_ms(lat, 'mean'):>9} {_ms(lat, 'p95'):>8} {_ms(lat, 'max'):>8} "
+            f"{k.gaps:>5} {k.seq_gaps:>4} {k.stalls:>5} {k.missing:>8} {k.out_of_order:>4} "
             f"{k.rejected:>4}"
         )
+    lines += [
+        "",
+        "PUB→REC: the recorder's receive time − the sender's t_ns (mean, p95, max; ms):",
+        "  the bus's share only, not end-to-end latency; across machines it includes clock offset.",
+        "GAPS = SEQ (sequence gaps) + STALL (a periodic stream silent for more than",
+        f"  {STALL_PERIODS:g} of its median periods; longest: "
+        + (", ".join(f"{k.key} {k.max_stall_s:.3f} s" for k in report.keys if k.stalls) or "none")
+        + ").",
+    ]
     if report.tracking_mm is not None:
         t = report.tracking_mm
         lines += [

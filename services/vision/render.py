@@ -1,8 +1,10 @@
 """Rendering of the simulated workcell for one stereo eye.
 
-The workcell (`services.workcell.scene`) does not move, so it is ray-cast once per eye when
-the camera opens: shaded colour and a per-pixel depth image (z along the optical axis, m),
-supersampled for smooth edges. Each frame then copies that background, darkens the tool's
+The workcell's fixtures (`services.workcell.scene`, `Scene.fixtures()`) do not move, so they
+are ray-cast once per eye when the camera opens: shaded colour and a per-pixel depth image
+(z along the optical axis, m), supersampled for smooth edges. The movable objects are drawn
+over them where `workcell/state` puts them (`services.vision.objects`: each re-cast only
+when it moved, only its region redone). Each frame then copies that background, darkens the tool's
 drop shadow and draws the arm with OpenCV primitives (thick lines for links, discs for
 joints and the tool marker) into a colour layer and a depth layer, far to near. Long links
 are cut into short pieces so that each piece has nearly one depth; the arm shows wherever
@@ -13,13 +15,23 @@ tool above the table stays visible. Everything behind the near plane is clipped.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from services.vision.camera import Image
+from services.vision.objects import (
+    ObjectLayer,
+    ObjectPose,
+    Region,
+    composite,
+    object_layer,
+    objects_of_scene,
+    region_of,
+    union,
+)
 from services.vision.rig import PinholeCamera
 from services.workcell.scene import Box, Cylinder, Scene
 
@@ -259,15 +271,73 @@ class EyeRenderer:
     def __init__(self, scene: Scene, camera: PinholeCamera, supersample: int = 2) -> None:
         self.camera = camera
         self.scene = scene
-        self.background, self.depth = raycast_scene(scene, camera, supersample)
+        self._ss = supersample
+        # The fixtures never move: ray-cast once. The movable objects are layers over them,
+        # each re-cast only when its pose changes (`set_objects`).
+        self.static_background, self.static_depth = raycast_scene(
+            scene.fixtures(), camera, supersample
+        )
+        self.background = self.static_background.copy()
+        self.depth = self.static_depth.copy()
+        self._layers: dict[str, ObjectLayer | None] = {}
+        self._keys: dict[str, tuple[object, ...]] = {}
+        self._objects: tuple[ObjectPose, ...] | None = None
+        self._support = scene
+        self.recasts = 0
+        """Object layers ray-cast so far (a frame where nothing moved adds none)."""
+        self.set_objects(objects_of_scene(scene))
         h, w = camera.height, camera.width
         self._ids = np.zeros((h, w), np.uint8)
         self._mask = np.zeros((h, w), np.uint8)
         self._depth_lut = np.full((1, 256), np.inf, np.float32)
         self._bgr_lut = np.zeros((1, 256, 3), np.uint8)
 
-    def render(self, robot: RobotPose | None) -> Image:
-        """The eye's image (H, W, 3) BGR uint8 of the scene with `robot` (None: no arm)."""
+    def set_objects(self, objects: tuple[ObjectPose, ...]) -> None:
+        """Draw the movable objects at these poses from now on. Only an object whose pose
+        changed is ray-cast again; the composite is rebuilt only when one did."""
+        if objects is self._objects:
+            return
+        self._objects = objects
+        layers: dict[str, ObjectLayer | None] = {}
+        keys: dict[str, tuple[object, ...]] = {}
+        dirty: list[Region] = []
+        for name in set(self._layers) - {o.name for o in objects}:
+            gone = self._layers[name]
+            if gone is not None:
+                dirty.append(region_of(gone))
+        for obj in objects:
+            key = keys[obj.name] = obj.key()
+            if self._keys.get(obj.name) == key:
+                layers[obj.name] = self._layers[obj.name]
+                continue
+            old = self._layers.get(obj.name)
+            new = layers[obj.name] = object_layer(obj, self.camera, self._ss)
+            self.recasts += 1
+            dirty += [region_of(ly) for ly in (old, new) if ly is not None]
+        self._keys = keys
+        self._layers = layers
+        region = union(dirty)
+        if region is None:
+            return
+        drawn = [ly for ly in layers.values() if ly is not None]
+        # Only the region where something moved is redone (in place: `render` copies it).
+        composite(
+            self.static_background,
+            self.static_depth,
+            drawn,
+            (self.background, self.depth),
+            region,
+        )
+        fixtures = self.scene.fixtures()
+        self._support = replace(fixtures, boxes=(*fixtures.boxes, *(o.aabb() for o in objects)))
+
+    def render(
+        self, robot: RobotPose | None, objects: tuple[ObjectPose, ...] | None = None
+    ) -> Image:
+        """The eye's image (H, W, 3) BGR uint8 of the scene with `robot` (None: no arm)
+        and the movable objects at `objects` (None: where they were last drawn)."""
+        if objects is not None:
+            self.set_objects(objects)
         out = self.background.copy()
         if robot is None:
             return out
@@ -442,7 +512,7 @@ class EyeRenderer:
         """Darken the tool point's drop shadow on the surface right below it: a depth cue
         that tells the operator how high above the table the tool is."""
         x, y, z = (float(v) for v in robot.tool_p)
-        ground = _support_z(self.scene, x, y, z)
+        ground = _support_z(self._support, x, y, z)
         if ground is None or z <= ground:
             return
         height = z - ground
@@ -498,5 +568,7 @@ class StereoRenderer:
         self.left = EyeRenderer(scene, left, ss)
         self.right = EyeRenderer(scene, right, ss)
 
-    def render(self, robot: RobotPose | None) -> tuple[Image, Image]:
-        return self.left.render(robot), self.right.render(robot)
+    def render(
+        self, robot: RobotPose | None, objects: tuple[ObjectPose, ...] | None = None
+    ) -> tuple[Image, Image]:
+        return self.left.render(robot, objects), self.right.render(robot, objects)

@@ -1,6 +1,7 @@
 """The `vision` service on the bus: stereo pairs on `vision/stereo/l|r`, stats on `vision/stats`.
 
-The simulated camera follows the arm from `robot/state` (link origins from the PUMA model);
+The simulated camera follows the arm from `robot/state` (link origins from the PUMA model)
+and the workcell's movable objects from `workcell/state` (docs/vision.md, "The moved world");
 video is published at DATA_LOW with drop-on-congestion (keys.STEREO_*), so it never delays
 force or commands.
 
@@ -21,12 +22,14 @@ from typing import Any
 import zenoh
 
 from services.bus import keys
+from services.bus.errors import ProtocolError
 from services.bus.messages import RobotState, StereoFrame, VisionStats, mat3
 from services.bus.node import Node
 from services.vision.camera import camera_from_config
 from services.vision.config import VisionConfig
 from services.vision.pipeline import StereoPipeline
 from services.vision.sim_camera import SimStereoCamera
+from services.workcell.messages import WORKCELL_STATE, WorkcellState
 
 STATS_PERIOD_S = 1.0
 
@@ -113,6 +116,7 @@ class VisionService:
 
             self._kin = Puma560()
             node.subscribe(keys.STATE, self._on_state)
+            node.subscribe(WORKCELL_STATE, self._on_workcell)
         self.audience = Audience(
             node.session, (keys.STEREO_L.key, keys.STEREO_R.key), self._on_audience
         )
@@ -133,6 +137,15 @@ class VisionService:
             return
         self._robot_last_ns = now
         self._draw_robot(st)
+
+    def _on_workcell(self, st: WorkcellState) -> None:
+        # The objects where the workcell has them; the capture thread ray-casts only those
+        # that moved, at its next pair.
+        assert isinstance(self.camera, SimStereoCamera)
+        try:
+            self.camera.set_workcell(st)
+        except (ProtocolError, ValueError) as e:
+            self.node.report_rejected(WORKCELL_STATE.key, str(e))
 
     def _draw_robot(self, st: RobotState) -> None:
         assert isinstance(self.camera, SimStereoCamera)

@@ -9,8 +9,10 @@ from numpy.typing import ArrayLike
 
 from services.vision.camera import CameraError, StereoPair
 from services.vision.config import VisionConfig
+from services.vision.objects import ObjectPose, Spills, objects_of_state
 from services.vision.render import RobotPose, StereoRenderer
 from services.vision.rig import StereoRig
+from services.workcell.messages import WorkcellState, objects_of
 from services.workcell.scene import Scene, default_scene
 
 
@@ -35,6 +37,8 @@ class SimStereoCamera:
         self._supersample = supersample
         self._renderer: StereoRenderer | None = None
         self._robot: RobotPose | None = None
+        self._objects: tuple[ObjectPose, ...] | None = None
+        self._spills = Spills(self._scene)
         self._lock = threading.Lock()
 
     @property
@@ -75,10 +79,25 @@ class SimStereoCamera:
         """Stop drawing the arm (e.g. when its state has gone stale)."""
         self._robot = None
 
+    def set_workcell(self, state: WorkcellState) -> None:
+        """Draw the movable objects where `workcell/state` puts them from the next pair on.
+
+        Raises ProtocolError (a malformed object map) or ValueError (a size, position or
+        rotation out of bounds), leaving the previous poses in place. Objects are coloured
+        by the scene description (`scene`); one it does not know is grey. Spilled liquid
+        is drawn as puddles where it fell (`Spills`). Call from one thread at a time (the
+        bus delivers one subscription's messages in order).
+        """
+        views = objects_of(state)
+        objects = objects_of_state(self._scene, views)
+        self._spills.update(views)
+        self._objects = objects + self._spills.objects()
+
     def set_scene(self, scene: Scene) -> None:
         """Replace the workcell (re-ray-casts the background now if the camera is open)."""
         with self._lock:
             self._scene = scene
+            self._spills = Spills(scene)
             if self._renderer is not None:
                 self._renderer = self._build(scene)
 
@@ -86,9 +105,9 @@ class SimStereoCamera:
         renderer = self._renderer
         if renderer is None:
             raise CameraError("sim camera: grab() before open()")
-        robot = self._robot
+        robot, objects = self._robot, self._objects
         t_ns = time.time_ns()
-        left, right = renderer.render(robot)
+        left, right = renderer.render(robot, objects)
         return StereoPair(left, right, t_ns, t_ns, self.rig.intrinsics, self.rig.baseline_m)
 
     def keep_alive(self) -> bool:

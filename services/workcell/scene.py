@@ -125,6 +125,15 @@ class Scene:
         """The objects the gripper may pick up, boxes first, in declaration order."""
         return tuple(s for s in self.solids() if s.movable)
 
+    def fixtures(self) -> Scene:
+        """The static part: the same scene without its movable objects (what never moves,
+        so a renderer can draw it once and the objects over it from `workcell/state`)."""
+        return replace(
+            self,
+            boxes=tuple(b for b in self.boxes if not b.movable),
+            cylinders=tuple(c for c in self.cylinders if not c.movable),
+        )
+
     def moved(self, origins: Mapping[str, Sequence[float]]) -> Scene:
         """The same scene with solids moved: `origins[name]` is a box's new `center` or a
         cylinder's new `base` (m, world). Solids stay axis-aligned and upright: a renderer
