@@ -168,6 +168,11 @@ class SimSensor:
         return self._world
 
     @property
+    def acceleration(self) -> F3:
+        """The tool point's estimated acceleration (m/s², world) from robot/state."""
+        return self._accel.a
+
+    @property
     def carried(self) -> CarriedLoad | None:
         """What the gripper holds now (None: nothing)."""
         return self._carried

@@ -41,7 +41,7 @@ class Pose:
 class _Solid:
     """One box or cylinder in world space, precomputed for the per-sample query."""
 
-    __slots__ = ("R", "Rt", "axis_aligned", "cyl", "h", "hi", "k", "lo", "name", "o")
+    __slots__ = ("R", "Rt", "axis_aligned", "bhi", "blo", "cyl", "h", "hi", "k", "lo", "name", "o")
 
     def __init__(self, solid: Box | Cylinder, pose: Pose | None, radius: float) -> None:
         self.name = solid.name
@@ -57,6 +57,15 @@ class _Solid:
         self.R: M3 = pose.R if pose is not None else IDENTITY9
         self.Rt: M3 = transpose(self.R)
         self.axis_aligned = self.R == IDENTITY9
+        # A box's faces: in the world for an axis-aligned box (as the scene computes them,
+        # so ties between faces break the same way), else in its own frame.
+        hx, hy, hz = self.h
+        if self.axis_aligned and not self.cyl:
+            ox, oy, oz = self.o
+            self.blo: F3 = (ox - hx, oy - hy, oz - hz)
+            self.bhi: F3 = (ox + hx, oy + hy, oz + hz)
+        else:
+            self.blo, self.bhi = (-hx, -hy, -hz), (hx, hy, hz)
         # World-aligned bounds of the solid grown by the probe radius (broad phase).
         if self.cyl:
             r, hgt = self.h[0], self.h[2]
@@ -73,6 +82,8 @@ class _Solid:
         lo, hi = self.lo, self.hi
         if not (lo[0] < x < hi[0] and lo[1] < y < hi[1] and lo[2] < z < hi[2]):
             return None
+        if self.axis_aligned and not self.cyl:
+            return _box(self, x, y, z, radius)
         dx, dy, dz = x - self.o[0], y - self.o[1], z - self.o[2]
         if not self.axis_aligned:
             dx, dy, dz = mul(self.Rt, dx, dy, dz)
@@ -85,11 +96,11 @@ class _Solid:
 
 
 def _box(s: _Solid, x: float, y: float, z: float, radius: float) -> F3 | None:
-    """`scene._box_contact` in the box's frame (origin at its centre): k·depth·normal."""
-    hx, hy, hz = s.h
-    cx = -hx if x < -hx else hx if x > hx else x
-    cy = -hy if y < -hy else hy if y > hy else y
-    cz = -hz if z < -hz else hz if z > hz else z
+    """`scene._box_contact` between the faces `blo`, `bhi`: k·depth·normal."""
+    (lx, ly, lz), (hx, hy, hz) = s.blo, s.bhi
+    cx = lx if x < lx else hx if x > hx else x
+    cy = ly if y < ly else hy if y > hy else y
+    cz = lz if z < lz else hz if z > hz else z
     ex, ey, ez = x - cx, y - cy, z - cz
     d2 = ex * ex + ey * ey + ez * ez
     if d2 > 0.0:
@@ -99,7 +110,7 @@ def _box(s: _Solid, x: float, y: float, z: float, radius: float) -> F3 | None:
         g = s.k * (radius - dist) / dist
         return (g * ex, g * ey, g * ez)
     # Centre inside: out through the nearest face (first of −x, −y, −z, +x, +y, +z on ties).
-    faces = (x + hx, y + hy, z + hz, hx - x, hy - y, hz - z)
+    faces = (x - lx, y - ly, z - lz, hx - x, hy - y, hz - z)
     k = min(range(6), key=faces.__getitem__)
     g = s.k * (faces[k] + radius) * (-1.0 if k < 3 else 1.0)
     return (g, 0.0, 0.0) if k % 3 == 0 else (0.0, g, 0.0) if k % 3 == 1 else (0.0, 0.0, g)
