@@ -44,10 +44,10 @@ from services.workcell.scene import Scene, default_scene
 
 NOISE_BLOCK = 256
 """Samples' worth of Gaussian noise drawn at once."""
-ACCEL_MAX_MPS2 = 50.0
+ACCEL_MAX_MPS2 = 20.0
 """The tool acceleration estimate is clipped to this (m/s²): a timestamp glitch in
 robot/state must not read as a kilonewton."""
-ACCEL_TAU_S = 0.02
+ACCEL_TAU_S = 0.03
 """Low-pass time constant (s) of the acceleration estimate (second differences of the
 tool position at the robot/state rate are noisy)."""
 ACCEL_DT_RANGE_S = (2e-4, 0.1)

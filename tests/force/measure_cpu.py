@@ -14,6 +14,9 @@ sample is really sent. Reported:
   % of one core (the Zenoh runtime's threads included);
 - `kernel_us`: per-sample cost of the acquire step alone (sim read, eq. 4, compensation,
   bias, the sample's bytes), timed in a tight loop on this thread; `put_us`: the Zenoh put;
+- `sleep_floor_us`: CPU per tick of an empty Python loop sleeping to 1 ms deadlines, taken
+  just before, the floor under `sample_cpu_us` on this machine at this load;
+- `threads_pct`: CPU per thread name (Zenoh's tx/rx runtime threads beside "python");
 - the sampler's own counters (samples, overruns, late_max_us) and the load average, since
   the machine is shared.
 """
@@ -69,6 +72,20 @@ def thread_cpu_s(tid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK
 
 
+def threads_cpu_s() -> dict[str, float]:
+    """CPU seconds of every thread of this process, by thread name (summed per name)."""
+    out: dict[str, float] = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                name = f.read().strip()
+            cpu = thread_cpu_s(int(tid))
+        except OSError:
+            continue
+        out[name] = out.get(name, 0.0) + cpu
+    return out
+
+
 def process_cpu_s() -> float:
     t = os.times()
     return t.user + t.system
@@ -97,7 +114,21 @@ def put_us(svc: ForceService, n: int = 5_000) -> float:
     return (time.thread_time_ns() - t0) / n / 1e3
 
 
+def sleep_floor_us(n: int = 2_000) -> float:
+    """CPU per tick of an empty loop sleeping to 1 ms deadlines: the floor of any 1 kHz
+    Python thread on this machine now (timer wake-up, GIL, cold caches)."""
+    t0 = time.thread_time_ns()
+    deadline = time.perf_counter_ns()
+    for _ in range(n):
+        deadline += 1_000_000
+        remaining = deadline - time.perf_counter_ns()
+        if remaining > 0:
+            time.sleep(remaining / 1e9)
+    return (time.thread_time_ns() - t0) / n / 1e3
+
+
 def measure(seconds: float) -> dict[str, Any]:
+    floor = sleep_floor_us()
     net = Net()
     node = Node("force", net.config(listen=True))
     svc = ForceService(node, ForceConfig(seed=1))
@@ -115,9 +146,11 @@ def measure(seconds: float) -> dict[str, Any]:
         time.sleep(1.0)  # past start-up (imports, link set-up); not synchronisation
         tid = svc.core.sampler.native_id
         st0 = svc.core.sampler.stats()
+        by0 = threads_cpu_s()
         th0, pr0, w0 = thread_cpu_s(tid), process_cpu_s(), time.monotonic()
         time.sleep(seconds)
         th1, pr1, w1 = thread_cpu_s(tid), process_cpu_s(), time.monotonic()
+        by1 = threads_cpu_s()
         st1 = svc.core.sampler.stats()
         n = st1.samples - st0.samples
         out: dict[str, Any] = {
@@ -128,7 +161,13 @@ def measure(seconds: float) -> dict[str, Any]:
             "late_max_us": round(st1.late_max_us, 1),
             "sample_cpu_us": round((th1 - th0) / max(n, 1) * 1e6, 1),
             "process_cpu_pct": round((pr1 - pr0) / (w1 - w0) * 100.0, 1),
+            "sleep_floor_us": round(floor, 1),
             "loadavg": os.getloadavg(),
+            "threads_pct": {
+                k: round((v - by0.get(k, 0.0)) / (w1 - w0) * 100.0, 1)
+                for k, v in sorted(by1.items(), key=lambda kv: -kv[1] + by0.get(kv[0], 0.0))
+                if v - by0.get(k, 0.0) > 0.0
+            },
         }
         svc.core.rpc_sensor_stop({})
         svc.core.sensor.open()
