@@ -143,6 +143,7 @@ class ForceCore:
         # The tool's weight in the tool frame for the latest orientation (None: unknown).
         self._gravity: tuple[F3, F3] | None = None
         self._bias: tuple[F3, F3] = (ZERO3, ZERO3)
+        self._last_world: tuple[str, dict[str, Any]] | None = None
         self._bias_req: _BiasRequest | None = None
         self._seq = 0
         self._latest: ForceSampleFields | None = None
@@ -262,6 +263,10 @@ class ForceCore:
         raises ProtocolError naming its field (the world stays as it was)."""
         if self._worldly is None:
             return
+        # The workcell publishes at 50 Hz whether or not anything moved: an unchanged
+        # world (same objects, same grasp) costs one dict comparison, not a rebuild.
+        if self._last_world == (state.held, state.objects):
+            return
         objects = objects_of(state)
         for name, o in objects.items():
             for _i, x in enumerate(o.p):
@@ -273,6 +278,7 @@ class ForceCore:
                 if not 0.0 < x <= OBJECT_MAX_M:
                     raise ProtocolError(f"objects.{short(name, 40)}.size", "not within (0, 2] m")
         self._worldly.update_workcell(objects, state.held, vec3(state.tool_p))
+        self._last_world = (state.held, state.objects)
 
     def set_tool(self, p: ArrayLike, R: ArrayLike) -> None:
         """The tool placement eMt in the flange frame (m; R flange←tool), as puma's set_tool."""

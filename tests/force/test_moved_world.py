@@ -221,3 +221,15 @@ def test_workcell_state_is_ignored_by_a_real_sensor() -> None:
         core.update_workcell(workcell_state({"block2": (0.7, 0.3, 0.425)}))
     finally:
         core.close()
+
+
+def test_an_unchanged_world_is_not_rebuilt(core: ForceCore) -> None:
+    sensor = core.sensor
+    assert isinstance(sensor, SimSensor)
+    ws = workcell_state({"block2": (0.7, 0.3, 0.425)})
+    core.update_workcell(ws)
+    built = sensor.world
+    core.update_workcell(replace(ws, seq=2, t_ns=2))  # the 50 Hz repeat: same objects
+    assert sensor.world is built
+    core.update_workcell(workcell_state({"block2": (0.7, 0.2, 0.425)}))
+    assert sensor.world is not built
