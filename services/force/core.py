@@ -268,15 +268,16 @@ class ForceCore:
         if self._last_world == (state.held, state.objects):
             return
         objects = objects_of(state)
+        where = f"outside {WORLD_MIN_M}…{WORLD_MAX_M} m"
+        if not all(WORLD_MIN_M <= x <= WORLD_MAX_M for x in state.tool_p):
+            raise ProtocolError("tool_p", where)
         for name, o in objects.items():
-            for _i, x in enumerate(o.p):
-                if not WORLD_MIN_M <= x <= WORLD_MAX_M:
-                    raise ProtocolError(
-                        f"objects.{short(name, 40)}.p", f"outside {WORLD_MIN_M}…{WORLD_MAX_M} m"
-                    )
-            for x in o.size:
-                if not 0.0 < x <= OBJECT_MAX_M:
-                    raise ProtocolError(f"objects.{short(name, 40)}.size", "not within (0, 2] m")
+            if not all(WORLD_MIN_M <= x <= WORLD_MAX_M for x in o.p):
+                raise ProtocolError(f"objects.{short(name, 40)}.p", where)
+            if not all(0.0 < x <= OBJECT_MAX_M for x in o.size):
+                raise ProtocolError(
+                    f"objects.{short(name, 40)}.size", f"not within (0, {OBJECT_MAX_M}] m"
+                )
         self._worldly.update_workcell(objects, state.held, vec3(state.tool_p))
         self._last_world = (state.held, state.objects)
 

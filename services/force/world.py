@@ -200,7 +200,9 @@ def carried_mass_kg(
     if isinstance(solid, Box):
         sx, sy, sz = solid.size
         return block_density_kg_m3 * sx * sy * sz
-    return bottle_mass_kg + LIQUID_KG_PER_ML * max(0.0, liquid_ml or 0.0)
+    # No more liquid than the bottle holds, whatever a message says.
+    full_ml = math.pi * solid.radius**2 * solid.height * 1e6
+    return bottle_mass_kg + LIQUID_KG_PER_ML * min(full_ml, max(0.0, liquid_ml or 0.0))
 
 
 @dataclass(frozen=True, slots=True)

@@ -11,7 +11,8 @@ sample is really sent. Reported:
 
 - `sample_cpu_us`: CPU time of the sampling thread (/proc/self/task/<tid>/stat) per sample;
 - `process_cpu_pct`: CPU time of this whole process (`os.times()`) over the wall time, in
-  % of one core (the Zenoh runtime's threads included);
+  % of one core (the Zenoh runtime's threads included), and per sample
+  (`process_cpu_us_per_sample`: comparable when a loaded machine cuts the rate);
 - `kernel_us`: per-sample cost of the acquire step alone (sim read, eq. 4, compensation,
   bias, the sample's bytes), timed in a tight loop on this thread; `put_us`: the Zenoh put;
 - `sleep_floor_us`: CPU per tick of an empty Python loop sleeping to 1 ms deadlines, taken
@@ -161,6 +162,7 @@ def measure(seconds: float) -> dict[str, Any]:
             "late_max_us": round(st1.late_max_us, 1),
             "sample_cpu_us": round((th1 - th0) / max(n, 1) * 1e6, 1),
             "process_cpu_pct": round((pr1 - pr0) / (w1 - w0) * 100.0, 1),
+            "process_cpu_us_per_sample": round((pr1 - pr0) / max(n, 1) * 1e6, 1),
             "sleep_floor_us": round(floor, 1),
             "loadavg": os.getloadavg(),
             "threads_pct": {

@@ -90,6 +90,8 @@ def test_a_bad_workcell_state_is_refused_and_changes_nothing(core: ForceCore) ->
     far = workcell_state({"block2": (0.7, 0.3, 1e9)})
     with pytest.raises(ProtocolError, match=r"objects\.block2\.p"):
         core.update_workcell(far)
+    with pytest.raises(ProtocolError, match="tool_p"):
+        core.update_workcell(replace(workcell_state({}), tool_p=(0.0, 0.0, -1e300)))
     sensor = core.sensor
     assert isinstance(sensor, SimSensor)
     # block2 still where the scene puts it: pressing its top is felt.

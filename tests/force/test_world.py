@@ -85,3 +85,5 @@ def test_masses_from_the_scene_description() -> None:
     bottle = SCENE.cylinder("bottle")
     assert carried_mass_kg(bottle, 500.0, 700.0, 0.1) == pytest.approx(0.6)
     assert carried_mass_kg(bottle, None, 700.0, 0.1) == pytest.approx(0.1)
+    full = np.pi * 0.035**2 * 0.2 * 1e6  # ml: a forged liquid_ml weighs no more than that
+    assert carried_mass_kg(bottle, 1e12, 700.0, 0.1) == pytest.approx(0.1 + full * 1e-3)
