@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -368,3 +369,25 @@ def test_realtime_spin_follows_what_the_kernel_granted(closing: list[Sampler[Any
     assert clock.realtime == (report.policy in ("SCHED_FIFO", "SCHED_RR"))
     s.set_priority("normal")
     assert clock.realtime is False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="timer slack is Linux's")
+def test_the_sampling_thread_has_a_tight_timer_slack(closing: list[Sampler[Any]]) -> None:
+    import ctypes
+
+    from services.force.sampler import TIMER_SLACK_NS
+
+    libc = ctypes.CDLL(None)
+    main_slack = libc.prctl(30, 0, 0, 0, 0)  # PR_GET_TIMERSLACK
+    seen: list[int] = []
+    s: Sampler[int] = Sampler(
+        lambda: seen.append(libc.prctl(30, 0, 0, 0, 0)) or 1,
+        lambda x: None,
+        handoff="inline",
+    )
+    closing.append(s)
+    s.start()
+    wait_for(lambda: len(seen) >= 1)
+    s.stop()
+    assert seen[0] == TIMER_SLACK_NS
+    assert libc.prctl(30, 0, 0, 0, 0) == main_slack  # the sampling thread's only
