@@ -43,7 +43,8 @@ class ForceConfig:
     `spin_us`: the final spin before each deadline, used only when `priority = "highest"`
     got a real-time policy. Sim only: `block_density_kg_m3` and `bottle_mass_kg` (empty;
     its liquid adds 1 g/ml) give a carried object's mass; `inertia` adds its inertial
-    force from the tool's acceleration.
+    force from the tool's acceleration; `carried_contact` lets what it touches push on the
+    wrist through it.
     """
 
     sensor: SensorKind = "sim"
@@ -76,6 +77,7 @@ class ForceConfig:
     block_density_kg_m3: float = 700.0
     bottle_mass_kg: float = 0.1
     inertia: bool = True
+    carried_contact: bool = True
     stale_after_periods: int = 5
     bias_samples: int = 16
     event_interval_s: float = 1.0
@@ -113,6 +115,8 @@ class ForceConfig:
         _num_in("bottle_mass_kg", self.bottle_mass_kg, 0.0, 100.0)
         if not isinstance(self.inertia, bool):
             _bad("inertia", f"true or false, got {self.inertia!r}")
+        if not isinstance(self.carried_contact, bool):
+            _bad("carried_contact", f"true or false, got {self.carried_contact!r}")
         for key in ("sensor_p_m", "tool_p_m", "tool_com_m"):
             v = getattr(self, key)
             if len(v) != 3 or not all(_finite(x) for x in v):
@@ -169,6 +173,7 @@ class ForceConfig:
             "block_density_kg_m3": self.block_density_kg_m3,
             "bottle_mass_kg": self.bottle_mass_kg,
             "inertia": self.inertia,
+            "carried_contact": self.carried_contact,
         }
 
 

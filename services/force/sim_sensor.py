@@ -38,7 +38,14 @@ from services.force.kernel import (
 )
 from services.force.model import Vec, WristModel, as_rotation
 from services.force.sensors import Reading, SensorError, Six
-from services.force.world import CarriedLoad, ContactWorld, Pose, carried_mass_kg
+from services.force.world import (
+    BASE_POINTS,
+    CarriedLoad,
+    ContactWorld,
+    Pose,
+    carried_mass_kg,
+    surface_points,
+)
 from services.workcell.messages import ObjectView
 from services.workcell.scene import Scene, default_scene
 
@@ -100,7 +107,9 @@ class SimSensor:
     A carried object (`update_workcell` with `held`) adds m·(g − a) at its centre of mass:
     its weight, and with `inertia` its inertial force from the tool's acceleration
     (estimated from the robot/state stream). Its mass comes from the scene description:
-    `block_density_kg_m3` × a box's volume, or `bottle_mass_kg` plus the liquid left.
+    `block_density_kg_m3` × a box's volume, or `bottle_mass_kg` plus the liquid left. With
+    `carried_contact`, what it touches (a table, a block under it) pushes on the wrist
+    through it, at its corners and base centre.
     """
 
     def __init__(
@@ -116,6 +125,7 @@ class SimSensor:
         block_density_kg_m3: float = 700.0,
         bottle_mass_kg: float = 0.1,
         inertia: bool = True,
+        carried_contact: bool = True,
         on_event: EventSink = ignore_event,
     ) -> None:
         if not (noise_n >= 0.0 and noise_nm >= 0.0 and probe_radius_m >= 0.0):
@@ -133,6 +143,7 @@ class SimSensor:
         self._density = block_density_kg_m3
         self._bottle_kg = bottle_mass_kg
         self._inertia = inertia
+        self._carried_contact = carried_contact
         self._rng = np.random.default_rng(seed)
         self._noise: list[float] = []
         self._noise_at = 0
@@ -237,12 +248,20 @@ class SimSensor:
                 solid = None
             if solid is not None:
                 mass = carried_mass_kg(solid, obj.liquid_ml, self._density, self._bottle_kg)
-                ctr = vec3(obj.centre)
                 with self._lock:
                     R = self._R
-                d = (ctr[0] - tool_p[0], ctr[1] - tool_p[1], ctr[2] - tool_p[2])
-                com_t = mul(transpose(R), *d) if R is not None else ZERO3
-                carried = CarriedLoad(held, mass, com_t)
+                if R is not None:
+                    Rt = transpose(R)
+                    tx, ty, tz = tool_p
+
+                    def in_tool(x: F3) -> F3:
+                        return mul(Rt, x[0] - tx, x[1] - ty, x[2] - tz)
+
+                    pts = surface_points(obj.kind, vec3(obj.p), mat9(obj.R), vec3(obj.size))
+                    points = tuple(in_tool(x) for x in pts) if self._carried_contact else ()
+                    carried = CarriedLoad(held, mass, in_tool(vec3(obj.centre)), points)
+                else:
+                    carried = CarriedLoad(held, mass)
         with self._lock:
             self._world = world
             self._carried = carried
@@ -273,12 +292,37 @@ class SimSensor:
         if pose is None:
             return None
         p, Rt, wf, wc = pose
-        fw = self._world.force(p[0], p[1], p[2])
+        world = self._world
+        fw = world.force(p[0], p[1], p[2])
         ft = mul(Rt, *fw)
         (px, py, pz), (qx, qy, qz) = self._push
+        f = (ft[0] + wf[0] + px, ft[1] + wf[1] + py, ft[2] + wf[2] + pz)
+        c = (wc[0] + qx, wc[1] + qy, wc[2] + qz)
+        held = self._carried
+        if held is None or not held.points_t:
+            return f, c
+        # What the carried object touches pushes on the wrist through it: each surface
+        # point is a point probe of stiffness k / 5, so its base (4 corners or rim points
+        # and its centre) pressed flat onto a surface gives k · depth.
+        R = transpose(Rt)
+        share = 1.0 / BASE_POINTS
+        fx = fy = fz = mx = my = mz = 0.0
+        for q in held.points_t:
+            qw = mul(R, *q)
+            g = world.force(p[0] + qw[0], p[1] + qw[1], p[2] + qw[2], 0.0)
+            if g[0] or g[1] or g[2]:
+                fx += share * g[0]
+                fy += share * g[1]
+                fz += share * g[2]
+                mx += share * (qw[1] * g[2] - qw[2] * g[1])
+                my += share * (qw[2] * g[0] - qw[0] * g[2])
+                mz += share * (qw[0] * g[1] - qw[1] * g[0])
+        if not (fx or fy or fz):
+            return f, c
+        ct, mt = mul(Rt, fx, fy, fz), mul(Rt, mx, my, mz)
         return (
-            (ft[0] + wf[0] + px, ft[1] + wf[1] + py, ft[2] + wf[2] + pz),
-            (wc[0] + qx, wc[1] + qy, wc[2] + qz),
+            (f[0] + ct[0], f[1] + ct[1], f[2] + ct[2]),
+            (c[0] + mt[0], c[1] + mt[1], c[2] + mt[2]),
         )
 
     def read(self) -> Reading | None:

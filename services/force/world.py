@@ -12,8 +12,9 @@ probe sphere exactly as `Scene.contacts` does for an axis-aligned scene
 (tests/force/test_world.py checks it against the scene), in plain floats.
 
 `CarriedLoad` is what the gripper holds: its mass from the scene description (a block's
-volume × `block_density_kg_m3`; a bottle's `bottle_mass_kg` plus the liquid still in it)
-and its centre of mass in the tool frame.
+volume × `block_density_kg_m3`; a bottle's `bottle_mass_kg` plus the liquid still in it),
+its centre of mass and a few points of its surface (`surface_points`), in the tool frame,
+where it touches the rest of the world.
 """
 
 from __future__ import annotations
@@ -174,9 +175,10 @@ class ContactWorld:
         solids = [_Solid(s, poses.get(s.name), radius) for s in scene.solids() if s.name != exclude]
         return cls(scene, radius, solids)
 
-    def force(self, x: float, y: float, z: float) -> F3:
-        """The summed contact force (N, world) on the probe sphere centred at (x, y, z)."""
-        r = self.radius
+    def force(self, x: float, y: float, z: float, radius: float | None = None) -> F3:
+        """The summed contact force (N, world) on the probe sphere centred at (x, y, z)
+        (of `radius`, m, at most the world's; None: the world's)."""
+        r = self.radius if radius is None else radius
         fx = fy = fz = 0.0
         depth = self._floor_z - (z - r)
         if depth > 0.0:
@@ -213,3 +215,29 @@ class CarriedLoad:
     name: str
     mass_kg: float
     com_t: F3 = ZERO3
+    points_t: tuple[F3, ...] = ()
+    """Contact points on its surface (m, tool frame): its corners and the centre of its base."""
+
+
+BASE_POINTS = 5
+"""`surface_points` on an object's base: 4 corners (rim points) and its centre."""
+
+
+def surface_points(kind: str, p: F3, R: M3, size: F3) -> tuple[F3, ...]:
+    """Where a carried object touches things first (m, world): a box's 8 corners and the
+    centre of its base; a cylinder's base centre and 4 points on each rim. `p`, `R`, `size`
+    as `workcell/state` gives them (a box's centre, a cylinder's base centre)."""
+    hx, hy, h = 0.5 * size[0], 0.5 * size[1], size[2]
+    if kind == "box":
+        hz = 0.5 * h
+        local = [(x, y, z) for x in (-hx, hx) for y in (-hy, hy) for z in (-hz, hz)]
+        local.append((0.0, 0.0, -hz))
+    else:
+        rim = [(hx, 0.0), (-hx, 0.0), (0.0, hy), (0.0, -hy)]
+        local = [(x, y, z) for z in (0.0, h) for x, y in rim]
+        local.append((0.0, 0.0, 0.0))
+    out = []
+    for v in local:
+        w = mul(R, *v)
+        out.append((p[0] + w[0], p[1] + w[1], p[2] + w[2]))
+    return tuple(out)

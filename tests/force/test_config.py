@@ -55,6 +55,7 @@ def test_defaults_are_the_papers_and_the_protocols() -> None:
         ({"block_density_kg_m3": float("nan")}, "force.block_density_kg_m3"),
         ({"bottle_mass_kg": 1e6}, "force.bottle_mass_kg"),
         ({"inertia": 1}, "force.inertia"),
+        ({"carried_contact": "yes"}, "force.carried_contact"),
     ],
 )
 def test_bad_values_name_their_key(kw: dict[str, Any], key: str) -> None:

@@ -235,3 +235,37 @@ def test_an_unchanged_world_is_not_rebuilt(core: ForceCore) -> None:
     assert sensor.world is built
     core.update_workcell(workcell_state({"block2": (0.7, 0.2, 0.425)}))
     assert sensor.world is not built
+
+
+def test_what_the_carried_block_touches_pushes_on_the_wrist() -> None:
+    sensor = SimSensor(noise_n=0.0, noise_nm=0.0, inertia=False)
+    sensor.open()
+    h = BLOCK_SIZE_M
+    k = TABLE.stiffness_n_per_m
+
+    def hold_at(bottom_z: float, dx: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        tool = np.array([0.5 + dx, -0.2, bottom_z + h + 0.008])  # palm 8 mm above its top
+        sensor.update_pose_checked(tuple(tool), tuple(DOWN.reshape(9)))
+        ws = workcell_state({"block0": tuple(tool - np.array([0, 0, 0.008 + h / 2]))}, "block0")
+        sensor.update_workcell(objects_of(ws), "block0", tuple(tool))
+        w = sensor.wrench_t()
+        assert w is not None
+        return w
+
+    weight = DOWN.T @ np.array([0.0, 0.0, -BLOCK_KG * G])
+    f, c = hold_at(TOP + 0.01)  # 1 cm above the table: its weight only
+    np.testing.assert_allclose(f, weight, atol=1e-9)
+    np.testing.assert_allclose(c, 0.0, atol=1e-9)
+    f, c = hold_at(TOP - 0.001)  # pressed 1 mm flat into the table: k · 1 mm, up
+    np.testing.assert_allclose(f, weight + DOWN.T @ np.array([0.0, 0.0, k * 0.001]), atol=1e-6)
+    np.testing.assert_allclose(c, 0.0, atol=1e-9)  # the base centred under the tool
+    # Half over the table's far edge (x = 0.85): only its inner corners and centre press,
+    # off the tool's axis, so a moment appears too.
+    f, c = hold_at(TOP - 0.001, dx=0.85 - 0.5)
+    assert f[2] < weight[2] and np.linalg.norm(c) > 1e-3
+
+    quiet = SimSensor(noise_n=0.0, noise_nm=0.0, inertia=False, carried_contact=False)
+    sensor = quiet
+    sensor.open()
+    f, _ = hold_at(TOP - 0.001)
+    np.testing.assert_allclose(f, weight, atol=1e-9)  # switched off: the weight only
