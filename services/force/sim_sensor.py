@@ -16,6 +16,7 @@ sample costs the contact query, the noise and eq. (4) in plain floats.
 
 from __future__ import annotations
 
+import math
 import threading
 from collections.abc import Mapping
 
@@ -259,7 +260,9 @@ class SimSensor:
 
                     pts = surface_points(obj.kind, vec3(obj.p), mat9(obj.R), vec3(obj.size))
                     points = tuple(in_tool(x) for x in pts) if self._carried_contact else ()
-                    carried = CarriedLoad(held, mass, in_tool(vec3(obj.centre)), points)
+                    centre = in_tool(vec3(obj.centre))
+                    reach = max((math.dist(q, centre) for q in points), default=0.0)
+                    carried = CarriedLoad(held, mass, centre, points, centre, reach)
                 else:
                     carried = CarriedLoad(held, mass)
         with self._lock:
@@ -305,11 +308,15 @@ class SimSensor:
         # point is a point probe of stiffness k / 5, so its base (4 corners or rim points
         # and its centre) pressed flat onto a surface gives k · depth.
         R = transpose(Rt)
+        cw = mul(R, *held.centre_t)
+        near = world.near(p[0] + cw[0], p[1] + cw[1], p[2] + cw[2], held.reach_m)
+        if near is None:  # in free space: one rotation and a bounds test per solid
+            return f, c
         share = 1.0 / BASE_POINTS
         fx = fy = fz = mx = my = mz = 0.0
         for q in held.points_t:
             qw = mul(R, *q)
-            g = world.force(p[0] + qw[0], p[1] + qw[1], p[2] + qw[2], 0.0)
+            g = world.point_force(near, p[0] + qw[0], p[1] + qw[1], p[2] + qw[2])
             if g[0] or g[1] or g[2]:
                 fx += share * g[0]
                 fy += share * g[1]

@@ -175,6 +175,35 @@ class ContactWorld:
         solids = [_Solid(s, poses.get(s.name), radius) for s in scene.solids() if s.name != exclude]
         return cls(scene, radius, solids)
 
+    def near(self, x: float, y: float, z: float, reach: float) -> tuple[_Solid, ...] | None:
+        """The solids whose bounds come within `reach` (m) of (x, y, z) per axis, or None
+        when neither they nor the floor do: the broad phase for a carried object."""
+        found = tuple(
+            s
+            for s in self._solids
+            if s.lo[0] - reach < x < s.hi[0] + reach
+            and s.lo[1] - reach < y < s.hi[1] + reach
+            and s.lo[2] - reach < z < s.hi[2] + reach
+        )
+        if not found and z - reach > self._floor_z:
+            return None
+        return found
+
+    def point_force(self, solids: tuple[_Solid, ...], x: float, y: float, z: float) -> F3:
+        """The contact force (N, world) on the point (x, y, z) from `solids` (from `near`)
+        and the floor."""
+        fx = fy = fz = 0.0
+        depth = self._floor_z - z
+        if depth > 0.0:
+            fz = self._floor_k * depth
+        for s in solids:
+            f = s.force(x, y, z, 0.0)
+            if f is not None:
+                fx += f[0]
+                fy += f[1]
+                fz += f[2]
+        return (fx, fy, fz)
+
     def force(self, x: float, y: float, z: float, radius: float | None = None) -> F3:
         """The summed contact force (N, world) on the probe sphere centred at (x, y, z)
         (of `radius`, m, at most the world's; None: the world's)."""
@@ -217,6 +246,10 @@ class CarriedLoad:
     com_t: F3 = ZERO3
     points_t: tuple[F3, ...] = ()
     """Contact points on its surface (m, tool frame): its corners and the centre of its base."""
+    centre_t: F3 = ZERO3
+    """The centre of `points_t` (m, tool frame) …"""
+    reach_m: float = 0.0
+    """… and how far from it the farthest point is (m): the broad phase's sphere."""
 
 
 BASE_POINTS = 5
