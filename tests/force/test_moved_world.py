@@ -18,7 +18,7 @@ import pytest
 
 from services.bus import keys
 from services.bus.errors import ProtocolError
-from services.bus.messages import ForceSample, RobotState, vec
+from services.bus.messages import Event, ForceSample, RobotState, vec
 from services.force.config import ForceConfig
 from services.force.core import ForceCore, ForceSampleFields
 from services.force.service import ForceService
@@ -269,3 +269,24 @@ def test_what_the_carried_block_touches_pushes_on_the_wrist() -> None:
     sensor.open()
     f, _ = hold_at(TOP - 0.001)
     np.testing.assert_allclose(f, weight, atol=1e-9)  # switched off: the weight only
+
+
+def test_a_forged_workcell_state_on_the_bus_is_reported_not_sensed(net: Net) -> None:
+    force = ForceService(net.node("force"), ForceConfig(noise_n=0.0, noise_nm=0.0))
+    other = net.node("intruder")
+    events: list[Event] = []
+    other.subscribe(keys.EVENTS, events.append)
+    try:
+        other.publisher(WORKCELL_STATE).put(workcell_state({"block2": (0.7, 0.3, 1e9)}))
+        wait_for(lambda: force.node.rejected.get(WORKCELL_STATE.key, 0) >= 1)
+        wait_for(lambda: any(e.kind == "rejected" and e.source == "force" for e in events))
+        ev = next(e for e in events if e.kind == "rejected")
+        assert "objects.block2.p" in ev.message
+        sensor = force.core.sensor
+        assert isinstance(sensor, SimSensor)
+        assert sensor.carried is None
+        # block2 still where the scene puts it (the forged message changed nothing)
+        b2 = default_scene().box("block2").center
+        assert sensor.world.force(b2[0], b2[1], TOP + BLOCK_SIZE_M + R_PROBE - 0.002)[2] > 30.0
+    finally:
+        force.close()
