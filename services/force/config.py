@@ -17,7 +17,7 @@ from services.bus.errors import ConfigError
 from services.force.gravity import STANDARD_GRAVITY_MPS2, ToolLoad
 from services.force.model import RotationMode, WristModel, as_calibration, as_rotation, as_vec3
 from services.force.priority import PRIORITY_LEVELS, PriorityLevel
-from services.force.sampler import PERIOD_MAX_MS, PERIOD_MIN_MS
+from services.force.sampler import HANDOFFS, PERIOD_MAX_MS, PERIOD_MIN_MS, Handoff
 from services.force.sensors import SENSOR_KINDS, SensorKind
 
 Vec3T = tuple[float, float, float]
@@ -37,6 +37,14 @@ class ForceConfig:
     `calibration`: "identity" or 36 row-major floats mapping the six sensing signals to
     the plate motion (ΔS m, θ rad) of eq. (4). `K_l_n_per_m`, `K_r_nm_per_rad`: wrist
     stiffness, a number (isotropic) or three (per axis of the tool frame).
+
+    `handoff`: "inline" publishes each sample from the sampling thread (no queue, no extra
+    thread per sample); "queue" hands it to a publisher thread through `queue_len`.
+    `spin_us`: the final spin before each deadline, used only when `priority = "highest"`
+    got a real-time policy. Sim only: `block_density_kg_m3` and `bottle_mass_kg` (empty;
+    its liquid adds 1 g/ml) give a carried object's mass; `inertia` adds its inertial
+    force from the tool's acceleration; `carried_contact` lets what it touches push on the
+    wrist through it.
     """
 
     sensor: SensorKind = "sim"
@@ -65,6 +73,11 @@ class ForceConfig:
     probe_radius_m: float = 0.005
     seed: int | None = None
     queue_len: int = 256
+    handoff: Handoff = "inline"
+    block_density_kg_m3: float = 700.0
+    bottle_mass_kg: float = 0.1
+    inertia: bool = True
+    carried_contact: bool = True
     stale_after_periods: int = 5
     bias_samples: int = 16
     event_interval_s: float = 1.0
@@ -96,6 +109,14 @@ class ForceConfig:
         _num_in("probe_radius_m", self.probe_radius_m, 0.0, 1.0)
         _num_in("event_interval_s", self.event_interval_s, 0.0, 3600.0)
         _num_in("spin_us", self.spin_us, 0.0, 10_000.0)
+        if self.handoff not in HANDOFFS:
+            _bad("handoff", f"one of {list(HANDOFFS)}, got {self.handoff!r}")
+        _num_in("block_density_kg_m3", self.block_density_kg_m3, 0.0, 25_000.0)
+        _num_in("bottle_mass_kg", self.bottle_mass_kg, 0.0, 100.0)
+        if not isinstance(self.inertia, bool):
+            _bad("inertia", f"true or false, got {self.inertia!r}")
+        if not isinstance(self.carried_contact, bool):
+            _bad("carried_contact", f"true or false, got {self.carried_contact!r}")
         for key in ("sensor_p_m", "tool_p_m", "tool_com_m"):
             v = getattr(self, key)
             if len(v) != 3 or not all(_finite(x) for x in v):
@@ -149,6 +170,10 @@ class ForceConfig:
             "noise_nm": self.noise_nm,
             "probe_radius_m": self.probe_radius_m,
             "seed": self.seed,
+            "block_density_kg_m3": self.block_density_kg_m3,
+            "bottle_mass_kg": self.bottle_mass_kg,
+            "inertia": self.inertia,
+            "carried_contact": self.carried_contact,
         }
 
 

@@ -22,12 +22,22 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from services.bus.bounds import check_each, short
+from services.bus.bounds import BOUNDS, check_each, short
 from services.bus.errors import ProtocolError, RpcError
 from services.force.config import ForceConfig
 from services.force.events import EventSink, EventThrottle
-from services.force.gravity import compensate
-from services.force.model import Vec, as_rotation, as_vec3
+from services.force.kernel import (
+    F3,
+    M3,
+    ZERO3,
+    WristKernel,
+    mat9,
+    mul,
+    transpose,
+    vec3,
+    weight_wrench,
+)
+from services.force.model import Vec, WristModel, as_rotation, as_vec3
 from services.force.priority import PRIORITY_LEVELS
 from services.force.sampler import MonotonicClock, Sampler, SamplerClock, check_period_ms
 from services.force.sensors import (
@@ -35,12 +45,18 @@ from services.force.sensors import (
     PoseAwareSensor,
     SensorError,
     Six,
+    WorldAwareSensor,
     open_sensor,
 )
+from services.workcell.messages import WorkcellState, objects_of
 
 Vec3T = tuple[float, float, float]
 TOOL_CHANGE_TOL = 1e-6
 """m and rad: a flange→tool placement from robot/state that differs more is a new tool."""
+WORLD_MIN_M, WORLD_MAX_M = BOUNDS["position_m"].lo, BOUNDS["position_m"].hi
+"""A workcell object's position (m, world, per axis) must be within these."""
+OBJECT_MAX_M = 2.0
+"""A workcell object's bounding size (m, per axis) must be within (0, this]."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,19 +90,22 @@ class _BiasRequest:
     def __init__(self, n: int) -> None:
         self.n = n
         self.count = 0
-        self.f_sum = np.zeros(3)
-        self.c_sum = np.zeros(3)
+        self.f_sum = [0.0, 0.0, 0.0]
+        self.c_sum = [0.0, 0.0, 0.0]
         self.done = threading.Event()
 
-    def add(self, f: Vec, c: Vec) -> bool:
-        self.f_sum += f
-        self.c_sum += c
+    def add(self, f: F3, c: F3) -> bool:
+        fs, cs = self.f_sum, self.c_sum
+        for i in range(3):
+            fs[i] += f[i]
+            cs[i] += c[i]
         self.count += 1
         return self.count >= self.n
 
-
-def _vec3t(v: Vec) -> Vec3T:
-    return (float(v[0]), float(v[1]), float(v[2]))
+    def mean(self) -> tuple[F3, F3]:
+        n = self.n
+        fs, cs = self.f_sum, self.c_sum
+        return (fs[0] / n, fs[1] / n, fs[2] / n), (cs[0] / n, cs[1] / n, cs[2] / n)
 
 
 class ForceCore:
@@ -110,12 +129,21 @@ class ForceCore:
         self._sensor = sensor
         self._config = config
         self._model = config.wrist_model()
+        self._kernel = WristKernel(self._model)
+        self._tool_eMt: tuple[F3, M3] = (vec3(self._model.p_et), mat9(self._model.R_et))
         self._load = config.tool_load()
+        self._load_com: F3 = vec3(self._load.com_m)
         self._posed: PoseAwareSensor | None = (
             sensor if isinstance(sensor, PoseAwareSensor) else None
         )
-        self._tool_R: Vec | None = None
-        self._bias: tuple[Vec, Vec] = (np.zeros(3), np.zeros(3))
+        self._worldly: WorldAwareSensor | None = (
+            sensor if isinstance(sensor, WorldAwareSensor) else None
+        )
+        self._tool_R: M3 | None = None
+        # The tool's weight in the tool frame for the latest orientation (None: unknown).
+        self._gravity: tuple[F3, F3] | None = None
+        self._bias: tuple[F3, F3] = (ZERO3, ZERO3)
+        self._last_world: tuple[str, dict[str, Any]] | None = None
         self._bias_req: _BiasRequest | None = None
         self._seq = 0
         self._latest: ForceSampleFields | None = None
@@ -127,6 +155,7 @@ class ForceCore:
             priority=config.priority,
             on_event=emit,
             queue_len=config.queue_len,
+            handoff=config.handoff,
             stale_after_periods=config.stale_after_periods,
             clock=clock or MonotonicClock(spin_us=config.spin_us),
         )
@@ -168,35 +197,89 @@ class ForceCore:
         tool_R: ArrayLike,
         flange_p: ArrayLike | None = None,
         flange_R: ArrayLike | None = None,
+        t_ns: int | None = None,
     ) -> None:
         """The arm's pose from robot/state (world; R world←tool, 9 row-major or 3×3).
 
         The tool orientation drives gravity compensation; a simulated sensor also senses
-        at this pose. With the flange pose too, the tool placement eMt = flange⁻¹·tool is
-        derived, and a changed placement (puma's set_tool) updates the model.
+        at this pose (and, with the state's `t_ns`, estimates the tool's acceleration). With
+        the flange pose too, the tool placement eMt = flange⁻¹·tool is derived, and a
+        changed placement (puma's set_tool) updates the model. Validates its input; a
+        decoded RobotState (already validated) may use `update_robot_state_checked`.
         """
         p = np.asarray(tool_p, dtype=float).reshape(3)
+        if not np.all(np.isfinite(p)):
+            raise ProtocolError("tool_p", "not finite")
         try:
             R = as_rotation(tool_R, "tool_R")
         except ValueError as e:
             raise ProtocolError("tool_R", str(e)) from None
+        flange: tuple[F3, M3] | None = None
+        if flange_p is not None and flange_R is not None:
+            fp = np.asarray(flange_p, dtype=float).reshape(3)
+            if not np.all(np.isfinite(fp)):
+                raise ProtocolError("flange_p", "not finite")
+            try:
+                flange = (vec3(fp), mat9(as_rotation(flange_R, "flange_R")))
+            except ValueError as e:
+                raise ProtocolError("flange_R", str(e)) from None
+        self.update_robot_state_checked(vec3(p), mat9(R), flange, t_ns)
+
+    def update_robot_state_checked(
+        self, p: F3, R: M3, flange: tuple[F3, M3] | None = None, t_ns: int | None = None
+    ) -> None:
+        """`update_robot_state` for values already validated (finite, R a rotation), as a
+        decoded RobotState's: plain floats, nothing recomputed per sample."""
         self._tool_R = R
-        if self._posed is not None:
-            self._posed.update_pose(p, R)
-        if flange_p is None or flange_R is None:
+        self._gravity = weight_wrench(
+            self._load.mass_kg, self._load.gravity_mps2, self._load_com, R
+        )
+        if self._worldly is not None:
+            self._worldly.update_pose_checked(p, R, t_ns)
+        elif self._posed is not None:
+            self._posed.update_pose(p, np.asarray(R).reshape(3, 3))
+        if flange is None:
             return
-        try:
-            Rf = as_rotation(flange_R, "flange_R")
-        except ValueError as e:
-            raise ProtocolError("flange_R", str(e)) from None
-        R_et = Rf.T @ R
-        p_et = Rf.T @ (p - np.asarray(flange_p, dtype=float).reshape(3))
-        m = self._model
+        fp, Rf = flange
+        Rft = transpose(Rf)
+        # eMt = flange⁻¹ · tool: R_et = R_fᵀ R (columns of R through R_fᵀ), p_et = R_fᵀ (p − fp)
+        cols = [mul(Rft, R[j], R[3 + j], R[6 + j]) for j in range(3)]
+        R_et = (
+            cols[0][0], cols[1][0], cols[2][0],
+            cols[0][1], cols[1][1], cols[2][1],
+            cols[0][2], cols[1][2], cols[2][2],
+        )  # fmt: skip
+        p_et = mul(Rft, p[0] - fp[0], p[1] - fp[1], p[2] - fp[2])
+        old_p, old_R = self._tool_eMt
         if (
-            np.max(np.abs(p_et - m.p_et)) > TOOL_CHANGE_TOL
-            or np.max(np.abs(R_et - m.R_et)) > TOOL_CHANGE_TOL
+            max(abs(a - b) for a, b in zip(p_et, old_p, strict=True)) > TOOL_CHANGE_TOL
+            or max(abs(a - b) for a, b in zip(R_et, old_R, strict=True)) > TOOL_CHANGE_TOL
         ):
-            self.set_tool(p_et, R_et)
+            self.set_tool(np.asarray(p_et), np.asarray(R_et).reshape(3, 3))
+
+    def update_workcell(self, state: WorkcellState) -> None:
+        """The simulated workcell now (`workcell/state`): a simulated sensor senses its moved
+        objects and what the gripper carries. Other sensors ignore it. A malformed object
+        raises ProtocolError naming its field (the world stays as it was)."""
+        if self._worldly is None:
+            return
+        # The workcell publishes at 50 Hz whether or not anything moved: an unchanged
+        # world (same objects, same grasp) costs one dict comparison, not a rebuild.
+        if self._last_world == (state.held, state.objects):
+            return
+        objects = objects_of(state)
+        where = f"outside {WORLD_MIN_M}…{WORLD_MAX_M} m"
+        if not all(WORLD_MIN_M <= x <= WORLD_MAX_M for x in state.tool_p):
+            raise ProtocolError("tool_p", where)
+        for name, o in objects.items():
+            if not all(WORLD_MIN_M <= x <= WORLD_MAX_M for x in o.p):
+                raise ProtocolError(f"objects.{short(name, 40)}.p", where)
+            if not all(0.0 < x <= OBJECT_MAX_M for x in o.size):
+                raise ProtocolError(
+                    f"objects.{short(name, 40)}.size", f"not within (0, {OBJECT_MAX_M}] m"
+                )
+        self._worldly.update_workcell(objects, state.held, vec3(state.tool_p))
+        self._last_world = (state.held, state.objects)
 
     def set_tool(self, p: ArrayLike, R: ArrayLike) -> None:
         """The tool placement eMt in the flange frame (m; R flange←tool), as puma's set_tool."""
@@ -207,7 +290,8 @@ class ForceCore:
             R_et = as_rotation(R, "R")
         except ValueError as e:
             raise ProtocolError("R", str(e)) from None
-        self._model = self._model.with_tool(p_et, R_et)
+        self._set_model(self._model.with_tool(p_et, R_et))
+        self._tool_eMt = (vec3(p_et), mat9(R_et))
         if self._posed is not None:
             self._posed.set_tool(p_et, R_et)
         self._sampler.post_event(
@@ -215,6 +299,11 @@ class ForceCore:
             "force model: new tool placement",
             {"tool_p": p_et.tolist(), "tool_R": R_et.reshape(9).tolist()},
         )
+
+    def _set_model(self, model: WristModel) -> None:
+        # The sampling thread reads the kernel only: swap it in one assignment.
+        self._model = model
+        self._kernel = WristKernel(model)
 
     # --- IForceSensor (PROTOCOL.md §4) -------------------------------------------------
 
@@ -228,8 +317,8 @@ class ForceCore:
             bad=self._sensor.bad,
             gaps=self._sensor.gaps,
             seq=latest.seq if latest else 0,
-            gravity_compensated=self._tool_R is not None,
-            bias={"f": f_b.tolist(), "c": c_b.tolist()},
+            gravity_compensated=self._gravity is not None,
+            bias={"f": list(f_b), "c": list(c_b)},
             K_l=self._model.K_l.tolist(),
             K_r=self._model.K_r.tolist(),
         )
@@ -301,7 +390,7 @@ class ForceCore:
         if not isinstance(clear, bool):
             raise RpcError("bad_request", f"clear: expected true/false, got {clear!r}")
         if clear:
-            self._bias = (np.zeros(3), np.zeros(3))
+            self._bias = (ZERO3, ZERO3)
             return self._bias_reply(0)
         with self._ctl:
             if not self._sampler.running:
@@ -324,7 +413,7 @@ class ForceCore:
             if key in args:
                 values[key] = _stiffness(key, args[key])
         if values:
-            self._model = self._model.with_compliance(values.get("K_l"), values.get("K_r"))
+            self._set_model(self._model.with_compliance(values.get("K_l"), values.get("K_r")))
         return {"K_l": self._model.K_l.tolist(), "K_r": self._model.K_r.tolist()}
 
     def rpc_sensor_read(self, args: dict[str, Any]) -> dict[str, Any]:
@@ -336,7 +425,7 @@ class ForceCore:
 
     def _bias_reply(self, n: int) -> dict[str, Any]:
         f_b, c_b = self._bias
-        return {"f_bias": f_b.tolist(), "c_bias": c_b.tolist(), "samples": n}
+        return {"f_bias": list(f_b), "c_bias": list(c_b), "samples": n}
 
     # --- sampling thread ----------------------------------------------------------------
 
@@ -345,24 +434,29 @@ class ForceCore:
         if reading is None:
             return None
         t_ns = time.time_ns()
-        model = self._model
-        v = np.asarray(reading.values, dtype=float)
+        v = reading.values
         if reading.kind == "signals":
-            f, c = model.wrench_from_signals(v)
+            f, c = self._kernel.wrench_from_signals(v)
         else:
-            f, c = model.wrench_from_sensor_wrench(v[:3], v[3:])
-        R = self._tool_R
-        if R is not None:
-            f, c = compensate(f, c, self._load, R)
+            f, c = self._kernel.wrench_from_sensor_wrench((v[0], v[1], v[2]), (v[3], v[4], v[5]))
+        g = self._gravity
+        if g is not None:
+            (gx, gy, gz), (hx, hy, hz) = g
+            f = (f[0] - gx, f[1] - gy, f[2] - gz)
+            c = (c[0] - hx, c[1] - hy, c[2] - hz)
         req = self._bias_req
         if req is not None and req.add(f, c):
-            self._bias = (req.f_sum / req.n, req.c_sum / req.n)
+            self._bias = req.mean()
             self._bias_req = None
             req.done.set()
-        f_b, c_b = self._bias
+        (bx, by, bz), (dx, dy, dz) = self._bias
         self._seq += 1
         sample = ForceSampleFields(
-            self._seq, t_ns, _vec3t(f - f_b), _vec3t(c - c_b), reading.values
+            self._seq,
+            t_ns,
+            (f[0] - bx, f[1] - by, f[2] - bz),
+            (c[0] - dx, c[1] - dy, c[2] - dz),
+            v,
         )
         self._latest = sample
         return sample

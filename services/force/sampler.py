@@ -4,27 +4,34 @@ The paper's force sensing component (§2.1.3) is a thread of its own, created wi
 priority and idle until sensing is triggered; its period (TimerValue) and priority
 (SensorThreadPriority) can be changed while it runs. Here:
 
-- the sampling thread sleeps to absolute deadlines (`MonotonicClock`: coarse sleep, then a
-  short spin for the last `spin_us`), so the period does not drift; a tick that ends after
-  the next deadline counts the deadlines it missed as overruns and skips them rather than
+- the sampling thread sleeps to absolute deadlines (`MonotonicClock`), so the period does
+  not drift; it sleeps until the deadline, and spins the last `spin_us` only where a
+  real-time policy (SCHED_FIFO/RR) was asked for and granted; a tick that ends after the
+  next deadline counts the deadlines it missed as overruns and skips them rather than
   bursting to catch up;
-- each sample goes into a bounded deque that a publisher thread drains, so a slow or
-  blocked `publish` never delays sampling; when the deque is full the oldest sample is
-  dropped and counted (force feedback wants the newest);
-- events (stale sensor, recovery, errors) go through the same publisher thread, so the
-  sampling thread never blocks on the bus either;
+- `handoff="inline"` (the force service's): `publish` runs on the sampling thread, right
+  after the reading (a Zenoh put of pre-encoded bytes, ~10 µs): no hand-off, no thread
+  wake-up per sample; a publish that blocks shows as overruns. `handoff="queue"`: each
+  sample goes into a bounded deque that a publisher thread drains, so a slow or blocked
+  `publish` never delays sampling; when the deque is full the oldest sample is dropped and
+  counted (force feedback wants the newest);
+- events (stale sensor, recovery, errors) always go through the publisher thread, so the
+  sampling thread never blocks on them;
 - the achieved rate is measured from the timestamps of real samples over a sliding window.
 """
 
 from __future__ import annotations
 
+import ctypes
+import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Generic, Protocol, TypeVar
+from typing import Any, Generic, Literal, Protocol, TypeVar
 
+from services.bus.bounds import short
 from services.bus.errors import TelerobotError
 from services.force.events import EventSink, EventThrottle, ignore_event
 from services.force.priority import (
@@ -35,14 +42,12 @@ from services.force.priority import (
 )
 
 S = TypeVar("S")
+Handoff = Literal["inline", "queue"]
+HANDOFFS: tuple[Handoff, ...] = ("inline", "queue")
 
 PERIOD_MIN_MS = 0.2
 PERIOD_MAX_MS = 1000.0
 STOP_TIMEOUT_S = 2.0
-
-
-class _Fatal(Exception):
-    """acquire() raised a bug: the loop ends."""
 
 
 class SamplerClock(Protocol):
@@ -58,31 +63,57 @@ class SamplerClock(Protocol):
 
 
 class MonotonicClock:
-    """perf_counter_ns (CLOCK_MONOTONIC) with a coarse sleep and a short final spin.
+    """perf_counter_ns (CLOCK_MONOTONIC); sleeps to the deadline, spins only under RT.
 
-    `time.sleep` wakes 50–100 µs late on a stock kernel (timer slack, wake-up latency), so
-    it sleeps until `spin_us` before the deadline and spins the rest with `sleep(0)`, which
-    releases the GIL on every turn. Coarse sleeps are cut into `max_chunk_ms` pieces so a
-    stop or a period change is seen quickly even at long periods.
+    `time.sleep` wakes some 50–100 µs late under SCHED_OTHER (timer slack, wake-up latency);
+    that lateness is measured (`late_max_us`) and costs nothing. A final spin of `spin_us`
+    with `sleep(0)` would cut it, at the price of a busy core (~10 % at 1 kHz): it is used
+    only while `realtime` is set, which the sampler does when a real-time policy was asked
+    for and granted (`highest` → SCHED_FIFO), where the spin also cannot starve the
+    thread's own wake-up. Sleeps are cut into `max_chunk_ms` pieces so a stop or a period
+    change is seen quickly even at long periods.
     """
 
     def __init__(self, spin_us: float = 100.0, max_chunk_ms: float = 20.0) -> None:
         self._spin_ns = int(spin_us * 1_000)
         self._chunk_ns = int(max_chunk_ms * 1_000_000)
+        self.realtime = False
 
     def now_ns(self) -> int:
         return time.perf_counter_ns()
 
     def sleep_until(self, deadline_ns: int, interrupted: Callable[[], bool]) -> None:
+        spin_ns = self._spin_ns if self.realtime else 0
         while True:
-            remaining = deadline_ns - time.perf_counter_ns()
-            if remaining <= self._spin_ns:
+            sleep_ns = deadline_ns - spin_ns - time.perf_counter_ns()
+            if sleep_ns <= 0:
                 break
-            time.sleep(min(remaining - self._spin_ns, self._chunk_ns) / 1e9)
+            if sleep_ns <= self._chunk_ns:  # the last piece: no second look at the clock
+                time.sleep(sleep_ns / 1e9)
+                if not spin_ns:
+                    return
+                break
+            time.sleep(self._chunk_ns / 1e9)
             if interrupted():
                 return
         while time.perf_counter_ns() < deadline_ns:
             time.sleep(0)
+
+
+TIMER_SLACK_NS = 1_000
+"""The sampling thread's timer slack (Linux; the default is 50 µs): its sleeps end at the
+deadline instead of up to 50 µs after it, at no CPU cost."""
+
+
+def _tighten_timer_slack() -> None:
+    """prctl(PR_SET_TIMERSLACK) for the calling thread; silently nothing elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(29, ctypes.c_ulong(TIMER_SLACK_NS), 0, 0, 0)  # PR_SET_TIMERSLACK
+    except (OSError, AttributeError):
+        return
 
 
 @dataclass(frozen=True, slots=True)
@@ -144,8 +175,10 @@ class Sampler(Generic[S]):
     `acquire` runs on the sampling thread only and returns a sample or None (no new data).
     It may raise OSError or TelerobotError for a device failure (counted, reported, the loop
     goes on, a continued failure shows as `stale`); any other exception is a bug: it is
-    reported as an `error` event and sampling stops. `publish(sample)` and
-    `on_event(kind, message, data)` run on the publisher thread and may block.
+    reported as an `error` event and sampling stops. `publish(sample)` runs on the sampling
+    thread (`handoff="inline"`: it must not block for long; its failures are counted) or on
+    the publisher thread (`handoff="queue"`: it may block); `on_event(kind, message,
+    data)` runs on the publisher thread and may block.
 
     The sampling thread exists from construction (idle, at `priority`) until `close()`;
     `start()`/`stop()` trigger and halt sensing; `set_period_ms()` and `set_priority()` act
@@ -162,6 +195,7 @@ class Sampler(Generic[S]):
         priority: PriorityLevel = "normal",
         on_event: EventSink = ignore_event,
         queue_len: int = 256,
+        handoff: Handoff = "queue",
         stale_after_periods: int = 5,
         rate_window_s: float = 1.0,
         clock: SamplerClock | None = None,
@@ -169,6 +203,9 @@ class Sampler(Generic[S]):
     ) -> None:
         if queue_len < 1:
             raise ValueError("queue_len must be ≥ 1")
+        if handoff not in HANDOFFS:
+            raise ValueError(f"handoff: one of {list(HANDOFFS)}, got {handoff!r}")
+        self._inline = handoff == "inline"
         if not 1 <= stale_after_periods <= 10:
             raise ValueError("stale_after_periods must be within 1…10")
         if priority not in PRIORITY_LEVELS:
@@ -193,7 +230,6 @@ class Sampler(Generic[S]):
         self._events: deque[tuple[str, str, dict[str, Any]]] = deque(maxlen=256)
         self._q_cond = threading.Condition()
         self._stamps: deque[int] = deque(maxlen=16384)
-        self._stamps_lock = threading.Lock()
         self._started_ns = 0
         self._error_events = EventThrottle(self.post_event, interval_s=1.0)
 
@@ -277,8 +313,14 @@ class Sampler(Generic[S]):
         """New SensorThreadPriority for the sampling thread; returns what was applied."""
         if level not in PRIORITY_LEVELS:
             raise ValueError(f"priority: one of {list(PRIORITY_LEVELS)}, got {level!r}")
-        self._priority = apply_thread_priority(self._tid, level)
-        return self._priority
+        report = apply_thread_priority(self._tid, level)
+        self._priority = report
+        if isinstance(self._clock, MonotonicClock):
+            self._clock.realtime = level == "highest" and report.policy in (
+                "SCHED_FIFO",
+                "SCHED_RR",
+            )
+        return report
 
     def post_event(self, kind: str, message: str, data: dict[str, Any]) -> None:
         """Queue an event for the publisher thread; never blocks (drops the oldest if full)."""
@@ -294,8 +336,8 @@ class Sampler(Generic[S]):
             return 0.0
         now = self._clock.now_ns()
         window = max(self._rate_window_ns, 10 * self._period_ns)
-        with self._stamps_lock:
-            recent = [t for t in self._stamps if now - t <= window]
+        # list(deque) runs in C without releasing the GIL: a consistent copy, no lock.
+        recent = [t for t in list(self._stamps) if now - t <= window]
         if len(recent) < 2:
             return 0.0
         if now - self._started_ns >= window:
@@ -326,6 +368,7 @@ class Sampler(Generic[S]):
 
     def _run(self) -> None:
         self._tid = threading.get_native_id()
+        _tighten_timer_slack()
         self._tid_ready.set()
         while True:
             with self._cond:
@@ -341,34 +384,43 @@ class Sampler(Generic[S]):
         return not self._want_run or self._closed or self._period_changed
 
     def _loop(self) -> None:
+        # Hot: one pass per period. Bound methods in locals, no lock, no call that is not
+        # needed: every bytecode here runs 1 000 times a second, usually with cold caches.
         clock = self._clock
-        next_ns = clock.now_ns()
+        now_ns, sleep_until, interrupted = clock.now_ns, clock.sleep_until, self._interrupted
+        acquire, publish, inline = self._acquire, self._publish, self._inline
+        stamp = self._stamps.append
+        next_ns = now_ns()
         last_tick_ns = next_ns
         last_data_ns = next_ns
         self._started_ns = next_ns
         self._stale = False
         self._period_changed = False
-        with self._stamps_lock:
-            self._stamps.clear()
+        self._stamps.clear()
         while True:
-            clock.sleep_until(next_ns, self._interrupted)
+            sleep_until(next_ns, interrupted)
             if not self._want_run or self._closed:
                 return
             if self._period_changed:
                 self._period_changed = False
                 next_ns = last_tick_ns + self._period_ns
-                if clock.now_ns() < next_ns:
+                if now_ns() < next_ns:
                     continue
-            woke_ns = clock.now_ns()
-            self._late_max_ns = max(self._late_max_ns, woke_ns - next_ns)
+            late = now_ns() - next_ns
+            if late > self._late_max_ns:
+                self._late_max_ns = late
             last_tick_ns = next_ns
             period_ns = self._period_ns
 
             try:
-                item = self._acquire_once()
-            except _Fatal:
+                item = acquire()
+            except (OSError, TelerobotError) as e:
+                self._read_failed(e)
+                item = None
+            except Exception as e:  # a bug, not a device failure: stop, publish no garbage
+                self._fatal(e)
                 return
-            now = clock.now_ns()
+            now = now_ns()
             self._ticks += 1
             if item is None:
                 self._empty += 1
@@ -390,9 +442,16 @@ class Sampler(Generic[S]):
                     )
                 last_data_ns = now
                 self._samples += 1
-                with self._stamps_lock:
-                    self._stamps.append(now)
-                self._handoff(item)
+                stamp(now)
+                if inline:
+                    try:
+                        publish(item)
+                        self._published += 1
+                    except Exception as e:  # a failed put must not end sampling
+                        self._publish_failed(e)
+                    now = now_ns()  # a slow put makes this tick late, honestly
+                else:
+                    self._handoff(item)
 
             next_ns += period_ns
             if now >= next_ns:
@@ -400,24 +459,20 @@ class Sampler(Generic[S]):
                 self._overruns += missed
                 next_ns += missed * period_ns
 
-    def _acquire_once(self) -> S | None:
-        try:
-            return self._acquire()
-        except (OSError, TelerobotError) as e:
-            self._read_errors += 1
-            self._error_events(
-                "error", f"force sensor read failed: {e}", {"read_errors": self._read_errors}
-            )
-            return None
-        except Exception as e:  # a bug, not a device failure: stop rather than publish garbage
-            self._last_error = f"{type(e).__name__}: {e}"
-            self._want_run = False
-            self.post_event(
-                "error",
-                f"force sampling stopped: {self._last_error}",
-                {"fatal": True, "error": self._last_error},
-            )
-            raise _Fatal from e
+    def _read_failed(self, e: Exception) -> None:
+        self._read_errors += 1
+        self._error_events(
+            "error", f"force sensor read failed: {e}", {"read_errors": self._read_errors}
+        )
+
+    def _fatal(self, e: Exception) -> None:
+        self._last_error = f"{type(e).__name__}: {e}"
+        self._want_run = False
+        self.post_event(
+            "error",
+            f"force sampling stopped: {self._last_error}",
+            {"fatal": True, "error": self._last_error},
+        )
 
     def _handoff(self, item: S) -> None:
         with self._q_cond:
@@ -444,13 +499,19 @@ class Sampler(Generic[S]):
                 except Exception:  # the bus is down: counting is all that is left to do
                     self._publish_errors += 1
             for item in items:
-                try:
-                    self._publish(item)
-                    self._published += 1
-                except Exception as e:  # a failed put must not end publishing
-                    self._publish_errors += 1
-                    self._error_events(
-                        "error",
-                        f"force publish failed: {e}",
-                        {"publish_errors": self._publish_errors},
-                    )
+                self._publish_one(item)
+
+    def _publish_one(self, item: S) -> None:
+        try:
+            self._publish(item)
+            self._published += 1
+        except Exception as e:  # a failed put must not end publishing
+            self._publish_failed(e)
+
+    def _publish_failed(self, e: Exception) -> None:
+        self._publish_errors += 1
+        self._error_events(
+            "error",
+            f"force publish failed: {short(str(e))}",
+            {"publish_errors": self._publish_errors},
+        )

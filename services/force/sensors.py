@@ -7,13 +7,17 @@ docs/serial-force-protocol.md), `NetFTSensor` (netft.py, ATI Net F/T RDT over UD
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
 
 from numpy.typing import ArrayLike
 
 from services.bus.errors import TelerobotError
 from services.force.events import EventSink
+
+if TYPE_CHECKING:
+    from services.workcell.messages import ObjectView
 
 SensorKind = Literal["sim", "serial", "netft"]
 SENSOR_KINDS: tuple[SensorKind, ...] = ("sim", "serial", "netft")
@@ -88,6 +92,28 @@ class PoseAwareSensor(Protocol):
 
     def set_tool(self, p_et: ArrayLike, R_et: ArrayLike) -> None:
         """The tool placement in the flange frame (eMt), as puma's `set_tool`."""
+        ...
+
+
+@runtime_checkable
+class WorldAwareSensor(Protocol):
+    """A sensor of the simulated workcell: it follows the moved objects and the load."""
+
+    def update_pose_checked(
+        self,
+        p: tuple[float, float, float],
+        R: tuple[float, float, float, float, float, float, float, float, float],
+        t_ns: int | None = None,
+    ) -> None:
+        """The tool frame in the world, already validated (plain floats; R row-major
+        world←tool), from robot/state stamped `t_ns` (ns)."""
+        ...
+
+    def update_workcell(
+        self, objects: Mapping[str, ObjectView], held: str, tool_p: tuple[float, float, float]
+    ) -> None:
+        """The workcell's objects (validated), the one in the gripper ("" for none), and
+        the tool point (m, world) the workcell stepped with."""
         ...
 
 

@@ -1,9 +1,11 @@
 """The `force` service on the bus: `robot/force` at 1 kHz and IForceSensor at robot/force/rpc.
 
-The sampling thread never touches the network: samples go through the core's handoff queue
-to a publisher thread (ForceCore), so a slow link cannot stretch the sampling period. The
-arm's pose from `robot/state` drives gravity compensation, the sim sensor's contact, and
-follows the puma's `set_tool`.
+Each sample is encoded by a dedicated ForceSample encoder (wire.py, byte-identical to the
+codec) and put on the bus from the sampling thread itself (`handoff = "inline"`, the
+default): no queue and no thread wake-up per sample. The arm's pose from `robot/state`
+drives gravity compensation and the sim sensor's contact, and follows the puma's
+`set_tool`; with the sim sensor, `workcell/state` moves the objects it touches and puts
+the carried one's weight on the wrist.
 """
 
 from __future__ import annotations
@@ -14,10 +16,12 @@ from typing import Any
 from services.bus import codec, keys
 from services.bus.bounds import check_norm
 from services.bus.errors import ProtocolError, RpcError
-from services.bus.messages import IDENTITY_R, ForceSample, RobotState, Rot, Vec3
+from services.bus.messages import IDENTITY_R, RobotState, Rot, Vec3
 from services.bus.node import Node
 from services.force.config import ForceConfig
 from services.force.core import ForceCore, ForceSampleFields
+from services.force.wire import ForceSampleEncoder
+from services.workcell.messages import WORKCELL_STATE, WorkcellState
 
 log = logging.getLogger("telerobot.force")
 
@@ -29,8 +33,11 @@ class ForceService:
         self.node = node
         self.config = config
         self._pub = node.publisher(keys.FORCE)
+        self._encode = ForceSampleEncoder().encode
         self.core = ForceCore.from_config(config, self._publish, self._emit)
         node.subscribe(keys.STATE, self._on_state)
+        if config.sensor == "sim":
+            node.subscribe(WORKCELL_STATE, self._on_workcell)
         core = self.core
         node.serve(
             "force",
@@ -54,17 +61,30 @@ class ForceService:
                 )
         node.announce()
 
+    def encode_sample(self, s: ForceSampleFields) -> bytes:
+        """The sample's `robot/force` payload (what `codec.encode(ForceSample(...))` gives)."""
+        return self._encode(s.seq, s.t_ns, s.f, s.c, s.raw)
+
     def _publish(self, s: ForceSampleFields) -> None:
-        self._pub.put(ForceSample(seq=s.seq, t_ns=s.t_ns, f=s.f, c=s.c, raw=s.raw))
+        self._pub.put_bytes(self._encode(s.seq, s.t_ns, s.f, s.c, s.raw))
 
     def _emit(self, kind: str, message: str, data: dict[str, Any]) -> None:
         self.node.event(kind, message, data)
 
     def _on_state(self, st: RobotState) -> None:
+        # Decoded by the codec: finite, rotations proper (PROTOCOL.md conventions).
+        self.core.update_robot_state_checked(
+            st.tool_p,  # type: ignore[arg-type]
+            st.tool_R,  # type: ignore[arg-type]
+            (st.flange_p, st.flange_R),  # type: ignore[arg-type]
+            st.t_ns,
+        )
+
+    def _on_workcell(self, ws: WorkcellState) -> None:
         try:
-            self.core.update_robot_state(st.tool_p, st.tool_R, st.flange_p, st.flange_R)
+            self.core.update_workcell(ws)
         except ProtocolError as e:
-            self.node.report_rejected(keys.STATE.key, str(e))
+            self.node.report_rejected(WORKCELL_STATE.key, str(e))
 
     def _rpc_set_tool(self, args: dict[str, Any]) -> dict[str, Any]:
         """The tool placement eMt (as puma's `set_tool {p, R}`); also followed from robot/state."""

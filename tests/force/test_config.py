@@ -21,6 +21,7 @@ from services.force.sim_sensor import SimSensor
 def test_defaults_are_the_papers_and_the_protocols() -> None:
     c = ForceConfig()
     assert (c.sensor, c.period_ms, c.priority) == ("sim", 1.0, "normal")
+    assert c.handoff == "inline"  # one put per sample from the sampling thread, no queue
     m = c.wrist_model()
     assert_allclose(m.p_et, [0, 0, 0.2])  # PROTOCOL.md's default tool
     assert_allclose(m.R_es, np.eye(3))  # the paper's R_s ≡ R_e at rest
@@ -49,6 +50,12 @@ def test_defaults_are_the_papers_and_the_protocols() -> None:
         ({"counts_per_force": 0.0}, "force.counts_per_force"),
         ({"bias_samples": True}, "force.bias_samples"),
         ({"sensor": "serial", "port": ""}, "force.port"),
+        ({"handoff": "thread"}, "force.handoff"),
+        ({"block_density_kg_m3": -1.0}, "force.block_density_kg_m3"),
+        ({"block_density_kg_m3": float("nan")}, "force.block_density_kg_m3"),
+        ({"bottle_mass_kg": 1e6}, "force.bottle_mass_kg"),
+        ({"inertia": 1}, "force.inertia"),
+        ({"carried_contact": "yes"}, "force.carried_contact"),
     ],
 )
 def test_bad_values_name_their_key(kw: dict[str, Any], key: str) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -246,3 +247,147 @@ def test_period_bounds(bad: Any) -> None:
         check_period_ms(bad)
     assert check_period_ms(PERIOD_MIN_MS) == PERIOD_MIN_MS
     assert check_period_ms(2) == 2.0
+
+
+def test_inline_handoff_publishes_on_the_sampling_thread(closing: list[Sampler[Any]]) -> None:
+    seq = iter(range(1, 1_000_000))
+    out: list[tuple[int, int]] = []
+    s: Sampler[int] = Sampler(
+        lambda: next(seq),
+        lambda x: out.append((x, threading.get_native_id())),
+        period_ms=1.0,
+        handoff="inline",
+    )
+    closing.append(s)
+    s.start()
+    wait_for(lambda: len(out) >= 300)
+    s.stop()
+    st = s.stats()
+    assert [x for x, _ in out] == list(range(1, st.samples + 1))
+    assert {tid for _, tid in out} == {s.native_id}  # no hand-off to another thread
+    assert st.published == st.samples and st.drops == 0
+
+
+def test_inline_publish_that_blocks_shows_as_overruns(closing: list[Sampler[Any]]) -> None:
+    clock = VirtualClock()
+    seq = iter(range(1, 1_000_000))
+    out: list[int] = []
+    ticks: list[int] = []
+
+    def acquire() -> int:
+        ticks.append(clock.t)
+        return next(seq)
+
+    def slow_publish(x: int) -> None:
+        clock.t += 5 * MS  # every put takes 2.5 periods
+        out.append(x)
+
+    s: Sampler[int] = Sampler(acquire, slow_publish, period_ms=2.0, clock=clock, handoff="inline")
+    closing.append(s)
+    s.start()
+    wait_for(lambda: len(ticks) >= 20)
+    s.stop()
+    st = s.stats()
+    assert st.overruns == 2 * st.ticks  # each tick misses 2 deadlines, honestly counted
+    assert set(diffs(ticks)) == {6 * MS}  # and the schedule resumes without a burst
+    assert out == list(range(1, st.samples + 1))
+
+
+def test_inline_publish_errors_are_counted_and_sampling_goes_on(
+    closing: list[Sampler[Any]],
+) -> None:
+    seq = iter(range(1, 1_000_000))
+    events = Events()
+
+    def publish(x: int) -> None:
+        if x % 2:
+            raise RuntimeError("session closed")
+
+    s: Sampler[int] = Sampler(
+        lambda: next(seq), publish, period_ms=1.0, handoff="inline", on_event=events
+    )
+    closing.append(s)
+    s.start()
+    wait_for(lambda: s.stats().samples >= 20)
+    s.stop()
+    st = s.stats()
+    assert st.publish_errors + st.published == st.samples
+    assert st.publish_errors == (st.samples + 1) // 2
+    wait_for(lambda: len(events.of("error")) >= 1)
+    assert "session closed" in events.of("error")[0][1]
+
+
+def test_unknown_handoff_is_refused() -> None:
+    with pytest.raises(ValueError, match="handoff"):
+        Sampler(lambda: 1, lambda x: None, handoff="thread")  # type: ignore[arg-type]
+
+
+class _FakeTime:
+    """Stands in for the sampler module's `time`: a clock that moves only by sleeps."""
+
+    def __init__(self) -> None:
+        self.t = 0
+        self.sleeps: list[float] = []
+
+    def perf_counter_ns(self) -> int:
+        self.t += 1_000  # each reading of the clock costs 1 µs
+        return self.t
+
+    def sleep(self, s: float) -> None:
+        self.sleeps.append(s)
+        self.t += int(s * 1e9) + 60_000  # woken 60 µs late, as under SCHED_OTHER
+
+
+def test_the_clock_sleeps_to_the_deadline_and_spins_only_under_realtime(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import services.force.sampler as sampler_mod
+
+    fake = _FakeTime()
+    monkeypatch.setattr(sampler_mod, "time", fake)
+    clock = sampler_mod.MonotonicClock(spin_us=100.0)
+    assert clock.realtime is False
+    clock.sleep_until(1 * MS, lambda: False)
+    assert fake.sleeps and 0.0 not in fake.sleeps  # no sleep(0) spin by default
+    assert fake.t >= 1 * MS
+    fake.sleeps.clear()
+    clock.realtime = True
+    clock.sleep_until(fake.t + 1 * MS, lambda: False)
+    assert fake.sleeps[0] == pytest.approx(0.0009 - 1e-6, abs=2e-6)  # to 100 µs before
+    assert 0.0 in fake.sleeps  # then the spin
+
+
+@pytest.mark.skipif(not supported(), reason="per-thread priority is Linux-only")
+def test_realtime_spin_follows_what_the_kernel_granted(closing: list[Sampler[Any]]) -> None:
+    from services.force.sampler import MonotonicClock
+
+    clock = MonotonicClock()
+    s: Sampler[int] = Sampler(lambda: 1, lambda x: None, period_ms=1.0, clock=clock)
+    closing.append(s)
+    assert clock.realtime is False  # "normal": never spins
+    report = s.set_priority("highest")
+    assert clock.realtime == (report.policy in ("SCHED_FIFO", "SCHED_RR"))
+    s.set_priority("normal")
+    assert clock.realtime is False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="timer slack is Linux's")
+def test_the_sampling_thread_has_a_tight_timer_slack(closing: list[Sampler[Any]]) -> None:
+    import ctypes
+
+    from services.force.sampler import TIMER_SLACK_NS
+
+    libc = ctypes.CDLL(None)
+    main_slack = libc.prctl(30, 0, 0, 0, 0)  # PR_GET_TIMERSLACK
+    seen: list[int] = []
+    s: Sampler[int] = Sampler(
+        lambda: seen.append(libc.prctl(30, 0, 0, 0, 0)) or 1,
+        lambda x: None,
+        handoff="inline",
+    )
+    closing.append(s)
+    s.start()
+    wait_for(lambda: len(seen) >= 1)
+    s.stop()
+    assert seen[0] == TIMER_SLACK_NS
+    assert libc.prctl(30, 0, 0, 0, 0) == main_slack  # the sampling thread's only
