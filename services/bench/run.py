@@ -237,8 +237,9 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
 
 def force_note(phases: dict[str, Any]) -> str:
     """Where force samples went missing: the sensor's own rate beside the delivered one, and
-    the missing seqs beside those the force service itself dropped (its hand-off queue keeps
-    the newest when its publisher falls behind)."""
+    the missing seqs beside those the force service itself dropped (0 with its default
+    inline publishing; its optional hand-off queue keeps the newest when its publisher
+    falls behind)."""
     parts, missing = [], []
     for key, name in (
         ("force_alone", "alone"),

@@ -111,7 +111,7 @@ def light_cell(make_node: NodeFactory) -> SimCell:
     return SimCell(
         make_node,
         puma=PumaConfig(sim_calibration_s=0.05),
-        force=ForceConfig(seed=7, period_ms=2.0, spin_us=0.0),
+        force=ForceConfig(seed=7, period_ms=2.0),
         decision=DecisionConfig(watchdog_ms=500.0, state_stale_ms=1000.0, stale_ms=500.0),
     )
 

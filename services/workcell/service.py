@@ -6,9 +6,9 @@ docs/tasks.md) and reports grasps, releases, landings, collisions and spills as 
 kind `workcell` (`data.action` says which). Methods at `robot/workcell/rpc/…`: `status`
 (the state as a map) and `reset` (every object back in place).
 
-The force service's simulated wrist and the vision renderer keep the static scene
-(`default_scene()`): the gripper grasps from above the objects (W1), so the tool never
-reaches into them; see docs/tasks.md.
+Every view of the world follows `workcell/state` with the one scene description
+(`scene.py`): the force service's simulated wrist, the vision renderer, the console and the
+recorder's 3D topics; see docs/tasks.md.
 """
 
 from __future__ import annotations

@@ -224,7 +224,7 @@ def make_cell(net: Net) -> Iterator[Callable[..., Cell]]:
         )
         force_node = net.node("force")
         # 500 Hz without the final spin: the same behaviour for a third of the CPU.
-        force = ForceService(force_node, ForceConfig(seed=7, period_ms=2.0, spin_us=0.0))
+        force = ForceService(force_node, ForceConfig(seed=7, period_ms=2.0))
         # The default watchdogs (command 100 ms, state 200 ms, force 50 ms), as deployed.
         dec = DecisionService(net.node("decision"), DecisionConfig(**decision))  # type: ignore[arg-type]
         console = net.node("console")

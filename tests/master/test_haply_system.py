@@ -68,7 +68,7 @@ def cell(net: Net) -> Iterator[Cell]:
             services.append(PumaService(net.node("puma"), PumaConfig(sim_calibration_s=0.05)))
             # 500 Hz without the final spin, and watchdogs widened: other suites may share the
             # two cores, and a late tick must not hold the engagement under test.
-            force = ForceConfig(seed=7, period_ms=2.0, spin_us=0.0)
+            force = ForceConfig(seed=7, period_ms=2.0)
             services.append(ForceService(net.node("force"), force))
             decision = DecisionConfig(watchdog_ms=1000.0, state_stale_ms=2000.0)
             services.append(DecisionService(net.node("decision"), decision))

@@ -188,7 +188,7 @@ def make_cell(make_net: Callable[..., Net]) -> Iterator[Callable[..., Cell]]:
             PumaConfig(sim_calibration_s=0.05),
             arm=SimArm(HOME_Q_RAD, calibration_s=0.05),
         )
-        force = ForceService(net.node("force"), ForceConfig(seed=7, period_ms=2.0, spin_us=0.0))
+        force = ForceService(net.node("force"), ForceConfig(seed=7, period_ms=2.0))
         decision = DecisionService(net.node("decision"), DecisionConfig())  # default watchdogs
         console = net.node("console")
         history = History(console)
