@@ -86,7 +86,7 @@ class Wall:
     normal: tuple[float, ...] = (1.0,)
     offset_m: float = 0.05
     stiffness_n_m: float = 5000.0
-    damping_ns_m: float = 50.0
+    damping_ns_m: float = 5.0
 
     def penetration_m(self, x: Sequence[float]) -> float:
         return max(dot(self.normal, x) - self.offset_m, 0.0)

@@ -90,13 +90,15 @@ class LoopSpec:
     force_scale: float = 1.0
     max_force_n: float = 40.0
     drift_m_s: float = 0.01
+    slack_m: float = 0.0
+    ramp_n_s: float = 0.0
     seed: int = 1
     wall: Wall = field(default_factory=Wall)
     operator_stiffness_n_m: float = 300.0
     operator_damping_ns_m: float = 10.0
     target_m: tuple[float, ...] = (0.08,)
     goal_force_n: float = 8.0
-    push_gain_m_ns: float = 0.003
+    push_gain_m_ns: float = 0.001
     approach_s: float = 1.0
     hold_s: float = 4.0
     release_s: float = 1.0
@@ -112,6 +114,8 @@ class LoopResult:
     f_display: list[float] = field(default_factory=list)
     f_contact: list[float] = field(default_factory=list)
     penetration: list[float] = field(default_factory=list)
+    x_master: list[float] = field(default_factory=list)
+    x_slave: list[float] = field(default_factory=list)
     master_in: list[float] = field(default_factory=list)
     master_out: list[float] = field(default_factory=list)
     slave_in: list[float] = field(default_factory=list)
@@ -150,7 +154,8 @@ def simulate(spec: LoopSpec) -> LoopResult:
         pressing=lambda t: hold[0] <= t < hold[1],
     )
     device = Device(x=[0.0] * n, v=[0.0] * n)
-    master, slave = MasterPassivity(), SlavePassivity(drift_m_s=spec.drift_m_s)
+    master = MasterPassivity(enabled=spec.tdpa, ramp_n_s=spec.ramp_n_s)
+    slave = SlavePassivity(enabled=spec.tdpa, drift_m_s=spec.drift_m_s, slack_m=spec.slack_m)
     x_s = [0.0] * n
     v_s = [0.0] * n
     x_cmd_prev = [0.0] * n
@@ -167,10 +172,7 @@ def simulate(spec: LoopSpec) -> LoopResult:
             f_remote, e_in_s = back
             master.remote.update(0, e_in_s)
             f_show = _saturate([spec.force_scale * fi for fi in f_remote], spec.max_force_n)
-        if spec.tdpa:
-            f_show = master.step(f_show, device.v, spec.dt_s)
-        else:
-            master.observer.record(-dot(f_show, device.v) * spec.dt_s)
+        f_show = master.step(f_show, device.x, spec.dt_s)
         hand.feel(t, f_show, spec.dt_s)
         f_hand = hand.force(t, device.x, device.v)
         device.step([a + b for a, b in zip(f_hand, f_show, strict=True)], spec.dt_s)
@@ -184,10 +186,7 @@ def simulate(spec: LoopSpec) -> LoopResult:
             x_cmd_prev = list(x_cmd)
         else:
             dx = [0.0] * n
-        if spec.tdpa:
-            dx = slave.step(f_env, dx, spec.dt_s)
-        else:
-            slave.observer.record(dot(f_env, dx))
+        dx = slave.step(f_env, dx, spec.dt_s)
         v_s = [d / spec.dt_s for d in dx]
         x_s = [a + d for a, d in zip(x_s, dx, strict=True)]
         f_env = spec.wall.force(x_s, v_s)
@@ -197,6 +196,8 @@ def simulate(spec: LoopSpec) -> LoopResult:
         res.f_display.append(-dot(f_show, normal))
         res.f_contact.append(-dot(f_env, normal))
         res.penetration.append(spec.wall.penetration_m(x_s))
+        res.x_master.append(dot(device.x, normal))
+        res.x_slave.append(dot(x_s, normal))
         res.master_in.append(master.observer.e_in)
         res.master_out.append(master.observer.e_out)
         res.slave_in.append(slave.observer.e_in)
