@@ -157,6 +157,12 @@ class SlavePassivity:
         self._f_prev = None
         self.telemetry.last_gain = 0.0
 
+    def rebase(self) -> None:
+        """The slave's start pose was taken afresh (same energies, new engagement of the
+        arm): the offset is in that pose now."""
+        self.offset = [0.0] * len(self.offset)
+        self._absorbed_m = 0.0
+
     @property
     def budget_j(self) -> float:
         """Energy the robot may still put into the environment."""
