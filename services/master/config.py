@@ -19,7 +19,9 @@ from services.master.arm_kinematics import DEFAULT_MASTER_DH, DhRow
 from services.master.haply_protocol import BUTTONS, DEFAULT_URL
 from services.master.so3 import is_rotation
 
-DeviceKind = Literal["spacemouse", "serial_arm", "keyboard", "scripted", "virtual", "haply"]
+DeviceKind = Literal[
+    "spacemouse", "serial_arm", "keyboard", "scripted", "virtual", "haply", "haptic_sim"
+]
 DEVICE_KINDS: tuple[str, ...] = get_args(DeviceKind)
 Frame = Literal["world", "tool"]
 FRAMES: tuple[str, ...] = get_args(Frame)
@@ -163,7 +165,9 @@ class MasterConfig:
             raise _err("force_ramp_s", f"must be within 0 … {MAX_RAMP_S:g} s")
         self._check_url()
         if self.engage_on_start is None:
-            object.__setattr__(self, "engage_on_start", self.device in ("scripted", "virtual"))
+            object.__setattr__(
+                self, "engage_on_start", self.device in ("scripted", "virtual", "haptic_sim")
+            )
         elif not isinstance(self.engage_on_start, bool):
             raise _err("engage_on_start", "must be true or false")
         self._check_dh()

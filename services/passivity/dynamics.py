@@ -17,6 +17,9 @@ from dataclasses import dataclass, field
 
 from services.passivity.observer import dot
 
+RELAX_M_S = 0.05
+"""How fast the operator lets go of the extra push once no longer pressing (m/s)."""
+
 Path = Callable[[float], Sequence[float]]
 """t_s → the position the operator intends (m)."""
 
@@ -28,7 +31,7 @@ class Operator:
 
     While `pressing(t)` is true, the operator moves that shift at `gain_m_ns` (m/s per N)
     times (`goal_force_n` − the force felt against `press`), within ±`max_push_m`; outside,
-    the shift relaxes back to zero at the same rate. gain 0 = a pure position operator.
+    the shift relaxes back to zero at `RELAX_M_S`. gain 0 = a pure position operator.
     """
 
     path: Path
@@ -58,7 +61,7 @@ class Operator:
             felt = -dot(f_display, self.press)
             step = self.gain_m_ns * (self.goal_force_n - felt) * dt_s
         else:
-            step = -math.copysign(min(abs(self.push_m), self.gain_m_ns * 10.0 * dt_s), self.push_m)
+            step = -math.copysign(min(abs(self.push_m), RELAX_M_S * dt_s), self.push_m)
         self.push_m = min(max(self.push_m + step, -self.max_push_m), self.max_push_m)
 
 
