@@ -2,8 +2,9 @@
 
 The decision server runs on the robot host and sees the supervised command, robot/state and
 robot/force, so it holds the slave port: the commanded displacement of the tool point
-(world frame) against the wrist force (tool frame → world by `tool_R`). `SlaveTdpa.apply`
-observes that port, corrects the command's `dp` so the robot never puts more energy into the
+(world frame) against the wrist force (tool frame → world by `tool_R`), and the tool's
+measured motion (robot/state) beside it. `SlaveTdpa.apply` observes that port, corrects
+the command's `dp` so the robot never puts more energy into the
 workcell than the operator put into the channel (`SlavePassivity`, energies from
 `robot/passivity/master`), and publishes its own on `robot/passivity/slave`.
 
@@ -27,13 +28,17 @@ from services.bus.messages import ForceSample, OperatorCommand, PassivityState, 
 from services.bus.node import Node
 from services.passivity.controller import SlavePassivity
 
+DEADBAND_N = 1.0
+"""A wrist force below this is sensor noise, not contact: the slave port sees none (the
+energy of a motion against less than 1 N goes unobserved; with noise counted instead, its
+random direction would hold back free motion)."""
 DT_MIN_S = 1e-4
 DT_MAX_S = 0.1
 
 
 class SlaveTdpa:
     """enabled: correct (true) or only observe and publish (false). drift_m_s, slack_m: see
-    `SlavePassivity`."""
+    `SlavePassivity`; deadband_n: see DEADBAND_N."""
 
     def __init__(
         self,
@@ -41,7 +46,9 @@ class SlaveTdpa:
         enabled: bool = True,
         drift_m_s: float = 0.01,
         slack_m: float = 0.0,
+        deadband_n: float = DEADBAND_N,
     ) -> None:
+        self.deadband_n = deadband_n
         self.pc = SlavePassivity(enabled=enabled, drift_m_s=drift_m_s, slack_m=slack_m)
         self._pub = node.publisher(keys.PASSIVITY_SLAVE)
         self._master_energy = node.latest(keys.PASSIVITY_MASTER)
@@ -51,6 +58,7 @@ class SlaveTdpa:
         self._R0 = np.eye(3)
         self._last: np.ndarray | None = None
         self._last_ns = 0
+        self._tool_p: np.ndarray | None = None
 
     def apply(
         self,
@@ -69,11 +77,13 @@ class SlaveTdpa:
         """
         if not cmd.active or operator is None:
             self._last = None
+            self._tool_p = None
             return cmd
         if operator != self._operator:
             self._operator = operator
             self.pc.reset(operator[1])
             self._arm_engage = None
+            self._tool_p = None
         if cmd.engage != self._arm_engage:
             self._arm_engage = cmd.engage
             self.pc.rebase()
@@ -88,10 +98,20 @@ class SlaveTdpa:
         f_world = np.zeros(3)
         if force is not None and state is not None:
             f_world = np.asarray(state.tool_R).reshape(3, 3) @ np.asarray(force.f, dtype=float)
+            if float(np.linalg.norm(f_world)) < self.deadband_n:
+                f_world = np.zeros(3)  # sensor noise: no contact, nothing to pay for
+        # The arm limits its speed and the supervisor may change the target, so the command
+        # is not all the workcell received: the observer also sees the measured motion.
+        done = np.zeros(3)
+        if state is not None:
+            p = np.asarray(state.tool_p, dtype=float)
+            if self._tool_p is not None:
+                done = p - self._tool_p
+            self._tool_p = p
         got = self._master_energy.read()
         if got is not None and got[0].master == operator[0] and got[0].side == "master":
             self.pc.remote.update(got[0].engage, got[0].e_in)
-        self.pc.step(f_world.tolist(), dx.tolist(), dt_s)
+        self.pc.step(f_world.tolist(), dx.tolist(), dt_s, done.tolist())
         self._publish(operator)
         target = d + np.asarray(self.pc.offset)
         if cmd.frame == "tool":

@@ -168,13 +168,28 @@ class SlavePassivity:
         """Energy the robot may still put into the environment."""
         return self.remote.e_in - self.observer.e_out
 
-    def step(self, f_env: Sequence[float], dx: Sequence[float], dt_s: float) -> list[float]:
+    def step(
+        self,
+        f_env: Sequence[float],
+        dx: Sequence[float],
+        dt_s: float,
+        done: Sequence[float] | None = None,
+    ) -> list[float]:
+        """done: the displacement the tool really made over the interval just ended, when
+        it is measured (a speed-limited arm, a supervisor that changed the target); the
+        observer then takes whichever of it and the commanded step is the more conservative
+        (less energy in, more energy out)."""
         f = [float(x) for x in f_env]
         if self._dx_prev is not None and len(self._dx_prev) == len(f):
             f_mid = f
             if self._f_prev is not None and len(self._f_prev) == len(f):
                 f_mid = [(a + b) / 2 for a, b in zip(f, self._f_prev, strict=True)]
-            self.observer.record(dot(f_mid, self._dx_prev))
+            e = dot(f_mid, self._dx_prev)
+            if done is not None and len(done) == len(f):
+                # Commanded and measured motion disagree (lag, speed limit, a supervisor's
+                # own correction): count the smaller input, the larger output.
+                e = min(e, dot(f_mid, [float(x) for x in done]))
+            self.observer.record(e)
         self._f_prev = f
         if len(dx) != len(self.offset):
             self.offset = [0.0] * len(dx)

@@ -110,13 +110,15 @@ def test_master_hook_damps_until_the_slave_has_put_energy_in(net: Net) -> None:
     assert wait_until(lambda: seen[-1].e_out > 0.0)
 
 
-def robot_state(tool_R: tuple[float, ...] = IDENTITY_R) -> RobotState:
+def robot_state(
+    tool_R: tuple[float, ...] = IDENTITY_R, tool_p: tuple[float, ...] = (0.5, 0.0, 0.5)
+) -> RobotState:
     return RobotState(
         seq=1,
         t_ns=time.time_ns(),
         status="moving",
         q=(0.0,) * 6,
-        tool_p=(0.5, 0.0, 0.5),
+        tool_p=tool_p,
         tool_R=tool_R,
         flange_p=(0.5, 0.0, 0.7),
         flange_R=tool_R,
@@ -144,44 +146,58 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
     seen: list[PassivityState] = []
     b.subscribe(keys.PASSIVITY_SLAVE, seen.append)
     master_pub = b.publisher(keys.PASSIVITY_MASTER)
-    st = robot_state()
     push_up = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
     op = ("m1", 4)
-    now = 1_000_000_000
-    out = [tdpa.apply(command(9, 0.0), op, st, push_up, now)]
-    for k in range(1, 6):  # 1 mm a tick down into a surface pushing up with 20 N
-        out.append(tdpa.apply(command(9, -0.001 * k, seq=k + 1), op, st, push_up, now + k * 2e6))
-    assert [c.dp[2] for c in out] == pytest.approx([0.0] * 6, abs=1e-12)
+    arm = {"p0": np.array([0.5, 0.0, 0.5]), "p": np.array([0.5, 0.0, 0.5]), "engage": 9}
+    clock = {"k": 0}
+
+    def go(engage: int, dz: float) -> float:
+        """One tick: the command through the slave port, then an ideal arm (the puma: start
+        pose at a new engagement, then p0 + dp at once)."""
+        clock["k"] += 1
+        k = clock["k"]
+        if engage != arm["engage"]:
+            arm["engage"], arm["p0"] = engage, arm["p"].copy()
+        st = robot_state(tool_p=tuple(float(x) for x in arm["p"]))
+        out = tdpa.apply(command(engage, dz, seq=k), op, st, push_up, 1_000_000_000 + k * 2e6)
+        arm["p"] = arm["p0"] + np.asarray(out.dp)
+        return float(out.dp[2])
+
+    outs = [go(9, 0.0)] + [go(9, -0.001 * k) for k in range(1, 6)]
+    # 1 mm a tick down into a surface pushing up with 20 N, no energy from the operator
+    assert outs == pytest.approx([0.0] * 6, abs=1e-12)
     assert tdpa.pc.offset[2] == pytest.approx(0.005)
     assert wait_until(lambda: len(seen) > 0 and seen[-1].master == "m1" and seen[-1].engage == 4)
     # The operator pays 0.05 J: 2.5 mm more are allowed (20 N × 2.5 mm), the rest waits.
     master_pub.put(state("master", 4, 0.05))
-    k = 6
 
     def paid() -> bool:
-        nonlocal k
-        k += 1
-        tdpa.apply(command(9, -0.005, seq=k), op, st, push_up, now + k * 2e6)
+        go(9, -0.005)
         return tdpa.pc.remote.e_in == 0.05
 
     assert wait_until(paid)
-    outs = []
-    for depth_mm in (6, 7, 8):
-        k += 1
-        c = command(9, -0.001 * depth_mm, seq=k)
-        outs.append(tdpa.apply(c, op, st, push_up, now + k * 2e6).dp[2])
+    outs = [go(9, -0.001 * depth_mm) for depth_mm in (6, 7, 8)]
     assert outs == pytest.approx([-0.001, -0.002, -0.0025])
-    last = tdpa.apply(command(9, -0.008, seq=k + 1), op, st, push_up, now + (k + 1) * 2e6)
-    assert last.dp[2] == pytest.approx(-0.0025)
+    assert go(9, -0.008) == pytest.approx(-0.0025)
     # Moving back out of the contact is never held back.
-    back = tdpa.apply(command(9, -0.0055, seq=k + 2), op, st, push_up, now + (k + 2) * 2e6)
-    assert back.dp[2] == pytest.approx(0.0)
+    assert go(9, -0.0055) == pytest.approx(0.0)
     # A new arm engagement (a rebase) starts the offset from zero: the command is unchanged.
-    again = tdpa.apply(command(10, 0.0, seq=k + 3), op, st, push_up, now + (k + 3) * 2e6)
-    assert again.dp == (0.0, 0.0, 0.0)
+    assert go(10, 0.0) == 0.0
     # Holds pass unchanged.
     hold = OperatorCommand(**{**codec.to_fields(command(10, -0.3)), "active": False})  # type: ignore[arg-type]
-    assert tdpa.apply(hold, op, st, push_up, now) is hold
+    st = robot_state()
+    assert tdpa.apply(hold, op, st, push_up, 0) is hold
+
+
+def test_decision_ignores_forces_below_the_deadband(net: Net) -> None:
+    tdpa = SlaveTdpa(net.node("decision"), drift_m_s=0.0)
+    op = ("m1", 1)
+    st = robot_state()
+    noise = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.3, 0.0, 0.5), c=(0.0, 0.0, 0.0))
+    tdpa.apply(command(1, 0.0), op, st, noise, 0)
+    out = tdpa.apply(command(1, -0.01, seq=2), op, st, noise, 2_000_000)
+    assert out.dp[2] == pytest.approx(-0.01)
+    assert tdpa.pc.telemetry.active_steps == 0
 
 
 def test_decision_tool_frame_correction_is_mapped_back(net: Net) -> None:
