@@ -223,3 +223,13 @@ def test_slave_controller_never_adds_energy(
         out = pc.step(f, dx, 0.001)
         assert -dot(f, out) <= before + 1e-9
         assert pc.observer.e_out <= pc.remote.e_in + TOLERANCE_J * (k + 1) + 1e-12
+
+
+def test_slave_counts_the_more_conservative_of_commanded_and_measured_motion() -> None:
+    pc = SlavePassivity(enabled=False)
+    wall = [-10.0]
+    pc.step(wall, [0.001], 0.001)  # commanded 1 mm in
+    pc.step(wall, [-0.001], 0.001, done=[0.002])  # the arm went 2 mm in: 20 mJ out
+    assert pc.observer.e_out == pytest.approx(0.02)
+    pc.step(wall, [0.0], 0.001, done=[-0.0005])  # commanded 1 mm back, went 0.5: 5 mJ in
+    assert pc.observer.e_in == pytest.approx(0.005)
