@@ -20,6 +20,7 @@ from services.bus.messages import (
     MasterState,
     Message,
     OperatorCommand,
+    PassivityState,
     RobotState,
     StereoFrame,
     VisionStats,
@@ -63,6 +64,11 @@ STEREO_R = Topic("vision/stereo/r", StereoFrame, QoS.BULK, True, MAX_FRAME_BYTES
 MASTER_STATE = Topic("master/state", MasterState, QoS.STATE, latest_wins=True)
 VISION_STATS = Topic("vision/stats", VisionStats, QoS.RELIABLE, latest_wins=True)
 MASTER_FEEDBACK = Topic("master/feedback", MasterFeedback, QoS.STATE, latest_wins=True)
+# Time-domain passivity (docs/passivity.md): each side's cumulative port energies, at its
+# control rate, on the control class like the command and force they ride along with. Not in
+# TOPICS yet: recordings and the golden codec test own that list.
+PASSIVITY_MASTER = Topic("robot/passivity/master", PassivityState, QoS.CONTROL, latest_wins=True)
+PASSIVITY_SLAVE = Topic("robot/passivity/slave", PassivityState, QoS.CONTROL, latest_wins=True)
 
 TOPICS: tuple[Topic[Any], ...] = (
     CMD,

@@ -208,6 +208,35 @@ class MasterFeedback(Message):
     stale: bool
 
 
+Joules = Annotated[float, Range(0.0, 1e6)]
+PortSide = Literal["master", "slave"]
+
+
+@dataclass(frozen=True, slots=True)
+class PassivityState(Message):
+    """`robot/passivity/master` and `robot/passivity/slave` (extension, docs/passivity.md):
+    one side's time-domain passivity figures for engagement `engage` of `master`.
+
+    e_in / e_out: energy (J) that entered / left the channel at this port since the
+    engagement began (cumulative, never decreasing within it); the other side bounds its
+    output by this side's `e_in`. dissipated_j: energy the controller removed; gain: its
+    last action (N·s/m damping at the master, m/N correction at the slave); active_steps:
+    how many steps it acted; enabled: false when the side only observes."""
+
+    name: ClassVar[str] = "PassivityState"
+    seq: Count
+    t_ns: Count
+    master: Name
+    engage: Count
+    side: PortSide
+    enabled: bool
+    e_in: Joules
+    e_out: Joules
+    dissipated_j: Joules
+    gain: Annotated[float, Range(0.0, 1e12)]
+    active_steps: Count
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     OperatorCommand,
     RobotState,

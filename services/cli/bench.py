@@ -30,6 +30,11 @@ def _exit_on_sigterm(signum: int, frame: FrameType | None) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args_in = sys.argv[1:] if argv is None else argv
+    if args_in[:1] == ["passivity"]:  # `telerobot bench passivity …` (docs/passivity.md)
+        from services.bench.passivity import main as passivity_main
+
+        return passivity_main(args_in[1:])
     p = argparse.ArgumentParser(
         prog="telerobot bench",
         description=__doc__,
@@ -53,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", default="artifacts/bench.json", metavar="FILE")
     p.add_argument("--plot", default="artifacts/bench_force_latency.png", metavar="FILE")
     p.add_argument("--logs", default="artifacts/bench-logs", metavar="DIR", help="children's logs")
-    args = p.parse_args(argv)
+    args = p.parse_args(args_in)
 
     from services.bench.plot import force_latency_plot
     from services.bench.procs import ChildFailed

@@ -38,7 +38,7 @@ _POSITIVE = (
     "arrive_tol_m",
     "event_interval_s",
 )
-_BOOLEAN = ("compliance", "estop_power_off")
+_BOOLEAN = ("compliance", "estop_power_off", "passivity")
 _NON_NEGATIVE = (
     "admittance_m_per_n_s",
     "admittance_rad_per_nm_s",
@@ -91,6 +91,8 @@ class DecisionConfig:
 
     Supervision (§2.1.4's "active compliance … as supervisory functions"):
       max_force_n, max_torque_nm: above these the motion into the contact is removed.
+      passivity: time-domain passivity on the slave port (docs/passivity.md): the
+        command's motion into a contact is bounded by the energy the operator put in.
       compliance: admittance on: the target yields to the wrist force,
         dp = admittance_m_per_n_s · f_world · dt, dθ = admittance_rad_per_nm_s · c_tool · dt,
         with deadbands admittance_deadband_n / admittance_deadband_nm.
@@ -140,6 +142,7 @@ class DecisionConfig:
     grip_time_s: float = 0.5
     event_interval_s: float = 1.0
     estop_power_off: bool = False
+    passivity: bool = False
 
     def __post_init__(self) -> None:
         for f in fields(self):

@@ -40,6 +40,7 @@ from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
 from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3
 from services.bus.node import Node, PendingCall
 from services.decision.config import STARTUP_ONLY, DecisionConfig
+from services.decision.passivity import SlaveTdpa
 from services.decision.supervisor import INTERVENTIONS, Inputs, Mode, Notice, Supervisor, TaskRun
 from services.decision.tasks import TASK_NAMES, TaskPlan, plan_task
 
@@ -112,6 +113,8 @@ class DecisionService:
         self.timer_late_max_ms = 0.0
 
         self._pub = node.publisher(PUMA_CMD)
+        self.passivity = SlaveTdpa(node) if config.passivity else None
+        self._op_engage: dict[str, int] = {}
         node.subscribe(CMD, self._on_command)
         self._state = node.latest(STATE)
         self._force = node.latest(FORCE)
@@ -183,10 +186,31 @@ class DecisionService:
             )
             return (bug,)
         if res.command is not None:
-            self._put(res.command)
+            cmd = res.command
+            if self.passivity is not None:
+                cmd = self.passivity.apply(
+                    cmd, self._operator(inp), inp.state, self._fresh_force(inp), inp.now_ns
+                )
+            self._put(cmd)
         if res.stop_arm:
             self._stop_puma_soon()
         return res.notices
+
+    def _operator(self, inp: Inputs) -> tuple[str, int] | None:
+        """(lease holder, its engage) for the passivity count, or None without a lease."""
+        for c in inp.commands:
+            if len(self._op_engage) >= 16 and c.master not in self._op_engage:
+                self._op_engage.clear()  # masters come and go; only the lease holder matters
+            self._op_engage[c.master] = c.engage
+        lease = self.supervisor.lease
+        if lease is None or lease not in self._op_engage:
+            return None
+        return (lease, self._op_engage[lease])
+
+    def _fresh_force(self, inp: Inputs) -> ForceSample | None:
+        if inp.force is None or inp.now_ns - inp.force_rx_ns > self.config.stale_ms * 1e6:
+            return None
+        return inp.force
 
     def _stop_puma_soon(self) -> None:
         """A watched motion broke a limit: the puma's `stop`, from a worker (never from the

@@ -19,7 +19,9 @@ from services.master.arm_kinematics import DEFAULT_MASTER_DH, DhRow
 from services.master.haply_protocol import BUTTONS, DEFAULT_URL
 from services.master.so3 import is_rotation
 
-DeviceKind = Literal["spacemouse", "serial_arm", "keyboard", "scripted", "virtual", "haply"]
+DeviceKind = Literal[
+    "spacemouse", "serial_arm", "keyboard", "scripted", "virtual", "haply", "haptic_sim"
+]
 DEVICE_KINDS: tuple[str, ...] = get_args(DeviceKind)
 Frame = Literal["world", "tool"]
 FRAMES: tuple[str, ...] = get_args(Frame)
@@ -84,6 +86,9 @@ class MasterConfig:
     arm_dh: `serial_arm`: the master arm's standard DH table, 6 rows (d_m, a_m, alpha_rad).
     baudrate: `serial_arm` line speed.
     max_joint_torque_nm: `serial_arm`: clamp of each displayed joint torque.
+    passivity: time-domain passivity on the displayed force (docs/passivity.md): the
+        master port's energy is observed and published, and the force damped when the
+        channel has no energy left to give the operator.
     force_ramp_s: the displayed wrench ramps from zero to full over this time after each
         engagement (0 = at once); it is zero whenever the master is not engaged.
     haply_url: `haply`: the Inverse Service's WebSocket, `ws://HOST:PORT`.
@@ -115,6 +120,7 @@ class MasterConfig:
     force_ramp_s: float = 0.5
     haply_url: str = DEFAULT_URL
     haply_max_force_n: float = 3.0
+    passivity: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.master_id, str) or not self.master_id:
@@ -153,11 +159,15 @@ class MasterConfig:
             for key in ("clutch_button", "grip_button"):
                 if getattr(self, key) >= HAPLY_BUTTONS:
                     raise _err(key, "must be 0, 1 or 2 for haply (VerseGrip a, b, c)")
+        if not isinstance(self.passivity, bool):
+            raise _err("passivity", "must be true or false")
         if not 0.0 <= _number("force_ramp_s", self.force_ramp_s) <= MAX_RAMP_S:
             raise _err("force_ramp_s", f"must be within 0 … {MAX_RAMP_S:g} s")
         self._check_url()
         if self.engage_on_start is None:
-            object.__setattr__(self, "engage_on_start", self.device in ("scripted", "virtual"))
+            object.__setattr__(
+                self, "engage_on_start", self.device in ("scripted", "virtual", "haptic_sim")
+            )
         elif not isinstance(self.engage_on_start, bool):
             raise _err("engage_on_start", "must be true or false")
         self._check_dh()

@@ -104,8 +104,9 @@ def open_device(kind: str, **opts: Any) -> MasterDevice:
 
     kind: `spacemouse` (HidSpaceMouse), `serial_arm` (SerialMasterArm), `keyboard`
     (KeyboardMaster), `scripted` (ScriptedMaster), `virtual` (VirtualMaster), `haply`
-    (HaplyMaster); `opts` are the backend's constructor arguments. Raises DeviceNotFound
-    when the device is absent and ValueError for an unknown kind.
+    (HaplyMaster), `haptic_sim` (SimHapticMaster: a simulated device and operator); `opts`
+    are the backend's constructor arguments. Raises DeviceNotFound when the device is absent
+    and ValueError for an unknown kind.
     """
     device: MasterDevice
     if kind == "spacemouse":
@@ -132,6 +133,10 @@ def open_device(kind: str, **opts: Any) -> MasterDevice:
         from services.master.haply import HaplyMaster
 
         device = HaplyMaster(**opts)
+    elif kind == "haptic_sim":
+        from services.master.haptic_sim import SimHapticMaster
+
+        device = SimHapticMaster(**opts)
     else:
         raise ValueError(f"unknown master device {kind!r}; one of {', '.join(DEVICE_KINDS)}")
     device.open()

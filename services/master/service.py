@@ -34,6 +34,7 @@ from services.bus.rate import RateLoop
 from services.master.config import MasterConfig
 from services.master.devices import DeviceLost, HandReading, MasterDevice, open_master
 from services.master.feedback import ForceDisplay, ForceFeedback, WrenchHook
+from services.master.passivity import MasterTdpa
 from services.master.status_line import ADVICE, StatusInfo
 from services.master.teleop import Teleop
 
@@ -69,6 +70,10 @@ class MasterService:
         self.config = config
         self.device = device if device is not None else open_master(config)
         self.teleop = Teleop(config, self.device.name)
+        self.passivity: MasterTdpa | None = None
+        if force_hook is None and config.passivity:
+            self.passivity = MasterTdpa(node, config.master_id, lambda: self.teleop.engage)
+            force_hook = self.passivity.hook
         self.force_display = ForceDisplay(config, force_hook)
         self._cmd = node.publisher(keys.CMD)
         self._state = node.publisher(keys.MASTER_STATE)

@@ -1,0 +1,76 @@
+"""The master side of time-domain passivity on the bus (docs/passivity.md).
+
+`MasterTdpa.hook` is a `ForceDisplay` hook: it observes the master port (the wrench shown ×
+the hand's motion, master frame), damps the displayed force when the channel has no energy
+left to give the operator (`MasterPassivity`), and publishes the port's energies on
+`robot/passivity/master`; it reads the slave's on `robot/passivity/slave`. A new engagement
+starts a new count on both sides (no energy is in the channel then, so nothing jumps: the
+display also ramps in). Called by the master loop thread only.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from services.bus import keys
+from services.bus.messages import PassivityState
+from services.bus.node import Node
+from services.master.devices import HandReading
+from services.master.feedback import DisplayWrench
+from services.passivity.controller import MasterPassivity
+
+
+class MasterTdpa:
+    """enabled: damp (true) or only observe and publish (false)."""
+
+    def __init__(
+        self, node: Node, master_id: str, engage: Callable[[], int], enabled: bool = True
+    ) -> None:
+        self.master_id = master_id
+        self.pc = MasterPassivity(enabled=enabled)
+        self._engage = engage
+        self._pub = node.publisher(keys.PASSIVITY_MASTER)
+        self._slave = node.latest(keys.PASSIVITY_SLAVE)
+        self._seq = 0
+        self._epoch: int | None = None
+
+    def hook(self, wrench: DisplayWrench, hand: HandReading, dt_s: float) -> DisplayWrench:
+        engage = self._engage()
+        if engage != self._epoch:
+            self._epoch = engage
+            self.pc.reset(engage)
+        got = self._slave.read()
+        if got is not None:
+            msg = got[0]
+            if msg.master == self.master_id and msg.side == "slave":
+                self.pc.remote.update(msg.engage, msg.e_in)
+        f = self.pc.step([float(x) for x in wrench.f], [float(x) for x in hand.hand_p], dt_s)
+        self._publish(engage)
+        return DisplayWrench(
+            np.asarray(f, dtype=float),
+            wrench.c,
+            wrench.force_saturated,
+            wrench.torque_saturated,
+        )
+
+    def _publish(self, engage: int) -> None:
+        self._seq += 1
+        t = self.pc.telemetry
+        self._pub.put(
+            PassivityState(
+                seq=self._seq,
+                t_ns=time.time_ns(),
+                master=self.master_id,
+                engage=engage,
+                side="master",
+                enabled=self.pc.enabled,
+                e_in=self.pc.observer.e_in,
+                e_out=self.pc.observer.e_out,
+                dissipated_j=t.dissipated_j,
+                gain=t.last_gain,
+                active_steps=t.active_steps,
+            )
+        )

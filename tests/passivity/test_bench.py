@@ -1,0 +1,29 @@
+"""`telerobot bench passivity` on a short grid: the JSON keys, the table, the plots."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from services.bench.passivity import MEASURES, main, run, table
+
+
+def test_run_names_every_measure_and_shows_the_instability_it_prevents() -> None:
+    doc, results = run((0, 200))
+    for delay in (0, 200):
+        for on in ("on", "off"):
+            for m in MEASURES:
+                assert f"passivity_{delay}_{on}_{m}" in doc
+    assert doc["passivity_200_off_stable"] is False
+    assert doc["passivity_200_on_peak_force_n"] < doc["passivity_200_off_peak_force_n"] / 10
+    assert set(results) == {(0, False), (0, True), (200, False), (200, True)}
+    rows = table(doc).splitlines()
+    assert len(rows) == 2 + 4 and "NO" in rows[4]  # 200 ms, off
+
+
+def test_cli_writes_json_and_plots(tmp_path: Path) -> None:
+    out = tmp_path / "b.json"
+    assert main(["--delays-ms", "50", "--json", str(out), "--plots", str(tmp_path)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["settings"]["delays_ms"] == [50]
+    assert (tmp_path / "passivity_50ms.png").stat().st_size > 1000
