@@ -32,7 +32,7 @@ from typing import Any, cast
 import numpy as np
 import viser
 
-from services.bus.errors import RpcError, Unavailable
+from services.bus.errors import ProtocolError, RpcError, Unavailable
 from services.bus.messages import Event, RobotState, mat3
 from services.bus.node import Node
 from services.bus.rate import RateLoop
@@ -51,7 +51,9 @@ from services.console.hand import HandLink, ToolPose
 from services.console.mirror import BusMirror
 from services.console.video import VIEW_MODES, FrameGate, Image, ViewMode, compose, decode
 from services.console.view import MasterView, alive_html, events_html, status_html
+from services.console.world import FINGER_SIZE_M, ObjectNode, finger_offsets, object_nodes
 from services.puma.kinematics import Puma560
+from services.workcell.messages import WORKCELL_STATE, objects_of
 from services.workcell.scene import default_scene
 
 log = logging.getLogger("telerobot.console")
@@ -87,6 +89,11 @@ _TOOL_COLOR = (200, 200, 210)
 _FORCE_COLOR = (220, 30, 200)
 _WORKSPACE_COLOR = (30, 160, 90)
 _TARGET_COLOR = (255, 140, 0)
+_LIQUID_COLOR = (40, 110, 230)
+_FINGER_COLOR = (70, 70, 80)
+_FINGER_HOLDING_COLOR = (30, 160, 90)
+BOTTLE_OPACITY = 0.45
+"""A bottle is drawn translucent, so that its liquid shows."""
 
 _FORCE_SERIES = (
     viser.uplot.Series(label="t (s)"),
@@ -245,27 +252,61 @@ class Console:
     def _build_scene(self) -> None:
         sc = self.server.scene
         sc.add_grid("/floor", width=3.0, height=3.0, cell_size=0.25, section_size=1.0)
-        workcell = default_scene()
-        for b in workcell.boxes:
-            sc.add_box(
+        # The same description the workcell, force and vision simulations use; the movable
+        # objects are moved to their `workcell/state` poses while a browser watches.
+        self.workcell = default_scene()
+        self._objects: dict[str, Any] = {}
+        self._liquids: dict[str, Any] = {}
+        self._spills: dict[str, Any] = {}
+        self._workcell_seq = -1
+        self.workcell_drawn = 0
+        for b in self.workcell.boxes:
+            self._objects[b.name] = sc.add_box(
                 f"/workcell/{b.name}",
                 color=_rgb(b.color),
                 dimensions=b.size,
                 position=b.center,
             )
-        for c in workcell.cylinders:
-            sc.add_cylinder(
+        for c in self.workcell.cylinders:
+            liquid = c.liquid_height_m > 0.0
+            self._objects[c.name] = sc.add_cylinder(
                 f"/workcell/{c.name}",
                 radius=c.radius,
                 height=c.height,
                 color=_rgb(c.color),
+                opacity=BOTTLE_OPACITY if liquid else None,
                 position=(c.base[0], c.base[1], c.base[2] + 0.5 * c.height),
             )
+            if liquid:
+                self._liquids[c.name] = sc.add_cylinder(
+                    f"/workcell/{c.name}/liquid",
+                    radius=0.85 * c.radius,
+                    height=c.liquid_height_m,
+                    color=_LIQUID_COLOR,
+                    position=(0.0, 0.0, -0.5 * c.height + 0.5 * c.liquid_height_m),
+                )
+                self._spills[c.name] = sc.add_cylinder(
+                    f"/workcell/spill_{c.name}",
+                    radius=0.01,
+                    height=0.002,
+                    color=_LIQUID_COLOR,
+                    visible=False,
+                )
         self._links: list[Any] = []
         self._joints: list[Any] = []
         self._tool_frame = sc.add_frame(
             "/arm/tool_frame", axes_length=0.1, axes_radius=0.006, visible=False
         )
+        self._fingers = [
+            sc.add_box(
+                f"/arm/tool_frame/finger_{side}",
+                color=_FINGER_COLOR,
+                dimensions=FINGER_SIZE_M,
+                visible=False,
+            )
+            for side in ("l", "r")
+        ]
+        self._finger_color = _FINGER_COLOR
         self._target = sc.add_frame(
             "/target",
             axes_length=0.07,
@@ -564,6 +605,7 @@ class Console:
                 self._last_q = st.q
         self._draw_target()
         self._draw_force(st)
+        self._draw_workcell(st)
 
     def _watch_status(self, st: RobotState) -> None:
         """Snap the virtual master to the tool when the arm first shows up and whenever it
@@ -626,6 +668,61 @@ class Console:
         self._tool_frame.position = np.asarray(st.tool_p)
         self._tool_frame.wxyz = wxyz_from_R(mat3(st.tool_R))
         self._tool_frame.visible = True
+
+    def _draw_workcell(self, st: RobotState | None) -> None:
+        """Move the objects to the newest `workcell/state` (once per new message), and
+        open or close the gripper's fingers as robot/state's `grip` says."""
+        fingers = finger_offsets(st.grip if st is not None else None)
+        wc = self.mirror.workcell()
+        holding = wc is not None and bool(wc.held)
+        for k, h in enumerate(self._fingers):
+            if fingers is None:
+                if h.visible:
+                    h.visible = False
+                continue
+            if self._changed(f"finger{k}", np.asarray(fingers[k]), REDRAW_TOL):
+                h.position = fingers[k]
+            if not h.visible:
+                h.visible = True
+        color = _FINGER_HOLDING_COLOR if holding else _FINGER_COLOR
+        if fingers is not None and color != self._finger_color:
+            self._finger_color = color
+            for h in self._fingers:
+                h.color = color
+        if wc is None or wc.seq == self._workcell_seq:
+            return
+        self._workcell_seq = wc.seq
+        try:
+            nodes = object_nodes(self.workcell, objects_of(wc))
+        except ProtocolError as e:
+            self.node.report_rejected(WORKCELL_STATE.key, str(e))
+            return
+        for node in nodes.values():
+            self._draw_object(node)
+        self.workcell_drawn += 1
+
+    def _draw_object(self, node: ObjectNode) -> None:
+        h = self._objects[node.name]
+        pose = np.array([*node.position, *node.wxyz])
+        if self._changed(f"object/{node.name}", pose, REDRAW_TOL):
+            h.position = node.position
+            h.wxyz = node.wxyz
+        liquid = self._liquids.get(node.name)
+        if liquid is None:
+            return
+        level = np.array([node.liquid_height_m])
+        if self._changed(f"liquid/{node.name}", level, REDRAW_TOL):
+            if node.liquid_height_m > 0.0:
+                liquid.height = node.liquid_height_m
+                liquid.position = (0.0, 0.0, node.liquid_z_m)
+            liquid.visible = node.liquid_height_m > 0.0
+        spill = self._spills[node.name]
+        puddle = np.array([node.spill_radius_m, *node.spill_position])
+        if self._changed(f"spill/{node.name}", puddle, REDRAW_TOL):
+            if node.spill_radius_m > 0.0:
+                spill.radius = node.spill_radius_m
+                spill.position = node.spill_position
+            spill.visible = node.spill_radius_m > 0.0
 
     def _draw_target(self) -> None:
         target = self.mirror.target()

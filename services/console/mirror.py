@@ -49,6 +49,7 @@ from services.bus.messages import (
 )
 from services.bus.node import Node, Subscription
 from services.console.geometry import Mat, Vec, commanded_tool_pose
+from services.workcell.messages import WORKCELL_STATE, WorkcellState
 
 M = TypeVar("M", bound=Message)
 
@@ -130,6 +131,7 @@ class BusMirror:
         self._cond = threading.Condition(self._lock)
         self.force = ForceHistory(force_capacity)
         self._force_latest: ForceSample | None = None
+        self._workcell: WorkcellState | None = None
         self._events: deque[Event] = deque(maxlen=events)
         self.events_seen = 0
         self._masters: dict[str, MasterState] = {}
@@ -150,11 +152,13 @@ class BusMirror:
 
     # --- what only a page shows ---------------------------------------------------------------
     def watch_page(self, on: bool) -> None:
-        """Subscribe to the force and the supervised command (on) or drop them (off)."""
+        """Subscribe to the force, the supervised command and the workcell's state (on) or
+        drop them (off)."""
         if on and not self._page_subs:
             self._page_subs = [
                 self._subscribe(FORCE, self._on_force),
                 self._subscribe(PUMA_CMD, self._on_puma_cmd),
+                self._subscribe(WORKCELL_STATE, self._on_workcell),
             ]
         elif not on:
             subs, self._page_subs = self._page_subs, []
@@ -233,6 +237,11 @@ class BusMirror:
         self.force.add(msg.t_ns / 1e9, msg.f, msg.c)
         self._force_latest = msg
 
+    def _on_workcell(self, msg: WorkcellState) -> None:
+        old = self._workcell
+        if old is None or msg.seq > old.seq or msg.t_ns > old.t_ns:
+            self._workcell = msg
+
     def _on_event(self, ev: Event) -> None:
         with self._lock:
             self._events.append(ev)
@@ -260,6 +269,10 @@ class BusMirror:
     # --- readers ----------------------------------------------------------------------------
     def latest_force(self) -> ForceSample | None:
         return self._force_latest
+
+    def workcell(self) -> WorkcellState | None:
+        """The newest `workcell/state` (its objects not yet checked: `objects_of`)."""
+        return self._workcell
 
     def events(self) -> list[Event]:
         with self._lock:

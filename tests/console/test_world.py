@@ -1,0 +1,264 @@
+"""The console's 3D scene follows `workcell/state` (#22): the object nodes the page is sent
+sit at the poses the workcell publishes (moved, stacked, tilted), the bottle's liquid and a
+spill are drawn, and the gripper's fingers follow robot/state's `grip`. The pure part is
+tested against hand-worked cases; the page part through what a browser receives
+(`FakeBrowser(decode=True)` unpacks viser's wire format)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import pytest
+
+from services.bus import keys
+from services.bus.errors import ProtocolError
+from services.bus.node import Node
+from services.console.app import Console
+from services.console.config import ConsoleConfig
+from services.console.geometry import R_from_wxyz
+from services.console.world import (
+    FINGER_SIZE_M,
+    GRIPPER_OPEN_M,
+    SPILL_THICKNESS_M,
+    finger_offsets,
+    object_node,
+    surface_z,
+)
+from services.workcell.messages import WORKCELL_STATE, ObjectView, WorkcellState, objects_of
+from services.workcell.scene import BLOCK_SIZE_M, TABLE, default_scene
+
+from .support import FakeBrowser, ready_state, wait_until
+
+SCENE = default_scene()
+TOP = TABLE.top_z
+H = BLOCK_SIZE_M
+
+
+def _rot_x(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    return np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+
+
+def _obj(
+    kind: str,
+    p: tuple[float, float, float],
+    R: np.ndarray,
+    size: tuple[float, float, float],
+    phase: str = "resting",
+    **extra: Any,
+) -> dict[str, Any]:
+    return {
+        "kind": kind,
+        "p": list(p),
+        "R": [float(x) for x in np.asarray(R).ravel()],
+        "size": list(size),
+        "phase": phase,
+        "on": "table",
+        "tilt_deg": 0.0,
+        "max_tilt_deg": 0.0,
+        **extra,
+    }
+
+
+BOTTLE_TILT_DEG = 40.0
+LIQUID_ML = 300.0
+SPILLED_ML = 150.0
+
+
+def stacked_state(seq: int) -> WorkcellState:
+    """Task 2's end: block2 on block1 on block0 at block0's place; block1 turned 30° about z;
+    the bottle held, tilted 40° about x, with some liquid spilled."""
+    b0 = SCENE.box("block0").center
+    c30, s30 = math.cos(math.radians(30)), math.sin(math.radians(30))
+    yaw = np.array([[c30, -s30, 0], [s30, c30, 0], [0, 0, 1]])
+    objects = {
+        "block0": _obj("box", b0, np.eye(3), (H, H, H)),
+        "block1": _obj("box", (b0[0], b0[1], b0[2] + H), yaw, (H, H, H)),
+        "block2": _obj("box", (b0[0], b0[1], b0[2] + 2 * H), np.eye(3), (H, H, H)),
+        "bottle": _obj(
+            "cylinder",
+            (0.50, 0.20, TOP + 0.10),
+            _rot_x(BOTTLE_TILT_DEG),
+            (0.07, 0.07, 0.20),
+            phase="held",
+            liquid_ml=LIQUID_ML,
+            spilled_ml=SPILLED_ML,
+        ),
+    }
+    return WorkcellState(
+        seq=seq,
+        t_ns=time.time_ns(),
+        tool_p=(0.5, 0.2, 0.8),
+        grip=1.0,
+        held="bottle",
+        objects=objects,
+    )
+
+
+# --- pure -----------------------------------------------------------------------------------
+def test_a_box_is_drawn_at_its_centre_and_orientation() -> None:
+    views = objects_of(stacked_state(1))
+    node = object_node(SCENE, views["block1"])
+    b0 = SCENE.box("block0").center
+    assert node.position == pytest.approx((b0[0], b0[1], b0[2] + H))
+    R = R_from_wxyz(node.wxyz)
+    assert np.allclose(R, np.asarray(stacked_state(1).objects["block1"]["R"]).reshape(3, 3))
+    assert node.liquid_height_m == 0.0 and node.spill_radius_m == 0.0
+
+
+def test_a_tilted_bottle_is_drawn_about_its_centre_with_its_liquid_and_spill() -> None:
+    v = objects_of(stacked_state(1))["bottle"]
+    node = object_node(SCENE, v)
+    bottle = SCENE.cylinder("bottle")
+    # Its centre is half its height up its own (tilted) axis from its base.
+    axis = _rot_x(BOTTLE_TILT_DEG)[:, 2]
+    assert np.allclose(node.position, np.asarray(v.p) + 0.5 * bottle.height * axis)
+    assert np.allclose(R_from_wxyz(node.wxyz), _rot_x(BOTTLE_TILT_DEG))
+    # 300 ml in a 3.5 cm radius: 7.80 cm of liquid, from the bottle's bottom up.
+    h = LIQUID_ML * 1e-6 / (math.pi * bottle.radius**2)
+    assert node.liquid_height_m == pytest.approx(h)
+    assert node.liquid_z_m == pytest.approx(-0.5 * bottle.height + 0.5 * h)
+    # 150 ml spread 2 mm thick, under the rim, on the table top.
+    assert node.spill_radius_m == pytest.approx(math.sqrt(150e-6 / (math.pi * SPILL_THICKNESS_M)))
+    rim = v.top
+    assert node.spill_position == pytest.approx((rim[0], rim[1], TOP + 0.5 * SPILL_THICKNESS_M))
+
+
+def test_a_spill_lies_on_the_highest_fixture_under_it_or_the_floor() -> None:
+    assert surface_z(SCENE, 0.6, 0.0) == pytest.approx(TOP)
+    assert surface_z(SCENE, 2.0, 0.0) == pytest.approx(SCENE.floor_z)
+    # A block is not a fixture: liquid does not lie on it.
+    b = SCENE.box("block0").center
+    assert surface_z(SCENE, b[0], b[1]) == pytest.approx(TOP)
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"kind": "cylinder"}, "objects.block0.kind"),
+        ({"p": [0.5, 0.0, 1e6]}, "objects.block0.p"),
+    ],
+)
+def test_an_object_that_does_not_fit_the_scene_is_refused(
+    change: dict[str, Any], field: str
+) -> None:
+    st = stacked_state(1)
+    objects = dict(st.objects)
+    objects["block0"] = {**objects["block0"], **change}
+    views: dict[str, ObjectView] = objects_of(replace(st, objects=objects))
+    with pytest.raises(ProtocolError) as e:
+        object_node(SCENE, views["block0"])
+    assert e.value.field == field
+
+
+def test_an_unknown_object_is_refused() -> None:
+    st = stacked_state(1)
+    views = objects_of(replace(st, objects={"ghost": st.objects["block0"]}))
+    with pytest.raises(ProtocolError, match="not an object of the scene"):
+        object_node(SCENE, views["ghost"])
+
+
+def test_the_fingers_close_with_the_grip() -> None:
+    assert finger_offsets(None) is None
+    opened, closed = finger_offsets(0.0), finger_offsets(1.0)
+    assert opened is not None and closed is not None
+    assert opened[0][1] - opened[1][1] == pytest.approx(GRIPPER_OPEN_M + FINGER_SIZE_M[1])
+    assert closed[0][1] - closed[1][1] == pytest.approx(FINGER_SIZE_M[1])  # touching
+    assert finger_offsets(7.0) == closed  # clamped
+
+
+# --- through the page -----------------------------------------------------------------------
+
+
+@dataclass
+class Page:
+    console: Console
+    pub: Node
+
+
+@pytest.fixture
+def page(net: Any) -> Iterator[Page]:
+    console = Console(net.node("console"), ConsoleConfig(port=0, shadows=False, gui_rate_hz=20.0))
+    try:
+        yield Page(console, net.node("workcell"))
+    finally:
+        console.close()
+
+
+def _at(browser: FakeBrowser, name: str, position: np.ndarray, wxyz: np.ndarray) -> bool:
+    n = browser.node(name)
+    if "position" not in n:
+        return False
+    q = np.asarray(n.get("wxyz", (1.0, 0.0, 0.0, 0.0)))
+    same_rot = np.allclose(q, wxyz, atol=1e-6) or np.allclose(q, -wxyz, atol=1e-6)
+    return bool(np.allclose(n["position"], position, atol=1e-6) and same_rot)
+
+
+@pytest.mark.system
+@pytest.mark.timeout(120)
+def test_the_page_moves_the_objects_to_the_workcell_state(page: Page) -> None:
+    console = page.console
+    state_pub = page.pub.publisher(WORKCELL_STATE)
+    robot_pub = page.pub.publisher(keys.STATE)
+    with FakeBrowser(console.port, decode=True) as browser:
+        assert wait_until(lambda: console.mirror.watching[0], 10.0), "the page never went live"
+        # Before any workcell/state the page shows the scene as described.
+        b1 = SCENE.box("block1")
+        assert wait_until(lambda: "position" in browser.node("/workcell/block1"), 10.0)
+        assert browser.node("/workcell/block1")["position"] == pytest.approx(b1.center)
+
+        st = stacked_state(1)
+        robot = replace(ready_state(1, (0.5, 0.2, 0.8)), grip=1.0)
+        seq = 1
+        views = objects_of(st)
+
+        def published_and_drawn() -> bool:
+            nonlocal seq
+            seq += 1
+            state_pub.put(replace(st, seq=seq))
+            robot_pub.put(replace(robot, seq=seq))
+            return all(
+                _at(
+                    browser,
+                    f"/workcell/{name}",
+                    object_node(SCENE, v).position,  # type: ignore[arg-type]
+                    np.asarray(object_node(SCENE, v).wxyz),
+                )
+                for name, v in views.items()
+            )
+
+        assert wait_until(published_and_drawn, 20.0, poll_s=0.05), {
+            name: browser.node(f"/workcell/{name}") for name in views
+        }
+        # The objects sit at the published poses: block2 two blocks above block0.
+        b0 = np.asarray(browser.node("/workcell/block0")["position"])
+        b2 = np.asarray(browser.node("/workcell/block2")["position"])
+        assert np.allclose(b2 - b0, (0.0, 0.0, 2 * H))
+        bottle = object_node(SCENE, views["bottle"])
+        assert wait_until(
+            lambda: (
+                browser.node("/workcell/bottle/liquid").get("height")
+                == pytest.approx(bottle.liquid_height_m)
+                and browser.node("/workcell/spill_bottle").get("visible") is True
+            ),
+            10.0,
+        ), (browser.node("/workcell/bottle/liquid"), browser.node("/workcell/spill_bottle"))
+        assert browser.node("/workcell/spill_bottle")["radius"] == pytest.approx(
+            bottle.spill_radius_m
+        )
+        # The gripper is closed on what it holds.
+        closed = finger_offsets(1.0)
+        assert closed is not None
+        assert wait_until(
+            lambda: (
+                browser.node("/arm/tool_frame/finger_l").get("position") == pytest.approx(closed[0])
+                and browser.node("/arm/tool_frame/finger_l").get("visible") is True
+            ),
+            10.0,
+        ), browser.node("/arm/tool_frame/finger_l")
+        assert console.gui_errors == 0
