@@ -50,7 +50,15 @@ from services.console.geometry import (
 from services.console.hand import HandLink, ToolPose
 from services.console.mirror import BusMirror
 from services.console.video import VIEW_MODES, FrameGate, Image, ViewMode, compose, decode
-from services.console.view import MasterView, alive_html, events_html, status_html
+from services.console.view import (
+    MasterView,
+    alive_html,
+    estop_latched,
+    events_html,
+    loading_html,
+    loading_items,
+    status_html,
+)
 from services.console.world import FINGER_SIZE_M, ObjectNode, finger_offsets, object_nodes
 from services.puma.kinematics import Puma560
 from services.workcell.messages import WORKCELL_STATE, objects_of
@@ -159,6 +167,8 @@ class Console:
         self._panels: dict[str, str] = {}
         self._drawn: dict[str, np.ndarray] = {}
         self._workspace: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+        self._estop_shown: bool | None = None
+        self.loaded = False
         self._scales_loaded = False
 
         # viser prints a banner on stdout whatever `verbose` says; our one line
@@ -233,6 +243,9 @@ class Console:
         self.mirror.watch_page(True)
         self._events_seen = self.mirror.events_seen
         self._gate.reset()
+        # Each new page shows what it still waits for until everything has arrived.
+        self.loaded = False
+        self._loading_html.visible = True
         if self._held_while_away:
             self._held_while_away = False
             self.hand.resync()
@@ -336,6 +349,7 @@ class Console:
     # --- the page: controls -------------------------------------------------------------
     def _build_gui(self) -> None:
         gui = self.server.gui
+        self._loading_html = gui.add_html(loading_html(("robot state", "supervisor")))
         with gui.add_folder("Robot"):
             b_estop = gui.add_button("E-STOP", color="red", hint="latch the emergency stop")
             self._status_html = gui.add_html(
@@ -344,7 +358,12 @@ class Console:
                 )
             )
             robot = gui.add_button_group("Arm", options=ROBOT_ACTIONS, hint=ROBOT_HINT)
-            b_reset = gui.add_button("Reset e-stop", color="orange", hint="clear the latch")
+            b_reset = gui.add_button(
+                "Reset e-stop",
+                color="orange",
+                hint="clear the latch (the decision server's reset)",
+            )
+        self._b_estop, self._b_reset = b_estop, b_reset
         with gui.add_folder("Teleoperation"):
             # Any: viser's `value` setter is invisible to mypy (an asymmetric property).
             self._frame: Any = gui.add_dropdown(
@@ -780,7 +799,9 @@ class Console:
         self._set_html("status", self._status_html, self._html_status())
         self._set_html("alive", self._alive_html, alive_html(self.node.alive.names()))
         self._set_html("events", self._events_html, events_html(self.mirror.events()))
-        decision, _error, master = self.mirror.status()
+        decision, error, master = self.mirror.status()
+        self._show_estop(estop_latched(decision) if decision is not None else None)
+        self._show_loading(decision is not None or error not in (None, "no reply yet"))
         if decision is not None:
             settings = decision.get("settings") or {}
             lo, hi = settings.get("workspace_min"), settings.get("workspace_max")
@@ -802,6 +823,41 @@ class Console:
             self._scale_r.value = float(master.get("scale_r", 1.0))
             if master.get("frame") in ("world", "tool"):
                 self._frame.value = master["frame"]
+
+    def _show_estop(self, latched: bool | None) -> None:
+        """The E-STOP button says when the latch is set, and Reset is offered (enabled) while
+        it is, or while the decision server's state is unknown."""
+        if latched == self._estop_shown:
+            return
+        self._estop_shown = latched
+        self._b_estop.label = "E-STOP — LATCHED" if latched else "E-STOP"
+        self._b_estop.hint = (
+            "the e-stop is latched: Reset clears it" if latched else "latch the emergency stop"
+        )
+        self._b_reset.disabled = latched is False
+        self._b_reset.color = "red" if latched else "orange"
+
+    def _show_loading(self, decision_replied: bool) -> None:
+        """The loading indicator: shown from a browser's arrival until the robot state, the
+        supervisor's reply, the force and the video (those whose services are alive) have
+        all arrived; then hidden until the next browser."""
+        if self.loaded:
+            return
+        alive = self.node.alive
+        waiting = loading_items(
+            state=self.mirror.state.latest is not None,
+            decision=decision_replied,
+            force=self.mirror.latest_force() is not None if alive.is_alive("force") else None,
+            video=(
+                self.frames_shown > 0
+                if self._view_mode != "off" and alive.is_alive("vision")
+                else None
+            ),
+        )
+        self._set_html("loading", self._loading_html, loading_html(waiting))
+        if not waiting:
+            self.loaded = True
+            self._loading_html.visible = False
 
     def _update_plots(self) -> None:
         t, w = self.mirror.force.window(self.config.plot_window_s, self.config.plot_points)

@@ -142,3 +142,22 @@ class FakeBrowser:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+
+def gui_uuid(browser: FakeBrowser, label: str, timeout_s: float = 10.0) -> str:
+    """The uuid of the GUI element the page was first sent with `label`, or (for an HTML
+    element, which has none) whose content holds `label`."""
+    found: list[str] = []
+
+    def match(props: dict[str, Any]) -> bool:
+        content = props.get("content")
+        return props.get("label") == label or (isinstance(content, str) and label in content)
+
+    def look() -> bool:
+        with browser._lock:
+            found.extend(u for u, props in browser._gui.items() if match(props))
+        return bool(found)
+
+    if not wait_until(look, timeout_s):
+        raise AssertionError(f"no GUI element {label!r} reached the page")
+    return found[0]
