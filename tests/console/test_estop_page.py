@@ -84,7 +84,9 @@ def test_the_page_shows_the_latch_and_offers_reset(page: Page) -> None:
 
         assert wait_until(robot_ready, 20.0, poll_s=0.05), browser.gui(status)
         assert wait_until(lambda: browser.gui(status).get("visible") is False, 10.0)
-        assert browser.gui(reset).get("disabled") is True, "Reset offered with no latch"
+        assert wait_until(lambda: browser.gui(reset).get("disabled") is True, 10.0), (
+            "Reset offered with no latch"
+        )
 
         page.decision.latched = True
         assert wait_until(lambda: browser.gui(estop).get("label") == "E-STOP — LATCHED", 10.0)
