@@ -168,6 +168,7 @@ class Console:
         self._drawn: dict[str, np.ndarray] = {}
         self._workspace: tuple[tuple[float, ...], tuple[float, ...]] | None = None
         self._estop_shown: bool | None = None
+        self._plot_empty = True
         self.loaded = False
         self._scales_loaded = False
 
@@ -392,7 +393,10 @@ class Console:
         with gui.add_folder("Force at the tool (tool frame)"):
             t0 = np.array([-self.config.plot_window_s, 0.0])
             z = np.zeros(2)
-            scales = {"x": viser.uplot.Scale(time=False)}
+            # The x axis is the window itself, whatever the data: one stray time cannot
+            # stretch it to minutes and squeeze the live data into a point.
+            window = (-self.config.plot_window_s, 0.0)
+            scales = {"x": viser.uplot.Scale(time=False, auto=False, range=window)}
             axes = (viser.uplot.Axis(), viser.uplot.Axis(size=56))
             self._f_plot = gui.add_uplot(
                 (t0, z, z, z),
@@ -860,9 +864,16 @@ class Console:
             self._loading_html.visible = False
 
     def _update_plots(self) -> None:
-        t, w = self.mirror.force.window(self.config.plot_window_s, self.config.plot_points)
+        t, w = self.mirror.force.window(
+            self.config.plot_window_s, self.config.plot_points, now_s=time.monotonic()
+        )
         if len(t) < 2:
-            return
+            # Nothing (left) in the window: a stalled stream empties the plot rather than
+            # leaving its last picture up as if the force were still streaming.
+            if self._plot_empty:
+                return
+            t, w = np.zeros(0), np.zeros((0, 6))
+        self._plot_empty = len(t) == 0
         cols = [np.ascontiguousarray(w[:, k]) for k in range(6)]
         self._f_plot.data = (t, cols[0], cols[1], cols[2])
         self._c_plot.data = (t, cols[3], cols[4], cols[5])

@@ -59,7 +59,16 @@ TARGET_STALE_S = 1.0
 
 class ForceHistory:
     """A ring buffer of force samples for the plots: time (s, the sender's clock), f (3, N),
-    c (3, N·m), tool frame. `add` is O(1) and called from Zenoh's thread."""
+    c (3, N·m), tool frame, and when the newest arrived (s, this process's monotonic
+    clock). `add` is O(1) and called from Zenoh's thread.
+
+    The sender's clock spaces the points (Python callbacks run late in bursts under load,
+    so arrival times would bunch them up); the receiver's clock places the newest one, so a
+    stream that stalls slides out of the window instead of freezing on screen. A sample
+    older than the newest one (the sender's wall clock stepped back, the sender restarted,
+    or another publisher's clock) starts a new series: mixing two time bases drew one
+    cluster of points at the end of an axis minutes long (#23 item 9).
+    """
 
     def __init__(self, capacity: int) -> None:
         if capacity < 2:
@@ -68,34 +77,47 @@ class ForceHistory:
         self._w = np.zeros((capacity, 6))
         self._n = 0
         self._i = 0
+        self._rx_s = 0.0
+        self.restarts = 0
+        """How many times a sample from the past started a new series."""
         self._lock = threading.Lock()
 
-    def add(self, t_s: float, f: tuple[float, ...], c: tuple[float, ...]) -> None:
+    def add(
+        self, t_s: float, f: tuple[float, ...], c: tuple[float, ...], rx_s: float | None = None
+    ) -> None:
+        """Append a sample taken at `t_s` (the sender's clock) that arrived at `rx_s`
+        (time.monotonic(); now if None)."""
+        rx = time.monotonic() if rx_s is None else rx_s
         with self._lock:
+            if self._n and t_s < self._t[self._i - 1]:
+                self._n = self._i = 0
+                self.restarts += 1
             self._t[self._i] = t_s
             self._w[self._i, :3] = f
             self._w[self._i, 3:] = c
             self._i = (self._i + 1) % len(self._t)
             self._n = min(self._n + 1, len(self._t))
+            self._rx_s = rx
 
     def __len__(self) -> int:
         with self._lock:
             return self._n
 
     def window(
-        self, span_s: float, max_points: int
+        self, span_s: float, max_points: int, now_s: float | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The samples of the last `span_s` seconds before the newest one, oldest first, as
-        (t, w): t (n,) in s relative to the newest (≤ 0), w (n, 6) = (f, c); decimated by an
-        integer step to at most `max_points`."""
+        """The samples of the last `span_s` seconds, oldest first, as (t, w): t (n,) in s
+        relative to now (≤ 0), w (n, 6) = (f, c); decimated by an integer step to at most
+        `max_points`. "Now" is `now_s` (time.monotonic()): the newest sample sits at minus
+        its age, so a stalled stream leaves the window; with `now_s` None, at 0."""
         with self._lock:
-            n, i = self._n, self._i
+            n, i, rx = self._n, self._i, self._rx_s
             idx = (np.arange(i - n, i)) % len(self._t)
             t = self._t[idx].copy()
             w = self._w[idx].copy()
         if n == 0:
             return np.zeros(0), np.zeros((0, 6))
-        t -= t[-1]
+        t -= t[-1] + (max(0.0, now_s - rx) if now_s is not None else 0.0)
         keep = t >= -span_s
         t, w = t[keep], w[keep]
         step = max(1, -(-len(t) // max_points))
