@@ -79,6 +79,9 @@ SAME_Q_RAD = 1e-5
 REDRAW_TOL = 5e-4
 """A drawn pose or arrow is sent again only when it moved more than this (m, or unit-free
 for rotation entries): sub-millimetre noise does not keep the browser re-rendering."""
+GIZMO_LINE_WIDTH = 4.0
+"""The gizmo's handles are drawn this thick (screen px; viser's default is 2.5): a first
+drag grabs them rather than the camera."""
 HOME_BUSY_RETRY_S = 1.0
 HOME_BUSY_STEP_S = 0.05
 
@@ -342,6 +345,7 @@ class Console:
         self.gizmo = sc.add_transform_controls(
             "/master/hand",
             scale=self.config.gizmo_scale_m,
+            line_width=GIZMO_LINE_WIDTH,
             depth_test=False,
             visible=False,
         )
@@ -385,11 +389,16 @@ class Console:
                 "Snap master to tool",
                 hint="clutch and put the gizmo on the tool; moving it engages from there",
             )
-        with gui.add_folder("Video"):
+        # The video has a window of its own over the 3D view (bottom left), not the
+        # control panel's 300 px: the image fills the window's width, keeping its aspect,
+        # and the window can be resized, moved, docked or minimized.
+        self._video_panel = gui.add_panel()
+        with self._video_panel.add_tab("Video"):
             self._view = gui.add_dropdown("View", options=VIEW_MODES, initial_value=self._view_mode)
             self._image = gui.add_image(
                 np.full((120, 320, 3), 40, dtype=np.uint8), label=None, format="jpeg"
             )
+        self._video_panel.float(x=15, y=-15, width=self.config.video_panel_width_px)
         with gui.add_folder("Force at the tool (tool frame)"):
             t0 = np.array([-self.config.plot_window_s, 0.0])
             z = np.zeros(2)
