@@ -239,12 +239,16 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             )
             gizmo_moved = np.asarray(console.gizmo.position) - gizmo_p
             assert abs(float(np.dot(gizmo_moved, axis)) - DRAG_M) < 0.02
+            # The drag took the lease for the console's master; letting go disengaged it
+            # cleanly: parked where released, the lease given back, no watchdog.
+            assert any(
+                e.kind == "lease" and (e.data or {}).get("action") == "taken" for e in system.events
+            ), "the drag never engaged the console's master"
             expect(page.locator("#tr-master")).to_have_attribute(
-                "data-link", "engaged", timeout=10_000
+                "data-link", "parked", timeout=10_000
             )
-            expect(page.locator("#tr-lease")).to_have_attribute(
-                "data-lease", "console", timeout=10_000
-            )
+            expect(page.locator("#tr-lease")).to_have_attribute("data-lease", "", timeout=10_000)
+            assert not [e for e in system.events if e.kind == "watchdog"]
 
             # --- E-STOP shows its event on the page ----------------------------------------
             # From here on the page is tall enough for the whole control panel (status,
