@@ -262,3 +262,41 @@ def test_the_page_moves_the_objects_to_the_workcell_state(page: Page) -> None:
             10.0,
         ), browser.node("/arm/tool_frame/finger_l")
         assert console.gui_errors == 0
+
+
+@pytest.mark.system
+@pytest.mark.timeout(120)
+def test_the_page_follows_the_real_workcell_service(net: Any) -> None:
+    """End to end: the workcell service's own physics moves a block (it starts 40 cm above
+    another part of the table and falls onto it) and the page's node lands where the
+    workcell has it, not where the scene description (which the page starts from) has it."""
+    from services.workcell.config import WorkcellConfig
+    from services.workcell.service import WorkcellService
+
+    b0 = SCENE.box("block0").center
+    rest = (0.68, 0.12, b0[2])
+    start = (rest[0], rest[1], rest[2] + 0.40)
+    assert np.linalg.norm(np.subtract(rest, b0)) > 0.1  # the page starts with it elsewhere
+    workcell = WorkcellService(
+        net.node("workcell"), WorkcellConfig(), scene=SCENE.moved({"block0": start})
+    )
+    console = Console(net.node("console"), ConsoleConfig(port=0, shadows=False, gui_rate_hz=20.0))
+    watcher = net.node("watcher").subscribe(WORKCELL_STATE)
+    try:
+        with FakeBrowser(console.port, decode=True) as browser:
+            landed = watcher.wait_for(
+                lambda s: (
+                    s.objects["block0"]["phase"] == "resting"
+                    and abs(s.objects["block0"]["p"][2] - b0[2]) < 1e-6
+                ),
+                20.0,
+            )
+            assert landed is not None, "the block never landed"
+            assert wait_until(
+                lambda: np.allclose(browser.node("/workcell/block0")["position"], rest, atol=1e-6),
+                20.0,
+            ), browser.node("/workcell/block0")
+            assert console.workcell_drawn > 0 and console.gui_errors == 0
+    finally:
+        console.close()
+        workcell.close()
