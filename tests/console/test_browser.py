@@ -160,6 +160,17 @@ def _scene_canvas(page: Any, timeout_s: float = 30.0) -> dict[str, float]:
     raise AssertionError("the page shows no 3D canvas")
 
 
+def _plot_tails(page: Any) -> list[tuple[int, float, float]]:
+    """Per uPlot chart on the page (viser's test hook): its number of points, its newest x
+    and its first series' newest y."""
+    tails = page.evaluate(
+        "() => Object.values(window.__viserTestpoints?.uplots ?? {}).map(p => {"
+        " const d = p.chart.data; const n = d[0].length;"
+        " return [n, n ? d[0][n - 1] : null, n ? d[1][n - 1] : null]; })"
+    )
+    return [(int(n), float(x), float(y)) for n, x, y in tails]
+
+
 def _pixels(png: bytes) -> np.ndarray:
     import cv2
 
@@ -186,6 +197,14 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             # Everything arrives (state, supervisor, force, video): the indicator goes.
             expect(page.locator("#tr-loading")).to_be_hidden(timeout=60_000)
             assert console.loaded
+            # The force plots are live in the page's own charts: many points, the newest
+            # within a second of now, and they keep changing (not frozen on one picture).
+            first = _plot_tails(page)
+            assert len(first) == 2 and all(n >= 2 and -1.0 <= x <= 0.0 for n, x, _ in first), first
+            deadline = time.monotonic() + 20.0
+            while _plot_tails(page) == first:
+                assert time.monotonic() < deadline, f"the force plots are frozen at {first}"
+                time.sleep(0.1)  # the page's charts offer no event to wait on
             cam = _camera(console)
             canvas = _scene_canvas(page)
 
