@@ -57,6 +57,13 @@ def _t3(v: np.ndarray) -> Vec3T:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
+def _volume_m3(ml: float | None) -> float:
+    """A volume off the wire (ml) in m³: none, negative or not finite draws nothing."""
+    if ml is None or not math.isfinite(ml) or ml <= 0.0:
+        return 0.0
+    return ml * M3_PER_ML
+
+
 def surface_z(scene: Scene, x: float, y: float) -> float:
     """The height (m) of the highest fixture (a box that is not movable) under (x, y), or
     the floor: where spilled liquid lies."""
@@ -89,9 +96,9 @@ def object_node(scene: Scene, view: ObjectView) -> ObjectNode:
     if not isinstance(solid, Cylinder) or solid.liquid_height_m <= 0.0:
         return node
     area = math.pi * solid.radius**2
-    liquid_m3 = max(0.0, view.liquid_ml or 0.0) * M3_PER_ML
+    liquid_m3 = _volume_m3(view.liquid_ml)
     h = min(solid.height, liquid_m3 / area)
-    spilled_m3 = max(0.0, view.spilled_ml or 0.0) * M3_PER_ML
+    spilled_m3 = _volume_m3(view.spilled_ml)
     radius = min(SPILL_MAX_RADIUS_M, math.sqrt(spilled_m3 / (math.pi * SPILL_THICKNESS_M)))
     # The liquid leaves over the bottle's rim: the puddle lies under it.
     rim = view.top

@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from services.bus import keys
 from services.bus.errors import ProtocolError
@@ -24,6 +26,7 @@ from services.console.geometry import R_from_wxyz
 from services.console.world import (
     FINGER_SIZE_M,
     GRIPPER_OPEN_M,
+    SPILL_MAX_RADIUS_M,
     SPILL_THICKNESS_M,
     finger_offsets,
     object_node,
@@ -300,3 +303,17 @@ def test_the_page_follows_the_real_workcell_service(net: Any) -> None:
     finally:
         console.close()
         workcell.close()
+
+
+@given(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.floats(allow_nan=True, allow_infinity=True),
+)
+def test_any_liquid_figures_draw_a_bounded_liquid_and_puddle(liquid: float, spilled: float) -> None:
+    v = objects_of(stacked_state(1))["bottle"]
+    node = object_node(SCENE, replace(v, liquid_ml=liquid, spilled_ml=spilled))
+    bottle = SCENE.cylinder("bottle")
+    assert 0.0 <= node.liquid_height_m <= bottle.height
+    assert -0.5 * bottle.height <= node.liquid_z_m <= 0.0
+    assert 0.0 <= node.spill_radius_m <= SPILL_MAX_RADIUS_M
+    assert all(math.isfinite(x) for x in (*node.position, *node.spill_position))
