@@ -102,7 +102,7 @@ _WORKSPACE_COLOR = (30, 160, 90)
 _TARGET_COLOR = (255, 140, 0)
 _LIQUID_COLOR = (40, 110, 230)
 _FINGER_COLOR = (70, 70, 80)
-_FINGER_HOLDING_COLOR = (30, 160, 90)
+FINGER_HOLDING_COLOR = (30, 160, 90)
 BOTTLE_OPACITY = 0.45
 """A bottle is drawn translucent, so that its liquid shows."""
 
@@ -716,7 +716,7 @@ class Console:
                 h.position = fingers[k]
             if not h.visible:
                 h.visible = True
-        color = _FINGER_HOLDING_COLOR if holding else _FINGER_COLOR
+        color = FINGER_HOLDING_COLOR if holding else _FINGER_COLOR
         if fingers is not None and color != self._finger_color:
             self._finger_color = color
             for h in self._fingers:

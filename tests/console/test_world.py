@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 from services.bus import keys
 from services.bus.errors import ProtocolError
 from services.bus.node import Node
-from services.console.app import Console
+from services.console.app import FINGER_HOLDING_COLOR, Console
 from services.console.config import ConsoleConfig
 from services.console.geometry import R_from_wxyz
 from services.console.world import (
@@ -264,6 +264,14 @@ def test_the_page_moves_the_objects_to_the_workcell_state(page: Page) -> None:
             ),
             10.0,
         ), browser.node("/arm/tool_frame/finger_l")
+        # ...and shown holding it.
+        assert wait_until(
+            lambda: (
+                tuple(browser.node("/arm/tool_frame/finger_r").get("color", ()))
+                == FINGER_HOLDING_COLOR
+            ),
+            10.0,
+        ), browser.node("/arm/tool_frame/finger_r")
         assert console.gui_errors == 0
 
 
