@@ -59,8 +59,16 @@ from services.console.view import (
     loading_items,
     status_html,
 )
-from services.console.world import FINGER_SIZE_M, ObjectNode, finger_offsets, object_nodes
+from services.console.world import (
+    FINGER_SIZE_M,
+    PUDDLE_THICKNESS_M,
+    ObjectNode,
+    finger_offsets,
+    object_nodes,
+    puddle_nodes,
+)
 from services.puma.kinematics import Puma560
+from services.vision.objects import LIQUID_BGR, SPILL_BGR, Spills
 from services.workcell.messages import WORKCELL_STATE, objects_of
 from services.workcell.scene import default_scene
 
@@ -100,7 +108,6 @@ _TOOL_COLOR = (200, 200, 210)
 _FORCE_COLOR = (220, 30, 200)
 _WORKSPACE_COLOR = (30, 160, 90)
 _TARGET_COLOR = (255, 140, 0)
-_LIQUID_COLOR = (40, 110, 230)
 _FINGER_COLOR = (70, 70, 80)
 FINGER_HOLDING_COLOR = (30, 160, 90)
 BOTTLE_OPACITY = 0.45
@@ -274,7 +281,8 @@ class Console:
         self.workcell = default_scene()
         self._objects: dict[str, Any] = {}
         self._liquids: dict[str, Any] = {}
-        self._spills: dict[str, Any] = {}
+        self._spills = Spills(self.workcell)  # where the video puts spilled liquid
+        self._puddles: list[Any] = []
         self._workcell_seq = -1
         self.workcell_drawn = 0
         for b in self.workcell.boxes:
@@ -299,15 +307,8 @@ class Console:
                     f"/workcell/{c.name}/liquid",
                     radius=0.85 * c.radius,
                     height=c.liquid_height_m,
-                    color=_LIQUID_COLOR,
+                    color=_rgb(LIQUID_BGR),
                     position=(0.0, 0.0, -0.5 * c.height + 0.5 * c.liquid_height_m),
-                )
-                self._spills[c.name] = sc.add_cylinder(
-                    f"/workcell/spill_{c.name}",
-                    radius=0.01,
-                    height=0.002,
-                    color=_LIQUID_COLOR,
-                    visible=False,
                 )
         self._links: list[Any] = []
         self._joints: list[Any] = []
@@ -725,13 +726,42 @@ class Console:
             return
         self._workcell_seq = wc.seq
         try:
-            nodes = object_nodes(self.workcell, objects_of(wc))
+            views = objects_of(wc)
+            nodes = object_nodes(self.workcell, views)
         except ProtocolError as e:
             self.node.report_rejected(WORKCELL_STATE.key, str(e))
             return
         for node in nodes.values():
             self._draw_object(node)
+        self._spills.update(views)
+        self._draw_puddles()
         self.workcell_drawn += 1
+
+    def _draw_puddles(self) -> None:
+        puddles = puddle_nodes(self._spills)
+        sc = self.server.scene
+        for i, pd in enumerate(puddles):
+            if i == len(self._puddles):
+                self._puddles.append(
+                    sc.add_cylinder(
+                        f"/workcell/spill{i}",
+                        radius=pd.radius_m,
+                        height=PUDDLE_THICKNESS_M,
+                        color=_rgb(SPILL_BGR),
+                        position=pd.position,
+                    )
+                )
+                self._changed(f"puddle{i}", np.array([pd.radius_m, *pd.position]), 0.0)
+                continue
+            h = self._puddles[i]
+            if self._changed(f"puddle{i}", np.array([pd.radius_m, *pd.position]), REDRAW_TOL):
+                h.radius = pd.radius_m
+                h.position = pd.position
+            if not h.visible:
+                h.visible = True
+        for h in self._puddles[len(puddles) :]:
+            if h.visible:
+                h.visible = False  # dried: the workcell was reset
 
     def _draw_object(self, node: ObjectNode) -> None:
         h = self._objects[node.name]
@@ -748,13 +778,6 @@ class Console:
                 liquid.height = node.liquid_height_m
                 liquid.position = (0.0, 0.0, node.liquid_z_m)
             liquid.visible = node.liquid_height_m > 0.0
-        spill = self._spills[node.name]
-        puddle = np.array([node.spill_radius_m, *node.spill_position])
-        if self._changed(f"spill/{node.name}", puddle, REDRAW_TOL):
-            if node.spill_radius_m > 0.0:
-                spill.radius = node.spill_radius_m
-                spill.position = node.spill_position
-            spill.visible = node.spill_radius_m > 0.0
 
     def _draw_target(self) -> None:
         target = self.mirror.target()

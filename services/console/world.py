@@ -2,8 +2,9 @@
 
 Pure functions of the scene description (`services.workcell.scene`, the one the workcell,
 force and vision simulations use) and of a decoded `workcell/state` (`objects_of`), so the
-3D scene is tested without a browser. Frames: world (z up), m. Node names are the page's
-(`/workcell/<object>`, `/workcell/<object>/liquid`, `/workcell/<object>/spill`,
+3D scene is tested without a browser. Spilled liquid lies where the video and the
+recordings put it (`services.vision.objects.Spills`). Frames: world (z up), m. Node names
+are the page's (`/workcell/<object>`, `/workcell/<object>/liquid`, `/workcell/spill<i>`,
 `/arm/tool_frame/finger_l|r`).
 """
 
@@ -18,7 +19,8 @@ import numpy as np
 from services.bus.bounds import each_out_of_bounds
 from services.bus.errors import ProtocolError
 from services.console.geometry import wxyz_from_R
-from services.workcell.messages import ObjectView
+from services.vision.objects import Spills
+from services.workcell.messages import M3_PER_ML, ObjectView
 from services.workcell.scene import Box, Cylinder, Scene
 
 Vec3T = tuple[float, float, float]
@@ -26,22 +28,18 @@ Quat = tuple[float, float, float, float]
 
 LIQUID_INSET = 0.85
 """The liquid's radius as a fraction of its bottle's (drawn inside the bottle's wall)."""
-SPILL_THICKNESS_M = 0.002
-"""A spill is drawn as a puddle this thick: its radius follows from the spilled volume."""
-SPILL_MAX_RADIUS_M = 0.25
 FINGER_SIZE_M: Vec3T = (0.012, 0.02, 0.06)
 """A gripper finger (x, y, z in the tool frame): it hangs below the palm (the tool point)."""
 GRIPPER_OPEN_M = 0.09
 """The gap between the fingers of the open gripper (grip 0); closed (grip 1) it is 0."""
-M3_PER_ML = 1e-6
+PUDDLE_THICKNESS_M = 0.002
 
 
 @dataclass(frozen=True, slots=True)
 class ObjectNode:
     """One movable object as drawn: the solid's node at its centre `position` (world) with
     orientation `wxyz`; for a bottle the liquid column (`liquid_height_m` inside the bottle,
-    its centre `liquid_z_m` in the bottle's frame) and the puddle of what was spilled
-    (`spill_radius_m`, 0 = none, centred at `spill_position` in the world)."""
+    its centre `liquid_z_m` in the bottle's frame)."""
 
     name: str
     position: Vec3T
@@ -49,8 +47,14 @@ class ObjectNode:
     phase: str
     liquid_height_m: float = 0.0
     liquid_z_m: float = 0.0
-    spill_radius_m: float = 0.0
-    spill_position: Vec3T = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class PuddleNode:
+    """A puddle of spilled liquid: a flat disc of `radius_m` centred at `position` (world)."""
+
+    position: Vec3T
+    radius_m: float
 
 
 def _t3(v: np.ndarray) -> Vec3T:
@@ -62,19 +66,6 @@ def _volume_m3(ml: float | None) -> float:
     if ml is None or not math.isfinite(ml) or ml <= 0.0:
         return 0.0
     return ml * M3_PER_ML
-
-
-def surface_z(scene: Scene, x: float, y: float) -> float:
-    """The height (m) of the highest fixture (a box that is not movable) under (x, y), or
-    the floor: where spilled liquid lies."""
-    z = scene.floor_z
-    for b in scene.boxes:
-        if b.movable:
-            continue
-        lo, hi = b.lo, b.hi
-        if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1]:
-            z = max(z, b.top_z)
-    return z
 
 
 def object_node(scene: Scene, view: ObjectView) -> ObjectNode:
@@ -98,11 +89,6 @@ def object_node(scene: Scene, view: ObjectView) -> ObjectNode:
     area = math.pi * solid.radius**2
     liquid_m3 = _volume_m3(view.liquid_ml)
     h = min(solid.height, liquid_m3 / area)
-    spilled_m3 = _volume_m3(view.spilled_ml)
-    radius = min(SPILL_MAX_RADIUS_M, math.sqrt(spilled_m3 / (math.pi * SPILL_THICKNESS_M)))
-    # The liquid leaves over the bottle's rim: the puddle lies under it.
-    rim = view.top
-    z = surface_z(scene, float(rim[0]), float(rim[1])) + 0.5 * SPILL_THICKNESS_M
     return ObjectNode(
         view.name,
         _t3(centre),
@@ -110,14 +96,27 @@ def object_node(scene: Scene, view: ObjectView) -> ObjectNode:
         view.phase,
         liquid_height_m=h,
         liquid_z_m=-0.5 * solid.height + 0.5 * h,
-        spill_radius_m=radius,
-        spill_position=(float(rim[0]), float(rim[1]), z),
     )
 
 
 def object_nodes(scene: Scene, views: Mapping[str, ObjectView]) -> dict[str, ObjectNode]:
     """Every object of the state, drawn (see `object_node`), by name."""
     return {name: object_node(scene, v) for name, v in views.items()}
+
+
+def puddle_nodes(spills: Spills) -> tuple[PuddleNode, ...]:
+    """The puddles `spills` holds (updated from every state drawn), as the video draws
+    them: a disc at each puddle's place on its surface, of the video's radius."""
+    out = []
+    for pose in spills.objects():
+        p = pose.p
+        out.append(
+            PuddleNode(
+                (float(p[0]), float(p[1]), float(p[2]) + 0.5 * PUDDLE_THICKNESS_M),
+                0.5 * float(pose.size[0]),
+            )
+        )
+    return tuple(out)
 
 
 def finger_offsets(grip: float | None) -> tuple[Vec3T, Vec3T] | None:
@@ -134,8 +133,9 @@ def finger_offsets(grip: float | None) -> tuple[Vec3T, Vec3T] | None:
 __all__ = [
     "FINGER_SIZE_M",
     "ObjectNode",
+    "PuddleNode",
     "finger_offsets",
     "object_node",
     "object_nodes",
-    "surface_z",
+    "puddle_nodes",
 ]

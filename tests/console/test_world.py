@@ -26,12 +26,11 @@ from services.console.geometry import R_from_wxyz
 from services.console.world import (
     FINGER_SIZE_M,
     GRIPPER_OPEN_M,
-    SPILL_MAX_RADIUS_M,
-    SPILL_THICKNESS_M,
     finger_offsets,
     object_node,
-    surface_z,
+    puddle_nodes,
 )
+from services.vision.objects import Spills
 from services.workcell.messages import WORKCELL_STATE, ObjectView, WorkcellState, objects_of
 from services.workcell.scene import BLOCK_SIZE_M, TABLE, default_scene
 
@@ -111,10 +110,10 @@ def test_a_box_is_drawn_at_its_centre_and_orientation() -> None:
     assert node.position == pytest.approx((b0[0], b0[1], b0[2] + H))
     R = R_from_wxyz(node.wxyz)
     assert np.allclose(R, np.asarray(stacked_state(1).objects["block1"]["R"]).reshape(3, 3))
-    assert node.liquid_height_m == 0.0 and node.spill_radius_m == 0.0
+    assert node.liquid_height_m == 0.0
 
 
-def test_a_tilted_bottle_is_drawn_about_its_centre_with_its_liquid_and_spill() -> None:
+def test_a_tilted_bottle_is_drawn_about_its_centre_with_its_liquid() -> None:
     v = objects_of(stacked_state(1))["bottle"]
     node = object_node(SCENE, v)
     bottle = SCENE.cylinder("bottle")
@@ -126,18 +125,24 @@ def test_a_tilted_bottle_is_drawn_about_its_centre_with_its_liquid_and_spill() -
     h = LIQUID_ML * 1e-6 / (math.pi * bottle.radius**2)
     assert node.liquid_height_m == pytest.approx(h)
     assert node.liquid_z_m == pytest.approx(-0.5 * bottle.height + 0.5 * h)
-    # 150 ml spread 2 mm thick, under the rim, on the table top.
-    assert node.spill_radius_m == pytest.approx(math.sqrt(150e-6 / (math.pi * SPILL_THICKNESS_M)))
-    rim = v.top
-    assert node.spill_position == pytest.approx((rim[0], rim[1], TOP + 0.5 * SPILL_THICKNESS_M))
 
 
-def test_a_spill_lies_on_the_highest_fixture_under_it_or_the_floor() -> None:
-    assert surface_z(SCENE, 0.6, 0.0) == pytest.approx(TOP)
-    assert surface_z(SCENE, 2.0, 0.0) == pytest.approx(SCENE.floor_z)
-    # A block is not a fixture: liquid does not lie on it.
-    b = SCENE.box("block0").center
-    assert surface_z(SCENE, b[0], b[1]) == pytest.approx(TOP)
+def test_spilled_liquid_lies_where_the_video_puts_it() -> None:
+    views = objects_of(stacked_state(1))
+    video = Spills(SCENE)
+    video.update(views)
+    spills = Spills(SCENE)
+    spills.update(views)
+    (puddle,) = puddle_nodes(spills)
+    (disc,) = video.objects()
+    assert puddle.position[:2] == pytest.approx(tuple(disc.p[:2]))
+    assert puddle.position[2] == pytest.approx(TOP + 0.001)  # on the table, 2 mm thick
+    assert puddle.radius_m == pytest.approx(0.5 * disc.size[0])
+    # A reset (less spilled than before) dries it.
+    dry = dict(views)
+    dry["bottle"] = replace(views["bottle"], spilled_ml=0.0)
+    spills.update(dry)
+    assert puddle_nodes(spills) == ()
 
 
 @pytest.mark.parametrize(
@@ -243,17 +248,18 @@ def test_the_page_moves_the_objects_to_the_workcell_state(page: Page) -> None:
         b2 = np.asarray(browser.node("/workcell/block2")["position"])
         assert np.allclose(b2 - b0, (0.0, 0.0, 2 * H))
         bottle = object_node(SCENE, views["bottle"])
+        spills = Spills(SCENE)
+        spills.update(views)
+        (puddle,) = puddle_nodes(spills)
         assert wait_until(
             lambda: (
                 browser.node("/workcell/bottle/liquid").get("height")
                 == pytest.approx(bottle.liquid_height_m)
-                and browser.node("/workcell/spill_bottle").get("visible") is True
+                and browser.node("/workcell/spill0").get("radius") == pytest.approx(puddle.radius_m)
             ),
             10.0,
-        ), (browser.node("/workcell/bottle/liquid"), browser.node("/workcell/spill_bottle"))
-        assert browser.node("/workcell/spill_bottle")["radius"] == pytest.approx(
-            bottle.spill_radius_m
-        )
+        ), (browser.node("/workcell/bottle/liquid"), browser.node("/workcell/spill0"))
+        assert browser.node("/workcell/spill0")["position"] == pytest.approx(puddle.position)
         # The gripper is closed on what it holds.
         closed = finger_offsets(1.0)
         assert closed is not None
@@ -317,11 +323,10 @@ def test_the_page_follows_the_real_workcell_service(net: Any) -> None:
     st.floats(allow_nan=True, allow_infinity=True),
     st.floats(allow_nan=True, allow_infinity=True),
 )
-def test_any_liquid_figures_draw_a_bounded_liquid_and_puddle(liquid: float, spilled: float) -> None:
+def test_any_liquid_figures_draw_a_bounded_liquid(liquid: float, spilled: float) -> None:
     v = objects_of(stacked_state(1))["bottle"]
     node = object_node(SCENE, replace(v, liquid_ml=liquid, spilled_ml=spilled))
     bottle = SCENE.cylinder("bottle")
     assert 0.0 <= node.liquid_height_m <= bottle.height
     assert -0.5 * bottle.height <= node.liquid_z_m <= 0.0
-    assert 0.0 <= node.spill_radius_m <= SPILL_MAX_RADIUS_M
-    assert all(math.isfinite(x) for x in (*node.position, *node.spill_position))
+    assert all(math.isfinite(x) for x in node.position)
