@@ -55,6 +55,12 @@ ARTIFACT = ROOT / "artifacts" / "console.png"
 MIN_GIZMO_PX = 100.0
 """A gizmo handle at least this long on screen at the default view (1280×800)."""
 MIN_VIDEO_PX = 400.0
+NO_WAIT = True
+"""A click is done when the page got it; what it does is awaited with `expect`. (Waiting
+for "scheduled navigations" after a click needs the renderer's main thread, which software
+WebGL on a loaded 2-core machine holds for tens of seconds at a time.)"""
+CLICK_MS = 60_000
+"""How long a click may wait for its button to be clickable, for the same reason."""
 HOME_TOOL_P = np.array([0.55, 0.0, 0.65])
 DRAG_M = 0.06
 
@@ -107,7 +113,8 @@ def system(net: Any) -> Iterator[System]:
             )
         )
         console = Console(
-            net.node("console"), ConsoleConfig(port=0, gui_rate_hz=20.0, shadows=False)
+            net.node("console"),
+            ConsoleConfig(port=0, gui_rate_hz=20.0, shadows=False, video_fps=5.0),
         )
         closers.append(console)
         client = net.node("test")
@@ -209,12 +216,14 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             canvas = _scene_canvas(page)
 
             # --- Initialize: ready on the page and on the bus -----------------------------
-            page.get_by_role("button", name="Initialize").click()
+            page.get_by_role("button", name="Initialize").click(
+                no_wait_after=NO_WAIT, timeout=CLICK_MS
+            )
             expect(status).to_have_attribute("data-status", "ready", timeout=20_000)
             assert system.state.wait_for(lambda s: s.status == "ready", 5.0) is not None
 
             # --- Home: the arm goes home; the gizmo is parked on the tool ------------------
-            page.get_by_role("button", name="Home").click()
+            page.get_by_role("button", name="Home").click(no_wait_after=NO_WAIT, timeout=CLICK_MS)
             expect(page.locator("#tr-action")).to_have_text("home: done", timeout=40_000)
             home = system.state.wait_for(
                 lambda s: float(np.linalg.norm(np.asarray(s.tool_p) - HOME_TOOL_P)) < 0.005, 5.0
@@ -274,7 +283,9 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             # video, plots, log) in the screenshot below; resized now, so that the plots
             # have been redrawn at the new size by then.
             page.set_viewport_size({"width": 1400, "height": 1500})
-            page.get_by_role("button", name="E-STOP", exact=True).click()
+            page.get_by_role("button", name="E-STOP", exact=True).click(
+                no_wait_after=NO_WAIT, timeout=CLICK_MS
+            )
             expect(page.locator("#tr-events li[data-kind='estop']").first).to_be_visible(
                 timeout=10_000
             )
@@ -302,7 +313,7 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             # --- the page as a picture: 3D mirror, video, plots, status, events ------------
             notices = page.locator("button.mantine-Notification-closeButton")
             for close in notices.all():
-                close.click()
+                close.click(no_wait_after=NO_WAIT, timeout=CLICK_MS)
             expect(notices).to_have_count(0, timeout=10_000)  # gone, not fading out
             assert console.frames_shown > 0, "no stereo frame reached the page"
             cam = _camera(console, width_px=1400)
@@ -318,7 +329,9 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             assert px.mean() < 170, f"no arm at the pedestal's pixel ({px})"
 
             # --- Reset: the latch clears and the hand is parked on the tool again ----------
-            page.get_by_role("button", name="Reset e-stop").click()
+            page.get_by_role("button", name="Reset e-stop").click(
+                no_wait_after=NO_WAIT, timeout=CLICK_MS
+            )
             expect(page.locator("#tr-action")).to_have_text("reset: cleared", timeout=10_000)
             expect(page.locator("#tr-estop")).to_have_count(0, timeout=10_000)
             expect(page.get_by_role("button", name="E-STOP", exact=True)).to_be_visible()
