@@ -32,7 +32,7 @@ from typing import Any, cast
 import numpy as np
 import viser
 
-from services.bus.errors import RpcError, Unavailable
+from services.bus.errors import ProtocolError, RpcError, Unavailable
 from services.bus.messages import Event, RobotState, mat3
 from services.bus.node import Node
 from services.bus.rate import RateLoop
@@ -50,8 +50,26 @@ from services.console.geometry import (
 from services.console.hand import HandLink, ToolPose
 from services.console.mirror import BusMirror
 from services.console.video import VIEW_MODES, FrameGate, Image, ViewMode, compose, decode
-from services.console.view import MasterView, alive_html, events_html, status_html
+from services.console.view import (
+    MasterView,
+    alive_html,
+    estop_latched,
+    events_html,
+    loading_html,
+    loading_items,
+    status_html,
+)
+from services.console.world import (
+    FINGER_SIZE_M,
+    PUDDLE_THICKNESS_M,
+    ObjectNode,
+    finger_offsets,
+    object_nodes,
+    puddle_nodes,
+)
 from services.puma.kinematics import Puma560
+from services.vision.objects import LIQUID_BGR, SPILL_BGR, Spills
+from services.workcell.messages import WORKCELL_STATE, objects_of
 from services.workcell.scene import default_scene
 
 log = logging.getLogger("telerobot.console")
@@ -69,6 +87,9 @@ SAME_Q_RAD = 1e-5
 REDRAW_TOL = 5e-4
 """A drawn pose or arrow is sent again only when it moved more than this (m, or unit-free
 for rotation entries): sub-millimetre noise does not keep the browser re-rendering."""
+GIZMO_LINE_WIDTH = 4.0
+"""The gizmo's handles are drawn this thick (screen px; viser's default is 2.5): a first
+drag grabs them rather than the camera."""
 HOME_BUSY_RETRY_S = 1.0
 HOME_BUSY_STEP_S = 0.05
 
@@ -87,6 +108,10 @@ _TOOL_COLOR = (200, 200, 210)
 _FORCE_COLOR = (220, 30, 200)
 _WORKSPACE_COLOR = (30, 160, 90)
 _TARGET_COLOR = (255, 140, 0)
+_FINGER_COLOR = (70, 70, 80)
+FINGER_HOLDING_COLOR = (30, 160, 90)
+BOTTLE_OPACITY = 0.45
+"""A bottle is drawn translucent, so that its liquid shows."""
 
 _FORCE_SERIES = (
     viser.uplot.Series(label="t (s)"),
@@ -152,6 +177,9 @@ class Console:
         self._panels: dict[str, str] = {}
         self._drawn: dict[str, np.ndarray] = {}
         self._workspace: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+        self._estop_shown: bool | None = None
+        self._plot_empty = True
+        self.loaded = False
         self._scales_loaded = False
 
         # viser prints a banner on stdout whatever `verbose` says; our one line
@@ -226,6 +254,9 @@ class Console:
         self.mirror.watch_page(True)
         self._events_seen = self.mirror.events_seen
         self._gate.reset()
+        # Each new page shows what it still waits for until everything has arrived.
+        self.loaded = False
+        self._loading_html.visible = True
         if self._held_while_away:
             self._held_while_away = False
             self.hand.resync()
@@ -245,27 +276,55 @@ class Console:
     def _build_scene(self) -> None:
         sc = self.server.scene
         sc.add_grid("/floor", width=3.0, height=3.0, cell_size=0.25, section_size=1.0)
-        workcell = default_scene()
-        for b in workcell.boxes:
-            sc.add_box(
+        # The same description the workcell, force and vision simulations use; the movable
+        # objects are moved to their `workcell/state` poses while a browser watches.
+        self.workcell = default_scene()
+        self._objects: dict[str, Any] = {}
+        self._liquids: dict[str, Any] = {}
+        self._spills = Spills(self.workcell)  # where the video puts spilled liquid
+        self._puddles: list[Any] = []
+        self._workcell_seq = -1
+        self.workcell_drawn = 0
+        for b in self.workcell.boxes:
+            self._objects[b.name] = sc.add_box(
                 f"/workcell/{b.name}",
                 color=_rgb(b.color),
                 dimensions=b.size,
                 position=b.center,
             )
-        for c in workcell.cylinders:
-            sc.add_cylinder(
+        for c in self.workcell.cylinders:
+            liquid = c.liquid_height_m > 0.0
+            self._objects[c.name] = sc.add_cylinder(
                 f"/workcell/{c.name}",
                 radius=c.radius,
                 height=c.height,
                 color=_rgb(c.color),
+                opacity=BOTTLE_OPACITY if liquid else None,
                 position=(c.base[0], c.base[1], c.base[2] + 0.5 * c.height),
             )
+            if liquid:
+                self._liquids[c.name] = sc.add_cylinder(
+                    f"/workcell/{c.name}/liquid",
+                    radius=0.85 * c.radius,
+                    height=c.liquid_height_m,
+                    color=_rgb(LIQUID_BGR),
+                    position=(0.0, 0.0, -0.5 * c.height + 0.5 * c.liquid_height_m),
+                )
         self._links: list[Any] = []
         self._joints: list[Any] = []
         self._tool_frame = sc.add_frame(
             "/arm/tool_frame", axes_length=0.1, axes_radius=0.006, visible=False
         )
+        self._fingers = [
+            sc.add_box(
+                f"/arm/tool_frame/finger_{side}",
+                color=_FINGER_COLOR,
+                dimensions=FINGER_SIZE_M,
+                visible=False,
+            )
+            for side in ("l", "r")
+        ]
+        self._finger_color = _FINGER_COLOR
         self._target = sc.add_frame(
             "/target",
             axes_length=0.07,
@@ -287,6 +346,7 @@ class Console:
         self.gizmo = sc.add_transform_controls(
             "/master/hand",
             scale=self.config.gizmo_scale_m,
+            line_width=GIZMO_LINE_WIDTH,
             depth_test=False,
             visible=False,
         )
@@ -295,6 +355,7 @@ class Console:
     # --- the page: controls -------------------------------------------------------------
     def _build_gui(self) -> None:
         gui = self.server.gui
+        self._loading_html = gui.add_html(loading_html(("robot state", "supervisor")))
         with gui.add_folder("Robot"):
             b_estop = gui.add_button("E-STOP", color="red", hint="latch the emergency stop")
             self._status_html = gui.add_html(
@@ -303,7 +364,12 @@ class Console:
                 )
             )
             robot = gui.add_button_group("Arm", options=ROBOT_ACTIONS, hint=ROBOT_HINT)
-            b_reset = gui.add_button("Reset e-stop", color="orange", hint="clear the latch")
+            b_reset = gui.add_button(
+                "Reset e-stop",
+                color="orange",
+                hint="clear the latch (the decision server's reset)",
+            )
+        self._b_estop, self._b_reset = b_estop, b_reset
         with gui.add_folder("Teleoperation"):
             # Any: viser's `value` setter is invisible to mypy (an asymmetric property).
             self._frame: Any = gui.add_dropdown(
@@ -324,15 +390,23 @@ class Console:
                 "Snap master to tool",
                 hint="clutch and put the gizmo on the tool; moving it engages from there",
             )
-        with gui.add_folder("Video"):
+        # The video has a window of its own over the 3D view (bottom left), not the
+        # control panel's 300 px: the image fills the window's width, keeping its aspect,
+        # and the window can be resized, moved, docked or minimized.
+        self._video_panel = gui.add_panel()
+        with self._video_panel.add_tab("Video"):
             self._view = gui.add_dropdown("View", options=VIEW_MODES, initial_value=self._view_mode)
             self._image = gui.add_image(
                 np.full((120, 320, 3), 40, dtype=np.uint8), label=None, format="jpeg"
             )
+        self._video_panel.float(x=15, y=-15, width=self.config.video_panel_width_px)
         with gui.add_folder("Force at the tool (tool frame)"):
             t0 = np.array([-self.config.plot_window_s, 0.0])
             z = np.zeros(2)
-            scales = {"x": viser.uplot.Scale(time=False)}
+            # The x axis is the window itself, whatever the data: one stray time cannot
+            # stretch it to minutes and squeeze the live data into a point.
+            window = (-self.config.plot_window_s, 0.0)
+            scales = {"x": viser.uplot.Scale(time=False, auto=False, range=window)}
             axes = (viser.uplot.Axis(), viser.uplot.Axis(size=56))
             self._f_plot = gui.add_uplot(
                 (t0, z, z, z),
@@ -564,6 +638,7 @@ class Console:
                 self._last_q = st.q
         self._draw_target()
         self._draw_force(st)
+        self._draw_workcell(st)
 
     def _watch_status(self, st: RobotState) -> None:
         """Snap the virtual master to the tool when the arm first shows up and whenever it
@@ -627,6 +702,83 @@ class Console:
         self._tool_frame.wxyz = wxyz_from_R(mat3(st.tool_R))
         self._tool_frame.visible = True
 
+    def _draw_workcell(self, st: RobotState | None) -> None:
+        """Move the objects to the newest `workcell/state` (once per new message), and
+        open or close the gripper's fingers as robot/state's `grip` says."""
+        fingers = finger_offsets(st.grip if st is not None else None)
+        wc = self.mirror.workcell()
+        holding = wc is not None and bool(wc.held)
+        for k, h in enumerate(self._fingers):
+            if fingers is None:
+                if h.visible:
+                    h.visible = False
+                continue
+            if self._changed(f"finger{k}", np.asarray(fingers[k]), REDRAW_TOL):
+                h.position = fingers[k]
+            if not h.visible:
+                h.visible = True
+        color = FINGER_HOLDING_COLOR if holding else _FINGER_COLOR
+        if fingers is not None and color != self._finger_color:
+            self._finger_color = color
+            for h in self._fingers:
+                h.color = color
+        if wc is None or wc.seq == self._workcell_seq:
+            return
+        self._workcell_seq = wc.seq
+        try:
+            views = objects_of(wc)
+            nodes = object_nodes(self.workcell, views)
+        except ProtocolError as e:
+            self.node.report_rejected(WORKCELL_STATE.key, str(e))
+            return
+        for node in nodes.values():
+            self._draw_object(node)
+        self._spills.update(views)
+        self._draw_puddles()
+        self.workcell_drawn += 1
+
+    def _draw_puddles(self) -> None:
+        puddles = puddle_nodes(self._spills)
+        sc = self.server.scene
+        for i, pd in enumerate(puddles):
+            if i == len(self._puddles):
+                self._puddles.append(
+                    sc.add_cylinder(
+                        f"/workcell/spill{i}",
+                        radius=pd.radius_m,
+                        height=PUDDLE_THICKNESS_M,
+                        color=_rgb(SPILL_BGR),
+                        position=pd.position,
+                    )
+                )
+                self._changed(f"puddle{i}", np.array([pd.radius_m, *pd.position]), 0.0)
+                continue
+            h = self._puddles[i]
+            if self._changed(f"puddle{i}", np.array([pd.radius_m, *pd.position]), REDRAW_TOL):
+                h.radius = pd.radius_m
+                h.position = pd.position
+            if not h.visible:
+                h.visible = True
+        for h in self._puddles[len(puddles) :]:
+            if h.visible:
+                h.visible = False  # dried: the workcell was reset
+
+    def _draw_object(self, node: ObjectNode) -> None:
+        h = self._objects[node.name]
+        pose = np.array([*node.position, *node.wxyz])
+        if self._changed(f"object/{node.name}", pose, REDRAW_TOL):
+            h.position = node.position
+            h.wxyz = node.wxyz
+        liquid = self._liquids.get(node.name)
+        if liquid is None:
+            return
+        level = np.array([node.liquid_height_m])
+        if self._changed(f"liquid/{node.name}", level, REDRAW_TOL):
+            if node.liquid_height_m > 0.0:
+                liquid.height = node.liquid_height_m
+                liquid.position = (0.0, 0.0, node.liquid_z_m)
+            liquid.visible = node.liquid_height_m > 0.0
+
     def _draw_target(self) -> None:
         target = self.mirror.target()
         if target is None:
@@ -683,7 +835,9 @@ class Console:
         self._set_html("status", self._status_html, self._html_status())
         self._set_html("alive", self._alive_html, alive_html(self.node.alive.names()))
         self._set_html("events", self._events_html, events_html(self.mirror.events()))
-        decision, _error, master = self.mirror.status()
+        decision, error, master = self.mirror.status()
+        self._show_estop(estop_latched(decision) if decision is not None else None)
+        self._show_loading(decision is not None or error not in (None, "no reply yet"))
         if decision is not None:
             settings = decision.get("settings") or {}
             lo, hi = settings.get("workspace_min"), settings.get("workspace_max")
@@ -706,10 +860,52 @@ class Console:
             if master.get("frame") in ("world", "tool"):
                 self._frame.value = master["frame"]
 
-    def _update_plots(self) -> None:
-        t, w = self.mirror.force.window(self.config.plot_window_s, self.config.plot_points)
-        if len(t) < 2:
+    def _show_estop(self, latched: bool | None) -> None:
+        """The E-STOP button says when the latch is set, and Reset is offered (enabled) while
+        it is, or while the decision server's state is unknown."""
+        if latched == self._estop_shown:
             return
+        self._estop_shown = latched
+        self._b_estop.label = "E-STOP — LATCHED" if latched else "E-STOP"
+        self._b_estop.hint = (
+            "the e-stop is latched: Reset clears it" if latched else "latch the emergency stop"
+        )
+        self._b_reset.disabled = latched is False
+        self._b_reset.color = "red" if latched else "orange"
+
+    def _show_loading(self, decision_replied: bool) -> None:
+        """The loading indicator: shown from a browser's arrival until the robot state, the
+        supervisor's reply, the force and the video (those whose services are alive) have
+        all arrived; then hidden until the next browser."""
+        if self.loaded:
+            return
+        alive = self.node.alive
+        waiting = loading_items(
+            state=self.mirror.state.latest is not None,
+            decision=decision_replied,
+            force=self.mirror.latest_force() is not None if alive.is_alive("force") else None,
+            video=(
+                self.frames_shown > 0
+                if self._view_mode != "off" and alive.is_alive("vision")
+                else None
+            ),
+        )
+        self._set_html("loading", self._loading_html, loading_html(waiting))
+        if not waiting:
+            self.loaded = True
+            self._loading_html.visible = False
+
+    def _update_plots(self) -> None:
+        t, w = self.mirror.force.window(
+            self.config.plot_window_s, self.config.plot_points, now_s=time.monotonic()
+        )
+        if len(t) < 2:
+            # Nothing (left) in the window: a stalled stream empties the plot rather than
+            # leaving its last picture up as if the force were still streaming.
+            if self._plot_empty:
+                return
+            t, w = np.zeros(0), np.zeros((0, 6))
+        self._plot_empty = len(t) == 0
         cols = [np.ascontiguousarray(w[:, k]) for k in range(6)]
         self._f_plot.data = (t, cols[0], cols[1], cols[2])
         self._c_plot.data = (t, cols[3], cols[4], cols[5])

@@ -35,7 +35,9 @@ class ConsoleConfig:
       in-process one, or one started elsewhere with `telerobot master --device virtual`.
     gui_rate_hz: the one GUI thread's rate (the arm, frames, force arrow), 1 … 60 Hz.
     video_fps: the rate at which stereo frames are pushed to the browser (≤ 30);
-      video_max_width_px: frames wider than this are decimated before sending.
+      video_max_width_px: frames wider than this are decimated before sending;
+      video_panel_width_px: the video window's initial width (the image fills it, keeping
+      its aspect; the operator can resize it).
     plot_window_s, plot_points: the force/moment plots show the last `plot_window_s`
       seconds, decimated to at most `plot_points` points.
     force_rate_hz: the rate at which Zenoh hands the console robot/force (its session's
@@ -57,17 +59,18 @@ class ConsoleConfig:
     gui_rate_hz: float = 25.0
     video_fps: float = 12.0
     video_max_width_px: int = 640
+    video_panel_width_px: int = 560
     plot_window_s: float = 5.0
     plot_points: int = 400
     force_rate_hz: float = 100.0
     events: int = 50
     status_period_s: float = 0.5
     force_arrow_m_per_n: float = 0.01
-    gizmo_scale_m: float = 0.25
+    gizmo_scale_m: float = 0.4
     rpc_timeout_s: float = 3.0
     wait_timeout_s: float = 60.0
     shadows: bool = True
-    camera_position_m: Vec3T = (2.1, -1.5, 1.5)
+    camera_position_m: Vec3T = (1.35, -0.95, 1.1)
     camera_look_at_m: Vec3T = (0.45, 0.0, 0.55)
 
     def __post_init__(self) -> None:
@@ -90,6 +93,8 @@ class ConsoleConfig:
             raise _err("video_fps", "must be ≤ 30 (the browser is not the video path to record)")
         if self.video_max_width_px < 64:
             raise _err("video_max_width_px", "must be ≥ 64 px")
+        if not 160 <= self.video_panel_width_px <= 4096:
+            raise _err("video_panel_width_px", "must be within 160 … 4096 px")
         if self.force_rate_hz > 1000.0:
             raise _err("force_rate_hz", "must be ≤ 1000 Hz (the force's own rate)")
         if self.plot_points < 10:

@@ -49,6 +49,7 @@ from services.bus.messages import (
 )
 from services.bus.node import Node, Subscription
 from services.console.geometry import Mat, Vec, commanded_tool_pose
+from services.workcell.messages import WORKCELL_STATE, WorkcellState
 
 M = TypeVar("M", bound=Message)
 
@@ -58,7 +59,16 @@ TARGET_STALE_S = 1.0
 
 class ForceHistory:
     """A ring buffer of force samples for the plots: time (s, the sender's clock), f (3, N),
-    c (3, N·m), tool frame. `add` is O(1) and called from Zenoh's thread."""
+    c (3, N·m), tool frame, and when the newest arrived (s, this process's monotonic
+    clock). `add` is O(1) and called from Zenoh's thread.
+
+    The sender's clock spaces the points (Python callbacks run late in bursts under load,
+    so arrival times would bunch them up); the receiver's clock places the newest one, so a
+    stream that stalls slides out of the window instead of freezing on screen. A sample
+    older than the newest one (the sender's wall clock stepped back, the sender restarted,
+    or another publisher's clock) starts a new series: mixing two time bases drew one
+    cluster of points at the end of an axis minutes long (#23 item 9).
+    """
 
     def __init__(self, capacity: int) -> None:
         if capacity < 2:
@@ -67,34 +77,47 @@ class ForceHistory:
         self._w = np.zeros((capacity, 6))
         self._n = 0
         self._i = 0
+        self._rx_s = 0.0
+        self.restarts = 0
+        """How many times a sample from the past started a new series."""
         self._lock = threading.Lock()
 
-    def add(self, t_s: float, f: tuple[float, ...], c: tuple[float, ...]) -> None:
+    def add(
+        self, t_s: float, f: tuple[float, ...], c: tuple[float, ...], rx_s: float | None = None
+    ) -> None:
+        """Append a sample taken at `t_s` (the sender's clock) that arrived at `rx_s`
+        (time.monotonic(); now if None)."""
+        rx = time.monotonic() if rx_s is None else rx_s
         with self._lock:
+            if self._n and t_s < self._t[self._i - 1]:
+                self._n = self._i = 0
+                self.restarts += 1
             self._t[self._i] = t_s
             self._w[self._i, :3] = f
             self._w[self._i, 3:] = c
             self._i = (self._i + 1) % len(self._t)
             self._n = min(self._n + 1, len(self._t))
+            self._rx_s = rx
 
     def __len__(self) -> int:
         with self._lock:
             return self._n
 
     def window(
-        self, span_s: float, max_points: int
+        self, span_s: float, max_points: int, now_s: float | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The samples of the last `span_s` seconds before the newest one, oldest first, as
-        (t, w): t (n,) in s relative to the newest (≤ 0), w (n, 6) = (f, c); decimated by an
-        integer step to at most `max_points`."""
+        """The samples of the last `span_s` seconds, oldest first, as (t, w): t (n,) in s
+        relative to now (≤ 0), w (n, 6) = (f, c); decimated by an integer step to at most
+        `max_points`. "Now" is `now_s` (time.monotonic()): the newest sample sits at minus
+        its age, so a stalled stream leaves the window; with `now_s` None, at 0."""
         with self._lock:
-            n, i = self._n, self._i
+            n, i, rx = self._n, self._i, self._rx_s
             idx = (np.arange(i - n, i)) % len(self._t)
             t = self._t[idx].copy()
             w = self._w[idx].copy()
         if n == 0:
             return np.zeros(0), np.zeros((0, 6))
-        t -= t[-1]
+        t -= t[-1] + (max(0.0, now_s - rx) if now_s is not None else 0.0)
         keep = t >= -span_s
         t, w = t[keep], w[keep]
         step = max(1, -(-len(t) // max_points))
@@ -130,6 +153,7 @@ class BusMirror:
         self._cond = threading.Condition(self._lock)
         self.force = ForceHistory(force_capacity)
         self._force_latest: ForceSample | None = None
+        self._workcell: WorkcellState | None = None
         self._events: deque[Event] = deque(maxlen=events)
         self.events_seen = 0
         self._masters: dict[str, MasterState] = {}
@@ -150,11 +174,13 @@ class BusMirror:
 
     # --- what only a page shows ---------------------------------------------------------------
     def watch_page(self, on: bool) -> None:
-        """Subscribe to the force and the supervised command (on) or drop them (off)."""
+        """Subscribe to the force, the supervised command and the workcell's state (on) or
+        drop them (off)."""
         if on and not self._page_subs:
             self._page_subs = [
                 self._subscribe(FORCE, self._on_force),
                 self._subscribe(PUMA_CMD, self._on_puma_cmd),
+                self._subscribe(WORKCELL_STATE, self._on_workcell),
             ]
         elif not on:
             subs, self._page_subs = self._page_subs, []
@@ -233,6 +259,11 @@ class BusMirror:
         self.force.add(msg.t_ns / 1e9, msg.f, msg.c)
         self._force_latest = msg
 
+    def _on_workcell(self, msg: WorkcellState) -> None:
+        old = self._workcell
+        if old is None or msg.seq > old.seq or msg.t_ns > old.t_ns:
+            self._workcell = msg
+
     def _on_event(self, ev: Event) -> None:
         with self._lock:
             self._events.append(ev)
@@ -260,6 +291,10 @@ class BusMirror:
     # --- readers ----------------------------------------------------------------------------
     def latest_force(self) -> ForceSample | None:
         return self._force_latest
+
+    def workcell(self) -> WorkcellState | None:
+        """The newest `workcell/state` (its objects not yet checked: `objects_of`)."""
+        return self._workcell
 
     def events(self) -> list[Event]:
         with self._lock:

@@ -26,6 +26,7 @@ _STATUS_COLOR = {
     "disconnected": "#6e7781",
     "error": "#cf222e",
 }
+_ESTOP_COLOR = "#cf222e"
 _KIND_COLOR = {
     "estop": "#cf222e",
     "error": "#cf222e",
@@ -74,15 +75,20 @@ def status_html(
     """The status panel: robot (robot/state), supervisor (decision `status`), master, and
     the result of the last button pressed."""
     rows: list[str] = []
+    latched = estop_latched(decision)
     if state is None:
         rows.append(_row("robot", '<span id="tr-robot-status" data-status="none">no state</span>'))
     else:
-        color = _STATUS_COLOR.get(state.status, "#24292f")
+        # A latched e-stop holds the arm whatever its own status says: "ready" is not shown
+        # as ready (green) until the latch is reset.
+        color = _ESTOP_COLOR if latched else _STATUS_COLOR.get(state.status, "#24292f")
+        held = " — held by the e-stop" if latched else ""
         rows.append(
             _row(
                 "robot",
                 f'<b id="tr-robot-status" data-status="{_e(state.status)}" '
-                f'style="color:{color}">{_e(state.status)}</b>',
+                f'data-estop="{"latched" if latched else "clear"}" '
+                f'style="color:{color}">{_e(state.status)}{held}</b>',
             )
         )
         rows.append(
@@ -115,6 +121,41 @@ def status_html(
     rows.append(_row("master", master_html(master)))
     rows.append(_row("last action", f'<span id="tr-action">{_e(last_action or "-")}</span>'))
     return f'<table style="font-size:0.8em;width:100%">{"".join(rows)}</table>'
+
+
+def estop_latched(decision: Mapping[str, Any] | None) -> bool:
+    """Whether the decision server's `status` reports its e-stop latched."""
+    return decision is not None and decision.get("estop") is True
+
+
+def loading_items(
+    state: bool,
+    decision: bool,
+    force: bool | None,
+    video: bool | None,
+) -> tuple[str, ...]:
+    """What the page still waits for, in the order it usually arrives: the robot's state
+    (the 3D mirror), the supervisor's first reply, the force (None: no force service to
+    wait for) and the video (None: no vision, or the view is off). True = arrived."""
+    items = (
+        ("robot state", state),
+        ("supervisor", decision),
+        ("force", force),
+        ("video", video),
+    )
+    return tuple(name for name, have in items if have is False)
+
+
+def loading_html(waiting: Sequence[str]) -> str:
+    """The loading indicator: what the page still waits for (empty when nothing)."""
+    if not waiting:
+        return '<div id="tr-loading" data-waiting=""></div>'
+    return (
+        f'<div id="tr-loading" data-waiting="{_e(",".join(waiting))}" '
+        'style="font-size:0.85em;padding:6px 8px;border-radius:6px;background:#fff8c5;'
+        'color:#7d4e00">⏳ loading: waiting for '
+        f"{_e(', '.join(waiting))}…</div>"
+    )
 
 
 def master_html(m: MasterView) -> str:

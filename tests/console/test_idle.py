@@ -25,6 +25,7 @@ from services.master.config import MasterConfig
 from services.master.service import MasterService
 from services.vision.config import VisionConfig
 from services.vision.service import VisionService
+from services.workcell.messages import WORKCELL_STATE
 
 from .support import FakeBrowser, ready_state, wait_until
 
@@ -184,6 +185,7 @@ def test_session_configs_carry_the_downsampling_rules() -> None:
         (keys.FORCE.key, 50.0),
         (keys.STATE.key, 40.0),
         (keys.PUMA_CMD.key, 40.0),
+        (WORKCELL_STATE.key, 40.0),
     )
     m = master_node_config(base, 100.0)
     assert m.downsampling == (("x/y", 5.0), (keys.FORCE.key, 100.0), (keys.STATE.key, 100.0))

@@ -86,3 +86,52 @@ def test_mirror_over_the_bus(net: Any) -> None:
     assert mirror.events_since(5) == ([], 5)
     # More new events than the log holds: only those kept come back.
     assert [e.message for e in mirror.events_since(0)[0]] == ["e2", "e3", "e4"]
+
+
+# --- the frozen plot of #23 item 9 ------------------------------------------------------------
+def _feed(h: ForceHistory, t0_s: float, n: int, rx0_s: float, dt_s: float = 0.01) -> None:
+    for k in range(n):
+        h.add(t0_s + k * dt_s, (float(k), 0.0, 0.0), (0.0, 0.0, 0.0), rx_s=rx0_s + k * dt_s)
+
+
+def test_a_sender_clock_stepping_back_starts_a_new_series_not_a_squeezed_plot() -> None:
+    h = ForceHistory(1000)
+    _feed(h, t0_s=1_700_000_300.0, n=300, rx0_s=100.0)
+    # The sender's wall clock steps back 5 minutes (NTP), the stream goes on.
+    _feed(h, t0_s=1_700_000_000.0, n=200, rx0_s=103.0)
+    now = 103.0 + 199 * 0.01
+    t, w = h.window(span_s=5.0, max_points=1000, now_s=now)
+    assert h.restarts == 1
+    assert len(t) == 200, "the old time base is still in the window"
+    assert t[0] == pytest.approx(-1.99) and t[-1] == pytest.approx(0.0)
+    assert np.all(np.diff(t) > 0) and w[-1, 0] == 199.0
+
+
+def test_one_stray_future_sample_does_not_freeze_the_plot() -> None:
+    h = ForceHistory(1000)
+    _feed(h, t0_s=1000.0, n=100, rx0_s=0.0)
+    h.add(9e9, (1e3, 0.0, 0.0), (0.0, 0.0, 0.0), rx_s=1.0)  # a bogus stamp
+    _feed(h, t0_s=1001.0, n=100, rx0_s=1.0)
+    t, w = h.window(span_s=5.0, max_points=1000, now_s=1.0 + 99 * 0.01)
+    assert len(t) == 100 and w[-1, 0] == 99.0 and np.all(w[:, 0] < 1e3)
+
+
+def test_a_stalled_stream_slides_out_of_the_window() -> None:
+    h = ForceHistory(1000)
+    _feed(h, t0_s=50.0, n=300, rx0_s=10.0)
+    last_rx = 10.0 + 299 * 0.01
+    t, _ = h.window(5.0, 1000, now_s=last_rx + 1.0)
+    assert len(t) == 300 and t[-1] == pytest.approx(-1.0)
+    t, _ = h.window(5.0, 1000, now_s=last_rx + 5.5)
+    assert len(t) == 0, "a stream stopped 5.5 s ago still fills a 5 s plot"
+
+
+@given(st.integers(2, 50), st.integers(1, 5))
+def test_the_window_is_ordered_and_bounded_across_wraps(capacity: int, laps: int) -> None:
+    h = ForceHistory(capacity)
+    n = capacity * laps + 3
+    _feed(h, t0_s=0.0, n=n, rx0_s=0.0)
+    t, w = h.window(span_s=1e9, max_points=10_000, now_s=(n - 1) * 0.01)
+    assert len(t) == capacity
+    assert np.all(np.diff(t) > 0) and t[-1] == pytest.approx(0.0)
+    assert list(w[:, 0]) == [float(k) for k in range(n - capacity, n)]

@@ -8,7 +8,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from services.bus.messages import IDENTITY_R, Event, MasterState, RobotState
-from services.console.view import MasterView, alive_html, events_html, status_html
+from services.console.view import (
+    MasterView,
+    alive_html,
+    estop_latched,
+    events_html,
+    loading_html,
+    loading_items,
+    status_html,
+)
 
 STATE = RobotState(
     seq=7,
@@ -93,3 +101,35 @@ def test_bus_text_is_always_escaped(message: str, kind: str) -> None:
     for dangerous in ("<script", "<img", "<b>", '"><'):
         if dangerous in message:
             assert out.count(dangerous) == 0
+
+
+def test_a_ready_robot_is_not_green_while_the_estop_is_latched() -> None:
+    mview = MasterView("console", "holding", None, None)
+    clear = status_html(STATE, {"mode": "hold", "estop": False}, None, mview, "")
+    latched = status_html(STATE, {"mode": "estop", "estop": True}, None, mview, "")
+    assert 'data-status="ready" data-estop="clear" style="color:#1a7f37"' in clear
+    assert 'data-status="ready" data-estop="latched" style="color:#cf222e"' in latched
+    assert "held by the e-stop" in latched and "held by the e-stop" not in clear
+    assert 'id="tr-estop"' in latched
+
+
+def test_estop_latched_reads_only_a_true_latch() -> None:
+    assert estop_latched({"estop": True})
+    assert not estop_latched({"estop": False})
+    assert not estop_latched({"estop": "yes"})  # not a bool: not believed
+    assert not estop_latched(None)
+
+
+def test_loading_lists_what_has_not_arrived_and_ignores_absent_services() -> None:
+    assert loading_items(state=False, decision=False, force=None, video=None) == (
+        "robot state",
+        "supervisor",
+    )
+    assert loading_items(state=True, decision=True, force=False, video=False) == (
+        "force",
+        "video",
+    )
+    assert loading_items(state=True, decision=True, force=True, video=None) == ()
+    out = loading_html(("robot state", "video"))
+    assert 'data-waiting="robot state,video"' in out and "waiting for robot state, video" in out
+    assert loading_html(()) == '<div id="tr-loading" data-waiting=""></div>'
