@@ -331,7 +331,12 @@ class DecisionService:
             p = self._relative_target(args)
         elif method == "move_joints":
             q = args.get("q")
-            if isinstance(q, list) and len(q) == 6 and all(_number(x) for x in q):
+            if (
+                isinstance(q, list)
+                and len(q) == 6
+                and all(_number(x) for x in q)
+                and each_out_of_bounds("q", [float(x) for x in q], "joint_rad") is None
+            ):
                 try:
                     p = _floats3(self._forward("puma", "fk", {"q": q}).get("tool_p"))
                 except RpcError:

@@ -288,7 +288,7 @@ def test_facade_forwards_and_status_is_a_superset(make_cell: Callable[..., Cell]
     # same arguments, same error codes as the puma itself
     bad = {"q": [10.0, 0, 0, 0, 0, 0]}
     with pytest.raises(RpcError) as direct:
-        cell.console.call("puma", "move_joints", bad, 5.0)
+        cell.console.call("puma", "move_joints", {**bad, "supervised_by": "decision"}, 5.0)
     with pytest.raises(RpcError) as forwarded:
         cell.call("move_joints", bad)
     assert forwarded.value.code == direct.value.code
