@@ -115,7 +115,7 @@ class DecisionService:
         self._pub = node.publisher(PUMA_CMD)
         self.passivity = SlaveTdpa(node) if config.passivity else None
         self._op_engage: dict[str, int] = {}
-        node.subscribe(CMD, self._on_command)
+        node.batches(CMD, self._on_commands)
         self._state = node.latest(STATE)
         self._force = node.latest(FORCE)
         node.alive.on_change(self._on_alive)
@@ -130,8 +130,9 @@ class DecisionService:
         node.announce()
 
     # --- Zenoh callbacks: react to commands and losses, store the rest --------------------
-    def _on_command(self, msg: OperatorCommand) -> None:
-        self._react(commands=(msg,))
+    def _on_commands(self, msgs: tuple[OperatorCommand, ...]) -> None:
+        """Each arrival, at once; what piled up while the last one was handled, together."""
+        self._react(commands=msgs)
 
     def _on_alive(self, name: str, up: bool) -> None:
         if not up:
