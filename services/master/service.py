@@ -141,10 +141,11 @@ class MasterService:
             self._hold()
 
     def _idle(self) -> bool:
-        """Clutched, not engaged, on a device that may idle: nothing to stream."""
+        """Not engaged, on a device that may idle (it wakes the loop on any input), and
+        clutched or not to engage by itself: nothing to stream but the contract's 50 Hz."""
         return (
             bool(getattr(self.device, "may_idle", False))
-            and self._clutched
+            and (self._clutched or not self.config.engage_on_start)
             and (not self.teleop.engaged)
         )
 
