@@ -19,14 +19,14 @@ out along the contact force; the supervisor checked the uncorrected target.
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import numpy as np
 
 from services.bus import keys
-from services.bus.messages import ForceSample, OperatorCommand, PassivityState, RobotState
+from services.bus.messages import ForceSample, OperatorCommand, RobotState
 from services.bus.node import Node
 from services.passivity.controller import SlavePassivity
+from services.passivity.wire import passivity_state
 
 DEADBAND_N = 1.0
 """A wrist force below this is sensor noise, not contact: the slave port sees none (the
@@ -120,19 +120,4 @@ class SlaveTdpa:
 
     def _publish(self, operator: tuple[str, int]) -> None:
         self._seq += 1
-        t = self.pc.telemetry
-        self._pub.put(
-            PassivityState(
-                seq=self._seq,
-                t_ns=time.time_ns(),
-                master=operator[0],
-                engage=operator[1],
-                side="slave",
-                enabled=self.pc.enabled,
-                e_in=self.pc.observer.e_in,
-                e_out=self.pc.observer.e_out,
-                dissipated_j=t.dissipated_j,
-                gain=t.last_gain,
-                active_steps=t.active_steps,
-            )
-        )
+        self._pub.put(passivity_state(self._seq, operator[0], operator[1], "slave", self.pc))

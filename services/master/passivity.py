@@ -10,17 +10,16 @@ display also ramps in). Called by the master loop thread only.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 
 import numpy as np
 
 from services.bus import keys
-from services.bus.messages import PassivityState
 from services.bus.node import Node
 from services.master.devices import HandReading
 from services.master.feedback import DisplayWrench
 from services.passivity.controller import MasterPassivity
+from services.passivity.wire import passivity_state
 
 
 class MasterTdpa:
@@ -58,19 +57,4 @@ class MasterTdpa:
 
     def _publish(self, engage: int) -> None:
         self._seq += 1
-        t = self.pc.telemetry
-        self._pub.put(
-            PassivityState(
-                seq=self._seq,
-                t_ns=time.time_ns(),
-                master=self.master_id,
-                engage=engage,
-                side="master",
-                enabled=self.pc.enabled,
-                e_in=self.pc.observer.e_in,
-                e_out=self.pc.observer.e_out,
-                dissipated_j=t.dissipated_j,
-                gain=t.last_gain,
-                active_steps=t.active_steps,
-            )
-        )
+        self._pub.put(passivity_state(self._seq, self.master_id, engage, "master", self.pc))

@@ -143,16 +143,17 @@ def test_a_command_is_applied_on_arrival_and_its_times_are_in_the_state(net, pum
     pub = client.publisher(keys.PUMA_CMD)
     sent: list[OperatorCommand] = []
     for i in range(1, 21):
+        now = time.time_ns()
         cmd = OperatorCommand(
             seq=i,
-            t_ns=time.time_ns(),
+            t_ns=now,
             master="decision",
             engage=1,
             active=True,
             frame="world",
             dp=(0.0, 0.0005 * i, 0.0),
             dR=IDENTITY_R,
-            origin_t_ns=time.time_ns() - 1_000,  # the operator sent it 1 µs earlier
+            origin_t_ns=now - 1_000,  # the operator sent it 1 µs earlier
         )
         sent.append(cmd)
         pub.put(cmd)
