@@ -256,6 +256,7 @@ def test_the_page_moves_the_objects_to_the_workcell_state(page: Page) -> None:
                 browser.node("/workcell/bottle/liquid").get("height")
                 == pytest.approx(bottle.liquid_height_m)
                 and browser.node("/workcell/spill0").get("radius") == pytest.approx(puddle.radius_m)
+                and "position" in browser.node("/workcell/spill0")
             ),
             10.0,
         ), (browser.node("/workcell/bottle/liquid"), browser.node("/workcell/spill0"))
@@ -309,10 +310,12 @@ def test_the_page_follows_the_real_workcell_service(net: Any) -> None:
                 20.0,
             )
             assert landed is not None, "the block never landed"
-            assert wait_until(
-                lambda: np.allclose(browser.node("/workcell/block0")["position"], rest, atol=1e-6),
-                20.0,
-            ), browser.node("/workcell/block0")
+
+            def at_rest() -> bool:  # the node may exist before its first position arrives
+                position = browser.node("/workcell/block0").get("position")
+                return position is not None and np.allclose(position, rest, atol=1e-6)
+
+            assert wait_until(at_rest, 20.0), browser.node("/workcell/block0")
             assert console.workcell_drawn > 0 and console.gui_errors == 0
     finally:
         console.close()
