@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 
 import pytest
 
@@ -14,18 +13,9 @@ from services.bus import keys
 from services.bus.messages import IDENTITY_R, ForceSample, PassivityState, RobotState
 from services.master.config import MasterConfig
 from services.master.service import MasterService
-from tests.conftest import Net
+from tests.conftest import Net, wait_until
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(60)]
-
-
-def wait_until(pred: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(0.01)
-    return True
 
 
 def test_master_damps_the_display_until_the_slave_pays(net: Net) -> None:

@@ -4,7 +4,6 @@ command correction, each talking to a peer over loopback Zenoh."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -22,18 +21,7 @@ from services.decision.passivity import SlaveTdpa
 from services.master.devices import HandReading
 from services.master.feedback import DisplayWrench
 from services.master.passivity import MasterTdpa
-from tests.conftest import Net
-
-DEADLINE_S = 5.0
-
-
-def wait_until(pred: Callable[[], bool], timeout_s: float = DEADLINE_S) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(0.005)
-    return True
+from tests.conftest import Net, wait_until
 
 
 def state(side: str, engage: int, e_in: float, master: str = "m1") -> PassivityState:
@@ -93,11 +81,13 @@ def test_master_hook_damps_until_the_slave_has_put_energy_in(net: Net) -> None:
     assert seen[-1].engage == 7
     assert seen[-1].side == "master" and seen[-1].master == "m1"
     # The slave's energy of another engagement or master is ignored; of this one, spent.
-    slave_pub.put(state("slave", 6, 100.0))
-    slave_pub.put(state("slave", 7, 100.0, master="m2"))
-    time.sleep(0)  # nothing to wait for: they must change nothing
-    x += 0.0005
-    assert tdpa.hook(wrench(10.0), hand(x), 0.001).f[0] == pytest.approx(0.0, abs=1e-9)
+    twin = a.subscribe(keys.PASSIVITY_SLAVE)  # the master's session: it has what tdpa has
+    for n, other in enumerate((state("slave", 6, 100.0), state("slave", 7, 100.0, master="m2"))):
+        slave_pub.put(other)
+        assert twin.wait_count(n + 1, 10.0)
+        x += 0.0005
+        assert tdpa.hook(wrench(10.0), hand(x), 0.001).f[0] == pytest.approx(0.0, abs=1e-9)
+        assert tdpa.pc.remote.e_in == 0.0
     slave_pub.put(state("slave", 7, 100.0))
 
     def passes() -> bool:
