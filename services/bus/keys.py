@@ -65,8 +65,7 @@ MASTER_STATE = Topic("master/state", MasterState, QoS.STATE, latest_wins=True)
 VISION_STATS = Topic("vision/stats", VisionStats, QoS.RELIABLE, latest_wins=True)
 MASTER_FEEDBACK = Topic("master/feedback", MasterFeedback, QoS.STATE, latest_wins=True)
 # Time-domain passivity (docs/passivity.md): each side's cumulative port energies, at its
-# control rate, on the control class like the command and force they ride along with. Not in
-# TOPICS yet: recordings and the golden codec test own that list.
+# control rate, on the control class like the command and force they ride along with.
 PASSIVITY_MASTER = Topic("robot/passivity/master", PassivityState, QoS.CONTROL, latest_wins=True)
 PASSIVITY_SLAVE = Topic("robot/passivity/slave", PassivityState, QoS.CONTROL, latest_wins=True)
 
@@ -81,6 +80,8 @@ TOPICS: tuple[Topic[Any], ...] = (
     MASTER_STATE,
     VISION_STATS,
     MASTER_FEEDBACK,
+    PASSIVITY_MASTER,
+    PASSIVITY_SLAVE,
 )
 TOPIC_BY_KEY: dict[str, Topic[Any]] = {t.key: t for t in TOPICS}
 

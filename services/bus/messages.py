@@ -246,6 +246,7 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     MasterState,
     VisionStats,
     MasterFeedback,
+    PassivityState,
 )
 
 IDENTITY_R: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)

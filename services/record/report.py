@@ -44,6 +44,7 @@ from services.bus.messages import (
     MasterState,
     Message,
     OperatorCommand,
+    PassivityState,
     RobotState,
     mat3,
 )
@@ -60,8 +61,11 @@ MIN_STALL_SAMPLES = 10
 """Fewer samples than this give no period to judge a stall by."""
 MIN_PATH_SPAN_M = 0.05
 """The path plot's axes span at least 5 cm: a still arm's µm of noise stay a dot."""
-#: streams that pause by design (commands flow only while an operator is engaged)
-NOT_PERIODIC = frozenset({keys.CMD.key, keys.PUMA_CMD.key})
+#: streams that pause by design: commands flow only while an operator is engaged, and so do
+#: the passivity figures (each side publishes them only while it observes an engagement)
+NOT_PERIODIC = frozenset(
+    {keys.CMD.key, keys.PUMA_CMD.key, keys.PASSIVITY_MASTER.key, keys.PASSIVITY_SLAVE.key}
+)
 
 
 def periodic(key: str) -> bool:
@@ -218,6 +222,8 @@ def _sender(msg: Message) -> str:
         return msg.source
     if isinstance(msg, OperatorCommand | MasterState | MasterFeedback):
         return msg.master
+    if isinstance(msg, PassivityState) and msg.side == "master":
+        return msg.master  # each master counts its own; the decision server counts for all
     return ""
 
 

@@ -31,6 +31,7 @@ from services.bus.messages import (
     MasterState,
     Message,
     OperatorCommand,
+    PassivityState,
     RobotState,
     Rot,
     StereoFrame,
@@ -142,6 +143,19 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "saturated": False,
         "stale": False,
     },
+    PassivityState: {
+        "seq": 1,
+        "t_ns": 10,
+        "master": "m1",
+        "engage": 2,
+        "side": "master",
+        "enabled": True,
+        "e_in": 0.5,
+        "e_out": 0.25,
+        "dissipated_j": 0.125,
+        "gain": 3.0,
+        "active_steps": 4,
+    },
 }
 
 OPTIONAL: dict[type[Message], set[str]] = {
@@ -153,6 +167,7 @@ OPTIONAL: dict[type[Message], set[str]] = {
     MasterState: set(),
     VisionStats: {"data"},
     MasterFeedback: set(),
+    PassivityState: set(),
 }
 
 

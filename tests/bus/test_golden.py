@@ -27,6 +27,7 @@ from services.bus.messages import (
     MasterState,
     Message,
     OperatorCommand,
+    PassivityState,
     RobotState,
     StereoFrame,
     VisionStats,
@@ -178,6 +179,25 @@ GOLDEN: list[tuple[Message, str]] = [
         "87a3736571ccfaa4745f6e73cf17979cfe362a00faa66d6173746572a561726d2d37a16693cb3fe00000"
         "00000000cbbff4000000000000cb4000000000000000a16393cb0000000000000000cb3fc00000000000"
         "00cb0000000000000000a9736174757261746564c3a57374616c65c2",
+    ),
+    (
+        PassivityState(
+            seq=42,
+            t_ns=1_700_000_000_000_000_042,
+            master="arm-7",
+            engage=3,
+            side="slave",
+            enabled=True,
+            e_in=0.25,
+            e_out=0.125,
+            dissipated_j=0.0625,
+            gain=0.5,
+            active_steps=7,
+        ),
+        "8ba37365712aa4745f6e73cf17979cfe362a002aa66d6173746572a561726d2d37a6656e6761676503a4"
+        "73696465a5736c617665a7656e61626c6564c3a4655f696ecb3fd0000000000000a5655f6f7574cb3fc0"
+        "000000000000ac646973736970617465645f6acb3fb0000000000000a46761696ecb3fe0000000000000"
+        "ac6163746976655f737465707307",
     ),
 ]
 
