@@ -33,15 +33,18 @@ MASTER_TAKEN_WAIT_S = 0.5
 
 def console_node_config(cfg: NodeConfig, config: ConsoleConfig) -> NodeConfig:
     """The console's session. Zenoh hands it robot/force at `force_rate_hz` (the plots show
-    fewer points than that), robot/state, robot/puma/cmd and workcell/state at twice the
-    GUI rate (the page is drawn at the GUI rate): the rest is dropped on arrival, before
-    any Python runs, instead of a thousand callbacks a second."""
+    fewer points than that), robot/state, robot/puma/cmd, workcell/state and the passivity
+    figures (the decision server's at its 500 Hz) at twice the GUI rate (the page is drawn
+    at the GUI rate): the rest is dropped on arrival, before any Python runs, instead of a
+    thousand callbacks a second."""
     mirror_hz = 2.0 * config.gui_rate_hz
     rules = (
         (keys.FORCE.key, config.force_rate_hz),
         (keys.STATE.key, mirror_hz),
         (keys.PUMA_CMD.key, mirror_hz),
         (WORKCELL_STATE.key, mirror_hz),
+        (keys.PASSIVITY_MASTER.key, mirror_hz),
+        (keys.PASSIVITY_SLAVE.key, mirror_hz),
     )
     return replace(cfg, downsampling=(*cfg.downsampling, *rules))
 

@@ -49,6 +49,7 @@ from services.console.geometry import (
 )
 from services.console.hand import HandLink, ToolPose
 from services.console.mirror import BusMirror
+from services.console.tdpa import TdpaView
 from services.console.video import VIEW_MODES, FrameGate, Image, ViewMode, compose, decode
 from services.console.view import (
     MasterView,
@@ -57,6 +58,7 @@ from services.console.view import (
     events_html,
     loading_html,
     loading_items,
+    passivity_html,
     status_html,
 )
 from services.console.world import (
@@ -119,6 +121,13 @@ _FORCE_SERIES = (
     viser.uplot.Series(label="Fy", stroke="#2ca02c", width=1.5),
     viser.uplot.Series(label="Fz", stroke="#1f77b4", width=1.5),
 )
+_TDPA_SERIES = (
+    viser.uplot.Series(label="t (s)"),
+    viser.uplot.Series(label="reservoir master", stroke="#1f77b4", width=1.5),
+    viser.uplot.Series(label="reservoir slave", stroke="#ff7f0e", width=1.5),
+    viser.uplot.Series(label="dissipated master", stroke="#1f77b4", width=1.0, dash=(4, 3)),
+    viser.uplot.Series(label="dissipated slave", stroke="#ff7f0e", width=1.0, dash=(4, 3)),
+)
 _MOMENT_SERIES = (
     viser.uplot.Series(label="t (s)"),
     viser.uplot.Series(label="Cx", stroke="#d62728", width=1.5),
@@ -152,8 +161,13 @@ class Console:
         self.node = node
         self.config = config
         self._kin = Puma560()  # GUI thread only: Pinocchio's data is not thread-safe
+        # The passivity figures reach the console at twice the GUI rate per side (its
+        # session's downsampling): room for the plot's window of both.
         self.mirror = BusMirror(
-            node, config.events, force_capacity=int(1000 * config.plot_window_s * 1.5) + 64
+            node,
+            config.events,
+            force_capacity=int(1000 * config.plot_window_s * 1.5) + 64,
+            tdpa_capacity=int(4 * config.gui_rate_hz * config.plot_window_s * 1.5) + 64,
         )
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -179,6 +193,8 @@ class Console:
         self._workspace: tuple[tuple[float, ...], tuple[float, ...]] | None = None
         self._estop_shown: bool | None = None
         self._plot_empty = True
+        self._tdpa_empty = True
+        self._tdpa_state = ""
         self.loaded = False
         self._scales_loaded = False
 
@@ -424,6 +440,17 @@ class Console:
                 axes=axes,
                 aspect=2.2,
             )
+        with gui.add_folder("Passivity (TDPA)"):
+            self._tdpa_html = gui.add_html(passivity_html(TdpaView(())))
+            self._tdpa_plot = gui.add_uplot(
+                (t0, z, z, z, z),
+                _TDPA_SERIES,
+                title="energy (J)",
+                scales=scales,
+                axes=axes,
+                aspect=2.2,
+                visible=False,
+            )
         with gui.add_folder("Events"):
             self._events_html = gui.add_html(events_html(()))
         with gui.add_folder("Services"):
@@ -609,6 +636,7 @@ class Console:
                         if now >= next_plot:
                             next_plot = now + PLOT_EVERY_S
                             self._update_plots()
+                            self._update_tdpa_plot()
                     self._update_video(now)
                 except Exception:  # a drawing bug must not stop the mirror: count, log, go on
                     self.gui_errors += 1
@@ -835,6 +863,11 @@ class Console:
         self._set_html("status", self._status_html, self._html_status())
         self._set_html("alive", self._alive_html, alive_html(self.node.alive.names()))
         self._set_html("events", self._events_html, events_html(self.mirror.events()))
+        tdpa = self.mirror.passivity()
+        self._set_html("tdpa", self._tdpa_html, passivity_html(tdpa))
+        if tdpa.state != self._tdpa_state:
+            self._tdpa_state = tdpa.state
+            self._tdpa_plot.visible = tdpa.state != "none"
         decision, error, master = self.mirror.status()
         self._show_estop(estop_latched(decision) if decision is not None else None)
         self._show_loading(decision is not None or error not in (None, "no reply yet"))
@@ -909,6 +942,19 @@ class Console:
         cols = [np.ascontiguousarray(w[:, k]) for k in range(6)]
         self._f_plot.data = (t, cols[0], cols[1], cols[2])
         self._c_plot.data = (t, cols[3], cols[4], cols[5])
+
+    def _update_tdpa_plot(self) -> None:
+        """The passivity plot: reservoirs and dissipated energy per port over the window
+        (empty, like the force plots, once the figures stop)."""
+        t, w = self.mirror.tdpa.window(
+            self.config.plot_window_s, self.config.plot_points, now_s=time.monotonic()
+        )
+        if len(t) < 2:
+            if self._tdpa_empty:
+                return
+            t, w = np.zeros(0), np.zeros((0, 4))
+        self._tdpa_empty = len(t) == 0
+        self._tdpa_plot.data = (t, *(np.ascontiguousarray(w[:, k]) for k in range(4)))
 
     def _update_video(self, now: float) -> None:
         mode = self._view_mode

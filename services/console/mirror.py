@@ -5,7 +5,8 @@ Zenoh's callbacks only store here (latest-wins or append, under a lock, O(1)); t
 thread reads snapshots. Nothing here talks to the page.
 
 Nobody watching, no work: what only a page shows (the force, the supervised command, the
-video) is subscribed to only while a browser is connected (`watch_page`, `watch_video`).
+passivity figures, the video) is subscribed to only while a browser is connected
+(`watch_page`, `watch_video`).
 Video frames are stored as they arrive, undecoded; `frame()` decodes the newest one when
 the page is about to show it, so frames no browser will see are never decoded.
 """
@@ -29,6 +30,8 @@ from services.bus.keys import (
     EVENTS,
     FORCE,
     MASTER_STATE,
+    PASSIVITY_MASTER,
+    PASSIVITY_SLAVE,
     PUMA_CMD,
     STATE,
     STEREO_L,
@@ -42,6 +45,7 @@ from services.bus.messages import (
     MasterState,
     Message,
     OperatorCommand,
+    PassivityState,
     RobotState,
     StereoFrame,
     VisionStats,
@@ -49,6 +53,7 @@ from services.bus.messages import (
 )
 from services.bus.node import Node, Subscription
 from services.console.geometry import Mat, Vec, commanded_tool_pose
+from services.console.tdpa import PortSeen, TdpaView, newer, plot_row, tdpa_view
 from services.workcell.messages import WORKCELL_STATE, WorkcellState
 
 M = TypeVar("M", bound=Message)
@@ -57,24 +62,18 @@ TARGET_STALE_S = 1.0
 """The commanded target is drawn while robot/puma/cmd arrived within this time."""
 
 
-class ForceHistory:
-    """A ring buffer of force samples for the plots: time (s, the sender's clock), f (3, N),
-    c (3, N·m), tool frame, and when the newest arrived (s, this process's monotonic
-    clock). `add` is O(1) and called from Zenoh's thread.
-
-    The sender's clock spaces the points (Python callbacks run late in bursts under load,
-    so arrival times would bunch them up); the receiver's clock places the newest one, so a
-    stream that stalls slides out of the window instead of freezing on screen. A sample
-    older than the newest one (the sender's wall clock stepped back, the sender restarted,
-    or another publisher's clock) starts a new series: mixing two time bases drew one
-    cluster of points at the end of an axis minutes long (#23 item 9).
+class History:
+    """A ring buffer of rows of `width` values for a plot: time (s), the row, and when the
+    newest arrived (s, this process's monotonic clock). `add_row` is O(1) and called from
+    Zenoh's thread. A row older than the newest one starts a new series (see ForceHistory).
     """
 
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, width: int = 6) -> None:
         if capacity < 2:
             raise ValueError("capacity must be ≥ 2")
+        self.width = width
         self._t = np.zeros(capacity)
-        self._w = np.zeros((capacity, 6))
+        self._w = np.zeros((capacity, width))
         self._n = 0
         self._i = 0
         self._rx_s = 0.0
@@ -82,19 +81,16 @@ class ForceHistory:
         """How many times a sample from the past started a new series."""
         self._lock = threading.Lock()
 
-    def add(
-        self, t_s: float, f: tuple[float, ...], c: tuple[float, ...], rx_s: float | None = None
-    ) -> None:
-        """Append a sample taken at `t_s` (the sender's clock) that arrived at `rx_s`
-        (time.monotonic(); now if None)."""
+    def add_row(self, t_s: float, row: tuple[float, ...], rx_s: float | None = None) -> None:
+        """Append a row taken at `t_s` that arrived at `rx_s` (time.monotonic(); now if
+        None)."""
         rx = time.monotonic() if rx_s is None else rx_s
         with self._lock:
             if self._n and t_s < self._t[self._i - 1]:
                 self._n = self._i = 0
                 self.restarts += 1
             self._t[self._i] = t_s
-            self._w[self._i, :3] = f
-            self._w[self._i, 3:] = c
+            self._w[self._i] = row
             self._i = (self._i + 1) % len(self._t)
             self._n = min(self._n + 1, len(self._t))
             self._rx_s = rx
@@ -107,7 +103,7 @@ class ForceHistory:
         self, span_s: float, max_points: int, now_s: float | None = None
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The samples of the last `span_s` seconds, oldest first, as (t, w): t (n,) in s
-        relative to now (≤ 0), w (n, 6) = (f, c); decimated by an integer step to at most
+        relative to now (≤ 0), w (n, width); decimated by an integer step to at most
         `max_points`. "Now" is `now_s` (time.monotonic()): the newest sample sits at minus
         its age, so a stalled stream leaves the window; with `now_s` None, at 0."""
         with self._lock:
@@ -116,7 +112,7 @@ class ForceHistory:
             t = self._t[idx].copy()
             w = self._w[idx].copy()
         if n == 0:
-            return np.zeros(0), np.zeros((0, 6))
+            return np.zeros(0), np.zeros((0, self.width))
         t -= t[-1] + (max(0.0, now_s - rx) if now_s is not None else 0.0)
         keep = t >= -span_s
         t, w = t[keep], w[keep]
@@ -127,6 +123,29 @@ class ForceHistory:
             np.ascontiguousarray(t[::-1][::step][::-1]),
             np.ascontiguousarray(w[::-1][::step][::-1]),
         )
+
+
+class ForceHistory(History):
+    """The force samples for the plots: time (s, the sender's clock), w = (f (3, N),
+    c (3, N·m)), tool frame.
+
+    The sender's clock spaces the points (Python callbacks run late in bursts under load,
+    so arrival times would bunch them up); the receiver's clock places the newest one, so a
+    stream that stalls slides out of the window instead of freezing on screen. A sample
+    older than the newest one (the sender's wall clock stepped back, the sender restarted,
+    or another publisher's clock) starts a new series: mixing two time bases drew one
+    cluster of points at the end of an axis minutes long (#23 item 9).
+    """
+
+    def __init__(self, capacity: int) -> None:
+        super().__init__(capacity, 6)
+
+    def add(
+        self, t_s: float, f: tuple[float, ...], c: tuple[float, ...], rx_s: float | None = None
+    ) -> None:
+        """Append a sample taken at `t_s` (the sender's clock) that arrived at `rx_s`
+        (time.monotonic(); now if None)."""
+        self.add_row(t_s, (*f, *c), rx_s)
 
 
 @dataclass(frozen=True, slots=True)
@@ -143,16 +162,24 @@ class BusMirror:
     """Subscribes to the streams the console shows; polled status is stored here too.
 
     Always: robot/state, master/state, robot/events, vision/stats (what the hand link and
-    the event log need, at low rates). While `watch_page(True)`: robot/force and
-    robot/puma/cmd. While `watch_video(True)`: vision/stereo/l and /r.
+    the event log need, at low rates). While `watch_page(True)`: robot/force,
+    robot/puma/cmd, workcell/state and robot/passivity/{master,slave}. While
+    `watch_video(True)`: vision/stereo/l and /r.
+
+    `tdpa` holds the passivity plot's rows (`tdpa.plot_row`), one per figures received,
+    timed on this process's monotonic clock (the two sides' clocks may differ).
     """
 
-    def __init__(self, node: Node, events: int, force_capacity: int) -> None:
+    def __init__(
+        self, node: Node, events: int, force_capacity: int, tdpa_capacity: int = 1024
+    ) -> None:
         self.node = node
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self.force = ForceHistory(force_capacity)
         self._force_latest: ForceSample | None = None
+        self.tdpa = History(tdpa_capacity, width=4)
+        self._tdpa: dict[str, PortSeen] = {}
         self._workcell: WorkcellState | None = None
         self._events: deque[Event] = deque(maxlen=events)
         self.events_seen = 0
@@ -181,12 +208,16 @@ class BusMirror:
                 self._subscribe(FORCE, self._on_force),
                 self._subscribe(PUMA_CMD, self._on_puma_cmd),
                 self._subscribe(WORKCELL_STATE, self._on_workcell),
+                self._subscribe(PASSIVITY_MASTER, self._passivity_store("master")),
+                self._subscribe(PASSIVITY_SLAVE, self._passivity_store("slave")),
             ]
         elif not on:
             subs, self._page_subs = self._page_subs, []
             for sub in subs:
                 sub.undeclare()
             self._force_latest = None
+            with self._lock:
+                self._tdpa.clear()
 
     def watch_video(self, on: bool) -> None:
         """Subscribe to both eyes (on) or drop them (off: vision, if nobody else watches,
@@ -259,6 +290,24 @@ class BusMirror:
         self.force.add(msg.t_ns / 1e9, msg.f, msg.c)
         self._force_latest = msg
 
+    def _passivity_store(self, side: str) -> Callable[[PassivityState], None]:
+        key = (PASSIVITY_MASTER if side == "master" else PASSIVITY_SLAVE).key
+
+        def store(msg: PassivityState) -> None:
+            if msg.side != side:  # the other side's figures on this side's key: refused
+                self.node.report_rejected(key, f"side: {msg.side!r} on {key}")
+                return
+            rx = time.monotonic()
+            with self._lock:
+                old = self._tdpa.get(side)
+                if old is not None and not newer(old.msg, msg):
+                    return
+                self._tdpa[side] = PortSeen.first(msg, rx) if old is None else old.after(msg, rx)
+                row = plot_row(tdpa_view(self._tdpa, rx))
+            self.tdpa.add_row(rx, row, rx)
+
+        return store
+
     def _on_workcell(self, msg: WorkcellState) -> None:
         old = self._workcell
         if old is None or msg.seq > old.seq or msg.t_ns > old.t_ns:
@@ -291,6 +340,12 @@ class BusMirror:
     # --- readers ----------------------------------------------------------------------------
     def latest_force(self) -> ForceSample | None:
         return self._force_latest
+
+    def passivity(self, now_s: float | None = None) -> TdpaView:
+        """The passivity figures as shown at `now_s` (time.monotonic(); now if None)."""
+        with self._lock:
+            seen = dict(self._tdpa)
+        return tdpa_view(seen, time.monotonic() if now_s is None else now_s)
 
     def workcell(self) -> WorkcellState | None:
         """The newest `workcell/state` (its objects not yet checked: `objects_of`)."""

@@ -1,4 +1,5 @@
-"""The console's text panels as HTML: robot and supervisor status, master, services, events.
+"""The console's text panels as HTML: robot and supervisor status, master, services, events,
+time-domain passivity.
 
 Pure functions of what the bus delivered, so they are tested without a browser. Every value
 that came off the bus is escaped. Elements carry stable ids (`tr-…`) and `data-` attributes
@@ -14,6 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from services.bus.messages import Event, MasterState, RobotState
+from services.console.tdpa import PortFigures, TdpaView
 
 #: services the console expects on a complete system (alive/<name>)
 EXPECTED_SERVICES: tuple[str, ...] = ("puma", "force", "decision", "vision")
@@ -203,4 +205,62 @@ def events_html(events: Sequence[Event]) -> str:
     return (
         '<ul id="tr-events" style="font-size:0.75em;list-style:none;padding-left:0;margin:0;'
         'max-height:18em;overflow-y:auto">' + "".join(items) + "</ul>"
+    )
+
+
+_TDPA = {
+    "none": ("#6e7781", "passivity off — no TDPA figures (off, or nobody engaged)"),
+    "observing": ("#57606a", "TDPA observing only (controllers off)"),
+    "inactive": ("#1a7f37", "TDPA on — inactive (the channel is passive)"),
+    "active": ("#bc4c00", "TDPA ACTIVE — dissipating energy"),
+}
+_ACTION = {"master": ("β", "N·s/m"), "slave": ("α", "m/N")}
+
+
+def _joules(x: float | None) -> str:
+    return "-" if x is None else f"{x:+.4f}"
+
+
+def _port_html(p: PortFigures) -> str:
+    symbol, unit = _ACTION[p.side]
+    color = "#bc4c00" if p.acting and p.enabled else "#24292f"
+    remote = "slave" if p.side == "master" else "master"
+    cells = (
+        ("in (J)", "tr-tdpa-in", _joules(p.e_in_j)),
+        ("out (J)", "tr-tdpa-out", _joules(p.e_out_j)),
+        (f"{remote} in (J)", "tr-tdpa-remote", _joules(p.remote_in_j)),
+        ("reservoir (J)", "tr-tdpa-reservoir", _joules(p.reservoir_j)),
+        (f"{symbol} ({unit})", "tr-tdpa-gain", f"{p.gain:.3g}"),
+        ("dissipated (J)", "tr-tdpa-dissipated", _joules(p.dissipated_j)),
+        ("acted (steps)", "tr-tdpa-steps", str(p.active_steps)),
+    )
+    rows = "".join(
+        _row(label, f'<code class="{cls}" style="color:{color}">{_e(v)}</code>')
+        for label, cls, v in cells
+    )
+    head = (
+        f'<b>{_e(p.side)} port</b> <span style="color:#57606a">{_e(p.master)} #{p.engage}'
+        f"{'' if p.enabled else ', observing'}</span>"
+    )
+    return (
+        f'<div class="tr-tdpa-port" data-side="{_e(p.side)}" '
+        f'data-acting="{str(p.acting and p.enabled).lower()}" '
+        f'data-reservoir="{p.reservoir_j!r}" data-gain="{p.gain!r}">{head}'
+        f'<table style="font-size:1em;width:100%">{rows}</table></div>'
+    )
+
+
+def passivity_html(view: TdpaView) -> str:
+    """The TDPA panel: a one-line indicator (`data-tdpa` none | observing | inactive |
+    active), then per port its energies, reservoir and the controller's action."""
+    state = view.state
+    color, text = _TDPA[state]
+    head = (
+        f'<div id="tr-tdpa" data-tdpa="{state}" style="color:{color};font-weight:600">'
+        f"{_e(text)}</div>"
+    )
+    return (
+        f'<div style="font-size:0.8em">{head}'
+        + "".join(_port_html(p) for p in view.ports)
+        + "</div>"
     )

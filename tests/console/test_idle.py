@@ -186,6 +186,8 @@ def test_session_configs_carry_the_downsampling_rules() -> None:
         (keys.STATE.key, 40.0),
         (keys.PUMA_CMD.key, 40.0),
         (WORKCELL_STATE.key, 40.0),
+        (keys.PASSIVITY_MASTER.key, 40.0),
+        (keys.PASSIVITY_SLAVE.key, 40.0),
     )
     m = master_node_config(base, 100.0)
     assert m.downsampling == (("x/y", 5.0), (keys.FORCE.key, 100.0), (keys.STATE.key, 100.0))
