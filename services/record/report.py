@@ -160,6 +160,10 @@ class Traces:
     tool_t_s: list[float] = field(default_factory=list)
     tool_p: list[tuple[float, ...]] = field(default_factory=list)
     targets: dict[str, tuple[list[float], list[tuple[float, ...]]]] = field(default_factory=dict)
+    passivity: dict[str, tuple[list[float], list[tuple[float, float, float]]]] = field(
+        default_factory=dict
+    )
+    """side → (times, (e_in, e_out, dissipated_j) in J), from robot/passivity/<side>."""
 
 
 @dataclass
@@ -315,6 +319,10 @@ def analyze(paths: Sequence[str | Path], select: Callable[[str], bool] | None = 
                 traces.tool_p.append(msg.tool_p)
                 if target is not None:
                     tracking.append(float(np.linalg.norm(tool[0] - target)) * 1e3)
+            elif isinstance(msg, PassivityState):
+                ts, es = traces.passivity.setdefault(msg.side, ([], []))
+                ts.append(t_s)
+                es.append((msg.e_in, msg.e_out, msg.dissipated_j))
             elif isinstance(msg, Event):
                 events.append(EventRow(t_s, msg.source, msg.kind, msg.message, msg.data))
             elif isinstance(msg, OperatorCommand) and m.key in COMMAND_KEYS and msg.active:
@@ -435,13 +443,36 @@ def path_plot(report: Report) -> plots.Image:
     return plots.stack(views, horizontal=True)
 
 
+def passivity_plot(report: Report) -> plots.Image:
+    """The passivity figures of each port over time (docs/passivity.md): energy in, out and
+    dissipated (J, cumulative within an engagement, so each falls to 0 at a new one)."""
+    panels = []
+    for side in ("master", "slave"):
+        if side not in report.traces.passivity:
+            continue
+        ts, es = report.traces.passivity[side]
+        t = np.asarray(ts, dtype=float)
+        e = np.asarray(es, dtype=float).reshape(-1, 3)
+        series = [
+            plots.Series.of(label, t, e[:, i])
+            for i, label in enumerate(("in", "out", "dissipated"))
+        ]
+        title = f"robot/passivity/{side}: {side} port energies"
+        panels.append(plots.panel(series, title, "time (s)", "energy (J)"))
+    return plots.stack(panels)
+
+
 def write_plots(report: Report, folder: str | Path) -> list[Path]:
-    """Write `force.png` and `path.png` into `folder`; their paths."""
+    """Write `force.png` and `path.png` into `folder`, and `passivity.png` when the
+    recording holds passivity figures; their paths."""
     d = Path(folder)
-    return [
+    written = [
         plots.save_png(d / "force.png", force_plot(report)),
         plots.save_png(d / "path.png", path_plot(report)),
     ]
+    if report.traces.passivity:
+        written.append(plots.save_png(d / "passivity.png", passivity_plot(report)))
+    return written
 
 
 # --- text ----------------------------------------------------------------------------------
@@ -505,7 +536,12 @@ def format_report(report: Report, max_events: int = 50) -> str:
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="telerobot report", description=__doc__)
     p.add_argument("files", nargs="+", metavar="FILE.mcap", help="recording (or its parts)")
-    p.add_argument("--plots", metavar="DIR", default=None, help="write force.png, path.png here")
+    p.add_argument(
+        "--plots",
+        metavar="DIR",
+        default=None,
+        help="write force.png, path.png (and passivity.png) here",
+    )
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.add_argument("--max-events", type=int, default=50, help="events listed in the text")
     return p

@@ -19,7 +19,7 @@ from services.record import schemas
 from services.record.archive import Recording
 from services.record.recorder import Recorder, RecorderConfig
 from services.record.replay import Replayer, ReplayOptions
-from services.record.report import analyze, format_report
+from services.record.report import analyze, format_report, write_plots
 from tests.conftest import Net, wait_until
 from tests.record.helpers import conforms
 
@@ -117,6 +117,15 @@ def test_passivity_figures_are_recorded_with_their_schema_reported_and_replayed(
     assert (master_r.seq_gaps, master_r.missing, master_r.gaps) == (1, 1, 1)
     assert (slave_r.seq_gaps, slave_r.gaps, slave_r.stalls) == (0, 0, 0)
     assert master_r.senders == 1 and slave_r.senders == 1
+    assert [len(report.traces.passivity[s][0]) for s in ("master", "slave")] == [39, 40]
+    assert report.traces.passivity["slave"][1][-1] == pytest.approx((0.2, 0.08, 0.011))
+    written = write_plots(report, tmp_path / "plots")
+    assert [p.name for p in written] == ["force.png", "path.png", "passivity.png"]
+    import cv2
+
+    img = cv2.imread(str(written[-1]))
+    assert img is not None and img.shape[0] > 600  # one panel per port
+    assert (img < 128).any() and (img == 255).mean() > 0.5
     text = format_report(report)
     assert "robot/passivity/master PassivityState" in text
     assert "robot/passivity/slave" in text
