@@ -111,6 +111,34 @@ def test_router_files_deny_by_default_with_consistent_rules(path: Path) -> None:
     assert cfg["listen"]["endpoints"] == ["tcp/0.0.0.0:7447", "tls/0.0.0.0:7448"]
 
 
+@pytest.mark.parametrize("path", ROUTER_FILES, ids=lambda p: p.name)
+def test_the_operator_exchanges_passivity_energies_and_watchers_see_both(path: Path) -> None:
+    """TDPA (issue 18) needs the master's energies in and the slave's out; without these
+    rules a station behind the router would run its passivity controller blind."""
+    acl = zconfig(path)["access_control"]
+    rules = {r["id"]: r for r in acl["rules"]}
+
+    def granted(subject: str, flow: str, message: str) -> set[str]:
+        keys: set[str] = set()
+        for policy in acl["policies"]:
+            if subject not in policy["subjects"]:
+                continue
+            for rid in policy["rules"]:
+                rule = rules[rid]
+                if flow in rule["flows"] and message in rule["messages"]:
+                    keys.update(rule["key_exprs"])
+        return keys
+
+    operator = next(s["id"] for s in acl["subjects"] if "operator" in (s.get("usernames") or []))
+    observer = next(s["id"] for s in acl["subjects"] if "observer" in (s.get("usernames") or []))
+    assert "robot/passivity/master" in granted(operator, "ingress", "put")
+    assert "robot/passivity/slave" not in granted(operator, "ingress", "put")
+    for who in (operator, observer):
+        assert "robot/passivity/*" in granted(who, "ingress", "declare_subscriber")
+    assert "robot/passivity/*" in granted(observer, "egress", "put")
+    assert "robot/passivity/master" not in granted(observer, "ingress", "put")
+
+
 def test_mtls_variant_differs_only_in_tls_and_the_operator_subject() -> None:
     plain = zconfig(DEPLOY / "router" / "robot-router.json5")
     mtls = zconfig(DEPLOY / "router" / "robot-router-mtls.json5")
