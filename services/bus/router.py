@@ -22,14 +22,14 @@ import sys
 from typing import TYPE_CHECKING
 
 from services.bus.bounds import short
-from services.bus.config import NodeConfig, add_node_args, load_deploy, section
+from services.bus.config import ROUTER_PORT, NodeConfig, add_node_args, load_deploy, section
 from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown, setup_logging
 
 if TYPE_CHECKING:  # zenoh is imported where a session opens: `up --help` stays instant
     import zenoh
 
-DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+DEFAULT_LISTEN = f"tcp/0.0.0.0:{ROUTER_PORT}"
 
 log = logging.getLogger("telerobot.router")
 
