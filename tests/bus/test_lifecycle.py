@@ -18,18 +18,24 @@ from services.bus.config import LOCAL_ROUTER
 from services.bus.lifecycle import CONFIG_EXIT, ServiceContext, run_service
 from tests.conftest import Net, wait_until
 
-#: every service main; each must be built on run_service
+#: every service main (and the router's); each must be built on run_service
 MAINS = [
-    "puma",
-    "force",
-    "decision",
-    "master",
-    "vision",
-    "console",
-    "workcell",
-    "ros2",
-    "record",
-    "tasks",
+    *(
+        f"services.{name}.__main__"
+        for name in (
+            "puma",
+            "force",
+            "decision",
+            "master",
+            "vision",
+            "console",
+            "workcell",
+            "ros2",
+            "record",
+            "tasks",
+        )
+    ),
+    "services.bus.router",
 ]
 
 
@@ -162,7 +168,7 @@ def test_sigterm_stops_it_cleanly(net: Net, signals: None) -> None:
 def test_every_main_has_the_common_options(
     name: str, capsys: pytest.CaptureFixture[str], signals: None
 ) -> None:
-    module = importlib.import_module(f"services.{name}.__main__")
+    module = importlib.import_module(name)
     with pytest.raises(SystemExit) as e:
         module.main(["--help"])
     assert e.value.code == 0
