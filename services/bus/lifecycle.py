@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import cached_property
 from types import FrameType
 from typing import TYPE_CHECKING, Any, Protocol
@@ -77,6 +78,7 @@ class Closeable(Protocol):
     def close(self) -> None: ...
 
 
+@dataclass(frozen=True)
 class ServiceContext:
     """What `run_service()` hands a service's `start`: its parsed arguments, the deployment
     file, the node configuration, the stop flag, its logger, and the sessions it opens.
@@ -88,21 +90,12 @@ class ServiceContext:
     (holding the arm) before that node's session closes.
     """
 
-    def __init__(
-        self,
-        name: str,
-        args: argparse.Namespace,
-        stop: Shutdown,
-        log: logging.Logger,
-        stack: contextlib.ExitStack,
-        connect: tuple[str, ...],
-    ) -> None:
-        self.name = name
-        self.args = args
-        self.stop = stop
-        self.log = log
-        self._stack = stack
-        self._connect = connect
+    name: str
+    args: argparse.Namespace
+    stop: Shutdown
+    log: logging.Logger
+    _stack: contextlib.ExitStack
+    _connect: tuple[str, ...]
 
     @cached_property
     def deploy(self) -> dict[str, Any]:
