@@ -33,9 +33,11 @@ system-deps:
 demo: install
 	$(BIN)/telerobot demo
 
+# lint-imports checks the layered import contract in pyproject.toml (docs/architecture.md)
 lint: install
 	$(BIN)/ruff format --check .
 	$(BIN)/ruff check .
+	$(BIN)/lint-imports --no-cache
 
 typecheck: install
 	$(BIN)/mypy

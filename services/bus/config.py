@@ -25,6 +25,10 @@ if TYPE_CHECKING:  # zenoh is imported where a session is configured: `--help` s
 
 Mode = Literal["peer", "client", "router"]
 MAX_LEASE_MS = 2000
+#: the port `telerobot router` listens on unless told otherwise
+ROUTER_PORT = 7447
+#: the router on this machine, as a service or tool dials it when no endpoint is given
+LOCAL_ROUTER = f"tcp/127.0.0.1:{ROUTER_PORT}"
 
 T = TypeVar("T")
 

@@ -1,12 +1,30 @@
-"""Process lifecycle: SIGINT/SIGTERM become a stop flag, so every service runs its `finally`."""
+"""Process lifecycle: one `run_service()` for every service's main, and SIGINT/SIGTERM as a
+stop flag, so every service runs its `finally`."""
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import faulthandler
 import logging
 import signal
+import sys
 import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cached_property
 from types import FrameType
+from typing import TYPE_CHECKING, Any, Protocol
+
+from services.bus.config import LOCAL_ROUTER, NodeConfig, add_node_args, load_deploy, node_config
+from services.bus.errors import ConfigError
+
+if TYPE_CHECKING:  # zenoh is imported when a session opens: `--help` stays instant
+    from services.bus.node import Node
+
+#: the exit status of a process whose configuration is wrong; `telerobot up` does not
+#: restart a child that exits with it (a restart cannot mend a bad key)
+CONFIG_EXIT = 2
 
 #: after a stop signal, a process that has not exited by then dumps every thread's stack
 #: to stderr and exits (status 1): an exit hang is reported, never left running.
@@ -54,3 +72,106 @@ def setup_logging(name: str, verbose: bool = False) -> logging.Logger:
         format=f"%(asctime)s %(levelname)-7s {name}: %(message)s",
     )
     return logging.getLogger(f"telerobot.{name}")
+
+
+class Closeable(Protocol):
+    def close(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class ServiceContext:
+    """What `run_service()` hands a service's `start`: its parsed arguments, the deployment
+    file, the node configuration, the stop flag, its logger, and the sessions it opens.
+
+    `deploy` and `node_config` are read when first asked for (a main that opens no session
+    of its own never reads `[zenoh]`); a bad value raises ConfigError naming the key.
+    Everything opened through `open()` or registered with `closing()` is closed when the
+    service ends, last registered first: a service registered after its node is closed
+    (holding the arm) before that node's session closes.
+    """
+
+    name: str
+    args: argparse.Namespace
+    stop: Shutdown
+    log: logging.Logger
+    _stack: contextlib.ExitStack
+    _connect: tuple[str, ...]
+
+    @cached_property
+    def deploy(self) -> dict[str, Any]:
+        """The deployment TOML named by `--config` (empty without one)."""
+        return load_deploy(getattr(self.args, "config", None))
+
+    @cached_property
+    def node_config(self) -> NodeConfig:
+        """The node's configuration: the service's default router < `[zenoh]` < flags."""
+        return node_config(self.args, self.deploy, connect=self._connect)
+
+    def open(self, cfg: NodeConfig | None = None, name: str = "", instance: str = "") -> Node:
+        """Open a session (`cfg`, default `node_config`) as `name` (default the service's),
+        closed when the service ends."""
+        from services.bus.node import Node
+
+        node = Node(name or self.name, cfg or self.node_config, instance=instance)
+        return self._stack.enter_context(node)
+
+    def closing(self, service: Closeable) -> None:
+        """Close `service` when the service ends (before the sessions opened earlier)."""
+        self._stack.callback(service.close)
+
+
+def service_parser(
+    name: str,
+    description: str | None = None,
+    add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+    prog: str | None = None,
+    verbose_help: str = "debug logging",
+) -> argparse.ArgumentParser:
+    """A service's command line: its own options (`add_arguments`), then the Zenoh flags
+    every service shares (`add_node_args`: `--config`, `--connect`, `--listen`, `--mode`,
+    `--ns`, …) and `--verbose`."""
+    p = argparse.ArgumentParser(prog=prog or f"telerobot {name}", description=description)
+    if add_arguments is not None:
+        add_arguments(p)
+    add_node_args(p)
+    p.add_argument("--verbose", "-v", action="store_true", help=verbose_help)
+    return p
+
+
+def run_service(
+    name: str,
+    argv: list[str] | None,
+    start: Callable[[ServiceContext], int | None],
+    *,
+    description: str | None = None,
+    add_arguments: Callable[[argparse.ArgumentParser], None] | None = None,
+    prog: str | None = None,
+    connect: tuple[str, ...] = (LOCAL_ROUTER,),
+    verbose_help: str = "debug logging",
+) -> int:
+    """The main of every service: parse the command line (`service_parser`), set up logging
+    and SIGINT/SIGTERM, then call `start(ctx)`.
+
+    `start` reads its configuration (`ctx.deploy`, `ctx.args`), opens its sessions with
+    `ctx.open()` and registers what must be closed with `ctx.closing()`. When it returns
+    None the service runs until SIGINT/SIGTERM; an int ends it at once with that status
+    (a tool that runs to completion, or a start-up refusal). Either way everything
+    registered is closed, last first. A bad configuration anywhere ends the process with
+    status 2 (`CONFIG_EXIT`) and one line on stderr naming the key. `connect` is where the
+    node connects when neither the deployment nor the flags say (the local router).
+    """
+    p = service_parser(name, description, add_arguments, prog, verbose_help)
+    args = p.parse_args(argv)
+    log = setup_logging(name, args.verbose)
+    stop = Shutdown()
+    try:
+        with contextlib.ExitStack() as stack:
+            status = start(ServiceContext(name, args, stop, log, stack, connect))
+            if status is not None:
+                return status
+            stop.wait()
+    except ConfigError as e:
+        print(f"telerobot {name}: {e}", file=sys.stderr, flush=True)
+        return CONFIG_EXIT
+    log.info("%s stopped", name)
+    return 0

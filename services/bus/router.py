@@ -22,14 +22,14 @@ import sys
 from typing import TYPE_CHECKING
 
 from services.bus.bounds import short
-from services.bus.config import NodeConfig, add_node_args, load_deploy, section
+from services.bus.config import ROUTER_PORT, NodeConfig, load_deploy, section
 from services.bus.errors import ConfigError
-from services.bus.lifecycle import Shutdown, setup_logging
+from services.bus.lifecycle import ServiceContext, run_service
 
 if TYPE_CHECKING:  # zenoh is imported where a session opens: `up --help` stays instant
     import zenoh
 
-DEFAULT_LISTEN = "tcp/0.0.0.0:7447"
+DEFAULT_LISTEN = f"tcp/0.0.0.0:{ROUTER_PORT}"
 
 log = logging.getLogger("telerobot.router")
 
@@ -140,32 +140,30 @@ def open_router(cfg: NodeConfig) -> zenoh.Session:
     return zenoh.open(cfg.to_zenoh())
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="telerobot router", description=__doc__)
-    add_node_args(p)
-    args = p.parse_args(argv)
+def start(ctx: ServiceContext) -> int | None:
+    """Open the router, unless its endpoint is taken (status 1) or Zenoh refuses (1)."""
     import zenoh
 
-    setup_logging("router")
     # RUST_LOG=info,zenoh::net::routing::interceptor::access_control=trace shows ACL denials.
     zenoh.try_init_log_from_env()
-    cfg = router_config(args)
+    cfg = router_config(ctx.args)
     note = exposure_note(cfg)
     taken = [e for e in cfg.listen if endpoint_taken(e)]
     if taken:
         print(f"telerobot router: {already_running(taken)}", file=sys.stderr, flush=True)
         return 1
-    stop = Shutdown()
     try:
         session = open_router(cfg)
     except zenoh.ZError as e:
         print(f"telerobot router: cannot start: {short(str(e), 400)}", file=sys.stderr, flush=True)
         return 1
-    with session:
-        log.info("router %s listening on %s", session.zid(), ", ".join(cfg.listen) or "config")
-        print(f"router up: zid={session.zid()} listen={list(cfg.listen)}", flush=True)
-        if note:
-            log.warning(note)
-        stop.wait()
-    log.info("router stopped")
-    return 0
+    ctx.closing(session)
+    log.info("router %s listening on %s", session.zid(), ", ".join(cfg.listen) or "config")
+    print(f"router up: zid={session.zid()} listen={list(cfg.listen)}", flush=True)
+    if note:
+        log.warning(note)
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("router", argv, start, description=__doc__)

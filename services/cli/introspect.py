@@ -18,7 +18,7 @@ import time
 from collections import defaultdict, deque
 from typing import TYPE_CHECKING, Any, TextIO
 
-from services.bus.config import NodeConfig, add_node_args, node_config
+from services.bus.config import LOCAL_ROUTER, NodeConfig, add_node_args, node_config
 from services.bus.lifecycle import Shutdown
 
 if TYPE_CHECKING:
@@ -26,7 +26,6 @@ if TYPE_CHECKING:
 
     from services.bus.node import AliveSet
 
-LOCAL_ROUTER = "tcp/127.0.0.1:7447"
 #: `topic echo` says it is still waiting when nothing came within this (s)
 HINT_AFTER_S = 3.0
 #: after a first instance of a role shows up, how long more tokens may still be arriving (s)

@@ -8,22 +8,12 @@ See docs/console.md.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import sys
 from dataclasses import replace
 
 from services.bus import keys
-from services.bus.config import (
-    NodeConfig,
-    add_node_args,
-    load_deploy,
-    node_config,
-    section,
-    service_table,
-)
-from services.bus.lifecycle import Shutdown, setup_logging
-from services.bus.node import Node
-from services.cli.introspect import LOCAL_ROUTER
+from services.bus.config import NodeConfig, section, service_table
+from services.bus.lifecycle import CONFIG_EXIT, ServiceContext, run_service
 from services.console.config import ConsoleConfig
 from services.workcell.messages import WORKCELL_STATE
 
@@ -64,45 +54,39 @@ def master_node_config(cfg: NodeConfig, rate_hz: float | None = None) -> NodeCon
     return replace(cfg, listen=listen, connect=connect, downsampling=(*cfg.downsampling, *rules))
 
 
-def run(node_cfg: NodeConfig, config: ConsoleConfig, stop: Shutdown) -> int:
-    """Serve the console (and its master if `config.master`) until `stop` is set. Every
+def serve(ctx: ServiceContext, config: ConsoleConfig) -> int | None:
+    """Serve the console (and its master if `config.master`) until the service stops. Every
     exit closes the console, then the master (which leaves the arm held), then the nodes."""
     from services.console.app import Console
 
-    with contextlib.ExitStack() as stack:
-        node = stack.enter_context(Node("console", console_node_config(node_cfg, config)))
-        if config.master:
-            from services.master.config import MasterConfig
-            from services.master.service import MasterService
+    node = ctx.open(console_node_config(ctx.node_config, config))
+    if config.master:
+        from services.master.config import MasterConfig
+        from services.master.service import MasterService
 
-            if node.alive.wait(f"master/{config.master_id}", MASTER_TAKEN_WAIT_S):
-                print(
-                    f"telerobot console: master {config.master_id!r} is already running; "
-                    "use --master-id to start another or --no-master to drive that one",
-                    file=sys.stderr,
-                )
-                return 2
-            # A virtual device that engages only when the console says so (once the hand is
-            # at the tool pose), never at start-up.
-            mcfg = MasterConfig(master_id=config.master_id, device="virtual", engage_on_start=False)
-            mnode = stack.enter_context(
-                Node(
-                    "master",
-                    master_node_config(node_cfg, mcfg.rate_hz),
-                    instance=config.master_id,
-                )
+        if node.alive.wait(f"master/{config.master_id}", MASTER_TAKEN_WAIT_S):
+            print(
+                f"telerobot console: master {config.master_id!r} is already running; "
+                "use --master-id to start another or --no-master to drive that one",
+                file=sys.stderr,
             )
-            master = MasterService(mnode, mcfg)
-            stack.callback(master.close)
-        console = Console(node, config)
-        stack.callback(console.close)
-        print(f"console: {console.url}", flush=True)
-        stop.wait()
-    return 0
+            return CONFIG_EXIT
+        # A virtual device that engages only when the console says so (once the hand is
+        # at the tool pose), never at start-up.
+        mcfg = MasterConfig(master_id=config.master_id, device="virtual", engage_on_start=False)
+        mnode = ctx.open(
+            master_node_config(ctx.node_config, mcfg.rate_hz),
+            name="master",
+            instance=config.master_id,
+        )
+        ctx.closing(MasterService(mnode, mcfg))
+    console = Console(node, config)
+    ctx.closing(console)
+    print(f"console: {console.url}", flush=True)
+    return None
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="telerobot console", description=__doc__)
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", type=int, default=None, help="HTTP port (default 8080; 0: any)")
     p.add_argument("--host", default=None, help="address to serve on (default 127.0.0.1)")
     p.add_argument(
@@ -112,21 +96,22 @@ def main(argv: list[str] | None = None) -> int:
         help="start an in-process virtual master driven by the gizmo (default: on)",
     )
     p.add_argument("--master-id", default=None, help="the master the gizmo drives")
-    p.add_argument("--verbose", "-v", action="store_true", help="debug logging")
-    add_node_args(p)
-    args = p.parse_args(argv)
-    setup_logging("console", args.verbose)
-    deploy = load_deploy(args.config)
+
+
+def start(ctx: ServiceContext) -> int | None:
+    args = ctx.args
     overrides = {
         "port": args.port,
         "host": args.host,
         "master": args.master,
         "master_id": args.master_id,
     }
-    table = service_table(deploy, "console", overrides)
-    config = section(ConsoleConfig, table, "console")
-    node_cfg = node_config(args, deploy, connect=(LOCAL_ROUTER,))
-    return run(node_cfg, config, Shutdown())
+    config = section(ConsoleConfig, service_table(ctx.deploy, "console", overrides), "console")
+    return serve(ctx, config)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("console", argv, start, description=__doc__, add_arguments=arguments)
 
 
 if __name__ == "__main__":

@@ -9,16 +9,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from services.bus.config import add_node_args, node_config, service_config
-from services.bus.lifecycle import Shutdown, setup_logging
-from services.bus.node import Node
+from services.bus.config import section, service_table
+from services.bus.lifecycle import ServiceContext, run_service
 from services.decision.config import DecisionConfig
 from services.decision.service import DecisionService
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="telerobot decision", description=__doc__)
-    add_node_args(p)
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--compliance",
         action=argparse.BooleanOptionalAction,
@@ -26,31 +23,23 @@ def main(argv: list[str] | None = None) -> int:
         help="active compliance (admittance) on or off",
     )
     p.add_argument("--watchdog-ms", type=float, default=None, help="command watchdog (ms)")
-    p.add_argument("--verbose", "-v", action="store_true", help="debug logging")
-    args = p.parse_args(argv)
-    log = setup_logging("decision", args.verbose)
-    cfg = node_config(args, connect=("tcp/127.0.0.1:7447",))
-    dcfg = service_config(
-        DecisionConfig,
-        args,
-        "decision",
-        {"compliance": args.compliance, "watchdog_ms": args.watchdog_ms},
+
+
+def start(ctx: ServiceContext) -> None:
+    node_cfg = ctx.node_config
+    overrides = {"compliance": ctx.args.compliance, "watchdog_ms": ctx.args.watchdog_ms}
+    dcfg = section(DecisionConfig, service_table(ctx.deploy, "decision", overrides), "decision")
+    ctx.closing(DecisionService(ctx.open(node_cfg), dcfg))
+    ctx.log.info(
+        "decision up: loop %.0f Hz, watchdog %.0f ms, compliance %s",
+        dcfg.rate_hz,
+        dcfg.watchdog_ms,
+        "on" if dcfg.compliance else "off",
     )
-    stop = Shutdown()
-    with Node("decision", cfg) as node:
-        service = DecisionService(node, dcfg)
-        try:
-            log.info(
-                "decision up: loop %.0f Hz, watchdog %.0f ms, compliance %s",
-                dcfg.rate_hz,
-                dcfg.watchdog_ms,
-                "on" if dcfg.compliance else "off",
-            )
-            stop.wait()
-        finally:
-            service.close()
-    log.info("decision stopped")
-    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("decision", argv, start, description=__doc__, add_arguments=arguments)
 
 
 if __name__ == "__main__":

@@ -7,10 +7,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from services.bus.config import add_node_args, load_deploy, node_config, service_table
-from services.bus.lifecycle import Shutdown, setup_logging
-from services.bus.node import Node
-from services.cli.introspect import LOCAL_ROUTER
+from services.bus.config import service_table
+from services.bus.lifecycle import CONFIG_EXIT, ServiceContext, run_service
 from services.master.config import MasterConfig
 from services.master.devices import DeviceNotFound
 
@@ -27,8 +25,7 @@ DEVICES = {
 }
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="telerobot master", description=__doc__)
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", "-d", choices=sorted(DEVICES), default=None)
     p.add_argument("--id", dest="master_id", default=None, help="this master's id")
     p.add_argument("--port", default=None, help="serial URL or HID path")
@@ -44,10 +41,10 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="haply: the Inverse Service's WebSocket (default ws://localhost:10001)",
     )
-    add_node_args(p)
-    args = p.parse_args(argv)
-    log = setup_logging("master")
-    deploy = load_deploy(args.config)
+
+
+def start(ctx: ServiceContext) -> int | None:
+    args = ctx.args
     overrides = {
         "device": DEVICES.get(args.device or ""),
         "master_id": args.master_id,
@@ -59,26 +56,23 @@ def main(argv: list[str] | None = None) -> int:
         "frame": args.frame,
         "haply_url": args.haply_url,
     }
-    table = service_table(deploy, "master", overrides)
-    config = MasterConfig.from_mapping(table)
+    config = MasterConfig.from_mapping(service_table(ctx.deploy, "master", overrides))
     from services.master.service import MasterService
 
-    stop = Shutdown()
-    with Node(
-        "master", node_config(args, deploy, connect=(LOCAL_ROUTER,)), instance=config.master_id
-    ) as node:
-        try:
-            svc = MasterService(node, config)
-        except DeviceNotFound as e:
-            found = "\n  ".join(e.found) or "nothing"
-            print(f"telerobot master: {e}\nfound:\n  {found}", file=sys.stderr)
-            return 2
-        log.info("master %s on %s at %.0f Hz", config.master_id, svc.device.name, config.rate_hz)
-        try:
-            stop.wait()
-        finally:
-            svc.close()
-    return 0
+    node = ctx.open(instance=config.master_id)
+    try:
+        svc = MasterService(node, config)
+    except DeviceNotFound as e:
+        found = "\n  ".join(e.found) or "nothing"
+        print(f"telerobot master: {e}\nfound:\n  {found}", file=sys.stderr)
+        return CONFIG_EXIT
+    ctx.closing(svc)
+    ctx.log.info("master %s on %s at %.0f Hz", config.master_id, svc.device.name, config.rate_hz)
+    return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("master", argv, start, description=__doc__, add_arguments=arguments)
 
 
 if __name__ == "__main__":

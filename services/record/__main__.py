@@ -11,19 +11,14 @@ import json
 import sys
 import time
 
-from services.bus.config import add_node_args, node_config
-from services.bus.lifecycle import Shutdown, setup_logging
-from services.bus.node import Node
+from services.bus.lifecycle import ServiceContext, run_service, service_parser
 from services.record.recorder import Recorder, RecorderConfig, RecorderStats
 
-LOCAL_ROUTER = "tcp/127.0.0.1:7447"
 PROGRESS_S = 3.0
 POLL_S = 0.1
 
 
-def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="telerobot record", description=__doc__)
-    add_node_args(p)
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--output", required=True, metavar="FILE.mcap", help="output file")
     p.add_argument(
         "--keys",
@@ -66,8 +61,10 @@ def parser() -> argparse.ArgumentParser:
         metavar="S",
         help=f"log the samples per topic every S seconds ({PROGRESS_S:g}; 0: never)",
     )
-    p.add_argument("--verbose", "-v", action="store_true", help="debug logging")
-    return p
+
+
+def parser() -> argparse.ArgumentParser:
+    return service_parser("record", __doc__, arguments)
 
 
 def progress(st: RecorderStats, elapsed_s: float) -> str:
@@ -77,9 +74,9 @@ def progress(st: RecorderStats, elapsed_s: float) -> str:
     return f"{elapsed_s:.0f} s: {per_key}; {st.written} written, {st.dropped} dropped → {where}"
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
-    log = setup_logging("record", args.verbose)
+def start(ctx: ServiceContext) -> int:
+    """Record until SIGINT/SIGTERM or a limit; print the summary as one JSON line."""
+    args = ctx.args
     config = RecorderConfig(
         output=args.output,
         keys=tuple(args.keys),
@@ -93,22 +90,19 @@ def main(argv: list[str] | None = None) -> int:
         chunk_interval_s=args.chunk_interval_s,
         compression=args.compression,
     )
-    node_cfg = node_config(args, connect=(LOCAL_ROUTER,))
-    stop = Shutdown()
-    with Node("record", node_cfg) as node:
-        recorder = Recorder(node, config)
-        start = time.monotonic()
-        every = args.progress_s if args.progress_s > 0 else float("inf")
-        next_status = start + every
-        try:
-            while not stop.is_set() and not recorder.ended.wait(POLL_S):
-                if time.monotonic() >= next_status:
-                    next_status += every
-                    log.info("%s", progress(recorder.stats(), time.monotonic() - start))
-        finally:
-            final = recorder.stop()
+    recorder = Recorder(ctx.open(), config)
+    start_s = time.monotonic()
+    every = args.progress_s if args.progress_s > 0 else float("inf")
+    next_status = start_s + every
+    try:
+        while not ctx.stop.is_set() and not recorder.ended.wait(POLL_S):
+            if time.monotonic() >= next_status:
+                next_status += every
+                ctx.log.info("%s", progress(recorder.stats(), time.monotonic() - start_s))
+    finally:
+        final = recorder.stop()
     summary = final.as_dict()
-    log.info(
+    ctx.log.info(
         "recorded %d messages (%d dropped) in %s",
         summary["written"],
         summary["dropped"],
@@ -116,6 +110,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(json.dumps({k: summary[k] for k in ("written", "dropped", "files", "error")}))
     return 1 if final.error else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service("record", argv, start, description=__doc__, add_arguments=arguments)
 
 
 if __name__ == "__main__":

@@ -11,10 +11,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from services.bus.config import add_node_args, load_deploy, node_config
 from services.bus.errors import TelerobotError
-from services.bus.lifecycle import Shutdown, setup_logging
-from services.cli.introspect import LOCAL_ROUTER
+from services.bus.lifecycle import ServiceContext, run_service
 from services.tasks.metrics import TaskReport
 
 
@@ -28,32 +26,41 @@ def print_report(report: TaskReport, as_json: bool, with_log: bool = False) -> N
         print("\n".join(["operator:", *report.log]), flush=True)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m services.tasks", description=__doc__)
+def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", type=int, choices=(1, 2, 3), default=2, help="which task (default 2)")
     p.add_argument("--headless", action="store_true", help="run the whole system in-process")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
-    p.add_argument(
-        "--verbose", "-v", action="store_true", help="debug logging; print the operator's log"
-    )
-    add_node_args(p)
-    args = p.parse_args(argv)
-    setup_logging("tasks", args.verbose)
+
+
+def start(ctx: ServiceContext) -> int:
+    """Run the task (joining the running system, or `--headless` in this process), print
+    its report; status 0 when it succeeded, 1 when not, 2 when it could not run."""
     from services.tasks.system import Connected, run_headless
 
-    stop = Shutdown()
+    args = ctx.args
     try:
         if args.headless:
-            report = run_headless(args.task, abort=stop)
+            report = run_headless(args.task, abort=ctx.stop)
         else:
-            cfg = node_config(args, load_deploy(args.config), connect=(LOCAL_ROUTER,))
-            with Connected(cfg, abort=stop) as run:
+            with Connected(ctx.node_config, abort=ctx.stop) as run:
                 report = run.run(args.task)
     except TelerobotError as e:
         print(f"tasks: {e}", file=sys.stderr)
         return 2
     print_report(report, args.json, with_log=args.verbose)
     return 0 if report.success else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_service(
+        "tasks",
+        argv,
+        start,
+        description=__doc__,
+        add_arguments=arguments,
+        prog="python -m services.tasks",
+        verbose_help="debug logging; print the operator's log",
+    )
 
 
 if __name__ == "__main__":

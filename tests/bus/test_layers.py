@@ -1,0 +1,93 @@
+"""The layered import contract (pyproject.toml, docs/architecture.md): it holds on this tree,
+and it breaks, naming the import, when an import points up, when two independent packages
+meet, or when a new package under services/ has no layer."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+LINT_IMPORTS = Path(sys.executable).parent / "lint-imports"
+
+pytestmark = pytest.mark.skipif(
+    not LINT_IMPORTS.exists(), reason="import-linter is not installed (make install)"
+)
+
+
+def lint(root: Path) -> tuple[int, str]:
+    """`lint-imports` on the tree at `root` (its own `services`, not the installed one)."""
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    r = subprocess.run(
+        [str(LINT_IMPORTS), "--no-cache"],
+        cwd=root,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    return r.returncode, r.stdout + r.stderr
+
+
+@pytest.fixture
+def tree(tmp_path: Path) -> Path:
+    """A copy of the sources and of the contract."""
+    shutil.copytree(
+        ROOT / "services", tmp_path / "services", ignore=shutil.ignore_patterns("__pycache__")
+    )
+    (tmp_path / "tests").mkdir()
+    (tmp_path / "tests" / "__init__.py").write_text("")
+    shutil.copy(ROOT / "pyproject.toml", tmp_path / "pyproject.toml")
+    return tmp_path
+
+
+def test_the_contract_holds_here() -> None:
+    code, out = lint(ROOT)
+    assert code == 0, out
+    assert "2 kept, 0 broken" in out
+
+
+#: (module, its text, what the report must say): one tree holds them all, so the check runs
+#: once; each is a way the layers can be broken.
+PLANTED = [
+    # bus at the bottom imports nothing above it
+    ("services/bus/planted.py", "import services.puma.config", "services.bus is not allowed"),
+    # a service never imports a tool (what seven mains did with cli.introspect)
+    (
+        "services/force/planted.py",
+        "from services.cli import introspect",
+        "services.force is not allowed to import services.cli",
+    ),
+    # the control services are independent of each other
+    (
+        "services/decision/planted.py",
+        "from services.master import config",
+        "services.decision is not allowed to import services.master",
+    ),
+    # a model under the services does not reach up into one, not even lazily
+    (
+        "services/puma/planted.py",
+        "def f() -> None:\n    from services.vision import config",
+        "services.puma is not allowed to import services.vision",
+    ),
+    # the services never import the tests' helpers
+    ("services/workcell/planted.py", "import tests", "services.workcell.planted -> tests"),
+    # a new package must be given its layer
+    ("services/newthing/__init__.py", "", "services.newthing"),
+]
+
+
+def test_every_way_of_breaking_it_is_reported(tree: Path) -> None:
+    for module, text, _ in PLANTED:
+        (tree / module).parent.mkdir(exist_ok=True)
+        (tree / module).write_text(text + "\n")
+    code, out = lint(tree)
+    assert code != 0
+    assert "0 kept, 2 broken" in out
+    missing = [said for _, _, said in PLANTED if said not in out]
+    assert missing == [], out

@@ -1,0 +1,177 @@
+"""run_service(): the one main of every service. Common options, a bad configuration exits 2
+naming the key, SIGTERM stops cleanly, and what a service opened is closed last first."""
+
+from __future__ import annotations
+
+import argparse
+import faulthandler
+import importlib
+import os
+import signal
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from services.bus.config import LOCAL_ROUTER
+from services.bus.lifecycle import CONFIG_EXIT, ServiceContext, run_service
+from tests.conftest import Net, wait_until
+
+#: every service main (and the router's); each must be built on run_service
+MAINS = [
+    *(
+        f"services.{name}.__main__"
+        for name in (
+            "puma",
+            "force",
+            "decision",
+            "master",
+            "vision",
+            "console",
+            "workcell",
+            "ros2",
+            "record",
+            "tasks",
+        )
+    ),
+    "services.bus.router",
+]
+
+
+class Part:
+    """Something a service closes; records the order of closes in `log`."""
+
+    def __init__(self, name: str, log: list[str]) -> None:
+        self.name = name
+        self.log = log
+
+    def close(self) -> None:
+        self.log.append(self.name)
+
+
+@pytest.fixture
+def signals() -> Iterator[None]:
+    """run_service installs SIGINT/SIGTERM handlers and, on a signal, a last-resort exit
+    timer: restore the handlers and cancel the timer, so pytest is left as it was."""
+    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        faulthandler.cancel_dump_traceback_later()
+        for s, h in saved.items():
+            signal.signal(s, h)
+
+
+def own_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--speed", type=float, default=1.0)
+
+
+def test_common_options_and_the_default_router(signals: None) -> None:
+    seen: list[ServiceContext] = []
+
+    def start(ctx: ServiceContext) -> int:
+        seen.append(ctx)
+        return 0
+
+    argv = ["--speed", "2.5", "--connect", "tcp/127.0.0.1:1234", "--ns", "cell2", "-v"]
+    assert run_service("probe", argv, start, add_arguments=own_option) == 0
+    assert run_service("probe", [], start) == 0
+    flags, defaults = seen
+    assert flags.args.speed == 2.5 and flags.args.verbose
+    assert flags.node_config.connect == ("tcp/127.0.0.1:1234",)
+    assert flags.node_config.ns == "cell2"
+    assert flags.deploy == {}
+    assert defaults.node_config.connect == (LOCAL_ROUTER,)
+    assert defaults.node_config.ns == "" and not defaults.args.verbose
+
+
+def test_a_bad_configuration_exits_2_naming_the_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], signals: None
+) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[zenoh]\nlease_ms = 5000\n")
+    closed: list[str] = []
+    reached: list[str] = []
+
+    def start(ctx: ServiceContext) -> None:
+        ctx.closing(Part("early", closed))
+        ctx.open()  # reads [zenoh]: fails before any session opens
+        reached.append("open")
+
+    assert run_service("probe", ["--config", str(bad)], start) == CONFIG_EXIT
+    err = capsys.readouterr().err
+    assert "telerobot probe:" in err and "'zenoh.lease_ms'" in err
+    assert err.count("\n") == 1  # one line, no traceback
+    assert reached == [] and closed == ["early"]
+
+
+def test_a_missing_config_file_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], signals: None
+) -> None:
+    def start(ctx: ServiceContext) -> None:
+        _ = ctx.deploy
+
+    assert run_service("probe", ["--config", str(tmp_path / "nope.toml")], start) == 2
+    assert "'--config'" in capsys.readouterr().err
+
+
+def test_a_status_ends_the_service_at_once_and_closes_last_first(signals: None) -> None:
+    closed: list[str] = []
+
+    def start(ctx: ServiceContext) -> int:
+        ctx.closing(Part("first", closed))
+        ctx.closing(Part("second", closed))
+        return 3
+
+    assert run_service("probe", [], start) == 3
+    assert closed == ["second", "first"]
+
+
+def test_sigterm_stops_it_cleanly(net: Net, signals: None) -> None:
+    """A real session: a peer sees the service's token while it runs and gone after SIGTERM;
+    the service is closed before its session."""
+    observer = net.node("observer")
+    closed: list[str] = []
+    up = threading.Event()
+
+    def start(ctx: ServiceContext) -> None:
+        node = ctx.open()
+        node.announce()
+
+        class Service(Part):
+            def close(self) -> None:
+                # the session is still open while the service closes (it can hold the arm)
+                closed.append(f"service, session open: {not node.closed}")
+
+        ctx.closing(Service("service", closed))
+        up.set()
+
+    seen: list[bool] = []
+
+    def terminate() -> None:
+        # SIGTERM in any case, so a failure cannot leave the test waiting
+        seen.append(up.wait(30.0) and observer.alive.wait("probe", 30.0))
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    killer = threading.Thread(target=terminate)
+    killer.start()
+    status = run_service("probe", ["--connect", net.endpoint, "--mode", "peer"], start)
+    killer.join()
+    assert seen == [True]
+    assert status == 0
+    assert closed == ["service, session open: True"]
+    assert wait_until(lambda: not observer.alive.is_alive("probe"), 10.0)
+
+
+@pytest.mark.parametrize("name", MAINS)
+def test_every_main_has_the_common_options(
+    name: str, capsys: pytest.CaptureFixture[str], signals: None
+) -> None:
+    module = importlib.import_module(name)
+    with pytest.raises(SystemExit) as e:
+        module.main(["--help"])
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    for option in ("--config", "--connect", "--listen", "--mode", "--ns", "--verbose"):
+        assert option in out, f"{name}: no {option}"
