@@ -34,6 +34,11 @@ from dataclasses import dataclass, field
 from services.passivity.controller import TOLERANCE_J, PortTelemetry
 from services.passivity.observer import EnergyObserver, RemoteEnergy, dot
 
+MIN_FORCE_N = 1e-3
+"""A force below this is no contact for the controller (its direction means nothing)."""
+MAX_BACKOFF_M = 0.005
+"""The farthest the controller puts the target outside the measured tool, along the force
+(repaying an overdraw needs the contact to relax, not the arm to leave)."""
 HISTORY_LEN = 64
 """Samples kept per stream (at 100–1000 Hz: 64 ms … 0.6 s, longer than any pairing gap)."""
 
@@ -168,6 +173,8 @@ class SlavePort:
             return [float(t) for t in target]
         budget = self.budget_j
         ff = dot(f, f)
+        if ff < MIN_FORCE_N**2:
+            f, ff = [0.0] * len(want), 0.0
         comp = self._drift_step(dt_s)
         if any(comp):
             tried = [w + c for w, c in zip(want, comp, strict=True)]
@@ -178,8 +185,12 @@ class SlavePort:
             e_next = self._committed(f, want, p_now)
             if e_next > budget + TOLERANCE_J:
                 alpha = (e_next - budget) / ff
+                # Never more than MAX_BACKOFF_M outside the tool (alpha·|f|² is the energy).
+                norm = math.sqrt(ff)
+                out_m = -e_next / norm  # where `want` is now, along the force, from the tool
+                alpha = min(alpha, max(MAX_BACKOFF_M - out_m, 0.0) / norm)
                 want = [w + alpha * fi for w, fi in zip(want, f, strict=True)]
-                self.telemetry.dissipated_j += e_next - budget
+                self.telemetry.dissipated_j += alpha * ff
                 self.telemetry.active_steps += 1
         self.telemetry.last_gain = alpha
         self.offset = [w - float(t) for w, t in zip(want, target, strict=True)]

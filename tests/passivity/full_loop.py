@@ -128,9 +128,11 @@ def build(net: Net, passivity: bool = True, start_gap_m: float = 0.04) -> Loop:
     return loop
 
 
-def start_master(loop: Loop, passivity: bool = True, **sim: float) -> MasterService:
+def start_master(
+    loop: Loop, passivity: bool = True, rate_hz: float = 100.0, **sim: float
+) -> MasterService:
     """The simulated operator on a master station (100 Hz), engaged at once."""
-    cfg = MasterConfig(master_id="op", device="haptic_sim", passivity=passivity)
+    cfg = MasterConfig(master_id="op", device="haptic_sim", passivity=passivity, rate_hz=rate_hz)
     station = MasterService(
         loop.net.node("master", instance="op"), cfg, device=SimHapticMaster(**sim)
     )

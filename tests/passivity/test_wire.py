@@ -3,6 +3,7 @@ command correction, each talking to a peer over loopback Zenoh."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -101,11 +102,14 @@ def test_master_hook_damps_until_the_slave_has_put_energy_in(net: Net) -> None:
 
 
 def robot_state(
-    tool_R: tuple[float, ...] = IDENTITY_R, tool_p: tuple[float, ...] = (0.5, 0.0, 0.5)
+    tool_R: tuple[float, ...] = IDENTITY_R,
+    tool_p: tuple[float, ...] = (0.5, 0.0, 0.5),
+    seq: int = 1,
+    t_ns: int | None = None,
 ) -> RobotState:
     return RobotState(
-        seq=1,
-        t_ns=time.time_ns(),
+        seq=seq,
+        t_ns=time.time_ns() if t_ns is None else t_ns,
         status="moving",
         q=(0.0,) * 6,
         tool_p=tool_p,
@@ -148,8 +152,11 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
         k = clock["k"]
         if engage != arm["engage"]:
             arm["engage"], arm["p0"] = engage, arm["p"].copy()
-        st = robot_state(tool_p=tuple(float(x) for x in arm["p"]))
-        out = tdpa.apply(command(engage, dz, seq=k), op, st, push_up, 1_000_000_000 + k * 2e6)
+        # A state and a force sample of this instant (the force measured where the arm is).
+        t = 1_000_000_000 + k * 2_000_000
+        st = robot_state(tool_p=tuple(float(x) for x in arm["p"]), seq=k, t_ns=t)
+        f = dataclasses.replace(push_up, seq=k, t_ns=t)
+        out = tdpa.apply(command(engage, dz, seq=k), op, st, f, t)
         arm["p"] = arm["p0"] + np.asarray(out.dp)
         return float(out.dp[2])
 
