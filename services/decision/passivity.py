@@ -109,8 +109,6 @@ class SlaveTdpa:
         f_now = self._observe()
         if state is None:
             return cmd
-        if force is None:
-            f_now = np.zeros(3)
         target = self.pc.correct((self._p0 + d).tolist(), list(state.tool_p), f_now.tolist(), dt_s)
         self._publish(operator)
         out = np.asarray(target) - self._p0

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.bus import keys
-from services.bus.messages import ForceSample, OperatorCommand, PassivityState, RobotState
+from services.bus.messages import Event, ForceSample, OperatorCommand, PassivityState, RobotState
 from services.decision.config import DecisionConfig
 from services.decision.service import DecisionService
 from services.force.config import ForceConfig
@@ -33,6 +33,8 @@ from services.puma.service import PumaService
 from services.puma.sim_arm import SimArm
 from services.workcell.scene import TABLE
 from tests.conftest import Net, wait_until
+
+__all__ = ["Loop", "Trace", "build", "metrics", "start_master", "wait_until"]
 
 TOP_Z = TABLE.top_z
 
@@ -48,6 +50,7 @@ class Trace:
     slave: list[PassivityState] = field(default_factory=list)
     master: list[PassivityState] = field(default_factory=list)
     puma_cmds: int = 0
+    events: list[str] = field(default_factory=list)
     _R: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def on_state(self, s: RobotState) -> None:
@@ -64,6 +67,10 @@ class Trace:
     def on_passivity(self, m: PassivityState) -> None:
         with self.lock:
             (self.slave if m.side == "slave" else self.master).append(m)
+
+    def on_event(self, e: Event) -> None:
+        with self.lock:
+            self.events.append(f"{e.source}/{e.kind}: {e.message[:80]}")
 
     def on_cmd(self, c: OperatorCommand) -> None:
         with self.lock:
@@ -94,7 +101,7 @@ class Loop:
             c()
 
 
-def build(net: Net, passivity: bool = True, start_gap_m: float = 0.04) -> Loop:
+def build(net: Net, passivity: bool = True, start_gap_m: float = 0.04, **decision: float) -> Loop:
     """The robot side, the arm `start_gap_m` above the table, recording; no master yet."""
     puma = PumaService(
         net.node("puma"),
@@ -102,7 +109,8 @@ def build(net: Net, passivity: bool = True, start_gap_m: float = 0.04) -> Loop:
         arm=SimArm(HOME_Q_RAD, calibration_s=0.05),
     )
     force = ForceService(net.node("force"), ForceConfig(seed=7, period_ms=2.0))
-    dec = DecisionService(net.node("decision"), DecisionConfig(passivity=passivity))
+    cfg = DecisionConfig(passivity=passivity, **decision)  # type: ignore[arg-type]
+    dec = DecisionService(net.node("decision"), cfg)
     console = net.node("console")
     trace = Trace()
     loop = Loop(net, dec, trace, [puma.close, force.close, dec.close])
@@ -111,6 +119,7 @@ def build(net: Net, passivity: bool = True, start_gap_m: float = 0.04) -> Loop:
     console.subscribe(keys.PASSIVITY_SLAVE, trace.on_passivity)
     console.subscribe(keys.PASSIVITY_MASTER, trace.on_passivity)
     console.subscribe(keys.PUMA_CMD, trace.on_cmd)
+    console.subscribe(keys.EVENTS, trace.on_event)
     state = console.latest(keys.STATE)
     console.call("decision", "connect", {}, 5.0)
     console.call("decision", "initialize", {}, 5.0)
