@@ -36,7 +36,7 @@ from services.passivity.observer import EnergyObserver, RemoteEnergy, dot
 
 MIN_FORCE_N = 1e-3
 """A force below this is no contact for the controller (its direction means nothing)."""
-MAX_BACKOFF_M = 0.005
+MAX_BACKOFF_M = 0.002
 """The farthest the controller puts the target outside the measured tool, along the force
 (repaying an overdraw needs the contact to relax, not the arm to leave)."""
 HISTORY_LEN = 64
@@ -178,7 +178,8 @@ class SlavePort:
         comp = self._drift_step(dt_s)
         if any(comp):
             tried = [w + c for w, c in zip(want, comp, strict=True)]
-            if ff == 0.0 or self._committed(f, tried, p_now) <= budget:
+            # Free in free space, unless overdrawn (it would only lead to the next impact).
+            if (ff == 0.0 and budget >= 0.0) or self._committed(f, tried, p_now) <= budget:
                 want = tried
         alpha = 0.0
         if ff > 0.0:

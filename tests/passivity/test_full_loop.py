@@ -110,7 +110,4 @@ def test_decision_alone_stops_the_tool_at_the_first_touch(net: Net) -> None:
     # No energy from the operator: nothing credited to the channel, and what the slave put
     # into the workcell was given back (reflected) up to a few mJ of sampling.
     assert slave.e_in < 1e-9 and pc.remote.e_in == 0.0
-    print(
-        f"peak {max(f for _, f in forces):.1f} N, out {pc.observer.e_out:.4f} J, back {pc.recovered_j:.4f} J"
-    )
     assert pc.observer.e_out - pc.recovered_j < 0.01
