@@ -94,6 +94,7 @@ def test_decision_alone_stops_the_tool_at_the_first_touch(net: Net) -> None:
     finally:
         stop.set()
         worker.join(timeout=2.0)
+        loop.close()  # the services before their nodes (the fixture closes those)
     with tr.lock:
         forces = list(tr.forces)
         z_end = tr.states[-1][1]
