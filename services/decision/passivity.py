@@ -1,19 +1,21 @@
 """The slave side of time-domain passivity on the bus (docs/passivity.md).
 
 The decision server runs on the robot host and sees the supervised command, robot/state and
-robot/force, so it holds the slave port: the commanded displacement of the tool point
-(world frame) against the wrist force (tool frame → world by `tool_R`), and the tool's
-measured motion (robot/state) beside it. `SlaveTdpa.apply` observes that port, corrects
-the command's `dp` so the robot never puts more energy into the
-workcell than the operator put into the channel (`SlavePassivity`, energies from
-`robot/passivity/master`), and publishes its own on `robot/passivity/slave`.
+robot/force, so it holds the slave port: the wrist force (tool frame → world by `tool_R`)
+against the tool's measured motion, both taken at one instant from short timestamped
+histories (`SlavePort`, `TimedHistory`). `SlaveTdpa.apply` observes that port, corrects the
+command's target so the robot never puts more energy into the workcell than the operator
+put into the channel (energies from `robot/passivity/master`), and publishes its own on
+`robot/passivity/slave`. Above the supervisor's contact limit the supervisor retracts the
+target itself: the energy that brings in is not the channel's (excluded).
 
 Engagements: a new operator engagement (master, engage) starts a new count, as the master
 does; a new engagement of the arm (the supervisor's own `engage`, e.g. after a hold) takes
-the tool orientation then as R0 and the offset restarts at zero (the puma records its start
+the tool pose then as (p0, R0) and the offset restarts at zero (the puma records its start
 pose at that command, so the offset is already in it: nothing jumps). A hold (inactive
-command) passes unchanged. The correction only shortens motion into a contact or backs it
-out along the contact force; the supervisor checked the uncorrected target.
+command) passes unchanged and is not observed. The correction only shortens motion into a
+contact or backs it out along the contact force (at most 2 mm past the tool); the
+supervisor checked the uncorrected target.
 """
 
 from __future__ import annotations
