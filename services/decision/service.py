@@ -113,7 +113,7 @@ class DecisionService:
         self.timer_late_max_ms = 0.0
 
         self._pub = node.publisher(PUMA_CMD)
-        self.passivity = SlaveTdpa(node) if config.passivity else None
+        self.passivity = SlaveTdpa(node, contact_n=config.max_force_n) if config.passivity else None
         self._op_engage: dict[str, int] = {}
         node.batches(CMD, self._on_commands)
         self._state = node.latest(STATE)

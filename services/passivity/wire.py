@@ -7,6 +7,7 @@ from typing import Literal
 
 from services.bus.messages import PassivityState
 from services.passivity.controller import MasterPassivity, SlavePassivity
+from services.passivity.slave import SlavePort
 
 
 def passivity_state(
@@ -14,7 +15,7 @@ def passivity_state(
     master: str,
     engage: int,
     side: Literal["master", "slave"],
-    pc: MasterPassivity | SlavePassivity,
+    pc: MasterPassivity | SlavePassivity | SlavePort,
 ) -> PassivityState:
     """What the port at `side` has observed and done since `engage` began."""
     t = pc.telemetry

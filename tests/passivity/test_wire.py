@@ -3,6 +3,7 @@ command correction, each talking to a peer over loopback Zenoh."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -101,11 +102,14 @@ def test_master_hook_damps_until_the_slave_has_put_energy_in(net: Net) -> None:
 
 
 def robot_state(
-    tool_R: tuple[float, ...] = IDENTITY_R, tool_p: tuple[float, ...] = (0.5, 0.0, 0.5)
+    tool_R: tuple[float, ...] = IDENTITY_R,
+    tool_p: tuple[float, ...] = (0.5, 0.0, 0.5),
+    seq: int = 1,
+    t_ns: int | None = None,
 ) -> RobotState:
     return RobotState(
-        seq=1,
-        t_ns=time.time_ns(),
+        seq=seq,
+        t_ns=time.time_ns() if t_ns is None else t_ns,
         status="moving",
         q=(0.0,) * 6,
         tool_p=tool_p,
@@ -148,8 +152,11 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
         k = clock["k"]
         if engage != arm["engage"]:
             arm["engage"], arm["p0"] = engage, arm["p"].copy()
-        st = robot_state(tool_p=tuple(float(x) for x in arm["p"]))
-        out = tdpa.apply(command(engage, dz, seq=k), op, st, push_up, 1_000_000_000 + k * 2e6)
+        # A state and a force sample of this instant (the force measured where the arm is).
+        t = 1_000_000_000 + k * 2_000_000
+        st = robot_state(tool_p=tuple(float(x) for x in arm["p"]), seq=k, t_ns=t)
+        f = dataclasses.replace(push_up, seq=k, t_ns=t)
+        out = tdpa.apply(command(engage, dz, seq=k), op, st, f, t)
         arm["p"] = arm["p0"] + np.asarray(out.dp)
         return float(out.dp[2])
 
@@ -194,6 +201,51 @@ def test_decision_ignores_forces_below_the_deadband(net: Net) -> None:
     out = tdpa.apply(command(1, -0.01, seq=2), op, st, noise, 2_000_000)
     assert out.dp[2] == pytest.approx(-0.01)
     assert tdpa.pc.telemetry.active_steps == 0
+
+
+def test_decision_pairs_force_and_motion_at_one_instant(net: Net) -> None:
+    """States at 100 Hz, forces at 500 Hz, each with its own time: the port is observed at
+    the newest instant both cover, with the position interpolated there."""
+    tdpa = SlaveTdpa(net.node("decision"), drift_m_s=0.0)
+    op = ("m1", 1)
+    t0 = 1_000_000_000
+    # The tool goes 1 cm down in 10 ms (state at t0 and t0 + 10 ms), a 20 N contact force.
+    s0 = robot_state(tool_p=(0.5, 0.0, 0.5), seq=1, t_ns=t0)
+    s1 = robot_state(tool_p=(0.5, 0.0, 0.49), seq=2, t_ns=t0 + 10_000_000)
+    f = ForceSample(seq=1, t_ns=t0, f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
+    tdpa.apply(command(1, 0.0), op, s0, f, t0)
+    # A force sample 4 ms later: observed over 4 ms of the state's motion (4 mm), not 10.
+    f4 = dataclasses.replace(f, seq=2, t_ns=t0 + 4_000_000)
+    tdpa.apply(command(1, 0.0, seq=2), op, s1, f4, t0 + 10_000_000)
+    assert tdpa.pc.observer.e_out == pytest.approx(20.0 * 0.004)
+    # A force newer than every state: observed up to the newest state (the rest waits).
+    f12 = dataclasses.replace(f, seq=3, t_ns=t0 + 12_000_000)
+    tdpa.apply(command(1, 0.0, seq=3), op, s1, f12, t0 + 12_000_000)
+    assert tdpa.pc.observer.e_out == pytest.approx(20.0 * 0.01)
+
+
+def test_decision_excludes_the_supervisors_retraction(net: Net) -> None:
+    """Above the supervisor's contact limit the tool backing out under the force is the
+    supervisor's doing: no energy for the master."""
+    tdpa = SlaveTdpa(net.node("decision"), drift_m_s=0.0, contact_n=40.0)
+    op = ("m1", 1)
+    t0 = 1_000_000_000
+    hard = ForceSample(seq=1, t_ns=t0, f=(0.0, 0.0, 60.0), c=(0.0, 0.0, 0.0))
+    for k, z in enumerate((0.490, 0.491, 0.492), start=1):
+        t = t0 + k * 2_000_000
+        st = robot_state(tool_p=(0.5, 0.0, z), seq=k, t_ns=t)
+        tdpa.apply(command(1, 0.0, seq=k), op, st, dataclasses.replace(hard, seq=k, t_ns=t), t)
+    assert tdpa.pc.observer.e_in == 0.0
+    assert tdpa.pc.excluded_j == pytest.approx(60.0 * 0.002)
+    # Below the limit the same motion is the channel's (up to what the workcell was given:
+    # here nothing, so it is clipped rather than credited).
+    soft = SlaveTdpa(net.node("decision2"), drift_m_s=0.0, contact_n=40.0)
+    for k, z in enumerate((0.490, 0.491), start=1):
+        t = t0 + k * 2_000_000
+        st = robot_state(tool_p=(0.5, 0.0, z), seq=k, t_ns=t)
+        f = ForceSample(seq=k, t_ns=t, f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
+        soft.apply(command(1, 0.0, seq=k), op, st, f, t)
+    assert soft.pc.excluded_j == 0.0 and soft.pc.clipped_j == pytest.approx(0.02)
 
 
 def test_decision_tool_frame_correction_is_mapped_back(net: Net) -> None:
