@@ -392,6 +392,8 @@ class ProxyControl:
             Motion(self._new_id(), "teleop"), Servo(goal, self._t_s, self.config.teleop_settle_s)
         )
 
+    # --- lifecycle --------------------------------------------------------------------------
+
     def close(self) -> None:
         """Hold the arm and release it (every exit path of the service calls this)."""
         with self._lock:
