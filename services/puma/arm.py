@@ -19,6 +19,8 @@ controller reports it is done. After an error the arm holds and takes no setpoin
 from __future__ import annotations
 
 import math
+import threading
+from abc import ABC, abstractmethod
 from typing import Any, Literal, Protocol, get_args, runtime_checkable
 
 import numpy as np
@@ -34,7 +36,8 @@ Q = NDArray[np.float64]
 
 # The controller's software joint limits (rad): the PUMA 560 table of PROTOCOL.md §1. They
 # belong to the controller as much as to the kinematic model, and the fake controller runs
-# as its own process without Pinocchio, so the table is kept here as plain numbers.
+# as its own process without Pinocchio, so the table is kept here as plain numbers (the DH
+# table of kinematics.py takes its limits from here).
 JOINT_LIMITS_DEG: tuple[tuple[float, float], ...] = (
     (-160.0, 160.0),
     (-45.0, 225.0),
@@ -51,7 +54,7 @@ Q_HI_RAD: tuple[float, ...] = tuple(math.radians(hi) for _, hi in JOINT_LIMITS_D
 ARM_MAX_JOINT_SPEED_RAD_S: tuple[float, ...] = (2.5, 2.5, 2.5, 5.0, 5.0, 5.0)
 ARM_MAX_JOINT_ACCEL_RAD_S2: tuple[float, ...] = (8.0, 8.0, 8.0, 20.0, 20.0, 20.0)
 
-# The nominal "ready" pose qn of PROTOCOL.md §1: where a simulated arm starts.
+# The nominal "ready" pose qn of PROTOCOL.md §1 (`kinematics.qn`): where a simulated arm starts.
 QN_RAD: tuple[float, ...] = (0.0, math.pi / 4, -math.pi, 0.0, math.pi / 4, 0.0)
 
 
@@ -120,6 +123,51 @@ class Arm(Protocol):
     def close(self) -> None:
         """Hold and release the link; status `disconnected`. Idempotent."""
         ...
+
+
+class ArmBase(ABC):
+    """What the backends share: status and last error under one lock, the precondition of
+    `initialize`, and the checks `command` makes before it takes a setpoint.
+
+    A backend sets `_lock`, `_status`, `_last_error` and `setpoints_ignored` in its
+    constructor and defines `_fail_locked` (the lock held: `error`, hold, no more setpoints).
+    """
+
+    _lock: threading.RLock
+    _status: ArmStatus
+    _last_error: str | None
+    setpoints_ignored: int
+
+    @property
+    def status(self) -> ArmStatus:
+        with self._lock:
+            return self._status
+
+    @property
+    def last_error(self) -> str | None:
+        with self._lock:
+            return self._last_error
+
+    @abstractmethod
+    def _fail_locked(self, why: str) -> None:
+        """Go to `error` for `why` (kept if already in error); the caller holds the lock."""
+
+    def _check_can_initialize(self) -> None:
+        """ArmError unless connected or ready; the caller holds the lock."""
+        if self._status not in ("connected", "ready"):
+            raise ArmError(f"cannot initialize: arm is {self._status}")
+
+    def _accept_setpoint(self, q_setpoint: Q) -> Q | None:
+        """`command`'s setpoint as a joint vector, or None to drop it: counted in
+        `setpoints_ignored` outside `ready`, an error when malformed. The caller holds the lock."""
+        if self._status != "ready":
+            self.setpoints_ignored += 1
+            return None
+        try:
+            return as_joint_vector(q_setpoint, "setpoint")
+        except ValueError as e:
+            self._fail_locked(f"bad setpoint: {e}")
+            return None
 
 
 def as_joint_vector(q: Any, name: str = "q") -> Q:

@@ -21,6 +21,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
 
 from services.bus.errors import TelerobotError
+from services.puma.arm import Q_HI_RAD, Q_LO_RAD, QN_RAD
 
 Vec = NDArray[np.float64]
 
@@ -43,17 +44,18 @@ def _deg(x: float) -> float:
 
 
 PUMA560_DH: tuple[DHLink, ...] = (
-    DHLink(0.67183, 0.0, _deg(90.0), _deg(-160.0), _deg(160.0)),
-    DHLink(0.0, 0.4318, 0.0, _deg(-45.0), _deg(225.0)),
-    DHLink(0.15005, 0.0203, _deg(-90.0), _deg(-225.0), _deg(45.0)),
-    DHLink(0.4318, 0.0, _deg(90.0), _deg(-110.0), _deg(170.0)),
-    DHLink(0.0, 0.0, _deg(-90.0), _deg(-100.0), _deg(100.0)),
-    DHLink(0.0, 0.0, 0.0, _deg(-266.0), _deg(266.0)),
+    DHLink(0.67183, 0.0, _deg(90.0), Q_LO_RAD[0], Q_HI_RAD[0]),
+    DHLink(0.0, 0.4318, 0.0, Q_LO_RAD[1], Q_HI_RAD[1]),
+    DHLink(0.15005, 0.0203, _deg(-90.0), Q_LO_RAD[2], Q_HI_RAD[2]),
+    DHLink(0.4318, 0.0, _deg(90.0), Q_LO_RAD[3], Q_HI_RAD[3]),
+    DHLink(0.0, 0.0, _deg(-90.0), Q_LO_RAD[4], Q_HI_RAD[4]),
+    DHLink(0.0, 0.0, 0.0, Q_LO_RAD[5], Q_HI_RAD[5]),
 )
 """PUMA 560 standard DH parameters and joint limits, joint 1 first.
 
 Source: PROTOCOL.md §1, which takes the lengths of Paul & Zhang (1986) as tabulated in Corke's
-Robotics Toolbox `Puma560` (d1 = 0.67183 m is the pedestal height) and the Unimation joint ranges.
+Robotics Toolbox `Puma560` (d1 = 0.67183 m is the pedestal height) and the Unimation joint ranges
+(the controller's table `JOINT_LIMITS_DEG` in arm.py, kept there free of Pinocchio).
 """
 
 D1_M = PUMA560_DH[0].d_m
@@ -79,7 +81,7 @@ qr: Vec = _named(0.0, math.pi / 2, -math.pi / 2, 0.0, 0.0, 0.0)
 """Ready: arm straight up (wrist-, shoulder- and elbow-singular)."""
 qs: Vec = _named(0.0, 0.0, -math.pi / 2, 0.0, 0.0, 0.0)
 """Stretch: arm straight out horizontally (wrist- and elbow-singular)."""
-qn: Vec = _named(0.0, math.pi / 4, -math.pi, 0.0, math.pi / 4, 0.0)
+qn: Vec = _named(*QN_RAD)
 """Nominal: a dexterous right-arm elbow-up pose, well away from every singularity."""
 
 DEFAULT_eMt: pin.SE3 = pin.SE3(np.eye(3), np.array([0.0, 0.0, 0.2]))

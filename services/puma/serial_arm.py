@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from services.puma.arm import ArmError, ArmStatus, Q, as_joint_vector
+from services.puma.arm import ArmBase, ArmError, ArmStatus, Q
 
 MAX_LINE_BYTES = 128
 MODEL = "PUMA560"
@@ -153,7 +153,7 @@ class _Request:
     error: ArmError | None = None
 
 
-class SerialArm:
+class SerialArm(ArmBase):
     """The PUMA controller at `port` (a device or any pyserial URL, e.g. `socket://…`).
 
     `cycle_ms` is the setpoint period (≤ 28 ms, ≥ the controller's minimum announced in its
@@ -203,16 +203,6 @@ class SerialArm:
 
     # --- Arm ---------------------------------------------------------------------------
 
-    @property
-    def status(self) -> ArmStatus:
-        with self._lock:
-            return self._status
-
-    @property
-    def last_error(self) -> str | None:
-        with self._lock:
-            return self._last_error
-
     def connect(self) -> None:
         import serial  # lazy: sim and tests of pure logic never load pyserial
 
@@ -254,8 +244,7 @@ class SerialArm:
 
     def initialize(self) -> None:
         with self._lock:
-            if self._status not in ("connected", "ready"):
-                raise ArmError(f"cannot initialize: arm is {self._status}")
+            self._check_can_initialize()
             self._setpoint = None
         self._request(["CAL"], "ACK")
         with self._lock:
@@ -270,14 +259,10 @@ class SerialArm:
 
     def command(self, q_setpoint: Q) -> None:
         with self._lock:
-            if self._status != "ready":
-                self.setpoints_ignored += 1
+            sp = self._accept_setpoint(q_setpoint)
+            if sp is None:
                 return
-            try:
-                self._setpoint = as_joint_vector(q_setpoint, "setpoint").copy()
-            except ValueError as e:
-                self._fail_locked(f"bad setpoint: {e}")
-                return
+            self._setpoint = sp.copy()
             self._setpoint_t = time.monotonic()
 
     def stop(self) -> None:

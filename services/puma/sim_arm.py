@@ -25,6 +25,7 @@ from services.puma.arm import (
     Q_HI_RAD,
     Q_LO_RAD,
     QN_RAD,
+    ArmBase,
     ArmError,
     ArmStatus,
     Q,
@@ -110,7 +111,7 @@ class JointFollower:
         return bool(np.all(np.abs(self.setpoint - self.q) <= tol_rad) and np.all(self.v == 0.0))
 
 
-class SimArm:
+class SimArm(ArmBase):
     """A simulated PUMA 560 controller (implements `Arm`).
 
     `q_init` (rad) is where the joints are at power-on. `calibration_s` is the simulated
@@ -167,16 +168,6 @@ class SimArm:
 
     # --- Arm ---------------------------------------------------------------------------
 
-    @property
-    def status(self) -> ArmStatus:
-        with self._lock:
-            return self._status
-
-    @property
-    def last_error(self) -> str | None:
-        with self._lock:
-            return self._last_error
-
     def connect(self) -> None:
         with self._lock:
             # A simulated fault is one event: re-connecting is the recovery from it.
@@ -191,8 +182,7 @@ class SimArm:
 
     def initialize(self) -> None:
         with self._lock:
-            if self._status not in ("connected", "ready"):
-                raise ArmError(f"cannot initialize: arm is {self._status}")
+            self._check_can_initialize()
             self._status = "initializing"
             self._cal_left_s = self._calibration_s
             self._servo.hold()
@@ -210,23 +200,18 @@ class SimArm:
 
     def command(self, q_setpoint: Q) -> None:
         with self._lock:
-            if self._status != "ready":
-                self.setpoints_ignored += 1
-                return
-            try:
-                sp = as_joint_vector(q_setpoint, "setpoint")
-            except ValueError as e:
-                self._fail(f"bad setpoint: {e}")
+            sp = self._accept_setpoint(q_setpoint)
+            if sp is None:
                 return
             outside = np.flatnonzero((sp < self._servo.q_lo) | (sp > self._servo.q_hi))
             if outside.size:
                 j = int(outside[0])
-                self._fail(f"setpoint q{j + 1}={sp[j]:.4f} rad outside the joint limits")
+                self._fail_locked(f"setpoint q{j + 1}={sp[j]:.4f} rad outside the joint limits")
                 return
             jump = np.abs(sp - self._q_actual)
             if np.any(jump > self._max_step_rad):
                 j = int(np.argmax(jump))
-                self._fail(f"setpoint jump of {jump[j]:.3f} rad on q{j + 1} refused")
+                self._fail_locked(f"setpoint jump of {jump[j]:.3f} rad on q{j + 1} refused")
                 return
             self._servo.setpoint = sp
             self.setpoints_accepted += 1
@@ -288,10 +273,10 @@ class SimArm:
         """
         with self._lock:
             if kind == "error":
-                self._fail("amplifier fault (injected)")
+                self._fail_locked("amplifier fault (injected)")
             elif kind == "disconnect":
                 self._link_up = False
-                self._fail("link lost (injected)")
+                self._fail_locked("link lost (injected)")
             elif kind == "stall":
                 if not 1 <= joint <= 6:
                     raise ValueError("joint must be 1…6")
@@ -325,7 +310,7 @@ class SimArm:
         q[j] = self._q_actual[j]
         self._q_actual = q
         if abs(self._servo.q[j] - self._q_actual[j]) > self._stall_threshold_rad:
-            self._fail(
+            self._fail_locked(
                 f"joint {j + 1} stalled: following error above {self._stall_threshold_rad} rad"
             )
 
@@ -334,7 +319,7 @@ class SimArm:
         self._status = "ready"
         self._q_read = self._q_actual.copy()
 
-    def _fail(self, why: str) -> None:
+    def _fail_locked(self, why: str) -> None:
         """Error: the servo holds where the joints really are and takes no setpoint."""
         self._servo.q = self._q_actual.copy()
         if self._stalled_joint is not None:

@@ -3,11 +3,13 @@ controller over a loopback socket. Real time with deadlines: both run their own 
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pytest
@@ -224,6 +226,36 @@ def test_setpoint_outside_the_limits_is_refused(rig: Rig) -> None:
     wait_for(lambda: rig.arm.status == "error", "the limit to be refused")
     assert "limit" in (rig.arm.last_error or "").lower()
     assert np.all(rig.true_q() <= np.radians(100.0) + 1e-9)
+
+
+def test_initialize_needs_a_connection(rig: Rig) -> None:
+    with pytest.raises(ArmError, match="cannot initialize: arm is disconnected"):
+        rig.arm.initialize()
+    assert rig.arm.status == "disconnected"
+
+
+def test_setpoints_outside_ready_are_counted_as_ignored(rig: Rig) -> None:
+    arm = rig.arm
+    assert isinstance(arm, SimArm | SerialArm)
+    arm.command(Q0)
+    arm.connect()
+    arm.command(Q0)
+    assert arm.setpoints_ignored == 2
+    assert arm.status == "connected"
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [[math.nan] * 6, [0.0] * 5, [[0.0] * 6]],
+    ids=["nan", "five", "matrix"],
+)
+def test_a_malformed_setpoint_is_an_error_and_moves_nothing(rig: Rig, bad: Any) -> None:
+    q0 = ready(rig)
+    rig.arm.command(bad)
+    wait_for(lambda: rig.arm.status == "error", "the setpoint to be refused")
+    assert (rig.arm.last_error or "").startswith("bad setpoint: setpoint must")
+    time.sleep(0.05)  # look again a little later: it must not have moved
+    np.testing.assert_allclose(rig.true_q(), q0, atol=2e-6)
 
 
 def test_close_is_idempotent(rig: Rig) -> None:

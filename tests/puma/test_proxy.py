@@ -22,7 +22,8 @@ from services.bus.errors import ConfigError, RpcError
 from services.puma.config import HOME_Q_RAD, PumaConfig
 from services.puma.kinematics import Puma560, qn
 from services.puma.mapping import TeleopInput
-from services.puma.proxy import PumaProxy, rotation_angle
+from services.puma.proxy import PumaProxy
+from services.puma.safety import rotation_angle
 from services.puma.sim_arm import SimArm
 
 KIN = Puma560()
