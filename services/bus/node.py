@@ -108,6 +108,26 @@ class Publisher(Generic[M]):
         self._pub.undeclare()
 
 
+def wait_latest(
+    cond: threading.Condition,
+    latest: Callable[[], M | None],
+    pred: Callable[[M], bool],
+    timeout_s: float,
+) -> M | None:
+    """Block until `latest()` is a message satisfying `pred`, or `timeout_s` has passed; the
+    message (or None). Whoever stores a new latest notifies `cond`."""
+    deadline = time.monotonic() + timeout_s
+    with cond:
+        while True:
+            m = latest()
+            if m is not None and pred(m):
+                return m
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            cond.wait(left)
+
+
 @dataclass
 class Subscription(Generic[M]):
     """A typed subscription. `latest` holds the newest valid message (highest `seq`)."""
@@ -125,16 +145,7 @@ class Subscription(Generic[M]):
 
     def wait_for(self, pred: Callable[[M], bool], timeout_s: float) -> M | None:
         """Block until the newest message satisfies `pred` (or the deadline); returns it."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while True:
-                m = self.latest
-                if m is not None and pred(m):
-                    return m
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                self._cond.wait(left)
+        return wait_latest(self._cond, lambda: self.latest, pred, timeout_s)
 
     def wait_count(self, n: int, timeout_s: float) -> bool:
         """Block until `received` ≥ n or the deadline."""
