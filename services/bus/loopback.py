@@ -1,8 +1,9 @@
 """The skeleton every fake device shares: a socket on 127.0.0.1 served by one thread.
 
-A fake (a serial force sensor, a Net F/T, a master arm) subclasses `LoopbackServer`,
-implements `_serve()` (loop until `self._closed` is set, using `self._sock`), and gets the
-port, the pyserial URL, start/close and the context manager from here. Loopback only:
+A fake (a serial force sensor, a Net F/T, a master arm) subclasses `LoopbackServer` and
+implements `_session(conn)` for one TCP client (or, over UDP, `_serve()`: loop until
+`self._closed` is set, using `self._sock`); it gets the port, the pyserial URL, the accept
+loop, start/close and the context manager from here. Loopback only:
 a fake never listens on another address.
 """
 
@@ -30,6 +31,8 @@ class LoopbackServer:
         self._closed = threading.Event()
         self._thread: threading.Thread | None = None
         self._thread_name = thread_name
+        self.connections = 0
+        """TCP clients accepted so far."""
 
     @property
     def port(self) -> int:
@@ -64,4 +67,20 @@ class LoopbackServer:
         self.close()
 
     def _serve(self) -> None:
+        """TCP: accept one client at a time (TCP_NODELAY) and run `_session` on it until the
+        fake is closed. A UDP fake overrides this."""
+        self._sock.settimeout(0.05)
+        while not self._closed.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self.connections += 1
+            with conn:
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                self._session(conn)
+
+    def _session(self, conn: socket.socket) -> None:
         raise NotImplementedError

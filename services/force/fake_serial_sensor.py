@@ -50,7 +50,6 @@ class FakeSerialSensor(LoopbackServer):
         self.sent = 0
         """Sample lines sent (including the faulty ones that consume a sample number)."""
         self.commands: list[bytes] = []
-        self.connections = 0
 
     # --- what it measures, and faults ----------------------------------------------------
 
@@ -92,20 +91,6 @@ class FakeSerialSensor(LoopbackServer):
             self._stall_until = time.monotonic() + seconds
 
     # --- server thread -------------------------------------------------------------------
-
-    def _serve(self) -> None:
-        self._sock.settimeout(0.05)
-        while not self._closed.is_set():
-            try:
-                conn, _ = self._sock.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            self.connections += 1
-            with conn:
-                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                self._session(conn)
 
     def _session(self, conn: socket.socket) -> None:
         self.streaming = self._stream_at_connect

@@ -124,19 +124,6 @@ class FakeMasterArm(LoopbackServer):
         with self._lock:
             return self._naks_sent
 
-    def _serve(self) -> None:
-        self._sock.settimeout(0.05)
-        while not self._closed.is_set():
-            try:
-                conn, _ = self._sock.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            with conn:
-                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                self._session(conn)
-
     def _session(self, conn: socket.socket) -> None:
         splitter = LineSplitter()
         rate_hz = 0.0
