@@ -39,10 +39,26 @@ def test_uses_its_clock_when_no_time_is_given() -> None:
     assert lim.allow("k") == 1
 
 
-@pytest.mark.parametrize(("interval_s", "per_s"), [(-1.0, None), (float("nan"), None), (1.0, 0)])
-def test_bad_settings_are_refused(interval_s: float, per_s: int | None) -> None:
+def test_max_keys_forgets_the_least_recent_key() -> None:
+    lim = EventLimiter(1.0, max_keys=2)
+    assert [lim.allow(k, 0.0) for k in "ab"] == [0, 0]
+    assert lim.allow("a", 0.5) is None
+    assert lim.allow("c", 0.5) == 0  # "a" (let through first) is forgotten, held count too
+    assert lim.held("a") == 0
+    assert lim.allow("a", 0.6) == 0  # a forgotten key starts afresh; "b" is forgotten now
+    assert lim.allow("c", 0.7) is None  # still remembered
+    assert lim.allow("b", 0.7) == 0
+
+
+@pytest.mark.parametrize(
+    ("interval_s", "per_s", "max_keys"),
+    [(-1.0, None, None), (float("nan"), None, None), (1.0, 0, None), (1.0, None, 0)],
+)
+def test_bad_settings_are_refused(
+    interval_s: float, per_s: int | None, max_keys: int | None
+) -> None:
     with pytest.raises(ValueError):
-        EventLimiter(interval_s, per_s)
+        EventLimiter(interval_s, per_s, max_keys=max_keys)
 
 
 @given(
