@@ -10,6 +10,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.force.sensors import ForceSensor, Reading
+
 DEADLINE_S = 10.0
 
 
@@ -20,6 +22,22 @@ def wait_for(cond: Callable[[], bool], timeout_s: float = DEADLINE_S, what: str 
         if time.monotonic() > end:
             raise AssertionError(f"timed out after {timeout_s} s waiting for {what or cond}")
         time.sleep(0.002)
+
+
+def drain_until(
+    sensor: ForceSensor, cond: Callable[[], object], timeout_s: float = 10.0
+) -> Reading | None:
+    """Read continuously (as the sampler would) until cond() holds; the last reading."""
+    last: list[Reading | None] = [None]
+
+    def step() -> bool:
+        r = sensor.read()
+        if r is not None:
+            last[0] = r
+        return bool(cond())
+
+    wait_for(step, timeout_s)
+    return last[0]
 
 
 class Events:

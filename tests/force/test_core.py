@@ -16,9 +16,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
+from services.bus import codec
 from services.bus.errors import ProtocolError, RpcError
+from services.bus.messages import ForceSample
 from services.force.config import ForceConfig
-from services.force.core import ForceCore, ForceSampleFields
+from services.force.core import ForceCore
 from services.force.fake_serial_sensor import FakeSerialSensor
 from services.force.sensors import SensorError
 from services.force.serial_sensor import SerialSensor
@@ -33,9 +35,9 @@ COUNTS = (1e-7, 1e-7, 1e-7, 1e-6, 1e-6, 1e-6)
 
 class Published:
     def __init__(self) -> None:
-        self.items: list[ForceSampleFields] = []
+        self.items: list[ForceSample] = []
 
-    def __call__(self, s: ForceSampleFields) -> None:
+    def __call__(self, s: ForceSample) -> None:
         self.items.append(s)
 
 
@@ -75,7 +77,7 @@ def test_samples_at_1khz_have_no_seq_gaps(sim: tuple[ForceCore, Published, Event
     assert st_["drops"] == 0
     s = pub.items[-1]
     assert len(s.f) == 3 and len(s.c) == 3 and len(s.raw) == 6
-    d = s.as_dict()
+    d = codec.to_fields(s)
     assert set(d) == {"seq", "t_ns", "f", "c", "raw"}
 
 

@@ -20,7 +20,7 @@ from services.bus import keys
 from services.bus.errors import ProtocolError
 from services.bus.messages import Event, ForceSample, RobotState, vec
 from services.force.config import ForceConfig
-from services.force.core import ForceCore, ForceSampleFields
+from services.force.core import ForceCore
 from services.force.service import ForceService
 from services.force.sim_sensor import SimSensor
 from services.workcell.config import WorkcellConfig
@@ -59,7 +59,7 @@ def core() -> Iterator[ForceCore]:
     c.close()
 
 
-def fresh(core: ForceCore) -> ForceSampleFields:
+def fresh(core: ForceCore) -> ForceSample:
     """A sample taken after everything before this call."""
     start = core.latest.seq if core.latest else 0
     wait_for(lambda: core.latest is not None and core.latest.seq > start + 2)

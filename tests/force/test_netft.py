@@ -23,8 +23,8 @@ from services.force.netft import (
     unpack_record,
     unpack_request,
 )
-from services.force.sensors import Reading, SensorError
-from tests.force.helpers import Events, wait_for
+from services.force.sensors import SensorError
+from tests.force.helpers import Events, drain_until, wait_for
 
 
 def test_golden_request_bytes() -> None:
@@ -69,19 +69,6 @@ def test_any_datagram_is_a_record_or_a_value_error(data: bytes) -> None:
 def fake() -> Iterator[FakeNetFT]:
     with FakeNetFT(rate_hz=1000.0) as f:
         yield f
-
-
-def drain_until(sensor: NetFTSensor, cond: object, timeout_s: float = 10.0) -> Reading | None:
-    last: list[Reading | None] = [None]
-
-    def step() -> bool:
-        r = sensor.read()
-        if r is not None:
-            last[0] = r
-        return bool(cond())  # type: ignore[operator]
-
-    wait_for(step, timeout_s)
-    return last[0]
 
 
 def test_streams_scaled_wrench(fake: FakeNetFT) -> None:

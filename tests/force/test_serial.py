@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.force.fake_serial_sensor import FakeSerialSensor
-from services.force.sensors import Reading, SensorError
+from services.force.sensors import SensorError
 from services.force.serial_sensor import (
     LineError,
     SerialFrame,
@@ -20,7 +20,7 @@ from services.force.serial_sensor import (
     encode_command,
     encode_sample,
 )
-from tests.force.helpers import Events, wait_for
+from tests.force.helpers import Events, drain_until, wait_for
 
 # --- golden bytes -------------------------------------------------------------------------
 
@@ -99,20 +99,6 @@ def test_encode_decode_round_trip(seq: int, ch: list[float]) -> None:
 def fake() -> Iterator[FakeSerialSensor]:
     with FakeSerialSensor(rate_hz=1000.0, signals=(1, 2, 3, 4, 5, 6)) as f:
         yield f
-
-
-def drain_until(sensor: SerialSensor, cond: object, timeout_s: float = 10.0) -> Reading | None:
-    """Read continuously (as the sampler would) until cond() holds; the last reading."""
-    last: list[Reading | None] = [None]
-
-    def step() -> bool:
-        r = sensor.read()
-        if r is not None:
-            last[0] = r
-        return bool(cond())  # type: ignore[operator]
-
-    wait_for(step, timeout_s)
-    return last[0]
 
 
 def test_reads_the_stream_and_sends_start_stop(fake: FakeSerialSensor) -> None:
