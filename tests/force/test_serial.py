@@ -20,7 +20,8 @@ from services.force.serial_sensor import (
     encode_command,
     encode_sample,
 )
-from tests.force.helpers import Events, wait_for
+from tests.conftest import wait_until
+from tests.force.helpers import Events
 
 # --- golden bytes -------------------------------------------------------------------------
 
@@ -111,7 +112,7 @@ def drain_until(sensor: SerialSensor, cond: object, timeout_s: float = 10.0) -> 
             last[0] = r
         return bool(cond())  # type: ignore[operator]
 
-    wait_for(step, timeout_s)
+    assert wait_until(step, timeout_s)
     return last[0]
 
 
@@ -129,7 +130,7 @@ def test_reads_the_stream_and_sends_start_stop(fake: FakeSerialSensor) -> None:
     assert (s.bad, s.gaps) == (0, 0)
     assert events.items == []
     s.close()
-    wait_for(lambda: len(fake.commands) == 2)
+    assert wait_until(lambda: len(fake.commands) == 2)
     assert fake.commands == [encode_command("START"), encode_command("STOP")]
 
 
@@ -160,7 +161,7 @@ def test_stall_gives_no_data_then_resumes_without_gap(fake: FakeSerialSensor) ->
     s.open()
     drain_until(s, lambda: s.frames >= 20)
     fake.stall(0.2)
-    wait_for(lambda: s.read() is None)  # nothing new while stalled
+    assert wait_until(lambda: s.read() is None)  # nothing new while stalled
     n = s.frames
     drain_until(s, lambda: s.frames >= n + 50)
     assert (s.bad, s.gaps) == (0, 0)
