@@ -322,20 +322,20 @@ def test_no_inverse_service_at_start_up_exits_with_a_clear_message() -> None:
 
 def test_the_fake_runs_by_hand_and_the_backend_drives_it() -> None:
     port = free_port()
-    proc = subprocess.Popen(
+    with subprocess.Popen(  # `with`: the pipe is closed, never left to the collector
         [sys.executable, "-m", "services.cli.main", "haply-fake", "--port", str(port)],
         stdout=subprocess.PIPE,
         text=True,
-    )
-    try:
-        assert proc.stdout is not None
-        assert f"ws://127.0.0.1:{port}" in proc.stdout.readline()
-        device = HaplyMaster(f"ws://127.0.0.1:{port}")
-        device.open()
-        try:  # the scripted operator holds a for most of its cycle
-            assert wait_until(lambda: not device.read(0.01).clutch, timeout_s=10.0)
+    ) as proc:
+        try:
+            assert proc.stdout is not None
+            assert f"ws://127.0.0.1:{port}" in proc.stdout.readline()
+            device = HaplyMaster(f"ws://127.0.0.1:{port}")
+            device.open()
+            try:  # the scripted operator holds a for most of its cycle
+                assert wait_until(lambda: not device.read(0.01).clutch, timeout_s=10.0)
+            finally:
+                device.close()
         finally:
-            device.close()
-    finally:
-        proc.terminate()
-        assert proc.wait(timeout=10) == 0
+            proc.terminate()
+            assert proc.wait(timeout=10) == 0
