@@ -40,8 +40,13 @@ lint: install
 typecheck: install
 	$(BIN)/mypy
 
+# Two workers (pytest-xdist), one test file per worker at a time (`loadfile`: a module's
+# shared fixtures start once). The suite mostly waits on services and processes, not on
+# CPU, so two workers on two cores near halve its wall time; no test asserts on speed.
+# PYTEST_WORKERS=0 runs it in one process.
+PYTEST_WORKERS ?= 2
 pytest: install system-deps
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
 test: lint typecheck pytest
 
