@@ -22,7 +22,7 @@ from services.master.fake_haply import FakeInverseService, HandPose
 from services.master.service import MasterService
 from services.puma.config import PumaConfig
 from services.puma.service import PumaService
-from tests.conftest import Net, wait_until
+from tests.conftest import Net, Waited, wait_until
 from tests.master.test_haply_service import ALIGN, HOME, SCALE_T, haply_master
 
 pytestmark = pytest.mark.system
@@ -84,7 +84,7 @@ def slide(start: tuple[float, float, float], dx_m: float, duration_s: float) -> 
     return motion
 
 
-def settled(cell: Cell, target: np.ndarray) -> bool:
+def settled(cell: Cell, target: np.ndarray) -> Waited:
     return wait_until(lambda: bool(np.linalg.norm(cell.tool_p() - target) < TOL_M), 15.0)
 
 
