@@ -24,7 +24,8 @@ from services.force.netft import (
     unpack_request,
 )
 from services.force.sensors import SensorError
-from tests.force.helpers import Events, drain_until, wait_for
+from tests.conftest import wait_until
+from tests.force.helpers import Events, drain_until
 
 
 def test_golden_request_bytes() -> None:
@@ -83,8 +84,8 @@ def test_streams_scaled_wrench(fake: FakeNetFT) -> None:
     assert (s.bad, s.gaps) == (0, 0)
     assert fake.requests[0] == (CMD_START_STREAMING, 0)
     s.close()
-    wait_for(lambda: (CMD_STOP_STREAMING, 0) in fake.requests)
-    wait_for(lambda: not fake.streaming)
+    assert wait_until(lambda: (CMD_STOP_STREAMING, 0) in fake.requests)
+    assert wait_until(lambda: not fake.streaming)
 
 
 def test_counts_per_unit_are_configurable() -> None:
@@ -135,7 +136,7 @@ def test_hardware_bias(fake: FakeNetFT) -> None:
     fake.set_wrench((3.0, 0, 0), (0, 0, 0))
     drain_until(s, lambda: s.records >= 20)
     s.set_hardware_bias()
-    wait_for(lambda: (CMD_SET_SOFTWARE_BIAS, 0) in fake.requests)
+    assert wait_until(lambda: (CMD_SET_SOFTWARE_BIAS, 0) in fake.requests)
     n = s.records
     r = drain_until(s, lambda: s.records >= n + 20)
     assert r is not None and r.values == (0.0,) * 6
@@ -151,7 +152,7 @@ def test_sample_count_limits_the_stream() -> None:
             c.send(pack_request(CMD_START_STREAMING, 5))
             recs = [unpack_record(c.recv(64)) for _ in range(5)]
         assert [r.rdt_sequence for r in recs] == [1, 2, 3, 4, 5]
-        wait_for(lambda: not f.streaming)
+        assert wait_until(lambda: not f.streaming)
 
 
 def test_values_are_finite_even_at_the_extremes() -> None:

@@ -20,7 +20,8 @@ from services.force.serial_sensor import (
     encode_command,
     encode_sample,
 )
-from tests.force.helpers import Events, drain_until, wait_for
+from tests.conftest import wait_until
+from tests.force.helpers import Events, drain_until
 
 # --- golden bytes -------------------------------------------------------------------------
 
@@ -115,7 +116,7 @@ def test_reads_the_stream_and_sends_start_stop(fake: FakeSerialSensor) -> None:
     assert (s.bad, s.gaps) == (0, 0)
     assert events.items == []
     s.close()
-    wait_for(lambda: len(fake.commands) == 2)
+    assert wait_until(lambda: len(fake.commands) == 2)
     assert fake.commands == [encode_command("START"), encode_command("STOP")]
 
 
@@ -146,7 +147,7 @@ def test_stall_gives_no_data_then_resumes_without_gap(fake: FakeSerialSensor) ->
     s.open()
     drain_until(s, lambda: s.frames >= 20)
     fake.stall(0.2)
-    wait_for(lambda: s.read() is None)  # nothing new while stalled
+    assert wait_until(lambda: s.read() is None)  # nothing new while stalled
     n = s.frames
     drain_until(s, lambda: s.frames >= n + 50)
     assert (s.bad, s.gaps) == (0, 0)
