@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
+from services.bus.serialport import close_port
 from services.force.events import EventSink, ignore_event
 from services.force.sensors import Reading, SensorError, Six, StreamAccounting
 
@@ -192,7 +193,7 @@ class SerialSensor(StreamAccounting):
         # A device already gone needs no stop: closing is all that is left.
         with contextlib.suppress(OSError):
             ser.write(encode_command("STOP"))
-        ser.close()
+        close_port(ser)
 
     def read(self) -> Reading | None:
         ser = self._ser

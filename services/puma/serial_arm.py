@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from services.bus.serialport import close_port
 from services.puma.arm import ArmBase, ArmError, ArmStatus, Q
 
 MAX_LINE_BYTES = 128
@@ -489,7 +490,4 @@ class SerialArm(ArmBase):
     def _close_port(self) -> None:
         ser, self._ser = self._ser, None
         if ser is not None:
-            try:
-                ser.close()
-            except OSError:
-                return  # closing a vanished port may fail: it is gone either way
+            close_port(ser)
