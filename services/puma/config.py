@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Literal
 
 from services.bus.bounds import check_config
+from services.bus.config import section
 from services.bus.errors import ConfigError
 from services.puma.arm import (
     ARM_MAX_JOINT_ACCEL_RAD_S2,
@@ -113,14 +114,9 @@ class PumaConfig:
 
     @classmethod
     def from_mapping(cls, table: Mapping[str, Any]) -> PumaConfig:
-        """From a TOML `[puma]` table; lists become tuples; an unknown key is an error."""
-        known = {f.name for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in table.items():
-            if key not in known:
-                raise ConfigError(f"puma.{key}", "unknown key")
-            kwargs[key] = tuple(value) if isinstance(value, list) else value
-        return cls(**kwargs)
+        """From a TOML `[puma]` table (the bus's one section reader: an unknown key or a
+        value of the wrong type is an error naming `puma.<key>`)."""
+        return section(cls, table, "puma")
 
     def arm_options(self) -> dict[str, Any]:
         """Keyword arguments for `open_arm(self.arm, self.port, **…)`."""
