@@ -2,7 +2,8 @@
 
 `MasterTdpa.hook` is a `ForceDisplay` hook: it observes the master port (the wrench shown ×
 the hand's motion, master frame), damps the displayed force when the channel has no energy
-left to give the operator (`MasterPassivity`), and publishes the port's energies on
+left to give the operator and bounds it to what the reservoir can pay over the next tick
+(`MasterPassivity`, limiter on), and publishes the port's energies on
 `robot/passivity/master`; it reads the slave's on `robot/passivity/slave`. A new engagement
 starts a new count on both sides (no energy is in the channel then, so nothing jumps: the
 display also ramps in). Called by the master loop thread only.
@@ -21,6 +22,14 @@ from services.master.feedback import DisplayWrench
 from services.passivity.controller import MasterPassivity
 from services.passivity.wire import passivity_state
 
+DEVICE_MASS_KG = 0.5
+"""The device mass the force limiter predicts with (the simulated haptic master's; a lighter
+real device is accelerated more by a force step than predicted: set it to that device's)."""
+RESERVE_J = 1e-4
+"""The most the master port may ever owe the channel (J): see docs/passivity.md."""
+HAND_RATE_N_S = 20.0
+"""How fast the limiter assumes the hand's own force may change (N/s)."""
+
 
 class MasterTdpa:
     """enabled: damp (true) or only observe and publish (false)."""
@@ -29,7 +38,13 @@ class MasterTdpa:
         self, node: Node, master_id: str, engage: Callable[[], int], enabled: bool = True
     ) -> None:
         self.master_id = master_id
-        self.pc = MasterPassivity(enabled=enabled)
+        self.pc = MasterPassivity(
+            enabled=enabled,
+            limit=True,
+            mass_kg=DEVICE_MASS_KG,
+            reserve_j=RESERVE_J,
+            hand_rate_n_s=HAND_RATE_N_S,
+        )
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)
         self._slave = node.latest(keys.PASSIVITY_SLAVE)
