@@ -121,7 +121,7 @@ def test_with_the_master_limiter_700ms_settles_and_the_master_port_balances() ->
     assert m["oscillation_rms_n"] < 0.1 * m["steady_force_n"]
     assert m["steady_force_n"] > 0.6 * ref["steady_force_n"]
     assert m["penetration_mm"] < 1.5 * ref["penetration_mm"]
-    exchanged, master, _ = _overdrafts(run(0.7, True))
+    _, master, _ = _overdrafts(run(0.7, True))
     assert master < 0.001
     without = simulate(LoopSpec(round_trip_s=0.7, jitter=0.1, loss=0.01, tdpa=True, limit=False))
     assert not contact_metrics(without)["stable"]  # the damper alone: still hunting
