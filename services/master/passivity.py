@@ -11,6 +11,7 @@ display also ramps in). Called by the master loop thread only.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -29,6 +30,9 @@ RESERVE_J = 1e-4
 """The most the master port may ever owe the channel (J): see docs/passivity.md."""
 HAND_RATE_N_S = 20.0
 """How fast the limiter assumes the hand's own force may change (N/s)."""
+HORIZON_TICKS = 50
+"""The limiter predicts over the longest of the last this many tick intervals (a loop late
+once may be late again)."""
 
 
 class MasterTdpa:
@@ -50,6 +54,7 @@ class MasterTdpa:
         self._slave = node.latest(keys.PASSIVITY_SLAVE)
         self._seq = 0
         self._epoch: int | None = None
+        self._dts: deque[float] = deque(maxlen=HORIZON_TICKS)
 
     def hook(self, wrench: DisplayWrench, hand: HandReading, dt_s: float) -> DisplayWrench:
         engage = self._engage()
@@ -61,6 +66,8 @@ class MasterTdpa:
             msg = got[0]
             if msg.master == self.master_id and msg.side == "slave":
                 self.pc.remote.update(msg.engage, msg.e_in)
+        self._dts.append(dt_s)
+        self.pc.horizon_s = max(self._dts)
         f = self.pc.step([float(x) for x in wrench.f], [float(x) for x in hand.hand_p], dt_s)
         self._publish(engage)
         return DisplayWrench(

@@ -70,6 +70,7 @@ class MasterPassivity:
     hand_rate_n_s: float = 0.0
     bound_current: bool = True
     damp: bool = True
+    horizon_s: float = 0.0
     observer: EnergyObserver = field(default_factory=EnergyObserver)
     remote: RemoteEnergy = field(default_factory=RemoteEnergy)
     telemetry: PortTelemetry = field(default_factory=PortTelemetry)
@@ -95,8 +96,11 @@ class MasterPassivity:
         ff = dot(f, f)
         if ff <= 0.0:
             return f
+        # The next interval: as long as the last one, or `horizon_s` when that is longer (a
+        # loop that may run late holds the force longer than its last tick).
+        h = max(dt_s, self.horizon_s)
         k = 1.0
-        fv = dot(f, v) * dt_s
+        fv = dot(f, v) * h
         if (self.mass_kg <= 0.0 or self.bound_current) and fv > r + TOLERANCE_J:
             k = min(k, r / fv)
         inv_m = 1.0 / self.mass_kg if self.mass_kg > 0.0 else 0.0
@@ -105,7 +109,7 @@ class MasterPassivity:
             # v + a_prev·dt − f_held/m·dt: the rest of the device's force (the hand's, its
             # damping) as it was over the last tick.
             w = [
-                vi + (vi - pi) - hi * inv_m * dt_s
+                vi + (vi - pi) / dt_s * h - hi * inv_m * h
                 for vi, pi, hi in zip(v, self._v_prev, held, strict=True)
             ]
         else:
@@ -113,8 +117,8 @@ class MasterPassivity:
             w = list(v)
         # The hand's force may change by up to hand_rate_n_s·dt within the tick, in the worst
         # direction (along f): that much more velocity along f by the end of it.
-        b = (dot(f, w) + math.sqrt(ff) * self.hand_rate_n_s * dt_s * inv_m * dt_s) * dt_s
-        a = ff * dt_s * dt_s * inv_m
+        b = (dot(f, w) + math.sqrt(ff) * self.hand_rate_n_s * h * inv_m * h) * h
+        a = ff * h * h * inv_m
         if a + b > r + TOLERANCE_J:
             # The larger root of a·k² + b·k − r = 0 (a = 0: no mass modelled, linear).
             root = (-b + math.sqrt(max(b * b + 4.0 * a * r, 0.0))) / (2.0 * a) if a > 0.0 else r / b
