@@ -122,17 +122,6 @@ class PumaConfig:
             kwargs[key] = tuple(value) if isinstance(value, list) else value
         return cls(**kwargs)
 
-    def arm_options(self) -> dict[str, Any]:
-        """Keyword arguments for `open_arm(self.arm, self.port, **…)`."""
-        if self.arm == "serial":
-            return {
-                "baudrate": self.baudrate,
-                "cycle_ms": self.serial_cycle_ms,
-                "timeout_s": self.serial_timeout_s,
-            }
-        # The simulated arm powers on at home: the tool above the table, ready to work.
-        return {"calibration_s": self.sim_calibration_s, "q_init": self.home_q}
-
 
 def _number(key: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):

@@ -28,7 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from services.puma.arm import ArmBase, ArmError, ArmStatus, Q
+from services.puma.arm import ArmError, ArmStatus, Q
+from services.puma.arm_base import ArmBase
 
 MAX_LINE_BYTES = 128
 MODEL = "PUMA560"
