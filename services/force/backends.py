@@ -1,47 +1,32 @@
 """`open_force_sensor(config)`: the sensor backend a `ForceConfig` names, built, not opened.
 
-`BACKENDS` maps each `force.sensor` name to a constructor that imports its backend only when
-called, so the simulation and its tests never load pyserial; `sensor_options` is what the
-configuration passes to that constructor. Backends: `SimSensor` (sim_sensor.py, the default:
-contact with the simulated workcell), `SerialSensor` (serial_sensor.py, six ADC channels as
-checksummed ASCII lines, docs/serial-force-protocol.md), `NetFTSensor` (netft.py, ATI Net
-F/T RDT over UDP).
+`BACKENDS` names each `force.sensor` backend's class, imported only when that backend is
+built, so the simulation and its tests never load pyserial; `sensor_options` maps the
+configuration to the class's constructor arguments.
+
+Backends: `SimSensor` (sim_sensor.py, the default: contact with the simulated workcell),
+`SerialSensor` (serial_sensor.py, six ADC channels as checksummed ASCII lines,
+docs/serial-force-protocol.md), `NetFTSensor` (netft.py, ATI Net F/T RDT over UDP).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
 from typing import Any
 
-from services.bus.errors import ConfigError
+from services.bus.registry import BackendRegistry
 from services.force.config import ForceConfig
-from services.force.sensors import SENSOR_KINDS, ForceSensor
+from services.force.sensors import ForceSensor
 
-
-def _sim(options: dict[str, Any]) -> ForceSensor:
-    from services.force.sim_sensor import SimSensor
-
-    return SimSensor(**options)
-
-
-def _serial(options: dict[str, Any]) -> ForceSensor:
-    from services.force.serial_sensor import SerialSensor
-
-    return SerialSensor(**options)
-
-
-def _netft(options: dict[str, Any]) -> ForceSensor:
-    from services.force.netft import NetFTSensor
-
-    return NetFTSensor(**options)
-
-
-BACKENDS: Mapping[str, Callable[[dict[str, Any]], ForceSensor]] = {
-    "sim": _sim,
-    "serial": _serial,
-    "netft": _netft,
-}
-"""Backend name (`force.sensor`) → constructor, called with `sensor_options(config)`."""
+BACKENDS: BackendRegistry[ForceSensor] = BackendRegistry(
+    "force.sensor",
+    "sensor kind",
+    {
+        "sim": "services.force.sim_sensor:SimSensor",
+        "serial": "services.force.serial_sensor:SerialSensor",
+        "netft": "services.force.netft:NetFTSensor",
+    },
+)
+"""Backend name (`force.sensor`) → class, constructed with `sensor_options(config)`."""
 
 
 def sensor_options(config: ForceConfig) -> dict[str, Any]:
@@ -69,16 +54,6 @@ def sensor_options(config: ForceConfig) -> dict[str, Any]:
     }
 
 
-def build_sensor(kind: str, options: dict[str, Any]) -> ForceSensor:
-    """The backend `kind` built from `options`; ConfigError("force.sensor") if there is none."""
-    construct = BACKENDS.get(kind)
-    if construct is None:
-        raise ConfigError(
-            "force.sensor", f"unknown sensor kind {kind!r} (known: {', '.join(SENSOR_KINDS)})"
-        )
-    return construct(options)
-
-
 def open_force_sensor(config: ForceConfig) -> ForceSensor:
     """The sensor `config.sensor` with its options, not yet opened (`ForceSensor.open`)."""
-    return build_sensor(config.sensor, sensor_options(config))
+    return BACKENDS.build(config.sensor, sensor_options(config))

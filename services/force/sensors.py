@@ -125,6 +125,6 @@ def open_sensor(kind: SensorKind, **opts: Any) -> ForceSensor:
     Kept for `ForceCore.from_config` alone (force/core.py is being reworked in another
     branch); everything else calls `services.force.backends.open_force_sensor(config)`.
     """
-    from services.force.backends import build_sensor
+    from services.force.backends import BACKENDS
 
-    return build_sensor(kind, opts)
+    return BACKENDS.build(kind, opts)

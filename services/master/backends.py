@@ -1,73 +1,33 @@
 """`open_master_device(config)`: the master device a `MasterConfig` names, built and opened.
 
-`BACKENDS` maps each `master.device` name to a constructor that imports its backend, and
-with it its library (hidapi, pyserial, websockets), only when called; `device_options` is
-what the configuration passes to that constructor. Unlike the other roles the device comes
+`BACKENDS` names each `master.device` backend's class, imported, and with it its library
+(hidapi, pyserial, websockets), only when that backend is built; `device_options` maps the
+configuration to the class's constructor arguments. Unlike the other roles the device comes
 open: a station without its device is `DeviceNotFound` at start-up, with what was found.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
 from typing import Any
 
-from services.bus.errors import ConfigError
-from services.master.config import DEVICE_KINDS, MasterConfig
+from services.bus.registry import BackendRegistry
+from services.master.config import MasterConfig
 from services.master.devices import MasterDevice
 
-
-def _spacemouse(options: dict[str, Any]) -> MasterDevice:
-    from services.master.hid_spacemouse import HidSpaceMouse
-
-    return HidSpaceMouse(**options)
-
-
-def _serial_arm(options: dict[str, Any]) -> MasterDevice:
-    from services.master.serial_arm import SerialMasterArm
-
-    return SerialMasterArm(**options)
-
-
-def _keyboard(options: dict[str, Any]) -> MasterDevice:
-    from services.master.keyboard import KeyboardMaster
-
-    return KeyboardMaster(**options)
-
-
-def _scripted(options: dict[str, Any]) -> MasterDevice:
-    from services.master.scripted import ScriptedMaster
-
-    return ScriptedMaster(**options)
-
-
-def _virtual(options: dict[str, Any]) -> MasterDevice:
-    from services.master.virtual import VirtualMaster
-
-    return VirtualMaster(**options)
-
-
-def _haply(options: dict[str, Any]) -> MasterDevice:
-    from services.master.haply import HaplyMaster
-
-    return HaplyMaster(**options)
-
-
-def _haptic_sim(options: dict[str, Any]) -> MasterDevice:
-    from services.master.haptic_sim import SimHapticMaster
-
-    return SimHapticMaster(**options)
-
-
-BACKENDS: Mapping[str, Callable[[dict[str, Any]], MasterDevice]] = {
-    "spacemouse": _spacemouse,
-    "serial_arm": _serial_arm,
-    "keyboard": _keyboard,
-    "scripted": _scripted,
-    "virtual": _virtual,
-    "haply": _haply,
-    "haptic_sim": _haptic_sim,
-}
-"""Backend name (`master.device`) → constructor, called with `device_options(config)`."""
+BACKENDS: BackendRegistry[MasterDevice] = BackendRegistry(
+    "master.device",
+    "master device",
+    {
+        "spacemouse": "services.master.hid_spacemouse:HidSpaceMouse",
+        "serial_arm": "services.master.serial_arm:SerialMasterArm",
+        "keyboard": "services.master.keyboard:KeyboardMaster",
+        "scripted": "services.master.scripted:ScriptedMaster",
+        "virtual": "services.master.virtual:VirtualMaster",
+        "haply": "services.master.haply:HaplyMaster",
+        "haptic_sim": "services.master.haptic_sim:SimHapticMaster",
+    },
+)
+"""Backend name (`master.device`) → class, constructed with `device_options(config)`."""
 
 
 def device_options(config: MasterConfig) -> dict[str, Any]:
@@ -113,12 +73,6 @@ def open_master_device(config: MasterConfig) -> MasterDevice:
     Raises DeviceNotFound when the device is absent, ConfigError("master.device") for a
     name without a backend (a `MasterConfig` built the ordinary way has refused it already).
     """
-    construct = BACKENDS.get(config.device)
-    if construct is None:
-        raise ConfigError(
-            "master.device",
-            f"unknown master device {config.device!r}; one of {', '.join(DEVICE_KINDS)}",
-        )
-    device = construct(device_options(config))
+    device = BACKENDS.build(config.device, device_options(config))
     device.open()
     return device

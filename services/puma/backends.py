@@ -1,34 +1,24 @@
 """`open_arm(config)`: the arm backend a `PumaConfig` names, built and not yet connected.
 
-`BACKENDS` maps each `puma.arm` name to a constructor that imports its backend only when
-called, so the simulation and its tests never load pyserial; `arm_options` is what the
-configuration passes to that constructor.
+`BACKENDS` names each `puma.arm` backend's class, imported only when that backend is built,
+so the simulation and its tests never load pyserial; `arm_options` maps the configuration
+to the class's constructor arguments.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
 from typing import Any
 
-from services.bus.errors import ConfigError
-from services.puma.arm import Arm, ArmKind
+from services.bus.registry import BackendRegistry
+from services.puma.arm import Arm
 from services.puma.config import PumaConfig
 
-
-def _sim(options: dict[str, Any]) -> Arm:
-    from services.puma.sim_arm import SimArm
-
-    return SimArm(**options)
-
-
-def _serial(options: dict[str, Any]) -> Arm:
-    from services.puma.serial_arm import SerialArm
-
-    return SerialArm(**options)
-
-
-BACKENDS: Mapping[ArmKind, Callable[[dict[str, Any]], Arm]] = {"sim": _sim, "serial": _serial}
-"""Backend name (`puma.arm`) → constructor, called with `arm_options(config)`."""
+BACKENDS: BackendRegistry[Arm] = BackendRegistry(
+    "puma.arm",
+    "arm",
+    {"sim": "services.puma.sim_arm:SimArm", "serial": "services.puma.serial_arm:SerialArm"},
+)
+"""Backend name (`puma.arm`) → class, constructed with `arm_options(config)`."""
 
 
 def arm_options(config: PumaConfig) -> dict[str, Any]:
@@ -50,9 +40,4 @@ def open_arm(config: PumaConfig) -> Arm:
     Raises `ConfigError("puma.arm", …)` for a name without a backend (a `PumaConfig` built
     the ordinary way has already refused it).
     """
-    construct = BACKENDS.get(config.arm)
-    if construct is None:
-        raise ConfigError(
-            "puma.arm", f"unknown arm {config.arm!r}, expected one of {sorted(BACKENDS)}"
-        )
-    return construct(arm_options(config))
+    return BACKENDS.build(config.arm, arm_options(config))

@@ -1,35 +1,28 @@
 """`open_camera(config)`: the camera a `VisionConfig` names, built and not opened.
 
-`BACKENDS` maps each `vision.camera` name to a constructor that imports its backend, and
-through it OpenCV, only when called; `camera_options` is what the configuration passes to
-that constructor. The pipeline opens the camera in its capture thread, so a camera that
+`BACKENDS` names each `vision.camera` backend's class, imported, and through it OpenCV,
+only when that backend is built; `camera_options` maps the configuration to the class's
+constructor arguments. The pipeline opens the camera in its capture thread, so a camera that
 fails to open is reported as an event and retried instead of stopping the service.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
 from typing import Any
 
-from services.bus.errors import ConfigError
+from services.bus.registry import BackendRegistry
 from services.vision.camera import Camera, Intrinsics
-from services.vision.config import CAMERAS, VisionConfig
+from services.vision.config import VisionConfig
 
-
-def _sim(options: dict[str, Any]) -> Camera:
-    from services.vision.sim_camera import SimStereoCamera
-
-    return SimStereoCamera(**options)
-
-
-def _opencv(options: dict[str, Any]) -> Camera:
-    from services.vision.opencv_camera import OpenCVCamera
-
-    return OpenCVCamera(**options)
-
-
-BACKENDS: Mapping[str, Callable[[dict[str, Any]], Camera]] = {"sim": _sim, "opencv": _opencv}
-"""Backend name (`vision.camera`) → constructor, called with `camera_options(config)`."""
+BACKENDS: BackendRegistry[Camera] = BackendRegistry(
+    "vision.camera",
+    "camera",
+    {
+        "sim": "services.vision.sim_camera:SimStereoCamera",
+        "opencv": "services.vision.opencv_camera:OpenCVCamera",
+    },
+)
+"""Backend name (`vision.camera`) → class, constructed with `camera_options(config)`."""
 
 
 def camera_options(config: VisionConfig) -> dict[str, Any]:
@@ -54,9 +47,4 @@ def open_camera(config: VisionConfig) -> Camera:
     Raises ConfigError("vision.camera", …) for a name without a backend (a `VisionConfig`
     built the ordinary way has refused it already).
     """
-    construct = BACKENDS.get(config.camera)
-    if construct is None:
-        raise ConfigError(
-            "vision.camera", f"unknown camera {config.camera!r}, expected one of {CAMERAS}"
-        )
-    return construct(camera_options(config))
+    return BACKENDS.build(config.camera, camera_options(config))

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from services.bus.errors import ConfigError
-from services.force.backends import BACKENDS, build_sensor, open_force_sensor, sensor_options
+from services.force.backends import BACKENDS, open_force_sensor, sensor_options
 from services.force.config import ForceConfig
 from services.force.netft import NetFTSensor
 from services.force.sensors import SENSOR_KINDS, open_sensor
@@ -80,7 +80,7 @@ def test_stiffness_must_be_positive_and_finite(k: float) -> None:
 
 
 def test_open_force_sensor_builds_each_backend_from_the_config() -> None:
-    assert set(BACKENDS) == set(SENSOR_KINDS)
+    assert set(BACKENDS.names) == set(SENSOR_KINDS)
     assert isinstance(open_force_sensor(ForceConfig()), SimSensor)
     serial = ForceConfig(sensor="serial", port="socket://127.0.0.1:1")
     assert isinstance(open_force_sensor(serial), SerialSensor)
@@ -95,7 +95,7 @@ def test_open_force_sensor_builds_each_backend_from_the_config() -> None:
 
 def test_a_name_without_a_backend_is_a_config_error() -> None:
     with pytest.raises(ConfigError) as e:
-        build_sensor("usb", {})
+        BACKENDS.build("usb", {})
     assert e.value.key == "force.sensor"
 
 

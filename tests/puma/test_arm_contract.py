@@ -269,7 +269,7 @@ def test_close_is_idempotent(rig: Rig) -> None:
 
 
 def test_every_arm_kind_has_a_backend() -> None:
-    assert set(BACKENDS) == set(get_args(ArmKind))
+    assert set(BACKENDS.names) == set(get_args(ArmKind))
 
 
 def test_open_arm_picks_the_backend_from_the_config() -> None:

@@ -80,7 +80,7 @@ def test_camera_contract(backend: str, tmp_path: Path) -> None:
 
 
 def test_every_camera_kind_has_a_backend() -> None:
-    assert set(backends.BACKENDS) == set(CAMERAS)
+    assert set(backends.BACKENDS.names) == set(CAMERAS)
 
 
 def test_camera_options_from_the_config() -> None:
