@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any, Literal
+from typing import Any, get_args
 
 from services.bus.bounds import check_config
 from services.bus.errors import ConfigError
@@ -18,6 +18,7 @@ from services.puma.arm import (
     ARM_MAX_JOINT_SPEED_RAD_S,
     Q_HI_RAD,
     Q_LO_RAD,
+    ArmKind,
 )
 
 Joint6 = tuple[float, float, float, float, float, float]
@@ -61,7 +62,7 @@ class PumaConfig:
     max_tool_speed_m_s: float = 0.5
     max_tool_rot_speed_rad_s: float = 1.5
     home_q: Joint6 = HOME_Q_RAD
-    arm: Literal["sim", "serial"] = "sim"
+    arm: ArmKind = "sim"
     port: str | None = None
     baudrate: int = 115_200
     serial_cycle_ms: float = 28.0
@@ -95,7 +96,7 @@ class PumaConfig:
         for j, (q, lo, hi) in enumerate(zip(self.home_q, Q_LO_RAD, Q_HI_RAD, strict=True)):
             if not lo <= q <= hi:
                 raise ConfigError("puma.home_q", f"q{j + 1} = {q} rad is outside [{lo}, {hi}]")
-        if self.arm not in ("sim", "serial"):
+        if self.arm not in get_args(ArmKind):
             raise ConfigError("puma.arm", f"must be 'sim' or 'serial', got {self.arm!r}")
         if self.arm == "serial" and not (isinstance(self.port, str) and self.port):
             raise ConfigError("puma.port", "a serial arm needs a port (device or pyserial URL)")
