@@ -146,11 +146,12 @@ class Child:
 
     def _copy(self, proc: subprocess.Popen[str]) -> None:
         assert proc.stdout is not None
-        for line in proc.stdout:
-            text = line.rstrip("\n")
-            if text.strip():
-                self.last_line = text.strip()
-            self.say(text)
+        with proc.stdout:  # closed at the child's end of output, not left to the collector
+            for line in proc.stdout:
+                text = line.rstrip("\n")
+                if text.strip():
+                    self.last_line = text.strip()
+                self.say(text)
 
     def say(self, text: str) -> None:
         # One lock for every child: their pump threads share one output stream.

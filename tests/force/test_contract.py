@@ -22,7 +22,8 @@ from services.force.gravity import ToolLoad
 from services.force.model import Vec, WristModel
 from services.force.sensors import ForceSensor, Reading, SensorError, open_sensor
 from services.force.sim_sensor import SimSensor
-from tests.force.helpers import Events, wait_for
+from tests.conftest import wait_until
+from tests.force.helpers import Events
 
 COUNTS = np.diag([1e-7, 1e-7, 1e-7, 1e-6, 1e-6, 1e-6])  # 0.1 µm, 1 µrad per ADC count
 
@@ -103,7 +104,7 @@ def reads_wrench(rig: Rig, f: Vec, c: Vec) -> None:
             np.allclose(got[0], f, atol=rig.tol * 10) and np.allclose(got[1], c, atol=rig.tol)
         )
 
-    wait_for(matches, what=f"wrench {f}, {c}")
+    assert wait_until(matches, what=f"wrench {f}, {c}")
 
 
 def test_contract(rig: Rig) -> None:
