@@ -1,10 +1,6 @@
 """The `ForceSensor` role, its `Reading` and its error: what the force service needs from a
 wrist force sensor. `backends.py` holds `open_force_sensor(config)`, which picks a backend and
-imports it lazily.
-
-Backends: `SimSensor` (sim_sensor.py, the default: contact with the simulated workcell),
-`SerialSensor` (serial_sensor.py, six ADC channels as checksummed ASCII lines, see
-docs/serial-force-protocol.md), `NetFTSensor` (netft.py, ATI Net F/T RDT over UDP).
+imports it lazily; `accounting.py` what the streaming backends share.
 """
 
 from __future__ import annotations
@@ -45,63 +41,6 @@ class Reading:
     kind: Literal["signals", "wrench"]
     values: Six
     device_seq: int | None = None
-
-
-class StreamAccounting:
-    """What a streaming device backend counts: its sample numbers (modulo `seq_modulo`,
-    gaps reported as `gap` events) and the bad data it refused (`bad_data` events).
-
-    A subclass sets `seq_modulo` and `unit` (what one sample is called in a message),
-    calls `_init_accounting()` from its constructor and has `name` and `on_event`.
-    """
-
-    seq_modulo: int
-    unit: str
-    on_event: EventSink
-
-    def _init_accounting(self) -> None:
-        self._last_seq: int | None = None
-        self._bad = 0
-        self._gaps = 0
-
-    @property
-    def name(self) -> str:
-        raise NotImplementedError
-
-    @property
-    def bad(self) -> int:
-        return self._bad
-
-    @property
-    def gaps(self) -> int:
-        return self._gaps
-
-    def _step(self, seq: int, refuse_late: bool = False) -> int:
-        """Take sample number `seq`: 0 to refuse it (a repeat, or with `refuse_late` one
-        from behind: more than half the modulo back), else its step from the last one
-        taken (1 when none is missing)."""
-        last = self._last_seq
-        if last is None:
-            self._last_seq = seq
-            return 1
-        step = (seq - last) % self.seq_modulo
-        if step == 0 or (refuse_late and step > self.seq_modulo // 2):
-            return 0
-        self._last_seq = seq
-        if step > 1:
-            self._gaps += step - 1
-            self.on_event(
-                "gap",
-                f"{self.name}: {step - 1} {self.unit} missing before {seq}",
-                {"missing": step - 1, "gaps": self._gaps},
-            )
-        return step
-
-    def _bad_data(self, message: str, reason: str, **extra: Any) -> None:
-        self._bad += 1
-        self.on_event(
-            "bad_data", f"{self.name}: {message}", {"reason": reason, "bad": self._bad, **extra}
-        )
 
 
 @runtime_checkable

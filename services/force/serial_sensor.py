@@ -15,8 +15,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
+from services.force.accounting import StreamAccounting
 from services.force.events import EventSink, ignore_event
-from services.force.sensors import Reading, SensorError, Six, StreamAccounting
+from services.force.sensors import Reading, SensorError, Six
 
 if TYPE_CHECKING:
     import serial
