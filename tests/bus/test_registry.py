@@ -5,6 +5,8 @@ from __future__ import annotations
 from collections import OrderedDict
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from services.bus.errors import ConfigError
 from services.bus.registry import BackendRegistry
@@ -41,3 +43,15 @@ def test_nothing_is_imported_before_a_backend_is_built() -> None:
     assert reg.names == ("missing",)  # declaring did not import it
     with pytest.raises(ModuleNotFoundError):
         reg.load("missing")
+
+
+@given(st.text(max_size=2000))
+def test_any_name_outside_the_registry_is_refused_with_a_bounded_message(name: str) -> None:
+    reg: BackendRegistry[object] = BackendRegistry("demo.kind", "demo", {"a": "builtins:dict"})
+    if name == "a":
+        assert reg.build(name, {}) == {}
+        return
+    with pytest.raises(ConfigError) as info:
+        reg.build(name, {})
+    assert info.value.key == "demo.kind"
+    assert len(str(info.value)) < 500
