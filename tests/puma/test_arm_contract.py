@@ -21,17 +21,10 @@ from services.puma.config import PumaConfig
 from services.puma.fake_controller import FakeController
 from services.puma.serial_arm import SerialArm
 from services.puma.sim_arm import SimArm
+from tests.conftest import wait_until
 
 DEADLINE_S = 5.0
 Q0 = np.array(QN_RAD)
-
-
-def wait_for(pred: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.002)
 
 
 @dataclass
@@ -64,7 +57,7 @@ def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
 def ready(rig: Rig) -> np.ndarray:
     rig.arm.connect()
     rig.arm.initialize()
-    wait_for(lambda: rig.arm.status == "ready", "ready")
+    assert wait_until(lambda: rig.arm.status == "ready", DEADLINE_S, what="ready")
     return rig.arm.read_joints()
 
 
@@ -103,7 +96,7 @@ def test_connect_then_calibrate_then_joints_report(rig: Rig) -> None:
         rig.arm.read_joints()  # incremental encoders: nothing known before calibration
     rig.arm.initialize()
     assert rig.arm.status in ("initializing", "ready")
-    wait_for(lambda: rig.arm.status == "ready", "calibration")
+    assert wait_until(lambda: rig.arm.status == "ready", DEADLINE_S, what="calibration")
     np.testing.assert_allclose(rig.arm.read_joints(), Q0, atol=1e-6)
 
 
@@ -111,7 +104,7 @@ def test_setpoints_before_ready_are_ignored(rig: Rig) -> None:
     rig.arm.connect()
     rig.arm.command(Q0 + 0.1)
     rig.arm.initialize()
-    wait_for(lambda: rig.arm.status == "ready", "ready")
+    assert wait_until(lambda: rig.arm.status == "ready", DEADLINE_S, what="ready")
     time.sleep(0.05)  # give a wrongly queued setpoint the time to show; not a synchronisation
     np.testing.assert_allclose(rig.true_q(), Q0, atol=1e-9)
 
@@ -120,7 +113,7 @@ def test_command_and_readback_converge(rig: Rig) -> None:
     q0 = ready(rig)
     target = q0 + np.array([0.2, -0.15, 0.1, 0.3, -0.2, 0.25])
     stream_to(rig.arm, q0, target)
-    wait_for(holding_at(rig.arm, target), "convergence")
+    assert wait_until(holding_at(rig.arm, target), DEADLINE_S, what="convergence")
     assert rig.arm.status == "ready"
     np.testing.assert_allclose(rig.true_q(), target, atol=1e-3)
 
@@ -144,11 +137,13 @@ def test_stop_holds_where_it_is(rig: Rig) -> None:
         held.append(rig.true_q())
         return len(held) > 20 and bool(np.max(np.abs(held[-1] - held[-20])) < 1e-9)
 
-    wait_for(still, "the arm to come to rest")
+    assert wait_until(still, DEADLINE_S, what="the arm to come to rest")
     q_held = held[-1]
     # It moved, then stopped within its braking distance, far short of where it was going.
     assert np.all(q_held > q0 + 0.01) and np.all(q_held < q0 + 0.5)
-    wait_for(lambda: settled(rig.arm, q_held, 2e-6), "readback of the held pose")
+    assert wait_until(
+        lambda: settled(rig.arm, q_held, 2e-6), DEADLINE_S, what="readback of the held pose"
+    )
     rig.arm.command(q_held)  # streaming may resume from where it holds
     assert rig.arm.status == "ready"
 
@@ -166,7 +161,7 @@ def test_estop_halts_and_reconnect_recovers_without_jump(rig: Rig) -> None:
     rig.arm.connect()
     assert rig.arm.status == "connected"
     rig.arm.initialize()
-    wait_for(lambda: rig.arm.status == "ready", "ready after e-stop")
+    assert wait_until(lambda: rig.arm.status == "ready", DEADLINE_S, what="ready after e-stop")
     np.testing.assert_allclose(rig.arm.read_joints(), q_stop, atol=1e-6)
     np.testing.assert_allclose(rig.true_q(), q_stop, atol=1e-9)
 
@@ -181,7 +176,7 @@ def test_fault_gives_error_then_reconnect_without_jump(rig: Rig) -> None:
         if rig.arm.status == "error":
             break
         time.sleep(0.002)
-    wait_for(lambda: rig.arm.status == "error", "error")
+    assert wait_until(lambda: rig.arm.status == "error", DEADLINE_S, what="error")
     assert rig.arm.last_error
     for _ in range(20):
         rig.arm.command(target)
@@ -191,12 +186,12 @@ def test_fault_gives_error_then_reconnect_without_jump(rig: Rig) -> None:
         held.append(rig.true_q())
         return len(held) > 20 and bool(np.max(np.abs(held[-1] - held[-20])) < 1e-9)
 
-    wait_for(still, "the arm to hold")
+    assert wait_until(still, DEADLINE_S, what="the arm to hold")
     q_fault = held[-1]
     assert np.max(np.abs(q_fault - target)) > 0.1, "setpoints after the fault were executed"
     rig.arm.connect()
     rig.arm.initialize()
-    wait_for(lambda: rig.arm.status == "ready", "ready after the fault")
+    assert wait_until(lambda: rig.arm.status == "ready", DEADLINE_S, what="ready after the fault")
     q_back = rig.arm.read_joints()
     np.testing.assert_allclose(q_back, q_fault, atol=1e-6)
     rig.arm.command(q_back)  # the first setpoint after recovery is where the arm is
@@ -208,7 +203,7 @@ def test_fault_gives_error_then_reconnect_without_jump(rig: Rig) -> None:
 def test_jumping_setpoint_is_refused(rig: Rig) -> None:
     q0 = ready(rig)
     rig.arm.command(q0 + np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0]))
-    wait_for(lambda: rig.arm.status == "error", "the jump to be refused")
+    assert wait_until(lambda: rig.arm.status == "error", DEADLINE_S, what="the jump to be refused")
     assert "jump" in (rig.arm.last_error or "").lower() or "STEP" in (rig.arm.last_error or "")
     time.sleep(0.05)  # look again a little later: it must not have moved
     np.testing.assert_allclose(rig.true_q(), q0, atol=2e-6)  # 1 µrad wire resolution
@@ -222,11 +217,11 @@ def test_setpoint_outside_the_limits_is_refused(rig: Rig) -> None:
     for leg in np.linspace(0.0, 1.0, 5)[1:]:
         q_leg = q0 + leg * (near - q0)
         stream_to(rig.arm, rig.arm.read_joints(), q_leg, n=50)
-        wait_for(holding_at(rig.arm, q_leg), "the next leg")
+        assert wait_until(holding_at(rig.arm, q_leg), DEADLINE_S, what="the next leg")
     past = near.copy()
     past[4] = np.radians(100.0) + 0.01  # past the limit, though a small step
     rig.arm.command(past)
-    wait_for(lambda: rig.arm.status == "error", "the limit to be refused")
+    assert wait_until(lambda: rig.arm.status == "error", DEADLINE_S, what="the limit to be refused")
     assert "limit" in (rig.arm.last_error or "").lower()
     assert np.all(rig.true_q() <= np.radians(100.0) + 1e-9)
 
@@ -255,7 +250,9 @@ def test_setpoints_outside_ready_are_counted_as_ignored(rig: Rig) -> None:
 def test_a_malformed_setpoint_is_an_error_and_moves_nothing(rig: Rig, bad: Any) -> None:
     q0 = ready(rig)
     rig.arm.command(bad)
-    wait_for(lambda: rig.arm.status == "error", "the setpoint to be refused")
+    assert wait_until(
+        lambda: rig.arm.status == "error", DEADLINE_S, what="the setpoint to be refused"
+    )
     assert (rig.arm.last_error or "").startswith("bad setpoint: setpoint must")
     time.sleep(0.05)  # look again a little later: it must not have moved
     np.testing.assert_allclose(rig.true_q(), q0, atol=2e-6)
@@ -278,7 +275,9 @@ def test_open_arm_picks_the_backend_from_the_config() -> None:
     assert arm.status == "disconnected"
     arm.connect()
     arm.initialize()
-    wait_for(lambda: arm.status == "ready", "the simulated arm to calibrate")
+    assert wait_until(
+        lambda: arm.status == "ready", DEADLINE_S, what="the simulated arm to calibrate"
+    )
     np.testing.assert_allclose(arm.read_joints(), Q0)
     arm.close()
     ser = open_arm(PumaConfig(arm="serial", port="socket://127.0.0.1:9", serial_cycle_ms=10.0))
