@@ -25,8 +25,9 @@ import struct
 import time
 from dataclasses import dataclass
 
+from services.force.accounting import StreamAccounting
 from services.force.events import EventSink, ignore_event
-from services.force.sensors import Reading, SensorError, Six, StreamAccounting
+from services.force.sensors import Reading, SensorError, Six
 
 RDT_PORT = 49152
 RDT_HEADER = 0x1234

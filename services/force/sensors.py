@@ -1,8 +1,6 @@
-"""The `ForceSensor` role and `open_sensor`, which picks a backend and imports it lazily.
-
-Backends: `SimSensor` (sim_sensor.py, the default: contact with the simulated workcell),
-`SerialSensor` (serial_sensor.py, six ADC channels as checksummed ASCII lines, see
-docs/serial-force-protocol.md), `NetFTSensor` (netft.py, ATI Net F/T RDT over UDP).
+"""The `ForceSensor` role, its `Reading` and its error: what the force service needs from a
+wrist force sensor. `backends.py` holds `open_force_sensor(config)`, which picks a backend and
+imports it lazily; `accounting.py` what the streaming backends share.
 """
 
 from __future__ import annotations
@@ -43,63 +41,6 @@ class Reading:
     kind: Literal["signals", "wrench"]
     values: Six
     device_seq: int | None = None
-
-
-class StreamAccounting:
-    """What a streaming device backend counts: its sample numbers (modulo `seq_modulo`,
-    gaps reported as `gap` events) and the bad data it refused (`bad_data` events).
-
-    A subclass sets `seq_modulo` and `unit` (what one sample is called in a message),
-    calls `_init_accounting()` from its constructor and has `name` and `on_event`.
-    """
-
-    seq_modulo: int
-    unit: str
-    on_event: EventSink
-
-    def _init_accounting(self) -> None:
-        self._last_seq: int | None = None
-        self._bad = 0
-        self._gaps = 0
-
-    @property
-    def name(self) -> str:
-        raise NotImplementedError
-
-    @property
-    def bad(self) -> int:
-        return self._bad
-
-    @property
-    def gaps(self) -> int:
-        return self._gaps
-
-    def _step(self, seq: int, refuse_late: bool = False) -> int:
-        """Take sample number `seq`: 0 to refuse it (a repeat, or with `refuse_late` one
-        from behind: more than half the modulo back), else its step from the last one
-        taken (1 when none is missing)."""
-        last = self._last_seq
-        if last is None:
-            self._last_seq = seq
-            return 1
-        step = (seq - last) % self.seq_modulo
-        if step == 0 or (refuse_late and step > self.seq_modulo // 2):
-            return 0
-        self._last_seq = seq
-        if step > 1:
-            self._gaps += step - 1
-            self.on_event(
-                "gap",
-                f"{self.name}: {step - 1} {self.unit} missing before {seq}",
-                {"missing": step - 1, "gaps": self._gaps},
-            )
-        return step
-
-    def _bad_data(self, message: str, reason: str, **extra: Any) -> None:
-        self._bad += 1
-        self.on_event(
-            "bad_data", f"{self.name}: {message}", {"reason": reason, "bad": self._bad, **extra}
-        )
 
 
 @runtime_checkable
@@ -175,20 +116,11 @@ class WorldAwareSensor(Protocol):
 
 
 def open_sensor(kind: SensorKind, **opts: Any) -> ForceSensor:
-    """Construct the sensor backend `kind` with `opts` (the device is opened by `open()`).
+    """The backend `kind` built from `opts` (not opened), through `backends.BACKENDS`.
 
-    The backend module is imported here, so the simulation never loads pyserial.
+    Kept for `ForceCore.from_config` alone (force/core.py is being reworked in another
+    branch); everything else calls `services.force.backends.open_force_sensor(config)`.
     """
-    if kind == "sim":
-        from services.force.sim_sensor import SimSensor
+    from services.force.backends import BACKENDS
 
-        return SimSensor(**opts)
-    if kind == "serial":
-        from services.force.serial_sensor import SerialSensor
-
-        return SerialSensor(**opts)
-    if kind == "netft":
-        from services.force.netft import NetFTSensor
-
-        return NetFTSensor(**opts)
-    raise ValueError(f"unknown sensor kind {kind!r} (known: {', '.join(SENSOR_KINDS)})")
+    return BACKENDS.build(kind, opts)

@@ -16,8 +16,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
 from services.bus.serialport import close_port
+from services.force.accounting import StreamAccounting
 from services.force.events import EventSink, ignore_event
-from services.force.sensors import Reading, SensorError, Six, StreamAccounting
+from services.force.sensors import Reading, SensorError, Six
 
 if TYPE_CHECKING:
     import serial

@@ -18,6 +18,7 @@ from services.bus.bounds import check_norm
 from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import IDENTITY_R, ForceSample, RobotState, Rot, Vec3
 from services.bus.node import Node
+from services.force.backends import open_force_sensor
 from services.force.config import ForceConfig
 from services.force.core import ForceCore
 from services.force.wire import ForceSampleEncoder
@@ -34,7 +35,7 @@ class ForceService:
         self.config = config
         self._pub = node.publisher(keys.FORCE)
         self._encode = ForceSampleEncoder().encode
-        self.core = ForceCore.from_config(config, self._publish, self._emit)
+        self.core = ForceCore(open_force_sensor(config), config, self._publish, self._emit)
         node.subscribe(keys.STATE, self._on_state)
         if config.sensor == "sim":
             node.subscribe(WORKCELL_STATE, self._on_workcell)

@@ -63,7 +63,7 @@ class MasterConfig:
     """Settings of one master station.
 
     master_id: the master's id on the bus (`alive/master/<id>`, `OperatorCommand.master`).
-    device: which backend drives the hand pose (see `services.master.devices.open_device`).
+    device: which backend drives the hand pose (see `services.master.backends`).
     port: the device's address: serial URL for `serial_arm` (`/dev/ttyUSB0`,
         `socket://127.0.0.1:PORT`), HID path for `spacemouse` ("" = first one found),
         tty path for `keyboard` ("" = stdin); unused by `scripted`/`virtual`.

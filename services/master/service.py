@@ -29,8 +29,9 @@ from services.bus.messages import (
 )
 from services.bus.node import Node
 from services.bus.rate import RateLoop
+from services.master.backends import open_master_device
 from services.master.config import MasterConfig
-from services.master.devices import DeviceLost, HandReading, MasterDevice, open_master
+from services.master.devices import DeviceLost, HandReading, MasterDevice
 from services.master.feedback import ForceDisplay, ForceFeedback, WrenchHook
 from services.master.passivity import MasterTdpa
 from services.master.status_line import ADVICE, StatusInfo
@@ -66,7 +67,7 @@ class MasterService:
     ) -> None:
         self.node = node
         self.config = config
-        self.device = device if device is not None else open_master(config)
+        self.device = device if device is not None else open_master_device(config)
         self.teleop = Teleop(config, self.device.name)
         self.passivity: MasterTdpa | None = None
         if force_hook is None and config.passivity:

@@ -29,7 +29,8 @@ from typing import Any
 import numpy as np
 
 from services.bus.serialport import close_port
-from services.puma.arm import ArmBase, ArmError, ArmStatus, Q
+from services.puma.arm import ArmError, ArmStatus, Q
+from services.puma.arm_base import ArmBase
 
 MAX_LINE_BYTES = 128
 MODEL = "PUMA560"

@@ -409,7 +409,7 @@ def test_an_oversized_frame_closes_the_link_as_lost(
 
 
 def test_the_config_table_opens_a_haply(fake: FakeInverseService) -> None:
-    from services.master.devices import device_options, open_master
+    from services.master.backends import device_options, open_master_device
 
     cfg = MasterConfig(device="haply", haply_url=fake.url, haply_max_force_n=2.0, grip_button=2)
     assert device_options(cfg) == {
@@ -418,7 +418,7 @@ def test_the_config_table_opens_a_haply(fake: FakeInverseService) -> None:
         "grip_button": 2,
         "max_force_n": 2.0,
     }
-    device = open_master(cfg)
+    device = open_master_device(cfg)
     try:
         assert device.name == "haply:049D"
     finally:

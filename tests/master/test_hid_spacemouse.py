@@ -11,7 +11,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from services.master.devices import DeviceLost, DeviceNotFound
-from services.master.fake_hid import FakeHidApi, FakeHidInfo
 from services.master.hid_spacemouse import (
     SINGLE_REPORT,
     TWO_REPORTS,
@@ -22,6 +21,7 @@ from services.master.hid_spacemouse import (
 )
 from services.master.jog import MAX_STEP_S, apply_deadband
 from services.master.so3 import rot_z
+from tests.master.fake_hid import FakeHidApi, FakeHidInfo
 
 
 def hx(text: str) -> bytes:

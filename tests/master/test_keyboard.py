@@ -109,7 +109,7 @@ def test_the_keyboard_station_shows_its_status_line_on_its_terminal(net: Net) ->
     keys_in, terminal = os.openpty()
     screen, status_tty = os.openpty()
     kb = KeyboardMaster(fd=terminal, status_fd=status_tty, hold_s=0.5)
-    kb.open()  # a device handed to the service comes open, as open_master() gives it
+    kb.open()  # a device handed to the service comes open, as open_master_device() gives it
     seen: list[str] = []
 
     def screen_has(text: str) -> bool:

@@ -9,12 +9,15 @@ import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 import pytest
 
-from services.puma.arm import QN_RAD, Arm, ArmError, open_arm
+from services.bus.errors import ConfigError
+from services.puma.arm import QN_RAD, Arm, ArmError, ArmKind
+from services.puma.backends import BACKENDS, open_arm
+from services.puma.config import PumaConfig
 from services.puma.fake_controller import FakeController
 from services.puma.serial_arm import SerialArm
 from services.puma.sim_arm import SimArm
@@ -259,24 +262,41 @@ def test_close_is_idempotent(rig: Rig) -> None:
     assert rig.arm.status == "disconnected"
 
 
-def test_open_arm_picks_the_backend() -> None:
-    arm = open_arm("sim", calibration_s=0.0, threaded=False)
+def test_every_arm_kind_has_a_backend() -> None:
+    assert set(BACKENDS.names) == set(get_args(ArmKind))
+
+
+def test_open_arm_picks_the_backend_from_the_config() -> None:
+    arm = open_arm(PumaConfig(sim_calibration_s=0.0, home_q=tuple(QN_RAD)))
     assert isinstance(arm, SimArm)
-    with pytest.raises(ValueError, match="port"):
-        open_arm("serial")
-    with pytest.raises(ValueError, match="kind"):
-        open_arm("usb")  # type: ignore[arg-type]
-    ser = open_arm("serial", "socket://127.0.0.1:9", cycle_ms=10.0)
+    assert arm.status == "disconnected"
+    arm.connect()
+    arm.initialize()
+    assert wait_until(lambda: arm.status == "ready", 10.0, what="the simulated arm to calibrate")
+    np.testing.assert_allclose(arm.read_joints(), Q0)
+    arm.close()
+    ser = open_arm(PumaConfig(arm="serial", port="socket://127.0.0.1:9", serial_cycle_ms=10.0))
     assert isinstance(ser, SerialArm)
     assert ser.status == "disconnected"
+    assert ser.port == "socket://127.0.0.1:9"
+
+
+def test_open_arm_refuses_a_name_without_a_backend() -> None:
+    # a PumaConfig refuses the name first; one that slipped through is refused here too
+    config = PumaConfig()
+    object.__setattr__(config, "arm", "usb")
+    with pytest.raises(ConfigError) as info:
+        open_arm(config)
+    assert info.value.key == "puma.arm"
 
 
 def test_sim_and_proxy_do_not_load_pyserial() -> None:
     code = (
         "import sys\n"
         "import services.puma.arm, services.puma.sim_arm, services.puma.proxy\n"
-        "from services.puma.arm import open_arm\n"
-        "open_arm('sim', threaded=False)\n"
+        "from services.puma.backends import open_arm\n"
+        "from services.puma.config import PumaConfig\n"
+        "open_arm(PumaConfig())\n"
         "print('serial' in sys.modules)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

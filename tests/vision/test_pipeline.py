@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from services.vision.backends import open_camera
 from services.vision.camera import CameraError
 from services.vision.config import VisionConfig
-from services.vision.opencv_camera import OpenCVCamera
 from services.vision.pipeline import LatestSlot, StereoPipeline
 from services.vision.sim_camera import SimStereoCamera
 from tests.conftest import wait_until
@@ -205,7 +205,7 @@ def test_video_file_end_is_an_error_event(tmp_path: Path) -> None:
         fps=100.0,
         reopen_s=30.0,
     )
-    cam, rec = OpenCVCamera.from_config(cfg), Recorder()
+    cam, rec = open_camera(cfg), Recorder()
     with StereoPipeline(cam, cfg, rec.publish, rec.emit) as pipe:
         assert wait_until(lambda: "error" in rec.kinds(), what="end of file")
         assert wait_until(lambda: pipe.stats()["published"] + pipe.stats()["dropped"] == 5)
