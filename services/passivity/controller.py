@@ -101,7 +101,7 @@ class MasterPassivity:
         h = max(dt_s, self.horizon_s)
         k = 1.0
         fv = dot(f, v) * h
-        if (self.mass_kg <= 0.0 or self.bound_current) and fv > r + TOLERANCE_J:
+        if (self.mass_kg <= 0.0 or self.bound_current) and fv > r:
             k = min(k, r / fv)
         inv_m = 1.0 / self.mass_kg if self.mass_kg > 0.0 else 0.0
         held = self._f_held if self._f_held is not None else [0.0] * len(f)
@@ -119,7 +119,7 @@ class MasterPassivity:
         # direction (along f): that much more velocity along f by the end of it.
         b = (dot(f, w) + math.sqrt(ff) * self.hand_rate_n_s * h * inv_m * h) * h
         a = ff * h * h * inv_m
-        if a + b > r + TOLERANCE_J:
+        if a + b > r:  # no slack: a tick never spends the tolerance
             # The larger root of a·k² + b·k − r = 0 (a = 0: no mass modelled, linear).
             root = (-b + math.sqrt(max(b * b + 4.0 * a * r, 0.0))) / (2.0 * a) if a > 0.0 else r / b
             k = min(k, max(root, 0.0))
