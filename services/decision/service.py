@@ -40,9 +40,12 @@ from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
 from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3
 from services.bus.node import Node, PendingCall
 from services.decision.config import STARTUP_ONLY, DecisionConfig
+from services.decision.notices import INTERVENTIONS, Notice
 from services.decision.passivity import SlaveTdpa
-from services.decision.supervisor import INTERVENTIONS, Inputs, Mode, Notice, Supervisor, TaskRun
+from services.decision.supervisor import Inputs, Mode, Supervisor
+from services.decision.taskrun import TaskRun
 from services.decision.tasks import TASK_NAMES, TaskPlan, plan_task
+from services.decision.watch import target_problem
 
 log = logging.getLogger("telerobot.decision")
 
@@ -345,7 +348,7 @@ class DecisionService:
         if p is None:
             return
         with self._cond:
-            why = self.supervisor.target_problem(method, p)
+            why = target_problem(self.config, method, p)
         if why is not None:
             raise RpcError("limit", why)
 

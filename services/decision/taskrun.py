@@ -1,0 +1,234 @@
+"""Running a streamed task (tasks.py's plans), one step per tick, through the same filters
+as teleoperation: the supervised target moves; the step judges arrival, contact, blocking.
+
+Pure: `run_step` advances the running step of a `TaskRun` and says when the task ends; the
+supervisor starts and finishes runs, reports them and sends the commands.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from services.bus.errors import ErrorCode
+from services.bus.messages import RobotState
+from services.decision.filters import clip_norm, norm3
+from services.decision.notices import floats
+from services.decision.target import STEP_EPS_M, Sensed, SupervisedTarget
+from services.decision.tasks import Grip, GuardedMove, MoveTo, Step, TaskPlan
+
+Vec = NDArray[np.float64]
+Mat = NDArray[np.float64]
+
+SETTLE_S = 2.0
+"""A task move may take this much longer than distance / speed before it fails."""
+BLOCKED_SHARE = 0.01
+"""A guarded move is blocked when a step moves less than this share of what it asked."""
+
+
+class TaskRun:
+    """One run of a task: its plan, progress, and outcome (`result` or `error`).
+
+    `external` runs (the forwarded `home`) are executed by the service, which calls
+    `Supervisor.finish_external`. Read by the service's RPC threads under its lock.
+    """
+
+    __slots__ = (
+        "R_keep",
+        "cancelled",
+        "done",
+        "error",
+        "external",
+        "f0_w",
+        "grip",
+        "id",
+        "plan",
+        "result",
+        "start_p",
+        "started",
+        "step_index",
+        "step_start_ns",
+    )
+
+    def __init__(self, run_id: int, plan: TaskPlan, external: bool = False) -> None:
+        self.id = run_id
+        self.plan = plan
+        self.external = external
+        self.started = False
+        self.done = False
+        self.cancelled = False
+        self.result: dict[str, Any] | None = None
+        self.error: tuple[ErrorCode, str] | None = None
+        self.step_index = 0
+        self.step_start_ns = 0
+        self.start_p: Vec = np.zeros(3)
+        self.R_keep: Mat = np.eye(3)
+        self.f0_w: Vec | None = None
+        self.grip: float | None = None
+
+    @property
+    def name(self) -> str:
+        return self.plan.name
+
+    @property
+    def step(self) -> Step | None:
+        steps = self.plan.steps
+        return steps[self.step_index] if self.step_index < len(steps) else None
+
+    def summary(self) -> dict[str, Any]:
+        """The run for `status` and for a reply."""
+        return {
+            "id": self.id,
+            "name": self.name,
+            "done": self.done,
+            "cancelled": self.cancelled,
+            "step": self.step_index,
+            "steps": len(self.plan.steps),
+            "result": self.result,
+            "error": None
+            if self.error is None
+            else {"error": self.error[0], "message": self.error[1]},
+        }
+
+    def begin_step(self, now_ns: int, p: Vec) -> None:
+        """The running step starts now with the target at `p`."""
+        self.step_start_ns = now_ns
+        self.start_p = p.copy()
+        self.f0_w = None
+
+    def next_step(self, now_ns: int, p: Vec) -> None:
+        self.step_index += 1
+        self.begin_step(now_ns, p)
+
+
+@dataclass(frozen=True, slots=True)
+class TaskEnd:
+    """How a run ended: a `result` for its reply, or an `error` (code, message)."""
+
+    result: dict[str, Any] | None = None
+    error: tuple[ErrorCode, str] | None = None
+
+
+def _fail(code: ErrorCode, message: str) -> TaskEnd:
+    return TaskEnd(error=(code, message))
+
+
+def run_step(
+    run: TaskRun, target: SupervisedTarget, sensed: Sensed, f_w: Vec | None
+) -> TaskEnd | None:
+    """Advance the running step of `run` by one tick (the target moves through the
+    filters); a TaskEnd when the task ends in this step, else None. `f_w` is the wrist
+    force in the world frame (N), None if stale; `sensed.state` is fresh."""
+    step = run.step
+    if isinstance(step, Grip):
+        run.grip = step.value
+        target.grip = step.value
+        target.advance(target.p_sup, run.R_keep, sensed)
+        if sensed.now_ns - run.step_start_ns >= step.dwell_s * 1e9:
+            run.next_step(sensed.now_ns, target.p_sup)
+        return None
+    if isinstance(step, MoveTo):
+        return _move(run, step, target, sensed, f_w)
+    if isinstance(step, GuardedMove):
+        return _guarded(run, step, target, sensed, f_w)
+    return None
+
+
+def _move(
+    run: TaskRun, step: MoveTo, target: SupervisedTarget, sensed: Sensed, f_w: Vec | None
+) -> TaskEnd | None:
+    state = sensed.state
+    assert state is not None
+    goal = np.asarray(step.p, dtype=float)
+    if step.guard_force_n is not None and f_w is not None and run.f0_w is not None:
+        df = norm3(f_w - run.f0_w)
+        if df > step.guard_force_n:
+            return _fail(
+                "limit",
+                f"unexpected contact ({df:.1f} N) moving to "
+                f"{floats(goal)}; tool at {list(state.tool_p)}",
+            )
+    g = target.p_sup + clip_norm(goal - target.p_sup, step.speed_m_s * target.dt_s)[0]
+    target.advance(g, run.R_keep, sensed)
+    at_goal = norm3(target.p_sup - goal) <= STEP_EPS_M
+    arrived = norm3(np.asarray(state.tool_p) - goal) <= sensed.cfg.arrive_tol_m
+    if at_goal and arrived:
+        run.next_step(sensed.now_ns, target.p_sup)
+        return None
+    budget_s = norm3(goal - run.start_p) / step.speed_m_s + SETTLE_S
+    if sensed.now_ns - run.step_start_ns > budget_s * 1e9:
+        return _fail(
+            "unreachable",
+            f"did not reach {floats(goal)} in {budget_s:.1f} s (tool at {list(state.tool_p)})",
+        )
+    return None
+
+
+def _guarded(
+    run: TaskRun, step: GuardedMove, target: SupervisedTarget, sensed: Sensed, f_w: Vec | None
+) -> TaskEnd | None:
+    state = sensed.state
+    assert state is not None
+    if f_w is None or run.f0_w is None:
+        return _fail("not_ready", "guarded move needs a fresh force stream")
+    d = np.asarray(step.direction, dtype=float)
+    tool_p = np.asarray(state.tool_p, dtype=float)
+    df = f_w - run.f0_w
+    if norm3(df) > step.max_force_n:
+        return _guarded_done(run, step, target, sensed, f_w, df, "contact")
+    travelled = float((target.p_sup - run.start_p) @ d)
+    left = step.max_distance_m - travelled
+    if left <= STEP_EPS_M:
+        if norm3(tool_p - target.p_sup) <= sensed.cfg.arrive_tol_m:
+            return _guarded_done(run, step, target, sensed, f_w, df, "distance")
+        if (
+            sensed.now_ns - run.step_start_ns
+            > (step.max_distance_m / step.speed_m_s + SETTLE_S) * 1e9
+        ):
+            return _fail("unreachable", "guarded move: the arm did not follow")
+        return None
+    before = target.p_sup.copy()
+    want = min(step.speed_m_s * target.dt_s, left)
+    g = target.p_sup + d * want
+    target.advance(g, run.R_keep, sensed)
+    # Blocked: a filter (contact, workspace) kept the step. A tick only an instant after
+    # the last one asks for no step worth judging.
+    if want > STEP_EPS_M and float((target.p_sup - before) @ d) <= BLOCKED_SHARE * want:
+        return _guarded_done(run, step, target, sensed, f_w, df, "blocked")
+    return None
+
+
+def _guarded_done(
+    run: TaskRun,
+    step: GuardedMove,
+    target: SupervisedTarget,
+    sensed: Sensed,
+    f_w: Vec,
+    df: Vec,
+    stopped: Literal["contact", "distance", "blocked"],
+) -> TaskEnd | None:
+    """A guarded move's outcome: the reply of a `guarded_move` task, or the step's result
+    within a longer plan (which goes on with its next step)."""
+    state: RobotState | None = sensed.state
+    assert state is not None
+    d = np.asarray(step.direction, dtype=float)
+    tool_p = np.asarray(state.tool_p, dtype=float)
+    contact = stopped == "contact"
+    outcome = {
+        "contact": contact,
+        "stopped": stopped,
+        "tool_p": floats(tool_p),
+        "contact_p": floats(tool_p + sensed.cfg.tool_tip_radius_m * d) if contact else None,
+        "f": floats(f_w),
+        "df": floats(df),
+        "force_n": norm3(df),
+        "distance_m": float((tool_p - run.start_p) @ d),
+    }
+    if run.plan.name == "guarded_move":
+        return TaskEnd(result={"task": run.name, "done": True, **outcome})
+    run.result = outcome
+    run.next_step(sensed.now_ns, target.p_sup)
+    return None
