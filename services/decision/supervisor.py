@@ -47,17 +47,15 @@ import numpy as np
 
 from services.bus.bounds import norm_out_of_bounds
 from services.bus.errors import ErrorCode, RpcError
-from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3
+from services.bus.messages import ForceSample, OperatorCommand, RobotState
 from services.decision.config import DecisionConfig
 from services.decision.filters import log_so3
 from services.decision.masters import MasterRecord, Masters
 from services.decision.notices import Notice, Notices, floats
-from services.decision.target import Sensed, SupervisedTarget
-from services.decision.taskrun import TaskEnd, TaskRun, run_step
+from services.decision.target import MOVING_STATUSES, Sensed, SupervisedTarget
+from services.decision.taskrun import TaskRun, Tasks, run_tick
 from services.decision.tasks import TaskPlan
 from services.decision.watch import WATCH_PERIOD_NS, Watch, WatchStop, watch_step
-
-MOVING_STATUSES = ("ready", "moving")
 
 
 class Mode(Enum):
@@ -137,10 +135,7 @@ class Supervisor:
             "holds": 0,
             "tasks": 0,
         }
-        self._finished: list[TaskRun] = []
-        self.task: TaskRun | None = None
-        self.last_task: TaskRun | None = None
-        self._task_ids = 0
+        self.tasks = Tasks()
         self._now_ns = 0
         self.hold_reason: str | None = None
         self._fresh = False
@@ -179,7 +174,7 @@ class Supervisor:
         target = self.target
         if self.mode is Mode.FOLLOW:
             out = self._follow(inp, state_ok, force_ok)
-        elif self.mode is Mode.TASK and self.task is not None and not self.task.external:
+        elif self._streaming():
             sent = (target.p_sup.copy(), target.R_sup.copy())
             engage = target.engage_out
             out = self._run_task(inp, state_ok, force_ok)
@@ -197,9 +192,8 @@ class Supervisor:
             out = self._command(inp, active=False)
         if self.watch is not None:
             self._watch_step(inp, state_ok, force_ok)
-        finished, self._finished = tuple(self._finished), []
         stop_arm, self._stop_arm = self._stop_arm, False
-        return TickResult(out, self.notices.drain(), finished, stop_arm)
+        return TickResult(out, self.notices.drain(), self.tasks.drain(), stop_arm)
 
     def next_wake_ns(self) -> int | None:
         """When the service must tick again without new input (monotonic ns), or None:
@@ -217,13 +211,21 @@ class Supervisor:
             )
             return max(deadline + 1, now + 1)
         if self.mode is Mode.TASK:
-            run = self.task
-            return now + period_ns if run is not None and not run.external else None
+            return now + period_ns if self._streaming() else None
         if self.mode in (Mode.HOLD, Mode.ESTOP) and self.target.p0 is not None:
             return self.target.next_hold_ns(now)
         if self.watch is not None:
             return now + WATCH_PERIOD_NS
         return None
+
+    def _streaming(self) -> bool:
+        """A streamed task runs (the supervisor steps it; `home` runs in the puma)."""
+        run = self.tasks.current
+        return self.mode is Mode.TASK and run is not None and not run.external
+
+    def _task_name(self) -> str:
+        run = self.tasks.current
+        return run.name if run is not None else "task"
 
     def _state_fresh(self, inp: Inputs) -> bool:
         return (
@@ -285,8 +287,7 @@ class Supervisor:
                 task_error="unavailable",
             )
         elif name == "force" and (
-            (self._cfg.compliance and self.mode is Mode.FOLLOW)
-            or (self.mode is Mode.TASK and self.task is not None and not self.task.external)
+            (self._cfg.compliance and self.mode is Mode.FOLLOW) or self._streaming()
         ):
             self._hold(
                 "watchdog",
@@ -380,8 +381,7 @@ class Supervisor:
         """Why nothing else may move the arm in ESTOP or TASK mode: (error code, reason)."""
         if self.mode is Mode.ESTOP:
             return "estop", "emergency stop latched (call reset)"
-        name = self.task.name if self.task is not None else "task"
-        return "busy", f"task {name!r} running"
+        return "busy", f"task {self._task_name()!r} running"
 
     def _start_engagement(
         self, cmd: OperatorCommand, rec: MasterRecord, inp: Inputs, state_ok: bool, force_ok: bool
@@ -448,8 +448,8 @@ class Supervisor:
 
         An intervention is counted under `kind` and reported (rate-limited per reason);
         otherwise the event is informative only (`notify` false: none)."""
-        if self.mode is Mode.TASK and self.task is not None:
-            self._finish_task(self.task, error=(task_error, message))
+        if self.mode is Mode.TASK and self.tasks.current is not None:
+            self._finish_task(self.tasks.current, error=(task_error, message))
         self._release_lease(reason)
         self._settle()
         self.hold_reason = reason
@@ -507,8 +507,10 @@ class Supervisor:
     def estop(self, now_ns: int, why: str = "estop requested") -> None:
         """Latch the emergency stop: hold, end any task (error `estop`), refuse everything."""
         self._now_ns = now_ns
-        if self.task is not None:
-            self._finish_task(self.task, error=("estop", f"pre-empted by emergency stop: {why}"))
+        if self.tasks.current is not None:
+            self._finish_task(
+                self.tasks.current, error=("estop", f"pre-empted by emergency stop: {why}")
+            )
         self._release_lease("estop")
         self.watch = None
         self.mode = Mode.ESTOP
@@ -536,14 +538,12 @@ class Supervisor:
         elif self.mode is Mode.TASK:
             self.cancel_task(now_ns)
 
-    def _refuse_call(self, what: str, estop_hint: str) -> None:
+    def _refuse_call(self, what: str) -> None:
         """RpcError estop / busy for a call (`what`: its name in the message) that would
         move the arm while the e-stop is latched or a task runs."""
-        if self.mode is Mode.ESTOP:
-            raise RpcError("estop", f"{what} refused: emergency stop latched{estop_hint}")
-        if self.mode is Mode.TASK:
-            name = self.task.name if self.task is not None else "task"
-            raise RpcError("busy", f"{what} refused: task {name!r} running")
+        if self.mode in (Mode.ESTOP, Mode.TASK):
+            code, why = self._busy_reason()
+            raise RpcError(code, f"{what} refused: {why}")
 
     def claim(self, method: str, now_ns: int | None = None) -> None:
         """Before forwarding a motion method: refuse it while the supervisor commands the
@@ -551,7 +551,7 @@ class Supervisor:
         and watch the motion (contact, workspace) until it is over."""
         if now_ns is not None:
             self._now_ns = now_ns
-        self._refuse_call(method, " (call reset)")
+        self._refuse_call(method)
         if self.mode is Mode.FOLLOW:
             raise RpcError("busy", f"{method} refused: master {self.lease!r} is teleoperating")
         self.mode = Mode.IDLE
@@ -584,9 +584,9 @@ class Supervisor:
         """The service is closing: end any task, release the lease, and return `repeats`
         inactive commands for the current engagement (none if there never was one)."""
         self._now_ns = now_ns
-        if self.task is not None:
+        if self.tasks.current is not None:
             self._finish_task(
-                self.task, error=("unavailable", "the decision server is shutting down")
+                self.tasks.current, error=("unavailable", "the decision server is shutting down")
             )
         self._release_lease("shutdown")
         self._settle()
@@ -600,7 +600,7 @@ class Supervisor:
         """Start a task; a streamed one begins at the next tick. Teleoperation is pre-empted
         (the master must engage anew afterwards). RpcError estop / busy."""
         self._now_ns = now_ns
-        self._refuse_call(f"task {plan.name!r}", "")
+        self._refuse_call(f"task {plan.name!r}")
         if self.mode is Mode.FOLLOW:
             self._hold(
                 "task",
@@ -609,23 +609,15 @@ class Supervisor:
                 intervention=False,
             )
         self.watch = None
-        self._task_ids += 1
-        run = TaskRun(self._task_ids, plan, external)
-        self.task = run
         self.mode = Mode.TASK
         self.hold_reason = None
         self.stats["tasks"] += 1
-        self._notice(
-            "task",
-            f"task {plan.name!r} started",
-            {"task": plan.name, "id": run.id, "action": "started"},
-        )
-        return run
+        return self.tasks.start(plan, external, self.notices, self._now_ns)
 
     def cancel_task(self, now_ns: int) -> TaskRun | None:
         """Cancel the running task (its reply: cancelled); the target holds."""
         self._now_ns = now_ns
-        run = self.task
+        run = self.tasks.current
         if run is None:
             return None
         run.cancelled = True
@@ -649,67 +641,20 @@ class Supervisor:
         result: dict[str, Any] | None = None,
         error: tuple[ErrorCode, str] | None = None,
     ) -> None:
-        run.done = True
-        run.result = result
-        run.error = error
-        if self.task is run:
-            self.task = None
-            self.last_task = run
-            if self.mode is Mode.TASK:
-                streamed = not run.external and run.started and self.target.p0 is not None
-                self.mode = Mode.HOLD if streamed else Mode.IDLE
-                self.hold_reason = f"task {run.name} ended"
-        self._finished.append(run)
-        if error is not None:
-            self._notice(
-                "task",
-                f"task {run.name!r} failed: {error[1]}",
-                {"task": run.name, "id": run.id, "action": "failed", "error": error[0]},
-            )
-        else:
-            action = "cancelled" if run.cancelled else "done"
-            self._notice(
-                "task",
-                f"task {run.name!r} {action}",
-                {"task": run.name, "id": run.id, "action": action},
-            )
+        if self.tasks.finish(run, result, error, self.notices, self._now_ns) and (
+            self.mode is Mode.TASK
+        ):
+            streamed = not run.external and run.started and self.target.p0 is not None
+            self.mode = Mode.HOLD if streamed else Mode.IDLE
+            self.hold_reason = f"task {run.name} ended"
 
     def _run_task(self, inp: Inputs, state_ok: bool, force_ok: bool) -> OperatorCommand | None:
-        run = self.task
+        run = self.tasks.current
         assert run is not None
-        state = inp.state
-        target = self.target
-        if not run.started:
-            if not state_ok or state is None:
-                self._finish_task(run, error=("not_ready", "no fresh robot/state"))
-                return None
-            if state.status not in MOVING_STATUSES:
-                self._finish_task(run, error=("not_ready", f"robot is {state.status}"))
-                return None
-            self._begin_out(state)
-            target.grip = state.grip
-            run.started = True
-            run.R_keep = target.R_sup.copy()
-            run.grip = state.grip
-            run.begin_step(inp.now_ns, target.p_sup)
-        if not state_ok or state is None:
-            self._finish_task(run, error=("not_ready", "robot/state is stale"))
-            return None
-        if state.status == "error":
-            self._finish_task(run, error=("not_ready", "the robot reports an error"))
-            return None
-        f_w = None
-        if force_ok and inp.force is not None:
-            f_w = mat3(state.tool_R) @ np.asarray(inp.force.f, dtype=float)
-            if run.f0_w is None:
-                run.f0_w = f_w
-        end: TaskEnd | None = run_step(run, target, self._sensed(inp, force_ok), f_w)
-        if end is None and run.step is None:
-            end = TaskEnd(result={"task": run.name, "done": True, "tool_p": list(state.tool_p)})
+        end = run_tick(run, self.target, self._sensed(inp, force_ok), state_ok, self._begin_out)
         if end is not None:
             self._finish_task(run, result=end.result, error=end.error)
             return None
-        target.grip = run.grip
         return self._command(inp, active=True)
 
     # --- status ----------------------------------------------------------------------------
@@ -727,8 +672,8 @@ class Supervisor:
             "target_p": floats(target.p_sup) if target.p0 is not None else None,
             "offset_p": floats(target.off_p),
             "offset_rot_rad": float(np.linalg.norm(log_so3(target.off_R))),
-            "task": self.task.summary() if self.task is not None else None,
-            "last_task": self.last_task.summary() if self.last_task is not None else None,
+            "task": self.tasks.current.summary() if self.tasks.current is not None else None,
+            "last_task": self.tasks.last.summary() if self.tasks.last is not None else None,
             "interventions": dict(self.notices.counters),
             "stats": dict(self.stats),
             "masters": sorted(self.masters),

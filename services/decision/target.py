@@ -39,6 +39,8 @@ Mat = NDArray[np.float64]
 
 MASTER_ID = "decision"
 """The decision's own master id on robot/puma/cmd."""
+MOVING_STATUSES = ("ready", "moving")
+"""The robot statuses in which an engagement (teleoperation or a task) may start."""
 STEP_EPS_M = 1e-9
 STEP_EPS_RAD = 1e-9
 HOLD_RESEND_NS = 50_000_000

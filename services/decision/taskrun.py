@@ -1,12 +1,15 @@
-"""Running a streamed task (tasks.py's plans), one step per tick, through the same filters
-as teleoperation: the supervised target moves; the step judges arrival, contact, blocking.
+"""Running tasks (tasks.py's plans): the runs and their outcomes, and a streamed task's
+steps, one per tick, through the same filters as teleoperation (the supervised target moves;
+the step judges arrival, contact, blocking).
 
-Pure: `run_step` advances the running step of a `TaskRun` and says when the task ends; the
-supervisor starts and finishes runs, reports them and sends the commands.
+Pure: `Tasks` keeps the runs and reports their start and end; `run_tick` advances the running
+one and says when it ends. The supervisor decides when a task may start, changes its mode
+when one ends, and sends the commands.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -14,10 +17,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.bus.errors import ErrorCode
-from services.bus.messages import RobotState
+from services.bus.messages import RobotState, mat3
 from services.decision.filters import clip_norm, norm3
-from services.decision.notices import floats
-from services.decision.target import STEP_EPS_M, Sensed, SupervisedTarget
+from services.decision.notices import Notices, floats
+from services.decision.target import MOVING_STATUSES, STEP_EPS_M, Sensed, SupervisedTarget
 from services.decision.tasks import Grip, GuardedMove, MoveTo, Step, TaskPlan
 
 Vec = NDArray[np.float64]
@@ -114,6 +117,109 @@ class TaskEnd:
 
 def _fail(code: ErrorCode, message: str) -> TaskEnd:
     return TaskEnd(error=(code, message))
+
+
+class Tasks:
+    """The task runs: the running one (`current`), the last that ended, and those that
+    ended since the last `drain` (their waiters are woken). Each start and end is reported."""
+
+    def __init__(self) -> None:
+        self.current: TaskRun | None = None
+        self.last: TaskRun | None = None
+        self._ids = 0
+        self._ended: list[TaskRun] = []
+
+    def start(self, plan: TaskPlan, external: bool, notices: Notices, now_ns: int) -> TaskRun:
+        """A new run of `plan`, now the current one."""
+        self._ids += 1
+        run = TaskRun(self._ids, plan, external)
+        self.current = run
+        notices.post(
+            now_ns,
+            "task",
+            f"task {plan.name!r} started",
+            {"task": plan.name, "id": run.id, "action": "started"},
+        )
+        return run
+
+    def finish(
+        self,
+        run: TaskRun,
+        result: dict[str, Any] | None,
+        error: tuple[ErrorCode, str] | None,
+        notices: Notices,
+        now_ns: int,
+    ) -> bool:
+        """`run` ended with `result` or `error`; whether it was the current run."""
+        run.done = True
+        run.result = result
+        run.error = error
+        current = self.current is run
+        if current:
+            self.current = None
+            self.last = run
+        self._ended.append(run)
+        if error is not None:
+            notices.post(
+                now_ns,
+                "task",
+                f"task {run.name!r} failed: {error[1]}",
+                {"task": run.name, "id": run.id, "action": "failed", "error": error[0]},
+            )
+        else:
+            action = "cancelled" if run.cancelled else "done"
+            notices.post(
+                now_ns,
+                "task",
+                f"task {run.name!r} {action}",
+                {"task": run.name, "id": run.id, "action": action},
+            )
+        return current
+
+    def drain(self) -> tuple[TaskRun, ...]:
+        """The runs that ended since the last drain, in order."""
+        out, self._ended = tuple(self._ended), []
+        return out
+
+
+def run_tick(
+    run: TaskRun,
+    target: SupervisedTarget,
+    sensed: Sensed,
+    state_ok: bool,
+    begin: Callable[[RobotState], None],
+) -> TaskEnd | None:
+    """One tick of streamed task `run`: its first starts a new outgoing engagement
+    (`begin`, rebased on the measured pose); the running step advances. A TaskEnd when the
+    task ends in this tick (it needs a fresh robot/state and a robot not in error), else
+    None: the target is to be sent, active."""
+    state = sensed.state
+    if not run.started:
+        if not state_ok or state is None:
+            return _fail("not_ready", "no fresh robot/state")
+        if state.status not in MOVING_STATUSES:
+            return _fail("not_ready", f"robot is {state.status}")
+        begin(state)
+        target.grip = state.grip
+        run.started = True
+        run.R_keep = target.R_sup.copy()
+        run.grip = state.grip
+        run.begin_step(sensed.now_ns, target.p_sup)
+    if not state_ok or state is None:
+        return _fail("not_ready", "robot/state is stale")
+    if state.status == "error":
+        return _fail("not_ready", "the robot reports an error")
+    f_w: Vec | None = None
+    if sensed.force is not None:
+        f_w = mat3(state.tool_R) @ np.asarray(sensed.force.f, dtype=float)
+        if run.f0_w is None:
+            run.f0_w = f_w
+    end = run_step(run, target, sensed, f_w)
+    if end is None and run.step is None:
+        end = TaskEnd(result={"task": run.name, "done": True, "tool_p": list(state.tool_p)})
+    if end is None:
+        target.grip = run.grip
+    return end
 
 
 def run_step(
