@@ -10,7 +10,7 @@ when one ends, and sends the commands.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -32,45 +32,32 @@ BLOCKED_SHARE = 0.01
 """A guarded move is blocked when a step moves less than this share of what it asked."""
 
 
+@dataclass(slots=True, eq=False)
 class TaskRun:
     """One run of a task: its plan, progress, and outcome (`result` or `error`).
 
     `external` runs (the forwarded `home`) are executed by the service, which calls
     `Supervisor.finish_external`. Read by the service's RPC threads under its lock.
+    Compared by identity: each run is one waiter's.
     """
 
-    __slots__ = (
-        "R_keep",
-        "cancelled",
-        "done",
-        "error",
-        "external",
-        "f0_w",
-        "grip",
-        "id",
-        "plan",
-        "result",
-        "start_p",
-        "started",
-        "step_index",
-        "step_start_ns",
-    )
-
-    def __init__(self, run_id: int, plan: TaskPlan, external: bool = False) -> None:
-        self.id = run_id
-        self.plan = plan
-        self.external = external
-        self.started = False
-        self.done = False
-        self.cancelled = False
-        self.result: dict[str, Any] | None = None
-        self.error: tuple[ErrorCode, str] | None = None
-        self.step_index = 0
-        self.step_start_ns = 0
-        self.start_p: Vec = np.zeros(3)
-        self.R_keep: Mat = np.eye(3)
-        self.f0_w: Vec | None = None
-        self.grip: float | None = None
+    id: int
+    plan: TaskPlan
+    external: bool = False
+    started: bool = False
+    done: bool = False
+    cancelled: bool = False
+    result: dict[str, Any] | None = None
+    error: tuple[ErrorCode, str] | None = None
+    step_index: int = 0
+    step_start_ns: int = 0
+    start_p: Vec = field(default_factory=lambda: np.zeros(3))
+    """The target where the running step started (m, world)."""
+    R_keep: Mat = field(default_factory=lambda: np.eye(3))
+    """The tool orientation the task keeps (world ← tool)."""
+    f0_w: Vec | None = None
+    """The wrist force (N, world) when the running step started."""
+    grip: float | None = None
 
     @property
     def name(self) -> str:
