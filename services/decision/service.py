@@ -46,6 +46,7 @@ from services.decision.supervisor import Inputs, Mode, Supervisor
 from services.decision.taskrun import TaskRun
 from services.decision.tasks import TASK_NAMES, TaskPlan, plan_task
 from services.decision.watch import target_problem
+from services.decision.watchdogs import fresh
 
 log = logging.getLogger("telerobot.decision")
 
@@ -212,7 +213,7 @@ class DecisionService:
         return (lease, self._op_engage[lease])
 
     def _fresh_force(self, inp: Inputs) -> ForceSample | None:
-        if inp.force is None or inp.now_ns - inp.force_rx_ns > self.config.stale_ms * 1e6:
+        if inp.force is None or not fresh(self.config.stale_ms, inp.now_ns, inp.force_rx_ns):
             return None
         return inp.force
 

@@ -28,8 +28,9 @@ may move at the limit speed on average.
 
 The parts, each pure: target.py (the supervised target, its filters and the outgoing
 commands), masters.py (per-master records), notices.py (events, counters, rate limits),
-taskrun.py (a streamed task's steps), watch.py (forwarded motions). This module is the
-state machine that drives them: lease, holds and watchdogs, e-stop, tasks' start and end.
+taskrun.py (task runs and a streamed task's steps), watch.py (forwarded motions),
+watchdogs.py (freshness and deadlines). This module is the state machine that drives them:
+modes, the lease, holds, e-stop, tasks' start and end.
 
 Time: `now_ns` is a monotonic clock (ns) for watchdogs and ticks; `wall_ns` is the
 `time.time_ns()` put in the commands' `t_ns`. Not thread-safe: the service calls it under
@@ -56,6 +57,7 @@ from services.decision.target import MOVING_STATUSES, Sensed, SupervisedTarget
 from services.decision.taskrun import TaskRun, Tasks, run_tick
 from services.decision.tasks import TaskPlan
 from services.decision.watch import WATCH_PERIOD_NS, Watch, WatchStop, watch_step
+from services.decision.watchdogs import follow_deadline_ns, follow_problem, fresh
 
 
 class Mode(Enum):
@@ -164,8 +166,9 @@ class Supervisor:
         self.stats["ticks"] += 1
         self._fresh = False
         self.target.start_tick(inp.now_ns, self._cfg)
-        state_ok = self._state_fresh(inp)
-        force_ok = self._force_fresh(inp)
+        cfg = self._cfg
+        state_ok = inp.state is not None and fresh(cfg.state_stale_ms, inp.now_ns, inp.state_rx_ns)
+        force_ok = inp.force is not None and fresh(cfg.stale_ms, inp.now_ns, inp.force_rx_ns)
         for name in inp.lost:
             self._on_lost(name)
         for cmd in inp.commands:
@@ -205,10 +208,7 @@ class Supervisor:
         if self.mode is Mode.FOLLOW:
             if self.target.lagging or cfg.compliance:
                 return now + period_ns
-            deadline = min(
-                self._cmd_rx_ns + int(cfg.watchdog_ms * 1e6),
-                self._state_rx_ns + int(cfg.state_stale_ms * 1e6),
-            )
+            deadline = follow_deadline_ns(cfg, self._cmd_rx_ns, self._state_rx_ns)
             return max(deadline + 1, now + 1)
         if self.mode is Mode.TASK:
             return now + period_ns if self._streaming() else None
@@ -226,14 +226,6 @@ class Supervisor:
     def _task_name(self) -> str:
         run = self.tasks.current
         return run.name if run is not None else "task"
-
-    def _state_fresh(self, inp: Inputs) -> bool:
-        return (
-            inp.state is not None and inp.now_ns - inp.state_rx_ns <= self._cfg.state_stale_ms * 1e6
-        )
-
-    def _force_fresh(self, inp: Inputs) -> bool:
-        return inp.force is not None and inp.now_ns - inp.force_rx_ns <= self._cfg.stale_ms * 1e6
 
     def _sensed(self, inp: Inputs, force_ok: bool) -> Sensed:
         force = inp.force if force_ok else None
@@ -469,22 +461,11 @@ class Supervisor:
     def _follow(self, inp: Inputs, state_ok: bool, force_ok: bool) -> OperatorCommand | None:
         cfg = self._cfg
         state = inp.state
-        if inp.now_ns - self._cmd_rx_ns > cfg.watchdog_ms * 1e6:
-            self._hold(
-                "watchdog",
-                "command_timeout",
-                f"no command from master {self.lease!r} for {cfg.watchdog_ms:g} ms: holding",
-            )
-        elif not state_ok or state is None:
-            self._hold("watchdog", "state_stale", "robot/state is stale: holding")
-        elif state.status == "error":
-            self._hold("watchdog", "robot_error", "the robot reports an error: holding")
-        elif cfg.compliance and not force_ok:
-            self._hold(
-                "watchdog",
-                "force_stale",
-                f"no force sample for {cfg.stale_ms:g} ms with compliance on: holding",
-            )
+        why = follow_problem(
+            cfg, inp.now_ns, self._cmd_rx_ns, self.lease, state, state_ok, force_ok
+        )
+        if why is not None:
+            self._hold("watchdog", *why)
         if self.mode is not Mode.FOLLOW or self._cmd is None or self.target.p0 is None:
             return None
         if not (self._fresh or self.target.lagging or cfg.compliance):
