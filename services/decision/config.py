@@ -1,6 +1,9 @@
 """The decision server's configuration: the `[decision]` table, read once into a frozen dataclass.
 
-Every value is checked in `__post_init__`; a bad one raises `ConfigError("decision.<key>", …)`.
+Read through the bus's one config reader (`services.bus.config.section`), which refuses
+unknown keys and checks every value's type against the annotations (a bool, a finite number,
+3 numbers); `__post_init__` checks the ranges. A bad value raises
+`ConfigError("decision.<key>", …)`.
 The supervisory settings (everything but `rate_hz`, `rpc_timeout_s` and `wait_timeout_s`) can
 also be changed while the service runs through the `supervisor` method, which builds a new
 config with the same checks.
@@ -8,7 +11,6 @@ config with the same checks.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, fields
 from typing import Any
 
@@ -38,7 +40,6 @@ _POSITIVE = (
     "arrive_tol_m",
     "event_interval_s",
 )
-_BOOLEAN = ("compliance", "estop_power_off", "passivity")
 _NON_NEGATIVE = (
     "admittance_m_per_n_s",
     "admittance_rad_per_nm_s",
@@ -145,19 +146,6 @@ class DecisionConfig:
     passivity: bool = False
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if f.name in _BOOLEAN:
-                if not isinstance(v, bool):
-                    raise _err(f.name, f"must be true or false, got {v!r}")
-                continue
-            if f.name in ("workspace_min", "workspace_max"):
-                if not isinstance(v, tuple) or len(v) != 3:
-                    raise _err(f.name, f"must be 3 numbers (m), got {v!r}")
-                for i, x in enumerate(v):
-                    _finite(f"{f.name}[{i}]", x)
-                continue
-            _finite(f.name, v)
         for key in _POSITIVE:
             if not getattr(self, key) > 0:
                 raise _err(key, f"must be > 0, got {getattr(self, key)}")
@@ -192,10 +180,3 @@ class DecisionConfig:
 
 def _err(key: str, message: str) -> ConfigError:
     return ConfigError(f"decision.{key}", message)
-
-
-def _finite(key: str, v: object) -> None:
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise _err(key, f"must be a number, got {type(v).__name__}")
-    if not math.isfinite(v):
-        raise _err(key, "must be finite")

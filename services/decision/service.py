@@ -40,9 +40,13 @@ from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
 from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3
 from services.bus.node import Node, PendingCall
 from services.decision.config import STARTUP_ONLY, DecisionConfig
+from services.decision.notices import INTERVENTIONS, Notice
 from services.decision.passivity import SlaveTdpa
-from services.decision.supervisor import INTERVENTIONS, Inputs, Mode, Notice, Supervisor, TaskRun
+from services.decision.supervisor import Inputs, Mode, Supervisor
+from services.decision.taskrun import TaskRun
 from services.decision.tasks import TASK_NAMES, TaskPlan, plan_task
+from services.decision.watch import target_problem
+from services.decision.watchdogs import fresh
 
 log = logging.getLogger("telerobot.decision")
 
@@ -209,7 +213,7 @@ class DecisionService:
         return (lease, self._op_engage[lease])
 
     def _fresh_force(self, inp: Inputs) -> ForceSample | None:
-        if inp.force is None or inp.now_ns - inp.force_rx_ns > self.config.stale_ms * 1e6:
+        if inp.force is None or not fresh(self.config.stale_ms, inp.now_ns, inp.force_rx_ns):
             return None
         return inp.force
 
@@ -345,7 +349,7 @@ class DecisionService:
         if p is None:
             return
         with self._cond:
-            why = self.supervisor.target_problem(method, p)
+            why = target_problem(self.config, method, p)
         if why is not None:
             raise RpcError("limit", why)
 

@@ -22,7 +22,7 @@ from services.bus import keys
 from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import Event, ForceSample
 from services.bus.node import Node
-from services.decision.supervisor import INTERVENTIONS
+from services.decision.notices import INTERVENTIONS
 
 STATUS_TIMEOUT_S = 3.0
 

@@ -17,7 +17,8 @@ from numpy.typing import ArrayLike, NDArray
 from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3, vec
 from services.decision.config import DecisionConfig
 from services.decision.filters import exp_so3, log_so3
-from services.decision.supervisor import Inputs, Notice, Supervisor, TickResult
+from services.decision.notices import Notice
+from services.decision.supervisor import Inputs, Supervisor, TickResult
 from services.workcell.scene import Scene, default_scene
 
 TOOL_DOWN: NDArray[np.float64] = np.diag([-1.0, 1.0, -1.0])

@@ -35,12 +35,18 @@ def test_defaults_keep_the_tool_out_of_the_table() -> None:
         ({"workspace_min": (0.0, 0.0, 2.0)}, "decision.workspace_max"),
         ({"workspace_max": (1.0, 1.0)}, "decision.workspace_max"),
         ({"compliance": 1}, "decision.compliance"),
+        ({"estop_power_off": "yes"}, "decision.estop_power_off"),
+        ({"max_tool_speed_m_s": float("inf")}, "decision.max_tool_speed_m_s"),
+        ({"workspace_min": [0.25, "a", 0.4]}, "decision.workspace_min[1]"),
+        ({"max_force_n": 1e9}, "decision.max_force_n"),
         ({"guarded_speed_m_s": 0.5}, "decision.guarded_speed_m_s"),
     ],
 )
 def test_bad_values_name_their_key(changes: dict[str, object], key: str) -> None:
+    """Through the one config reader, as the deployment file and the `supervisor` method
+    build it: types by the reader, ranges by the dataclass."""
     with pytest.raises(ConfigError) as e:
-        DecisionConfig(**changes)  # type: ignore[arg-type]
+        section(DecisionConfig, changes, "decision")
     assert e.value.key == key
 
 

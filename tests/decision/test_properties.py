@@ -123,17 +123,19 @@ class Checker:
         if sup.stats["engagements"] == 0:
             self.t_moved = rig.now_ns
             return  # nothing was ever commanded: there is no target yet
-        step = float(np.linalg.norm(sup.p_sup - self.p))
-        turn = angle_between(self.R, sup.R_sup)
+        step = float(np.linalg.norm(sup.target.p_sup - self.p))
+        turn = angle_between(self.R, sup.target.R_sup)
         # The limit is a rate over time: since the target last moved, capped at one watchdog
         # period (longer is a hold), at least one period (an engagement's first step).
         span_s = min(max(rig.now_ns - self.t_moved, PERIOD_NS), CFG.watchdog_ms * 1e6) * 1e-9
         assert step <= CFG.max_tool_speed_m_s * span_s + 1e-12, f"target jumped {step} m"
         assert turn <= CFG.max_tool_rot_speed_rad_s * span_s + 1e-9
-        assert in_box(sup.p_sup, LO, HI, tol=1e-12), f"target {sup.p_sup} left the box"
+        assert in_box(sup.target.p_sup, LO, HI, tol=1e-12), (
+            f"target {sup.target.p_sup} left the box"
+        )
         if step > 0.0 or turn > 0.0:
             self.t_moved = rig.now_ns
-        self.p, self.R = sup.p_sup.copy(), sup.R_sup.copy()
+        self.p, self.R = sup.target.p_sup.copy(), sup.target.R_sup.copy()
         for c in rig.outputs[self.n_out :]:
             to_fields(c)
             assert c.seq > self.last_seq
@@ -202,4 +204,4 @@ def test_random_streams_never_leave_the_box_nor_exceed_the_speed_limits(
     stats = rig.sup.stats
     note(f"engagements: {min(stats['engagements'], 3)}")
     note(f"moved: {bool(rig.outputs and any(np.any(c.dp) for c in rig.outputs))}")
-    note(f"interventions: {sum(1 for v in rig.sup.counters.values() if v)}")
+    note(f"interventions: {sum(1 for v in rig.sup.notices.counters.values() if v)}")

@@ -10,8 +10,10 @@ import pytest
 from services.bus.codec import to_fields
 from services.bus.errors import RpcError
 from services.decision.config import DecisionConfig
-from services.decision.supervisor import HOLD_RESEND_NS, Mode
+from services.decision.supervisor import Mode
+from services.decision.target import HOLD_RESEND_NS
 from services.decision.tasks import TaskPlan, guarded_move_plan
+from services.decision.watch import target_problem
 from services.workcell.scene import TABLE, Scene
 from tests.decision.rig import TICK_NS, TOOL_DOWN, Rig, angle_between, rot_z
 
@@ -92,9 +94,9 @@ def test_a_100_hz_master_at_a_legal_speed_is_followed_without_a_limit() -> None:
     v = 0.9 * CFG.max_tool_speed_m_s
     for i in range(1, 31):  # 300 ms at 100 Hz: each step 10 ms of motion
         rig.step([rig.cmd(dp=(v * 0.01 * i, 0, 0))], dt_ns=10_000_000)
-        assert np.allclose(rig.sup.p_sup, start + np.array([v * 0.01 * i, 0, 0]), atol=1e-12)
+        assert np.allclose(rig.sup.target.p_sup, start + np.array([v * 0.01 * i, 0, 0]), atol=1e-12)
     assert not [n for n in rig.notices_of("limit") if n.data["reason"] == "speed"]
-    assert rig.sup.counters["limit"] == 0
+    assert rig.sup.notices.counters["limit"] == 0
 
 
 def test_a_target_held_back_by_the_speed_limit_catches_up_on_the_timer() -> None:
@@ -107,7 +109,7 @@ def test_a_target_held_back_by_the_speed_limit_catches_up_on_the_timer() -> None
     n = len(rig.outputs)
     rig.run(25)  # 50 ms of timer ticks, no new command
     assert len(rig.outputs) > n and all(c.origin_t_ns is None for c in rig.outputs[n:])
-    assert np.allclose(rig.sup.p_sup, start + np.array([0.01, 0, 0]), atol=1e-12)
+    assert np.allclose(rig.sup.target.p_sup, start + np.array([0.01, 0, 0]), atol=1e-12)
     rig.step()
     assert rig.sup.next_wake_ns() == rig.sup._cmd_rx_ns + int(CFG.watchdog_ms * 1e6) + 1
 
@@ -119,14 +121,14 @@ def test_speed_limit_spreads_a_jump_and_catches_up() -> None:
     path = []
     for _ in range(250):
         rig.step([rig.cmd(dp=(0.1, 0.0, 0.0))])
-        path.append(rig.sup.p_sup.copy())
+        path.append(rig.sup.target.p_sup.copy())
     steps = np.linalg.norm(np.diff(np.array([start, *path]), axis=0), axis=1)
     assert steps.max() <= V_STEP + 1e-12
     assert np.allclose(
         path[-1], start + np.array([0.1, 0.0, 0.0]), atol=1e-9
     )  # delayed, not dropped
     speed = [n for n in rig.notices_of("limit") if n.data["reason"] == "speed"]
-    assert len(speed) == 1 and rig.sup.counters["limit"] == 1
+    assert len(speed) == 1 and rig.sup.notices.counters["limit"] == 1
 
 
 def test_rotation_speed_limit() -> None:
@@ -135,7 +137,7 @@ def test_rotation_speed_limit() -> None:
     Rs = [rig.R.copy()]
     for _ in range(600):
         rig.step([rig.cmd(dR=rot_z(1.0))])
-        Rs.append(rig.sup.R_sup.copy())
+        Rs.append(rig.sup.target.R_sup.copy())
     assert max(angle_between(a, b) for a, b in itertools.pairwise(Rs)) <= W_STEP + 1e-9
     assert angle_between(Rs[-1], TOOL_DOWN @ rot_z(1.0)) < 1e-6
 
@@ -144,23 +146,23 @@ def test_workspace_clamp_keeps_an_offset_not_a_jump() -> None:
     rig = Rig(scene=EMPTY, p=(0.9, 0.0, 0.6))
     engaged(rig)
     rig.run(300, lambda i: [rig.cmd(dp=(0.2, 0.0, 0.0))])  # hand 15 cm beyond x = 0.95
-    assert rig.sup.p_sup[0] == pytest.approx(0.95)
+    assert rig.sup.target.p_sup[0] == pytest.approx(0.95)
     assert rig.p[0] <= 0.95 + 1e-12
     limits = [n for n in rig.notices_of("limit") if n.data["reason"] == "workspace"]
     assert len(limits) == 1
     # the hand comes back 5 cm: the tool comes back 5 cm at once (the excess is forgotten)
     rig.run(200, lambda i: [rig.cmd(dp=(0.15, 0.0, 0.0))])
-    assert rig.sup.p_sup[0] == pytest.approx(0.90)
+    assert rig.sup.target.p_sup[0] == pytest.approx(0.90)
 
 
 def test_engagement_outside_the_box_may_only_come_back() -> None:
     rig = Rig(scene=EMPTY, p=(1.0, 0.0, 0.6))  # outside x ≤ 0.95
     engaged(rig)
     rig.run(20, lambda i: [rig.cmd(dp=(0.05, 0.0, 0.0))])
-    assert rig.sup.p_sup[0] == pytest.approx(1.0)  # not further out
+    assert rig.sup.target.p_sup[0] == pytest.approx(1.0)  # not further out
     # back by 10 cm from the hand's furthest point (the 5 cm out were dropped)
     rig.run(400, lambda i: [rig.cmd(dp=(-0.05, 0.0, 0.0))])
-    assert rig.sup.p_sup[0] == pytest.approx(0.9)
+    assert rig.sup.target.p_sup[0] == pytest.approx(0.9)
 
 
 def test_contact_stops_motion_into_the_table_but_not_along_or_away() -> None:
@@ -169,7 +171,7 @@ def test_contact_stops_motion_into_the_table_but_not_along_or_away() -> None:
     engaged(rig)
     # the hand goes down to 1.5 mm above the workspace floor: 3.5 mm into the probe's contact
     rig.run(200, lambda i: [rig.cmd(dp=(0.0, 0.0, -0.0185))])
-    assert rig.sup.counters["contact"] == 1
+    assert rig.sup.notices.counters["contact"] == 1
     (ev,) = rig.notices_of("contact")
     assert ev.data["reason"] == "force" and ev.data["force_n"] > 40.0
     z_stop = rig.p[2]
@@ -228,7 +230,7 @@ def test_compliance_refuses_an_engagement_without_force() -> None:
     rig = Rig(DecisionConfig(compliance=True), scene=EMPTY)
     rig.run(30, lambda i: [rig.cmd()], force=False)
     assert rig.sup.mode is Mode.IDLE and rig.outputs == []
-    assert rig.sup.counters["rejected"] >= 1
+    assert rig.sup.notices.counters["rejected"] >= 1
 
 
 # --- watchdogs, hold, rebase -------------------------------------------------------------------
@@ -303,7 +305,7 @@ def test_disengage_releases_the_lease_and_holds() -> None:
     rig.step([rig.cmd(active=False)])
     assert rig.sup.mode is Mode.HOLD and rig.sup.lease is None
     assert rig.notices_of("lease")[-1].data["action"] == "released"
-    assert rig.sup.counters["watchdog"] == 0  # a disengage is not an intervention
+    assert rig.sup.notices.counters["watchdog"] == 0  # a disengage is not an intervention
     n = len(rig.outputs)
     assert not rig.outputs[-1].active  # the hold, at once
     rig.run(30)
@@ -342,7 +344,7 @@ def test_a_second_master_is_refused_with_rate_limited_events() -> None:
     rig.run(250, lambda i: [rig.cmd("m1"), rig.cmd("m2", dp=(0.05, 0, 0))])  # 0.5 s
     refused = [n for n in rig.notices_of("lease") if n.data.get("master") == "m2"]
     assert len(refused) == 1  # one event per second and master
-    assert rig.sup.counters["lease"] == 250  # every refused command is counted
+    assert rig.sup.notices.counters["lease"] == 250  # every refused command is counted
     assert rig.sup.lease == "m1"
     rig.step([rig.cmd("m1", active=False)])
     rig.run(5, lambda i: [rig.cmd("m2", dp=(0.05, 0, 0))])  # m2's current engagement: blocked
@@ -361,7 +363,7 @@ def test_estop_latches_holds_refuses_and_reset_needs_a_new_engagement() -> None:
     rig.run(10, lambda i: [rig.cmd(dp=(0.05, 0, 0))])
     assert rig.sup.mode is Mode.ESTOP and len(rig.outputs) > n
     assert all(not c.active for c in rig.outputs[n:])
-    assert rig.sup.counters["estop"] == 1 + 10  # the latch and every refused command
+    assert rig.sup.notices.counters["estop"] == 1 + 10  # the latch and every refused command
     assert rig.notices_of("estop")[0].data["latched"] is True
     with pytest.raises(RpcError) as e:
         rig.sup.claim("move_joints")
@@ -421,17 +423,17 @@ def test_an_absurd_command_is_refused_before_arithmetic_and_the_hold_goes_on(
     rig = Rig(scene=EMPTY)
     engaged(rig)
     rig.run(10, lambda i: [rig.cmd(dp=(0.0, 0.0002 * i, 0.0))])
-    assert rig.sup.counters["limit"] == 0
-    target = rig.sup.p_sup.copy()
+    assert rig.sup.notices.counters["limit"] == 0
+    target = rig.sup.target.p_sup.copy()
     n = len(rig.outputs)
     rig.run(20, lambda i: [rig.cmd(dp=dp, frame=frame)], dt_ns=10_000_000)  # 20 at 100 Hz
     assert rig.sup.mode is Mode.HOLD and rig.sup.lease is None
-    assert np.array_equal(rig.sup.p_sup, target)  # not a nanometre
+    assert np.array_equal(rig.sup.target.p_sup, target)  # not a nanometre
     out = rig.outputs[n:]
     assert out and not any(c.active for c in out)  # holds keep going out, finite
     for c in out:
         to_fields(c)
-    assert rig.sup.counters["limit"] == 20
+    assert rig.sup.notices.counters["limit"] == 20
     (ev,) = [e for e in rig.notices_of("limit") if e.data.get("reason", "").startswith("dp")]
     assert "exceeds 2 m" in ev.data["reason"]  # names the field and the bound
 
@@ -444,8 +446,8 @@ def test_a_flood_of_master_ids_stays_a_trickle_of_events_in_bounded_memory() -> 
         rig.step([rig.cmd(f"rogue{i}", dp=(0.05, 0, 0))], dt_ns=20_000)
     refused = rig.notices_of("lease")[n0:]
     assert len(refused) <= 5  # NOTICES_PER_S over all of them
-    assert rig.sup.counters["lease"] == 3000  # every one counted
-    assert len(rig.sup._last_notice_ns) <= 1024 and len(rig.sup._masters) <= 64
+    assert rig.sup.notices.counters["lease"] == 3000  # every one counted
+    assert rig.sup.notices.keys_remembered <= 1024 and len(rig.sup.masters) <= 64
     rig.run(600, lambda i: [rig.cmd("m1")])  # a second and more later, one says how many
     rig.step([rig.cmd("late", dp=(0.05, 0, 0))])
     assert rig.notices_of("lease")[-1].data.get("suppressed", 0) >= 2990
@@ -466,7 +468,7 @@ def test_a_forwarded_motion_is_watched_and_stopped_at_a_contact() -> None:
     assert res.stop_arm and rig.sup.watch is None
     (ev,) = rig.notices_of("contact")
     assert ev.data["method"] == "move_relative" and ev.data["force_n"] > 40.0
-    assert rig.sup.counters["contact"] == 1
+    assert rig.sup.notices.counters["contact"] == 1
 
 
 def test_a_forwarded_motion_leaving_the_box_is_stopped_and_one_that_ends_is_not() -> None:
@@ -487,7 +489,7 @@ def test_a_forwarded_motion_leaving_the_box_is_stopped_and_one_that_ends_is_not(
 
 
 def test_a_forwarded_target_outside_the_workspace_is_named() -> None:
-    rig = Rig(scene=EMPTY)
-    assert rig.sup.target_problem("move_pose", (0.6, 0.0, 0.6)) is None
-    why = rig.sup.target_problem("move_relative", (0.6, 0.0, 0.3))
+    cfg = DecisionConfig()
+    assert target_problem(cfg, "move_pose", (0.6, 0.0, 0.6)) is None
+    why = target_problem(cfg, "move_relative", (0.6, 0.0, 0.3))
     assert why is not None and why.startswith("move_relative: target") and "workspace" in why

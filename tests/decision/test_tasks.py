@@ -9,7 +9,8 @@ import pytest
 
 from services.bus.errors import ProtocolError, RpcError
 from services.decision.config import DecisionConfig
-from services.decision.supervisor import Mode, TaskRun
+from services.decision.supervisor import Mode
+from services.decision.taskrun import TaskRun
 from services.decision.tasks import Grip, GuardedMove, MoveTo, guarded_move_plan, pick_place_plan
 from services.workcell.scene import TABLE, Scene
 from tests.decision.rig import Rig
@@ -139,7 +140,7 @@ def test_a_task_preempts_teleoperation_refuses_commands_and_cancel_stops_it() ->
     run = rig.sup.start_task(plan, rig.now_ns)
     assert rig.sup.lease is None
     rig.run(20, lambda i: [rig.cmd(dp=(0.05, 0, 0))])
-    assert rig.sup.counters["busy"] == 20 and len(rig.notices_of("busy")) == 1
+    assert rig.sup.notices.counters["busy"] == 20 and len(rig.notices_of("busy")) == 1
     assert all(c.engage == 2 for c in rig.outputs[-20:])  # the task's own engagement
     with pytest.raises(RpcError) as e:
         rig.sup.start_task(plan, rig.now_ns)
