@@ -16,8 +16,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from services.bus.errors import TelerobotError
+from services.geometry import is_rotation
 from services.master.config import DEVICE_KINDS, MasterConfig
-from services.master.so3 import is_rotation
 
 
 class DeviceNotFound(TelerobotError):

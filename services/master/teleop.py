@@ -16,9 +16,9 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from services.geometry import is_rotation, rxyz, rxyz_inv, rxyz_inv_near
 from services.master.config import FRAMES, Frame, MasterConfig
 from services.master.devices import HandReading
-from services.master.so3 import is_rotation, rxyz, rxyz_inv, rxyz_inv_near
 
 Vec3 = NDArray[np.float64]
 Mat3 = NDArray[np.float64]

@@ -12,8 +12,9 @@ from services.bus.errors import RpcError
 from services.decision.config import DecisionConfig
 from services.decision.supervisor import HOLD_RESEND_NS, Mode
 from services.decision.tasks import TaskPlan, guarded_move_plan
+from services.geometry import angle_between, rot_z
 from services.workcell.scene import TABLE, Scene
-from tests.decision.rig import TICK_NS, TOOL_DOWN, Rig, angle_between, rot_z
+from tests.decision.rig import TICK_NS, TOOL_DOWN, Rig
 
 V_STEP = 0.25 * 0.002  # default speed limit per 2 ms tick (m)
 W_STEP = 1.0 * 0.002  # default rotation limit per tick (rad)

@@ -8,6 +8,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
+from services.geometry import is_rotation
 from services.master.config import MasterConfig
 from services.master.devices import (
     DeviceNotFound,
@@ -20,7 +21,6 @@ from services.master.devices import (
 from services.master.fake_haply import FakeInverseService, HandPose
 from services.master.fake_hid import FakeHidApi, FakeHidInfo
 from services.master.fake_master_arm import FakeMasterArm
-from services.master.so3 import is_rotation
 
 NAVIGATOR = FakeHidInfo(b"/dev/hidraw1", 0x046D, 0xC626, "SpaceNavigator")
 BACKENDS = ["virtual", "scripted", "keyboard", "spacemouse", "serial_arm", "haply"]

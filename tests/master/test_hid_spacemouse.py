@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from services.geometry import rot_z
 from services.master.devices import DeviceLost, DeviceNotFound
 from services.master.fake_hid import FakeHidApi, FakeHidInfo
 from services.master.hid_spacemouse import (
@@ -21,7 +22,6 @@ from services.master.hid_spacemouse import (
     find_model,
 )
 from services.master.jog import MAX_STEP_S, apply_deadband
-from services.master.so3 import rot_z
 
 
 def hx(text: str) -> bytes:
