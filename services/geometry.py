@@ -70,17 +70,17 @@ def rotation_defect(r: Sequence[float]) -> tuple[float, float]:
 
 
 def _row_major(R: ArrayLike) -> list[float] | None:
-    """The 9 floats of a 3×3 (or 9-long) R, or None when it has another shape."""
+    """The 9 floats of a 3×3 R, or None when it has another shape."""
     m = np.asarray(R, dtype=float)
-    if m.shape not in ((3, 3), (9,)):
+    if m.shape != (3, 3):
         return None
     out: list[float] = m.reshape(9).tolist()
     return out
 
 
 def rotation_problem(R: ArrayLike, tol: float = ROTATION_TOL) -> str | None:
-    """Why R (3×3, or 9 row-major) is not a proper rotation, or None (PROTOCOL conventions:
-    finite, ‖RᵀR − I‖_F ≤ tol, det R ≥ 0)."""
+    """Why R is not a 3×3 proper rotation, or None (PROTOCOL conventions: finite,
+    ‖RᵀR − I‖_F ≤ tol, det R ≥ 0). 9 row-major floats: `rotation_defect`."""
     r = _row_major(R)
     if r is None:
         return "not a 3x3 matrix"

@@ -265,13 +265,13 @@ def test_rotation_about_an_unnormalised_axis() -> None:
 @settings(max_examples=300, deadline=None)
 @given(w=rotvec, eps=st.floats(-1e-3, 1e-3), i=st.integers(0, 8))
 def test_validity_agrees_with_the_numpy_definition(w: list[float], eps: float, i: int) -> None:
-    """One check, one tolerance: ‖RᵀR − I‖_F ≤ ROTATION_TOL and det R ≥ 0, whatever the
-    input form (3×3 array, 9 floats); the codec uses the same function."""
+    """One check, one tolerance: ‖RᵀR − I‖_F ≤ ROTATION_TOL and det R ≥ 0, for a 3×3 array
+    and (`rotation_defect`, the codec's) for 9 plain floats."""
     R = exp_so3(w)
     R.flat[i] += eps
     expected = bool(np.linalg.norm(R.T @ R - np.eye(3)) <= ROTATION_TOL and np.linalg.det(R) >= 0.0)
     assert is_rotation(R) is expected
-    assert is_rotation(R.reshape(9).tolist()) is expected
+    assert not is_rotation(R.reshape(9))  # a shape error, never a rotation
     assert (rotation_problem(R) is None) is expected
     assert codec.rotation_defect is rotation_defect
     err, det = rotation_defect(R.reshape(9).tolist())
@@ -286,6 +286,7 @@ def test_validity_agrees_with_the_numpy_definition(w: list[float], eps: float, i
         (np.eye(3) * (1 + 1e-6), "not orthonormal"),
         (np.full((3, 3), np.inf), "not finite"),
         (np.eye(4), "not a 3x3 matrix"),
+        (np.eye(3).reshape(9), "not a 3x3 matrix"),
     ],
 )
 def test_rotation_problem_says_why(R: np.ndarray, why: str) -> None:
