@@ -234,6 +234,9 @@ def xmlrpc_round_trips(reply: dict[str, Any], n: int, timeout_s: float = 30.0) -
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+        for pipe in (proc.stdout, proc.stderr):
+            if pipe is not None:  # closed here, not left to the collector
+                pipe.close()
 
 
 def _readline(proc: subprocess.Popen[str], timeout_s: float) -> str:

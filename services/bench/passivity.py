@@ -6,7 +6,8 @@ The simulated operator presses the tool onto a stiff surface, holds and releases
 about its mean after settling), penetration, the energy balance (the most the channel's
 observed output ever exceeded its input) and what each controller dissipated. One table,
 one JSON (keys `passivity_<delay_ms>_<on|off>_<measure>`), one plot per delay (contact force
-over time, off and on). docs/passivity.md.
+over time, off and on). "on" is both ports with the master's energy-bounding force limiter
+(`--no-master-limit`: the damper alone). docs/passivity.md.
 
 The link here is the simulation's own (seeded, deterministic, no processes); the netns +
 netem link of `services.bench.netem` is for system tests of the real services.
@@ -42,19 +43,32 @@ def run(
     loss: float = 0.01,
     dofs: int = 1,
     seed: int = 1,
+    master_limit: bool = True,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], LoopResult]]:
     """(the JSON document, the traces per (delay, tdpa))."""
     extra: dict[str, Any] = {}
     if dofs == 3:
         extra = {"dofs": 3, "target_m": (0.02, 0.0, 0.08), "wall": Wall(normal=(0.0, 0.0, 1.0))}
     doc: dict[str, Any] = {
-        "settings": {"delays_ms": list(delays_ms), "jitter": jitter, "loss": loss, "dofs": dofs},
+        "settings": {
+            "delays_ms": list(delays_ms),
+            "jitter": jitter,
+            "loss": loss,
+            "dofs": dofs,
+            "master_limit": master_limit,
+        },
     }
     results: dict[tuple[int, bool], LoopResult] = {}
     for delay in delays_ms:
         for on in (False, True):
             spec = LoopSpec(
-                round_trip_s=delay / 1e3, jitter=jitter, loss=loss, tdpa=on, seed=seed, **extra
+                round_trip_s=delay / 1e3,
+                jitter=jitter,
+                loss=loss,
+                tdpa=on,
+                seed=seed,
+                limit=master_limit,
+                **extra,
             )
             res = simulate(spec)
             results[(delay, on)] = res
@@ -118,6 +132,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--loss", type=float, default=0.01, help="fraction of packets lost")
     p.add_argument("--dofs", type=int, default=1, choices=[1, 3])
     p.add_argument("--seed", type=int, default=1)
+    p.add_argument(
+        "--no-master-limit",
+        action="store_true",
+        help="TDPA on without the master's force limiter (the damper alone)",
+    )
     p.add_argument("--json", default="artifacts/bench_passivity.json", metavar="FILE")
     p.add_argument("--plots", default="artifacts", metavar="DIR", help="'' for none")
     args = p.parse_args(argv)
@@ -129,7 +148,9 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--delays-ms must be within 0 … 10000")
     if not (0.0 <= args.jitter <= 1.0 and 0.0 <= args.loss < 1.0):
         p.error("--jitter must be within 0 … 1 and --loss within 0 … 1 (excluded)")
-    doc, results = run(delays, args.jitter, args.loss, args.dofs, args.seed)
+    doc, results = run(
+        delays, args.jitter, args.loss, args.dofs, args.seed, not args.no_master_limit
+    )
     path = Path(args.json)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=2) + "\n")

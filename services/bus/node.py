@@ -39,6 +39,7 @@ from services.bus.errors import (
     TimedOut,
     Unavailable,
 )
+from services.bus.events import EventLimiter
 from services.bus.keys import ALIVE_PREFIX, ENCODING, EVENTS, QoS, Topic, alive_key, rpc_key
 from services.bus.messages import MAX_TEXT, Event, Message
 
@@ -107,6 +108,26 @@ class Publisher(Generic[M]):
         self._pub.undeclare()
 
 
+def wait_latest(
+    cond: threading.Condition,
+    latest: Callable[[], M | None],
+    pred: Callable[[M], bool],
+    timeout_s: float,
+) -> M | None:
+    """Block until `latest()` is a message satisfying `pred`, or `timeout_s` has passed; the
+    message (or None). Whoever stores a new latest notifies `cond`."""
+    deadline = time.monotonic() + timeout_s
+    with cond:
+        while True:
+            m = latest()
+            if m is not None and pred(m):
+                return m
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            cond.wait(left)
+
+
 @dataclass
 class Subscription(Generic[M]):
     """A typed subscription. `latest` holds the newest valid message (highest `seq`)."""
@@ -124,16 +145,7 @@ class Subscription(Generic[M]):
 
     def wait_for(self, pred: Callable[[M], bool], timeout_s: float) -> M | None:
         """Block until the newest message satisfies `pred` (or the deadline); returns it."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while True:
-                m = self.latest
-                if m is not None and pred(m):
-                    return m
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                self._cond.wait(left)
+        return wait_latest(self._cond, lambda: self.latest, pred, timeout_s)
 
     def wait_count(self, n: int, timeout_s: float) -> bool:
         """Block until `received` ≥ n or the deadline."""
@@ -270,8 +282,7 @@ class Node:
         self._event_seq = 0
         self._alive: AliveSet | None = None
         self._rpc_pool = ThreadPoolExecutor(rpc_workers, thread_name_prefix=f"{name}-rpc")
-        self._reject_last: dict[str, float] = {}
-        self._reject_window = (0.0, 0)
+        self._reject_limiter = EventLimiter(REJECT_REPORT_INTERVAL_S, REJECT_EVENTS_PER_S)
         self._reject_suppressed = 0
         self.rejected: dict[str, int] = {}
 
@@ -453,16 +464,9 @@ class Node:
             if where not in self.rejected and len(self.rejected) >= MAX_REJECT_KEYS:
                 where = OTHER_KEY
             n = self.rejected[where] = self.rejected.get(where, 0) + 1
-            last = self._reject_last.get(where, -1e9)
-            start, sent = self._reject_window
-            if now - start >= 1.0:
-                start, sent = now, 0
-            if now - last < REJECT_REPORT_INTERVAL_S or sent >= REJECT_EVENTS_PER_S:
+            if self._reject_limiter.allow(where, now) is None:
                 self._reject_suppressed += 1
-                self._reject_window = (start, sent)
                 return
-            self._reject_last[where] = now
-            self._reject_window = (start, sent + 1)
             suppressed, self._reject_suppressed = self._reject_suppressed, 0
         log.warning("rejected input on %s: %s", where, reason)
         self.event(

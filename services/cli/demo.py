@@ -25,7 +25,7 @@ import time
 from dataclasses import replace
 from typing import IO, Any
 
-from services.bus.config import NodeConfig, load_deploy, section
+from services.bus.config import LOCAL_ROUTER, NodeConfig, load_deploy, section
 from services.bus.errors import TelerobotError
 from services.bus.lifecycle import Shutdown
 from services.bus.node import Node
@@ -87,9 +87,7 @@ class _Lines:
 def demo_node_config(deploy: dict[str, Any], overrides: launcher.Overrides) -> NodeConfig:
     """The demo's own sessions (and the task's): the profile's `[zenoh]` table (loopback
     listeners in the sim profile) with the `--listen/--ns` overrides the services got."""
-    base = section(
-        NodeConfig, {"connect": ["tcp/127.0.0.1:7447"], **deploy.get("zenoh", {})}, "zenoh"
-    )
+    base = section(NodeConfig, {"connect": [LOCAL_ROUTER], **deploy.get("zenoh", {})}, "zenoh")
     cfg = replace(base, mode="peer" if base.mode == "router" else base.mode)
     if overrides.listen:
         cfg = replace(cfg, connect=(launcher.dialable(overrides.listen),))

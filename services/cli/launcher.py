@@ -45,11 +45,9 @@ from typing import IO, Any
 
 from services.bus.config import load_deploy, section
 from services.bus.errors import ConfigError
-from services.bus.lifecycle import Shutdown
+from services.bus.lifecycle import CONFIG_EXIT, Shutdown
 from services.bus.router import DEFAULT_LISTEN, already_running, endpoint_taken, tcp_host_port
 
-#: the exit status of a process whose configuration is wrong (`telerobot …` on ConfigError)
-CONFIG_EXIT = 2
 #: held while a whole line is written: children's pump threads and the demo's own output
 #: share one stream, and a line must never be cut by another's.
 OUT_LOCK = threading.RLock()
@@ -146,11 +144,12 @@ class Child:
 
     def _copy(self, proc: subprocess.Popen[str]) -> None:
         assert proc.stdout is not None
-        for line in proc.stdout:
-            text = line.rstrip("\n")
-            if text.strip():
-                self.last_line = text.strip()
-            self.say(text)
+        with proc.stdout:  # closed at the child's end of output, not left to the collector
+            for line in proc.stdout:
+                text = line.rstrip("\n")
+                if text.strip():
+                    self.last_line = text.strip()
+                self.say(text)
 
     def say(self, text: str) -> None:
         # One lock for every child: their pump threads share one output stream.

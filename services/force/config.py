@@ -153,28 +153,10 @@ class ForceConfig:
         return ToolLoad(self.tool_mass_kg, self.tool_com_m, self.gravity_mps2)
 
     def sensor_options(self) -> dict[str, Any]:
-        """Keyword arguments of `open_sensor(self.sensor, **…)` for this configuration."""
-        if self.sensor == "serial":
-            return {"port": self.port, "baudrate": self.baudrate}
-        if self.sensor == "netft":
-            return {
-                "host": self.host,
-                "port": self.netft_port,
-                "counts_per_force": self.counts_per_force,
-                "counts_per_torque": self.counts_per_torque,
-            }
-        return {
-            "model": self.wrist_model(),
-            "load": self.tool_load(),
-            "noise_n": self.noise_n,
-            "noise_nm": self.noise_nm,
-            "probe_radius_m": self.probe_radius_m,
-            "seed": self.seed,
-            "block_density_kg_m3": self.block_density_kg_m3,
-            "bottle_mass_kg": self.bottle_mass_kg,
-            "inertia": self.inertia,
-            "carried_contact": self.carried_contact,
-        }
+        """The sensor backend's constructor arguments: `backends.sensor_options(self)`."""
+        from services.force.backends import sensor_options
+
+        return sensor_options(self)
 
 
 def _bad(key: str, message: str) -> None:

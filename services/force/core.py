@@ -2,8 +2,8 @@
 
 Per sample (on the sampling thread): the sensor's reading → (F_t, C_t) at the tool point in
 the tool frame (eq. 4 for six signals; a frame change for a calibrated wrench) → minus the
-tool's weight (when the arm's orientation is known) → minus the bias → a ForceSample's
-fields, handed to `publish` through the sampler's non-blocking queue.
+tool's weight (when the arm's orientation is known) → minus the bias → a ForceSample,
+handed to `publish` through the sampler's non-blocking queue.
 
 The service wiring (`__main__.py`/`service.py`) owns the bus: it passes `publish` (put on
 `robot/force`) and `emit` (put an Event on `robot/events`), serves the `rpc_*` methods as
@@ -16,14 +16,15 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
+from services.bus import codec
 from services.bus.bounds import BOUNDS, check_each, short
 from services.bus.errors import ProtocolError, RpcError
+from services.bus.messages import ForceSample
 from services.force.config import ForceConfig
 from services.force.events import EventSink, EventThrottle
 from services.force.kernel import (
@@ -44,44 +45,17 @@ from services.force.sensors import (
     ForceSensor,
     PoseAwareSensor,
     SensorError,
-    Six,
     WorldAwareSensor,
     open_sensor,
 )
 from services.workcell.messages import WorkcellState, objects_of
 
-Vec3T = tuple[float, float, float]
 TOOL_CHANGE_TOL = 1e-6
 """m and rad: a flange→tool placement from robot/state that differs more is a new tool."""
 WORLD_MIN_M, WORLD_MAX_M = BOUNDS["position_m"].lo, BOUNDS["position_m"].hi
 """A workcell object's position (m, world, per axis) must be within these."""
 OBJECT_MAX_M = 2.0
 """A workcell object's bounding size (m, per axis) must be within (0, this]."""
-
-
-@dataclass(frozen=True, slots=True)
-class ForceSampleFields:
-    """The fields of a ForceSample (PROTOCOL.md §3).
-
-    `seq` strictly increasing from 1; `t_ns` time.time_ns() when the reading was taken;
-    `f` (N) and `c` (N·m) at the tool point, tool frame, weight and bias removed; `raw` the
-    sensor's six values (signals, or the Net F/T's wrench in the sensor frame).
-    """
-
-    seq: int
-    t_ns: int
-    f: Vec3T
-    c: Vec3T
-    raw: Six
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "seq": self.seq,
-            "t_ns": self.t_ns,
-            "f": list(self.f),
-            "c": list(self.c),
-            "raw": list(self.raw),
-        }
 
 
 class _BiasRequest:
@@ -121,7 +95,7 @@ class ForceCore:
         self,
         sensor: ForceSensor,
         config: ForceConfig,
-        publish: Callable[[ForceSampleFields], None],
+        publish: Callable[[ForceSample], None],
         emit: EventSink,
         *,
         clock: SamplerClock | None = None,
@@ -146,9 +120,9 @@ class ForceCore:
         self._last_world: tuple[str, dict[str, Any]] | None = None
         self._bias_req: _BiasRequest | None = None
         self._seq = 0
-        self._latest: ForceSampleFields | None = None
+        self._latest: ForceSample | None = None
         self._ctl = threading.RLock()
-        self._sampler: Sampler[ForceSampleFields] = Sampler(
+        self._sampler: Sampler[ForceSample] = Sampler(
             self._acquire,
             publish,
             period_ms=config.period_ms,
@@ -165,7 +139,7 @@ class ForceCore:
     def from_config(
         cls,
         config: ForceConfig,
-        publish: Callable[[ForceSampleFields], None],
+        publish: Callable[[ForceSample], None],
         emit: EventSink,
     ) -> ForceCore:
         """The core with the sensor backend `config.sensor` (not yet opened)."""
@@ -176,11 +150,11 @@ class ForceCore:
         return self._sensor
 
     @property
-    def sampler(self) -> Sampler[ForceSampleFields]:
+    def sampler(self) -> Sampler[ForceSample]:
         return self._sampler
 
     @property
-    def latest(self) -> ForceSampleFields | None:
+    def latest(self) -> ForceSample | None:
         return self._latest
 
     def close(self) -> None:
@@ -421,7 +395,7 @@ class ForceCore:
         latest = self._latest
         if latest is None:
             raise RpcError("not_ready", "no force sample yet")
-        return latest.as_dict()
+        return codec.to_fields(latest)
 
     def _bias_reply(self, n: int) -> dict[str, Any]:
         f_b, c_b = self._bias
@@ -429,7 +403,7 @@ class ForceCore:
 
     # --- sampling thread ----------------------------------------------------------------
 
-    def _acquire(self) -> ForceSampleFields | None:
+    def _acquire(self) -> ForceSample | None:
         reading = self._sensor.read()
         if reading is None:
             return None
@@ -451,7 +425,7 @@ class ForceCore:
             req.done.set()
         (bx, by, bz), (dx, dy, dz) = self._bias
         self._seq += 1
-        sample = ForceSampleFields(
+        sample = ForceSample(
             self._seq,
             t_ns,
             (f[0] - bx, f[1] - by, f[2] - bz),

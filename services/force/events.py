@@ -7,10 +7,11 @@ of plain values (msgpack-able). The service wiring turns each into a `robot/even
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable, Collection
 from typing import Any
+
+from services.bus.events import EventLimiter
 
 EventSink = Callable[[str, str, dict[str, Any]], None]
 
@@ -23,12 +24,15 @@ def ignore_event(kind: str, message: str, data: dict[str, Any]) -> None:
 
 
 class EventThrottle:
-    """At most one event per kind per `interval_s`; the ones held back are counted.
+    """An EventSink that lets through at most one event per kind per `interval_s` (the
+    bus's `EventLimiter`); kinds in `exempt` always pass.
 
     The next event of a kind that gets through carries `data["suppressed"]`, the number of
     events of that kind held back since the last one, so counts are never lost. Safe to call
     from several threads.
     """
+
+    __slots__ = ("_exempt", "_limiter", "_sink")
 
     def __init__(
         self,
@@ -38,23 +42,14 @@ class EventThrottle:
         clock_s: Callable[[], float] = time.monotonic,
     ) -> None:
         self._sink = sink
-        self._interval_s = interval_s
         self._exempt = frozenset(exempt)
-        self._clock_s = clock_s
-        self._last: dict[str, float] = {}
-        self._held: dict[str, int] = {}
-        self._lock = threading.Lock()
+        self._limiter = EventLimiter(interval_s, clock_s=clock_s)
 
     def __call__(self, kind: str, message: str, data: dict[str, Any]) -> None:
         if kind not in self._exempt:
-            now = self._clock_s()
-            with self._lock:
-                last = self._last.get(kind)
-                if last is not None and now - last < self._interval_s:
-                    self._held[kind] = self._held.get(kind, 0) + 1
-                    return
-                self._last[kind] = now
-                held = self._held.pop(kind, 0)
+            held = self._limiter.allow(kind)
+            if held is None:
+                return
             if held:
                 data = {**data, "suppressed": held}
         self._sink(kind, message, data)

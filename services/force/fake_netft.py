@@ -10,12 +10,11 @@ error status bits, stalls.
 from __future__ import annotations
 
 import select
-import socket
 import threading
 import time
 from collections.abc import Sequence
-from types import TracebackType
 
+from services.bus.loopback import LoopbackServer
 from services.force.netft import (
     CMD_SET_SOFTWARE_BIAS,
     CMD_START_STREAMING,
@@ -33,7 +32,7 @@ INTERNAL_RATE_HZ = 7000.0
 """The rate of the Net F/T's internal sampling, which ft_sequence counts."""
 
 
-class FakeNetFT:
+class FakeNetFT(LoopbackServer):
     """A Net F/T on 127.0.0.1:`port` measuring the wrench set by `set_wrench`."""
 
     def __init__(
@@ -47,11 +46,8 @@ class FakeNetFT:
         self._period_s = 1.0 / rate_hz
         self._cpf = counts_per_force
         self._cpt = counts_per_torque
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.bind(("127.0.0.1", port))
+        super().__init__("udp", port, "fake-netft")
         self._lock = threading.Lock()
-        self._closed = threading.Event()
-        self._thread: threading.Thread | None = None
         self._t0 = time.monotonic()
         self._counts = (0, 0, 0, 0, 0, 0)
         self._bias = (0, 0, 0, 0, 0, 0)
@@ -68,34 +64,8 @@ class FakeNetFT:
         self.bad_requests = 0
 
     @property
-    def port(self) -> int:
-        return int(self._sock.getsockname()[1])
-
-    @property
     def streaming(self) -> bool:
         return self._client is not None
-
-    def start(self) -> FakeNetFT:
-        self._thread = threading.Thread(target=self._serve, name="fake-netft", daemon=True)
-        self._thread.start()
-        return self
-
-    def close(self) -> None:
-        self._closed.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
-        self._sock.close()
-
-    def __enter__(self) -> FakeNetFT:
-        return self.start()
-
-    def __exit__(
-        self,
-        et: type[BaseException] | None,
-        ev: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # --- what it measures, and faults ----------------------------------------------------
 

@@ -14,8 +14,8 @@ import socket
 import threading
 import time
 from collections.abc import Sequence
-from types import TracebackType
 
+from services.bus.loopback import LoopbackServer
 from services.force.serial_sensor import SEQ_MODULO, encode_command, encode_sample, sentence
 
 GARBAGE_LINE = b"\x00\xff\xfe#garbage!\r\n"
@@ -23,7 +23,7 @@ MAX_CATCH_UP = 50
 """Samples sent at most in one go after a late wake-up."""
 
 
-class FakeSerialSensor:
+class FakeSerialSensor(LoopbackServer):
     """A serial force sensor served on 127.0.0.1:`port` (0 = a free port)."""
 
     def __init__(
@@ -37,13 +37,8 @@ class FakeSerialSensor:
         self._period_s = 1.0 / rate_hz
         self._signals = tuple(float(v) for v in signals)
         self._stream_at_connect = streaming
-        self._srv = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._srv.bind(("127.0.0.1", port))
-        self._srv.listen(1)
+        super().__init__("tcp", port, "fake-serial-force")
         self._lock = threading.Lock()
-        self._closed = threading.Event()
-        self._thread: threading.Thread | None = None
         self._seq = 0
         self._garbage = 0
         self._nan = 0
@@ -55,37 +50,6 @@ class FakeSerialSensor:
         self.sent = 0
         """Sample lines sent (including the faulty ones that consume a sample number)."""
         self.commands: list[bytes] = []
-        self.connections = 0
-
-    @property
-    def port(self) -> int:
-        return int(self._srv.getsockname()[1])
-
-    @property
-    def url(self) -> str:
-        return f"socket://127.0.0.1:{self.port}"
-
-    def start(self) -> FakeSerialSensor:
-        self._thread = threading.Thread(target=self._serve, name="fake-serial-force", daemon=True)
-        self._thread.start()
-        return self
-
-    def close(self) -> None:
-        self._closed.set()
-        if self._thread is not None:
-            self._thread.join(2.0)
-        self._srv.close()
-
-    def __enter__(self) -> FakeSerialSensor:
-        return self.start()
-
-    def __exit__(
-        self,
-        et: type[BaseException] | None,
-        ev: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # --- what it measures, and faults ----------------------------------------------------
 
@@ -127,20 +91,6 @@ class FakeSerialSensor:
             self._stall_until = time.monotonic() + seconds
 
     # --- server thread -------------------------------------------------------------------
-
-    def _serve(self) -> None:
-        self._srv.settimeout(0.05)
-        while not self._closed.is_set():
-            try:
-                conn, _ = self._srv.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            self.connections += 1
-            with conn:
-                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                self._session(conn)
 
     def _session(self, conn: socket.socket) -> None:
         self.streaming = self._stream_at_connect

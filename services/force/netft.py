@@ -25,6 +25,7 @@ import struct
 import time
 from dataclasses import dataclass
 
+from services.force.accounting import StreamAccounting
 from services.force.events import EventSink, ignore_event
 from services.force.sensors import Reading, SensorError, Six
 
@@ -81,7 +82,7 @@ def unpack_record(data: bytes) -> RdtRecord:
     return RdtRecord(rdt, ft, status, (fx, fy, fz, tx, ty, tz))
 
 
-class NetFTSensor:
+class NetFTSensor(StreamAccounting):
     """An ATI Net F/T at `host`:`port`, streaming RDT records at its configured rate.
 
     `open()` binds a UDP socket and requests infinite streaming; `read()` drains every
@@ -92,6 +93,9 @@ class NetFTSensor:
     rdt_sequence jumps are counted as gaps.
     `close()` asks the sensor to stop streaming.
     """
+
+    seq_modulo = SEQ_MODULO
+    unit = "records"
 
     def __init__(
         self,
@@ -112,9 +116,7 @@ class NetFTSensor:
         self._cpt = float(counts_per_torque)
         self._status_mask = status_mask
         self._sock: socket.socket | None = None
-        self._last_seq: int | None = None
-        self._bad = 0
-        self._gaps = 0
+        self._init_accounting()
         self._records = 0
         self._requests = 0
         self._last_rx_s = 0.0
@@ -122,14 +124,6 @@ class NetFTSensor:
     @property
     def name(self) -> str:
         return f"netft {self._host}:{self._port}"
-
-    @property
-    def bad(self) -> int:
-        return self._bad
-
-    @property
-    def gaps(self) -> int:
-        return self._gaps
 
     @property
     def records(self) -> int:
@@ -212,20 +206,10 @@ class NetFTSensor:
         except ValueError as e:
             self._reject("short", str(e))
             return None
-        last, self._last_seq = self._last_seq, rec.rdt_sequence
-        if last is not None:
-            step = (rec.rdt_sequence - last) % SEQ_MODULO
-            if step == 0 or step > SEQ_MODULO // 2:
-                self._reject("order", f"rdt_sequence {rec.rdt_sequence} after {last}")
-                self._last_seq = last
-                return None
-            if step > 1:
-                self._gaps += step - 1
-                self.on_event(
-                    "gap",
-                    f"{self.name}: {step - 1} records missing before {rec.rdt_sequence}",
-                    {"missing": step - 1, "gaps": self._gaps},
-                )
+        last = self._last_seq
+        if not self._step(rec.rdt_sequence, refuse_late=True):
+            self._reject("order", f"rdt_sequence {rec.rdt_sequence} after {last}")
+            return None
         if rec.status & self._status_mask:
             self._reject("status", f"status 0x{rec.status:08x}")
             return None
@@ -233,5 +217,4 @@ class NetFTSensor:
         return rec
 
     def _reject(self, reason: str, message: str) -> None:
-        self._bad += 1
-        self.on_event("bad_data", f"{self.name}: {message}", {"reason": reason, "bad": self._bad})
+        self._bad_data(message, reason)

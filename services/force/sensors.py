@@ -1,8 +1,6 @@
-"""The `ForceSensor` role and `open_sensor`, which picks a backend and imports it lazily.
-
-Backends: `SimSensor` (sim_sensor.py, the default: contact with the simulated workcell),
-`SerialSensor` (serial_sensor.py, six ADC channels as checksummed ASCII lines, see
-docs/serial-force-protocol.md), `NetFTSensor` (netft.py, ATI Net F/T RDT over UDP).
+"""The `ForceSensor` role, its `Reading` and its error: what the force service needs from a
+wrist force sensor. `backends.py` holds `open_force_sensor(config)`, which picks a backend and
+imports it lazily; `accounting.py` what the streaming backends share.
 """
 
 from __future__ import annotations
@@ -118,20 +116,11 @@ class WorldAwareSensor(Protocol):
 
 
 def open_sensor(kind: SensorKind, **opts: Any) -> ForceSensor:
-    """Construct the sensor backend `kind` with `opts` (the device is opened by `open()`).
+    """The backend `kind` built from `opts` (not opened), through `backends.BACKENDS`.
 
-    The backend module is imported here, so the simulation never loads pyserial.
+    Kept for `ForceCore.from_config` alone (force/core.py is being reworked in another
+    branch); everything else calls `services.force.backends.open_force_sensor(config)`.
     """
-    if kind == "sim":
-        from services.force.sim_sensor import SimSensor
+    from services.force.backends import BACKENDS
 
-        return SimSensor(**opts)
-    if kind == "serial":
-        from services.force.serial_sensor import SerialSensor
-
-        return SerialSensor(**opts)
-    if kind == "netft":
-        from services.force.netft import NetFTSensor
-
-        return NetFTSensor(**opts)
-    raise ValueError(f"unknown sensor kind {kind!r} (known: {', '.join(SENSOR_KINDS)})")
+    return BACKENDS.build(kind, opts)

@@ -15,6 +15,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
+from services.bus.serialport import close_port
+from services.force.accounting import StreamAccounting
 from services.force.events import EventSink, ignore_event
 from services.force.sensors import Reading, SensorError, Six
 
@@ -129,7 +131,7 @@ def decode_line(line: bytes) -> SerialFrame | None:
     return SerialFrame(seq, (values[0], values[1], values[2], values[3], values[4], values[5]))
 
 
-class SerialSensor:
+class SerialSensor(StreamAccounting):
     """A compliant wrist whose six sensing signals arrive as ASCII lines on a serial port.
 
     `port` is anything `serial.serial_for_url` opens (`/dev/ttyUSB0`, `socket://host:port`,
@@ -138,6 +140,9 @@ class SerialSensor:
     `Reading("signals", …)`. The fragment before the first line end after `open()` is a
     partial line of a device already streaming, and is dropped without being counted.
     """
+
+    seq_modulo = SEQ_MODULO
+    unit = "samples"
 
     def __init__(
         self,
@@ -152,22 +157,12 @@ class SerialSensor:
         self._ser: serial.Serial | None = None
         self._buf = bytearray()
         self._synced = False
-        self._last_seq: int | None = None
-        self._bad = 0
-        self._gaps = 0
+        self._init_accounting()
         self._frames = 0
 
     @property
     def name(self) -> str:
         return f"serial {self._port}"
-
-    @property
-    def bad(self) -> int:
-        return self._bad
-
-    @property
-    def gaps(self) -> int:
-        return self._gaps
 
     @property
     def frames(self) -> int:
@@ -199,7 +194,7 @@ class SerialSensor:
         # A device already gone needs no stop: closing is all that is left.
         with contextlib.suppress(OSError):
             ser.write(encode_command("STOP"))
-        ser.close()
+        close_port(ser)
 
     def read(self) -> Reading | None:
         ser = self._ser
@@ -235,38 +230,16 @@ class SerialSensor:
             if first:
                 return None
             if e.seq is not None:
-                self._sequence(e.seq)
+                self._step(e.seq)
             self._reject(e, line)
             return None
         if frame is None:
             return None
-        if not self._sequence(frame.seq):
+        if not self._step(frame.seq):
             self._reject(LineError("duplicate", f"sample {frame.seq} again", frame.seq), line)
             return None
         self._frames += 1
         return frame
 
-    def _sequence(self, seq: int) -> bool:
-        """Track the device's sample numbers; False for a repeated one."""
-        last, self._last_seq = self._last_seq, seq
-        if last is None:
-            return True
-        step = (seq - last) % SEQ_MODULO
-        if step == 0:
-            return False
-        if step > 1:
-            self._gaps += step - 1
-            self.on_event(
-                "gap",
-                f"{self.name}: {step - 1} samples missing before {seq}",
-                {"missing": step - 1, "gaps": self._gaps},
-            )
-        return True
-
     def _reject(self, e: LineError, line: bytes) -> None:
-        self._bad += 1
-        self.on_event(
-            "bad_data",
-            f"{self.name}: {e}",
-            {"reason": e.fault, "bad": self._bad, "line": line[:48].decode("ascii", "replace")},
-        )
+        self._bad_data(str(e), e.fault, line=line[:48].decode("ascii", "replace"))

@@ -16,10 +16,11 @@ from typing import Any
 from services.bus import codec, keys
 from services.bus.bounds import check_norm
 from services.bus.errors import ProtocolError, RpcError
-from services.bus.messages import IDENTITY_R, RobotState, Rot, Vec3
+from services.bus.messages import IDENTITY_R, ForceSample, RobotState, Rot, Vec3
 from services.bus.node import Node
+from services.force.backends import open_force_sensor
 from services.force.config import ForceConfig
-from services.force.core import ForceCore, ForceSampleFields
+from services.force.core import ForceCore
 from services.force.wire import ForceSampleEncoder
 from services.workcell.messages import WORKCELL_STATE, WorkcellState
 
@@ -34,7 +35,7 @@ class ForceService:
         self.config = config
         self._pub = node.publisher(keys.FORCE)
         self._encode = ForceSampleEncoder().encode
-        self.core = ForceCore.from_config(config, self._publish, self._emit)
+        self.core = ForceCore(open_force_sensor(config), config, self._publish, self._emit)
         node.subscribe(keys.STATE, self._on_state)
         if config.sensor == "sim":
             node.subscribe(WORKCELL_STATE, self._on_workcell)
@@ -61,11 +62,11 @@ class ForceService:
                 )
         node.announce()
 
-    def encode_sample(self, s: ForceSampleFields) -> bytes:
+    def encode_sample(self, s: ForceSample) -> bytes:
         """The sample's `robot/force` payload (what `codec.encode(ForceSample(...))` gives)."""
         return self._encode(s.seq, s.t_ns, s.f, s.c, s.raw)
 
-    def _publish(self, s: ForceSampleFields) -> None:
+    def _publish(self, s: ForceSample) -> None:
         self._pub.put_bytes(self._encode(s.seq, s.t_ns, s.f, s.c, s.raw))
 
     def _emit(self, kind: str, message: str, data: dict[str, Any]) -> None:

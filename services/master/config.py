@@ -9,11 +9,12 @@ from __future__ import annotations
 import math
 import urllib.parse
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any, Literal, get_args
 
 import numpy as np
 
+from services.bus.config import section
 from services.bus.errors import ConfigError
 from services.geometry import is_rotation
 from services.master.arm_kinematics import DEFAULT_MASTER_DH, DhRow
@@ -62,7 +63,7 @@ class MasterConfig:
     """Settings of one master station.
 
     master_id: the master's id on the bus (`alive/master/<id>`, `OperatorCommand.master`).
-    device: which backend drives the hand pose (see `services.master.devices.open_device`).
+    device: which backend drives the hand pose (see `services.master.backends`).
     port: the device's address: serial URL for `serial_arm` (`/dev/ttyUSB0`,
         `socket://127.0.0.1:PORT`), HID path for `spacemouse` ("" = first one found),
         tty path for `keyboard` ("" = stdin); unused by `scripted`/`virtual`.
@@ -218,15 +219,7 @@ class MasterConfig:
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any]) -> MasterConfig:
-        """Build from a TOML table (e.g. `[master]` of a deploy file); unknown keys fail."""
-        known = {f.name for f in fields(cls)}
-        for key in values:
-            if key not in known:
-                raise _err(str(key), "unknown key")
-        kwargs = dict(values)
-        if "alignment" in kwargs and isinstance(kwargs["alignment"], list):
-            kwargs["alignment"] = tuple(kwargs["alignment"])
-        if "arm_dh" in kwargs and isinstance(kwargs["arm_dh"], list):
-            rows = kwargs["arm_dh"]
-            kwargs["arm_dh"] = tuple(tuple(r) if isinstance(r, list) else r for r in rows)
-        return cls(**kwargs)
+        """Build from a TOML table (e.g. `[master]` of a deploy file) with the bus's one
+        config reader (`services.bus.config.section`): unknown keys and bad types fail
+        naming `master.<key>`."""
+        return section(cls, values, "master")

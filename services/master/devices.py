@@ -3,21 +3,21 @@
 A device reports the hand pose in its own base frame (the *master frame*: for the desk
 devices x to the operator's right, y away from the operator, z up), the state of the
 master-shift (clutch) and of the grip. Devices that can push back display a wrench given in
-that same frame. `open_device` picks a backend by name and imports its library lazily, so
-simulation and the tests of pure logic never load hidapi, pyserial or websockets.
+that same frame. `backends.py` holds `open_master_device(config)`, which picks a backend
+and imports its library lazily, so simulation and the tests of pure logic never load hidapi,
+pyserial or websockets.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from services.bus.errors import TelerobotError
 from services.geometry import is_rotation
-from services.master.config import DEVICE_KINDS, MasterConfig
 
 
 class DeviceNotFound(TelerobotError):
@@ -97,89 +97,3 @@ class MasterDevice(Protocol):
     def display_force(self, f: ArrayLike, c: ArrayLike) -> None: ...
 
     def close(self) -> None: ...
-
-
-def open_device(kind: str, **opts: Any) -> MasterDevice:
-    """Build the backend `kind` with `opts`, open it and return it.
-
-    kind: `spacemouse` (HidSpaceMouse), `serial_arm` (SerialMasterArm), `keyboard`
-    (KeyboardMaster), `scripted` (ScriptedMaster), `virtual` (VirtualMaster), `haply`
-    (HaplyMaster), `haptic_sim` (SimHapticMaster: a simulated device and operator); `opts`
-    are the backend's constructor arguments. Raises DeviceNotFound when the device is absent
-    and ValueError for an unknown kind.
-    """
-    device: MasterDevice
-    if kind == "spacemouse":
-        from services.master.hid_spacemouse import HidSpaceMouse
-
-        device = HidSpaceMouse(**opts)
-    elif kind == "serial_arm":
-        from services.master.serial_arm import SerialMasterArm
-
-        device = SerialMasterArm(**opts)
-    elif kind == "keyboard":
-        from services.master.keyboard import KeyboardMaster
-
-        device = KeyboardMaster(**opts)
-    elif kind == "scripted":
-        from services.master.scripted import ScriptedMaster
-
-        device = ScriptedMaster(**opts)
-    elif kind == "virtual":
-        from services.master.virtual import VirtualMaster
-
-        device = VirtualMaster(**opts)
-    elif kind == "haply":
-        from services.master.haply import HaplyMaster
-
-        device = HaplyMaster(**opts)
-    elif kind == "haptic_sim":
-        from services.master.haptic_sim import SimHapticMaster
-
-        device = SimHapticMaster(**opts)
-    else:
-        raise ValueError(f"unknown master device {kind!r}; one of {', '.join(DEVICE_KINDS)}")
-    device.open()
-    return device
-
-
-def device_options(config: MasterConfig) -> dict[str, Any]:
-    """The `open_device` options a MasterConfig implies for its `device`."""
-    rate = {
-        "deadband": config.deadband,
-        "sensitivity": config.sensitivity,
-        "full_speed_m_s": config.full_speed_m_s,
-        "full_rate_rad_s": config.full_rate_rad_s,
-    }
-    if config.device == "spacemouse":
-        return {
-            "path": config.port or None,
-            "clutch_button": config.clutch_button,
-            "grip_button": config.grip_button,
-            **rate,
-        }
-    if config.device == "serial_arm":
-        return {
-            "url": config.port,
-            "dh": config.arm_dh,
-            "baudrate": config.baudrate,
-            "stream_rate_hz": config.rate_hz,
-            "max_joint_torque_nm": config.max_joint_torque_nm,
-        }
-    if config.device == "keyboard":
-        return {"tty_path": config.port or None, "sensitivity": config.sensitivity}
-    if config.device == "scripted":
-        return {"script": config.script}
-    if config.device == "haply":
-        return {
-            "url": config.haply_url,
-            "deadman_button": config.clutch_button,
-            "grip_button": config.grip_button,
-            "max_force_n": config.haply_max_force_n,
-        }
-    return {}
-
-
-def open_master(config: MasterConfig) -> MasterDevice:
-    """Open the device a MasterConfig names (see `open_device`)."""
-    return open_device(config.device, **device_options(config))

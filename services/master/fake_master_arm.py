@@ -16,8 +16,8 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from types import TracebackType
 
+from services.bus.loopback import LoopbackServer
 from services.master.arm_protocol import (
     N_JOINTS,
     SEQ_MODULO,
@@ -35,7 +35,7 @@ _HISTORY = 100_000
 """Joint frames remembered (about 17 min at 100 Hz)."""
 
 
-class FakeMasterArm:
+class FakeMasterArm(LoopbackServer):
     """Serve one master arm on `url`; use as a context manager or start()/stop()."""
 
     def __init__(
@@ -61,42 +61,11 @@ class FakeMasterArm:
         self._sent: deque[JointFrame] = deque(maxlen=_HISTORY)
         self._commands: list[str] = []
         self._naks_sent = 0
-        self._stop = threading.Event()
-        self._server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self._server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self._server.bind(("127.0.0.1", 0))
-        self._server.listen(1)
-        self._thread = threading.Thread(target=self._serve, name="fake-master-arm", daemon=True)
-
-    @property
-    def port(self) -> int:
-        return int(self._server.getsockname()[1])
-
-    @property
-    def url(self) -> str:
-        """The pyserial URL of this arm."""
-        return f"socket://127.0.0.1:{self.port}"
-
-    def start(self) -> FakeMasterArm:
-        self._thread.start()
-        return self
+        super().__init__("tcp", 0, "fake-master-arm")
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=2.0)
-        self._server.close()
-
-    def __enter__(self) -> FakeMasterArm:
-        return self.start()
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.stop()
+        """The same as `close()`."""
+        self.close()
 
     def set_joints(self, q_rad: Sequence[float]) -> None:
         """Hold the joints at q_rad (6 angles, rad)."""
@@ -155,25 +124,12 @@ class FakeMasterArm:
         with self._lock:
             return self._naks_sent
 
-    def _serve(self) -> None:
-        self._server.settimeout(0.05)
-        while not self._stop.is_set():
-            try:
-                conn, _ = self._server.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            with conn:
-                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                self._session(conn)
-
     def _session(self, conn: socket.socket) -> None:
         splitter = LineSplitter()
         rate_hz = 0.0
         t0 = next_t = 0.0
         seq = 0
-        while not self._stop.is_set():
+        while not self._closed.is_set():
             now = time.monotonic()
             wait = 0.05 if rate_hz <= 0.0 else max(0.0, min(0.05, next_t - now))
             readable, _, _ = select.select([conn], [], [], wait)

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from services.bus.serialport import close_port
 from services.master.arm_kinematics import (
     DEFAULT_MASTER_DH,
     DhRow,
@@ -156,7 +157,7 @@ class SerialMasterArm:
             if self._frame is None:
                 raise DeviceNotFound(f"{self.name} sends no joint frames")
         except BaseException:
-            self._port.close()
+            close_port(self._port)
             self._port = None
             raise
 
@@ -245,7 +246,7 @@ class SerialMasterArm:
         except DeviceLost:
             pass  # The line is already gone; the arm's torque watchdog makes it passive.
         finally:
-            self._port.close()
+            close_port(self._port)
             self._port = None
 
 

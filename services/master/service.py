@@ -22,8 +22,6 @@ from services.bus.errors import RpcError, TelerobotError
 from services.bus.messages import (
     Event,
     MasterFeedback,
-    MasterState,
-    OperatorCommand,
     Rot,
     Unit,
     Vec3,
@@ -31,8 +29,9 @@ from services.bus.messages import (
 )
 from services.bus.node import Node
 from services.bus.rate import RateLoop
+from services.master.backends import open_master_device
 from services.master.config import MasterConfig
-from services.master.devices import DeviceLost, HandReading, MasterDevice, open_master
+from services.master.devices import DeviceLost, HandReading, MasterDevice
 from services.master.feedback import ForceDisplay, ForceFeedback, WrenchHook
 from services.master.passivity import MasterTdpa
 from services.master.status_line import ADVICE, StatusInfo
@@ -68,7 +67,7 @@ class MasterService:
     ) -> None:
         self.node = node
         self.config = config
-        self.device = device if device is not None else open_master(config)
+        self.device = device if device is not None else open_master_device(config)
         self.teleop = Teleop(config, self.device.name)
         self.passivity: MasterTdpa | None = None
         if force_hook is None and config.passivity:
@@ -166,13 +165,13 @@ class MasterService:
                     f"master device {self.device.name} lost: {e}",
                     {"device": self.device.name},
                 )
-            self._cmd.put(OperatorCommand(**asdict(self.teleop.hold(t_ns, rearm=False))))
+            self._cmd.put(self.teleop.hold(t_ns, rearm=False))
             self.displayed = ForceFeedback.zero()
             return
         self._report_rejected()
         self._grip = reading.grip
         self._clutched = bool(reading.clutch)
-        self._cmd.put(OperatorCommand(**asdict(self.teleop.tick(reading, t_ns))))
+        self._cmd.put(self.teleop.tick(reading, t_ns))
         self._display_force(reading, dt_s)
 
     def _reopen(self) -> None:
@@ -253,7 +252,7 @@ class MasterService:
     def _publish_state(self) -> None:
         self._show_status()
         t_ns = time.time_ns()
-        self._state.put(MasterState(**asdict(self.teleop.state(t_ns))))
+        self._state.put(self.teleop.state(t_ns))
         self._fb_seq += 1
         shown = self.displayed
         self._fb.put(
@@ -272,7 +271,7 @@ class MasterService:
         """Disengage on the way out: the slave holds (sent a few times: one may be lost)."""
         for _ in range(HOLD_REPEATS):
             try:
-                self._cmd.put(OperatorCommand(**asdict(self.teleop.hold(time.time_ns()))))
+                self._cmd.put(self.teleop.hold(time.time_ns()))
             except Exception:  # closing: a failed put must not hide the others
                 log.warning("could not send the hold command", exc_info=True)
 

@@ -11,11 +11,12 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import cast
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from services.bus.messages import MasterState, OperatorCommand
 from services.geometry import is_rotation, rxyz, rxyz_inv, rxyz_inv_near
 from services.master.config import FRAMES, Frame, MasterConfig
 from services.master.devices import HandReading
@@ -68,70 +69,6 @@ def _vec3(v: ArrayLike) -> tuple[float, float, float]:
 
 def _mat9(R: ArrayLike) -> tuple[float, ...]:
     return tuple(float(x) for x in np.asarray(R, dtype=float).reshape(9))
-
-
-@dataclass(frozen=True, slots=True)
-class CommandFields:
-    """The fields of one OperatorCommand (PROTOCOL.md §3); dR is 9 floats, row-major."""
-
-    seq: int
-    t_ns: int
-    master: str
-    engage: int
-    active: bool
-    frame: Frame
-    dp: tuple[float, float, float]
-    dR: tuple[float, ...]
-    grip: float | None = None
-
-    def as_dict(self) -> dict[str, Any]:
-        """The wire map (optional `grip` left out when None)."""
-        out: dict[str, Any] = {
-            "seq": self.seq,
-            "t_ns": self.t_ns,
-            "master": self.master,
-            "engage": self.engage,
-            "active": self.active,
-            "frame": self.frame,
-            "dp": list(self.dp),
-            "dR": list(self.dR),
-        }
-        if self.grip is not None:
-            out["grip"] = self.grip
-        return out
-
-
-@dataclass(frozen=True, slots=True)
-class MasterStateFields:
-    """The fields of one MasterState (PROTOCOL.md §3); hand_R is 9 floats, row-major."""
-
-    seq: int
-    t_ns: int
-    master: str
-    engage: int
-    active: bool
-    frame: Frame
-    scale_t: float
-    scale_r: float
-    hand_p: tuple[float, float, float]
-    hand_R: tuple[float, ...]
-    device: str
-
-    def as_dict(self) -> dict[str, Any]:
-        """The wire map."""
-        return {
-            "seq": self.seq,
-            "t_ns": self.t_ns,
-            "master": self.master,
-            "engage": self.engage,
-            "active": self.active,
-            "frame": self.frame,
-            "scale_t": self.scale_t,
-            "scale_r": self.scale_r,
-            "hand_p": list(self.hand_p),
-            "hand_R": list(self.hand_R),
-            "device": self.device,
-        }
 
 
 def _check_scale(name: str, value: float) -> float:
@@ -246,7 +183,7 @@ class Teleop:
         self._angles = np.zeros(3)
         self._dp, self._dR = _ZERO3, _IDENTITY9
 
-    def tick(self, reading: HandReading, t_ns: int) -> CommandFields:
+    def tick(self, reading: HandReading, t_ns: int) -> OperatorCommand:
         """One control tick: the command to publish for this hand reading (PROTOCOL §2/§3)."""
         with self._lock:
             self._seq += 1
@@ -273,7 +210,7 @@ class Teleop:
                 self._dp, self._dR = _vec3(motion.dp), _mat9(motion.dR)
             return self._command(reading.grip)
 
-    def hold(self, t_ns: int, rearm: bool = False) -> CommandFields:
+    def hold(self, t_ns: int, rearm: bool = False) -> OperatorCommand:
         """A command that disengages without a hand reading (device lost, operator absent):
         active false, dp/dR as last sent. Unless `rearm`, engaging again needs the operator
         to press and release the master-shift."""
@@ -285,8 +222,8 @@ class Teleop:
             self._armed = rearm
             return self._command(None if self._hand is None else self._hand.grip)
 
-    def _command(self, grip: float | None) -> CommandFields:
-        return CommandFields(
+    def _command(self, grip: float | None) -> OperatorCommand:
+        return OperatorCommand(
             seq=self._seq,
             t_ns=self._t_ns,
             master=self._config.master_id,
@@ -298,7 +235,7 @@ class Teleop:
             grip=grip,
         )
 
-    def state(self, t_ns: int | None = None) -> MasterStateFields:
+    def state(self, t_ns: int | None = None) -> MasterState:
         """The MasterState to publish now (its own strictly increasing seq); t_ns defaults to
         the last tick's time."""
         with self._lock:
@@ -306,7 +243,7 @@ class Teleop:
             hand = self._hand
             p = _ZERO3 if hand is None else _vec3(hand.hand_p)
             R = _IDENTITY9 if hand is None else _mat9(hand.hand_R)
-            return MasterStateFields(
+            return MasterState(
                 seq=self._state_seq,
                 t_ns=self._t_ns if t_ns is None else t_ns,
                 master=self._config.master_id,
@@ -321,7 +258,7 @@ class Teleop:
             )
 
 
-def check_command(cmd: CommandFields) -> None:
+def check_command(cmd: OperatorCommand) -> None:
     """Raise ValueError unless cmd satisfies the contract's checks (finite, dR a rotation)."""
     if not all(np.isfinite(cmd.dp)) or len(cmd.dp) != 3:
         raise ValueError("dp must be 3 finite numbers")

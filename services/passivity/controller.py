@@ -64,11 +64,69 @@ class MasterPassivity:
 
     enabled: bool = True
     ramp_n_s: float = 0.0
+    limit: bool = False
+    mass_kg: float = 0.0
+    reserve_j: float = 0.0
+    hand_rate_n_s: float = 0.0
+    bound_current: bool = True
+    damp: bool = True
+    horizon_s: float = 0.0
     observer: EnergyObserver = field(default_factory=EnergyObserver)
     remote: RemoteEnergy = field(default_factory=RemoteEnergy)
     telemetry: PortTelemetry = field(default_factory=PortTelemetry)
+    limited_steps: int = 0
     _f_held: list[float] | None = None
     _x_prev: list[float] | None = None
+    _v_prev: list[float] | None = None
+
+    def _bound(self, f: list[float], v: list[float], dt_s: float, measured: bool) -> list[float]:
+        """The energy-bounding force limiter: the largest `k·f`, 0 ≤ k ≤ 1, whose work on the
+        hand over the next interval fits the reservoir, at the current velocity and at the
+        predicted one.
+
+        Predicted velocity (semi-implicit device, force held over the tick):
+        `v⁺ = v + a_prev·dt + (k·f − f_held)/m·dt`: the last tick's acceleration carries the
+        hand's own force (assumed unchanged for one tick); the second term is what the new
+        force itself does to a device of mass m (`mass_kg`; 0: not modelled). Work over the
+        interval `W(k) = k·(f·w)·dt + k²·|f|²·dt²/m`, with `w = v + a_prev·dt − f_held/m·dt`;
+        the bound is the larger root of `W(k) = R`. A hand pushing into the force
+        (`f·w < 0`) is input: the force it holds is paid by that input, up to the root.
+        """
+        r = max(self.budget_j + self.reserve_j, 0.0)
+        ff = dot(f, f)
+        if ff <= 0.0:
+            return f
+        # The next interval: as long as the last one, or `horizon_s` when that is longer (a
+        # loop that may run late holds the force longer than its last tick).
+        h = max(dt_s, self.horizon_s)
+        k = 1.0
+        fv = dot(f, v) * h
+        if (self.mass_kg <= 0.0 or self.bound_current) and fv > r + TOLERANCE_J:
+            k = min(k, r / fv)
+        inv_m = 1.0 / self.mass_kg if self.mass_kg > 0.0 else 0.0
+        held = self._f_held if self._f_held is not None else [0.0] * len(f)
+        if measured and self._v_prev is not None and len(self._v_prev) == len(v) == len(held):
+            # v + a_prev·dt − f_held/m·dt: the rest of the device's force (the hand's, its
+            # damping) as it was over the last tick.
+            w = [
+                vi + (vi - pi) / dt_s * h - hi * inv_m * h
+                for vi, pi, hi in zip(v, self._v_prev, held, strict=True)
+            ]
+        else:
+            # No acceleration known yet (first ticks): the hand's force is taken as zero.
+            w = list(v)
+        # The hand's force may change by up to hand_rate_n_s·dt within the tick, in the worst
+        # direction (along f): that much more velocity along f by the end of it.
+        b = (dot(f, w) + math.sqrt(ff) * self.hand_rate_n_s * h * inv_m * h) * h
+        a = ff * h * h * inv_m
+        if a + b > r + TOLERANCE_J:
+            # The larger root of a·k² + b·k − r = 0 (a = 0: no mass modelled, linear).
+            root = (-b + math.sqrt(max(b * b + 4.0 * a * r, 0.0))) / (2.0 * a) if a > 0.0 else r / b
+            k = min(k, max(root, 0.0))
+        if k >= 1.0:
+            return f
+        self.limited_steps += 1
+        return [k * fi for fi in f]
 
     def _ramp(self, f: list[float], dt_s: float) -> list[float]:
         """With the reservoir empty, the force grows at most `ramp_n_s`: it settles at what
@@ -91,6 +149,7 @@ class MasterPassivity:
         self.telemetry.last_gain = 0.0
         self._f_held = None
         self._x_prev = None
+        self._v_prev = None
 
     @property
     def budget_j(self) -> float:
@@ -102,11 +161,13 @@ class MasterPassivity:
             raise ValueError("dt_s must be positive and finite")
         xs = [float(v) for v in x]
         v = [0.0] * len(xs)
+        measured = False
         if self._x_prev is not None and len(self._x_prev) == len(xs):
             dx = [a - b for a, b in zip(xs, self._x_prev, strict=True)]
             if self._f_held is not None:
                 self.observer.record(-dot(self._f_held, dx))
             v = [d / dt_s for d in dx]
+            measured = True
         self._x_prev = xs
         out = [float(fi) for fi in f]
         if self.enabled and self.ramp_n_s > 0.0 and self.budget_j <= TOLERANCE_J:
@@ -115,12 +176,16 @@ class MasterPassivity:
         e_next = dot(out, v) * dt_s
         budget = max(self.budget_j, 0.0)
         vv = dot(v, v)
-        if self.enabled and e_next > budget + TOLERANCE_J and vv > 0.0:
+        if self.enabled and self.damp and e_next > budget + TOLERANCE_J and vv > 0.0:
             beta = (e_next - budget) / (vv * dt_s)
             out = [fi - beta * vi for fi, vi in zip(out, v, strict=True)]
             self.telemetry.dissipated_j += beta * vv * dt_s
             self.telemetry.active_steps += 1
         self.telemetry.last_gain = beta
+        if self.enabled and self.limit:
+            # Last, so that whatever the damper did, the force held fits the reservoir.
+            out = self._bound(out, v, dt_s, measured)
+        self._v_prev = v if measured else None
         self._f_held = out
         return out
 

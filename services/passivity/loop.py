@@ -92,6 +92,12 @@ class LoopSpec:
     drift_m_s: float = 0.01
     slack_m: float = 0.0
     ramp_n_s: float = 0.0
+    limit: bool = True
+    limit_mass: bool = True
+    reserve_j: float = 1e-4
+    hand_rate_n_s: float = 20.0
+    bound_current: bool = True
+    damp: bool = True
     seed: int = 1
     wall: Wall = field(default_factory=Wall)
     operator_stiffness_n_m: float = 300.0
@@ -154,7 +160,16 @@ def simulate(spec: LoopSpec) -> LoopResult:
         pressing=lambda t: hold[0] <= t < hold[1],
     )
     device = Device(x=[0.0] * n, v=[0.0] * n)
-    master = MasterPassivity(enabled=spec.tdpa, ramp_n_s=spec.ramp_n_s)
+    master = MasterPassivity(
+        enabled=spec.tdpa,
+        ramp_n_s=spec.ramp_n_s,
+        limit=spec.limit,
+        mass_kg=device.mass_kg if spec.limit_mass else 0.0,
+        reserve_j=spec.reserve_j,
+        hand_rate_n_s=spec.hand_rate_n_s,
+        bound_current=spec.bound_current,
+        damp=spec.damp,
+    )
     slave = SlavePassivity(enabled=spec.tdpa, drift_m_s=spec.drift_m_s, slack_m=spec.slack_m)
     x_s = [0.0] * n
     v_s = [0.0] * n

@@ -14,14 +14,16 @@ Status, as the controller reports it:
 `initialize()` starts calibration and returns; the status stays `initializing` until the
 controller reports it is done. After an error the arm holds and takes no setpoint until
 `connect()` and `initialize()` succeed again; neither of them moves the joints.
+
+This module holds the role and what it publishes (its statuses, its error, the controller's
+joint limits and capabilities, `qn`); `arm_base.py` what the backends share, `backends.py`
+`open_arm(config)`, which picks a backend and imports it lazily.
 """
 
 from __future__ import annotations
 
 import math
-import threading
-from abc import ABC, abstractmethod
-from typing import Any, Literal, Protocol, get_args, runtime_checkable
+from typing import Literal, Protocol, get_args, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -123,78 +125,3 @@ class Arm(Protocol):
     def close(self) -> None:
         """Hold and release the link; status `disconnected`. Idempotent."""
         ...
-
-
-class ArmBase(ABC):
-    """What the backends share: status and last error under one lock, the precondition of
-    `initialize`, and the checks `command` makes before it takes a setpoint.
-
-    A backend sets `_lock`, `_status`, `_last_error` and `setpoints_ignored` in its
-    constructor and defines `_fail_locked` (the lock held: `error`, hold, no more setpoints).
-    """
-
-    _lock: threading.RLock
-    _status: ArmStatus
-    _last_error: str | None
-    setpoints_ignored: int
-
-    @property
-    def status(self) -> ArmStatus:
-        with self._lock:
-            return self._status
-
-    @property
-    def last_error(self) -> str | None:
-        with self._lock:
-            return self._last_error
-
-    @abstractmethod
-    def _fail_locked(self, why: str) -> None:
-        """Go to `error` for `why` (kept if already in error); the caller holds the lock."""
-
-    def _check_can_initialize(self) -> None:
-        """ArmError unless connected or ready; the caller holds the lock."""
-        if self._status not in ("connected", "ready"):
-            raise ArmError(f"cannot initialize: arm is {self._status}")
-
-    def _accept_setpoint(self, q_setpoint: Q) -> Q | None:
-        """`command`'s setpoint as a joint vector, or None to drop it: counted in
-        `setpoints_ignored` outside `ready`, an error when malformed. The caller holds the lock."""
-        if self._status != "ready":
-            self.setpoints_ignored += 1
-            return None
-        try:
-            return as_joint_vector(q_setpoint, "setpoint")
-        except ValueError as e:
-            self._fail_locked(f"bad setpoint: {e}")
-            return None
-
-
-def as_joint_vector(q: Any, name: str = "q") -> Q:
-    """`q` as a finite float vector (6,), or ValueError naming `name`."""
-    arr = np.asarray(q, dtype=np.float64)
-    if arr.shape != (6,):
-        raise ValueError(f"{name} must have 6 joint values, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
-    return arr
-
-
-def open_arm(kind: ArmKind, port: str | None = None, **opts: Any) -> Arm:
-    """Open the arm backend `kind` (not yet connected).
-
-    `sim`: a `SimArm` (`port` ignored); `serial`: a `SerialArm` on `port`, any pyserial URL
-    (`/dev/ttyUSB0`, `socket://127.0.0.1:PORT`). `opts` go to the backend's constructor.
-    pyserial is imported only for `serial`.
-    """
-    if kind == "sim":
-        from services.puma.sim_arm import SimArm
-
-        return SimArm(**opts)
-    if kind == "serial":
-        if not port:
-            raise ValueError("a serial arm needs a port (a device path or pyserial URL)")
-        from services.puma.serial_arm import SerialArm
-
-        return SerialArm(port, **opts)
-    raise ValueError(f"unknown arm kind {kind!r}: expected 'sim' or 'serial'")

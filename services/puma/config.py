@@ -8,16 +8,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Any, get_args
 
 from services.bus.bounds import check_config
+from services.bus.config import section
 from services.bus.errors import ConfigError
 from services.puma.arm import (
     ARM_MAX_JOINT_ACCEL_RAD_S2,
     ARM_MAX_JOINT_SPEED_RAD_S,
     Q_HI_RAD,
     Q_LO_RAD,
+    ArmKind,
 )
 
 Joint6 = tuple[float, float, float, float, float, float]
@@ -61,7 +63,7 @@ class PumaConfig:
     max_tool_speed_m_s: float = 0.5
     max_tool_rot_speed_rad_s: float = 1.5
     home_q: Joint6 = HOME_Q_RAD
-    arm: Literal["sim", "serial"] = "sim"
+    arm: ArmKind = "sim"
     port: str | None = None
     baudrate: int = 115_200
     serial_cycle_ms: float = 28.0
@@ -95,7 +97,7 @@ class PumaConfig:
         for j, (q, lo, hi) in enumerate(zip(self.home_q, Q_LO_RAD, Q_HI_RAD, strict=True)):
             if not lo <= q <= hi:
                 raise ConfigError("puma.home_q", f"q{j + 1} = {q} rad is outside [{lo}, {hi}]")
-        if self.arm not in ("sim", "serial"):
+        if self.arm not in get_args(ArmKind):
             raise ConfigError("puma.arm", f"must be 'sim' or 'serial', got {self.arm!r}")
         if self.arm == "serial" and not (isinstance(self.port, str) and self.port):
             raise ConfigError("puma.port", "a serial arm needs a port (device or pyserial URL)")
@@ -113,25 +115,9 @@ class PumaConfig:
 
     @classmethod
     def from_mapping(cls, table: Mapping[str, Any]) -> PumaConfig:
-        """From a TOML `[puma]` table; lists become tuples; an unknown key is an error."""
-        known = {f.name for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in table.items():
-            if key not in known:
-                raise ConfigError(f"puma.{key}", "unknown key")
-            kwargs[key] = tuple(value) if isinstance(value, list) else value
-        return cls(**kwargs)
-
-    def arm_options(self) -> dict[str, Any]:
-        """Keyword arguments for `open_arm(self.arm, self.port, **…)`."""
-        if self.arm == "serial":
-            return {
-                "baudrate": self.baudrate,
-                "cycle_ms": self.serial_cycle_ms,
-                "timeout_s": self.serial_timeout_s,
-            }
-        # The simulated arm powers on at home: the tool above the table, ready to work.
-        return {"calibration_s": self.sim_calibration_s, "q_init": self.home_q}
+        """From a TOML `[puma]` table (the bus's one section reader: an unknown key or a
+        value of the wrong type is an error naming `puma.<key>`)."""
+        return section(cls, table, "puma")
 
 
 def _number(key: str, value: Any) -> float:

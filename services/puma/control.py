@@ -32,6 +32,7 @@ import numpy as np
 import pinocchio as pin
 from numpy.typing import NDArray
 
+from services.bus.events import EventLimiter
 from services.geometry import rotation_problem
 from services.puma.arguments import RelFrame, is_number, too_long
 from services.puma.arm import Arm, ArmError
@@ -54,24 +55,6 @@ Status = Literal["disconnected", "connected", "initializing", "ready", "moving",
 EmitFn = Callable[[str, str, dict[str, Any]], None]
 
 MAX_MOTION_HISTORY = 128
-
-
-class _Limiter:
-    """At most one event per key every `interval_s` of proxy time; counts the rest."""
-
-    def __init__(self, interval_s: float) -> None:
-        self.interval_s = interval_s
-        self._last: dict[str, float] = {}
-        self.suppressed: dict[str, int] = {}
-
-    def allow(self, key: str, now_s: float) -> int | None:
-        """None to suppress; else how many were suppressed since the last one."""
-        last = self._last.get(key)
-        if last is not None and now_s - last < self.interval_s:
-            self.suppressed[key] = self.suppressed.get(key, 0) + 1
-            return None
-        self._last[key] = now_s
-        return self.suppressed.pop(key, 0)
 
 
 class ProxyControl:
@@ -122,7 +105,7 @@ class ProxyControl:
         self._setpoint_ns: int | None = None
         self._awaiting_setpoint = False
         self._fk_cache: tuple[bytes, int, dict[str, Any]] | None = None
-        self._limiter = _Limiter(config.event_interval_s)
+        self._limiter = EventLimiter(config.event_interval_s)  # on proxy time
         self.counters: dict[str, int] = {
             "ticks": 0,
             "commands": 0,

@@ -28,7 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from services.puma.arm import ArmBase, ArmError, ArmStatus, Q
+from services.bus.serialport import close_port
+from services.puma.arm import ArmError, ArmStatus, Q
+from services.puma.arm_base import ArmBase
 
 MAX_LINE_BYTES = 128
 MODEL = "PUMA560"
@@ -489,7 +491,4 @@ class SerialArm(ArmBase):
     def _close_port(self) -> None:
         ser, self._ser = self._ser, None
         if ser is not None:
-            try:
-                ser.close()
-            except OSError:
-                return  # closing a vanished port may fail: it is gone either way
+            close_port(ser)

@@ -26,7 +26,7 @@ from services.bus.bounds import check
 from services.bus.errors import RpcError
 from services.bus.messages import MaxLen, OperatorCommand, RobotState, mat3
 from services.bus.node import Node
-from services.puma.arm import open_arm
+from services.puma.backends import open_arm
 from services.puma.config import PumaConfig
 from services.puma.mapping import TeleopInput
 from services.puma.proxy import PumaProxy
@@ -61,9 +61,7 @@ class PumaService:
         # the liveliness watch starts now, not at the first motion call: a set created on
         # demand has not yet heard of a decision that is already alive (unsupervised moves)
         _ = node.alive
-        self.arm = (
-            arm if arm is not None else open_arm(config.arm, config.port, **config.arm_options())
-        )
+        self.arm = arm if arm is not None else open_arm(config)
         self.proxy = PumaProxy(self.arm, config, self._emit)
         self._state_pub = node.publisher(keys.STATE)
         self._state_seq = 0

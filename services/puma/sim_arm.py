@@ -25,12 +25,11 @@ from services.puma.arm import (
     Q_HI_RAD,
     Q_LO_RAD,
     QN_RAD,
-    ArmBase,
     ArmError,
     ArmStatus,
     Q,
-    as_joint_vector,
 )
+from services.puma.arm_base import ArmBase, as_joint_vector
 
 FaultKind = Literal["stall", "disconnect", "error"]
 

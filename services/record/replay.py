@@ -26,7 +26,7 @@ from typing import Any, Protocol
 import zenoh
 
 from services.bus import keys
-from services.bus.config import add_node_args, node_config
+from services.bus.config import LOCAL_ROUTER, add_node_args, node_config
 from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown, setup_logging
 from services.bus.node import Node
@@ -35,7 +35,6 @@ from services.record.archive import Recording
 
 log = logging.getLogger("telerobot.replay")
 
-LOCAL_ROUTER = "tcp/127.0.0.1:7447"
 MAX_SLEEP_S = 0.05
 MATCH_POLL_S = 0.01
 

@@ -41,7 +41,8 @@ RAW_IMAGE = "foxglove.RawImage"
 ROLE_VIEW = "view"
 ROLE_RAW = "raw"
 
-_TIME_SCHEMA: dict[str, Any] = {
+#: Foxglove's `time` (sec, nsec), shared by every schema that carries a timestamp
+TIME_SCHEMA: dict[str, Any] = {
     "type": "object",
     "title": "time",
     "properties": {
@@ -50,14 +51,19 @@ _TIME_SCHEMA: dict[str, Any] = {
     },
 }
 
+_IMAGE_STAMP: dict[str, Any] = {
+    "timestamp": {**TIME_SCHEMA, "description": "Timestamp of image"},
+    "frame_id": {"type": "string", "description": "Frame of reference for the image"},
+}
+"""The fields every Foxglove image schema starts with."""
+
 #: Foxglove's CompressedImage, as JSON Schema (foxglove/schemas, jsonschema/CompressedImage.json)
 COMPRESSED_IMAGE_SCHEMA: dict[str, Any] = {
     "title": COMPRESSED_IMAGE,
     "description": "A compressed image",
     "type": "object",
     "properties": {
-        "timestamp": {**_TIME_SCHEMA, "description": "Timestamp of image"},
-        "frame_id": {"type": "string", "description": "Frame of reference for the image"},
+        **_IMAGE_STAMP,
         "data": {
             "type": "string",
             "contentEncoding": "base64",
@@ -73,8 +79,7 @@ RAW_IMAGE_SCHEMA: dict[str, Any] = {
     "description": "A raw image",
     "type": "object",
     "properties": {
-        "timestamp": {**_TIME_SCHEMA, "description": "Timestamp of image"},
-        "frame_id": {"type": "string", "description": "Frame of reference for the image"},
+        **_IMAGE_STAMP,
         "width": {"type": "integer", "minimum": 0},
         "height": {"type": "integer", "minimum": 0},
         "encoding": {"type": "string", "description": "Encoding of the raw image data"},

@@ -37,6 +37,7 @@ from services.puma.urdf import (
     TOOL_RADIUS_M,
     UrdfFrames,
 )
+from services.record.schemas import TIME_SCHEMA
 from services.vision.objects import Spills
 from services.workcell.messages import WORKCELL_STATE, WorkcellState, objects_of
 from services.workcell.scene import Box, Scene, default_scene
@@ -57,14 +58,7 @@ LIQUID_RGBA = (0.94, 0.84, 0.16, 0.9)
 """The liquid's colour (the amber the video shows)."""
 
 # --- Foxglove's JSON Schemas (foxglove/schemas, schemas/jsonschema), the fields we write --
-_TIME = {
-    "type": "object",
-    "title": "time",
-    "properties": {
-        "sec": {"type": "integer", "minimum": 0},
-        "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999},
-    },
-}
+_TIME = TIME_SCHEMA
 _DURATION = {
     "type": "object",
     "title": "duration",

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar, TypeVar, cast
 
 from services.rosmsg import defs
 from services.rosmsg.cdr import CdrError, Reader, Writer, finite
@@ -226,16 +226,18 @@ def _r_header(r: Reader) -> Header:
     return Header(sec, nanosec, r.string(MAX_FRAME_ID, "header.frame_id"))
 
 
+def _r_finite(r: Reader, n: int, name: str) -> tuple[float, ...]:
+    v = r.f64s(n)
+    finite(name, *v)
+    return v
+
+
 def _r_vec3(r: Reader, name: str) -> Vec3:
-    x, y, z = r.f64s(3)
-    finite(name, x, y, z)
-    return (x, y, z)
+    return cast(Vec3, _r_finite(r, 3, name))
 
 
 def _r_quat(r: Reader, name: str) -> Quat:
-    x, y, z, w = r.f64s(4)
-    finite(name, x, y, z, w)
-    return (x, y, z, w)
+    return cast(Quat, _r_finite(r, 4, name))
 
 
 def _r_joint_state(r: Reader) -> JointState:

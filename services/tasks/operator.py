@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from services.bus import keys
 from services.bus.errors import RpcError, TelerobotError, Unavailable
 from services.bus.messages import Event, MasterState, Message, RobotState, mat3, vec
-from services.bus.node import Node
+from services.bus.node import Node, wait_latest
 from services.bus.rate import RateLoop
 from services.geometry import angle_between, exp_so3, rotation_angle, rxyz, rxyz_inv, slerp
 from services.master.virtual import VirtualMaster
@@ -130,16 +130,7 @@ class Latest(Generic[M]):
             self._cond.notify_all()
 
     def wait(self, pred: Callable[[M], bool], timeout_s: float) -> M | None:
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while True:
-                m = self.latest
-                if m is not None and pred(m):
-                    return m
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return None
-                self._cond.wait(left)
+        return wait_latest(self._cond, lambda: self.latest, pred, timeout_s)
 
 
 class Observer:

@@ -2,20 +2,20 @@
 
 Backends are siblings named for their medium: `SimStereoCamera` (renders the simulated
 workcell, `services.vision.sim_camera`) and `OpenCVCamera` (two devices, one side-by-side
-device or video files, `services.vision.opencv_camera`). `open_camera` picks one and imports
-it, and through it OpenCV, only when asked, so pure logic and its tests never load cv2.
+device or video files, `services.vision.opencv_camera`). `backends.py` holds
+`open_camera(config)`, which picks one and imports it, and through it OpenCV, only when
+asked, so pure logic and its tests never load cv2.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
 
-from services.bus.errors import ConfigError, TelerobotError
-from services.vision.config import CAMERAS, VisionConfig
+from services.bus.errors import TelerobotError
 
 Image = NDArray[np.uint8]
 """A BGR image, (height, width, 3) uint8, row-major, the layout OpenCV uses."""
@@ -110,30 +110,3 @@ class Camera(Protocol):
     def keep_alive(self) -> bool: ...
 
     def close(self) -> None: ...
-
-
-def open_camera(kind: str, **opts: Any) -> Camera:
-    """Build (not open) the camera backend `kind` ("sim" | "opencv") with its keyword options.
-
-    The backend's module, and with it OpenCV, is imported here and only here. The pipeline
-    opens the camera in its capture thread, so a camera that fails to open is reported as
-    an event and retried instead of stopping the service.
-    """
-    if kind == "sim":
-        from services.vision.sim_camera import SimStereoCamera
-
-        return SimStereoCamera(**opts)
-    if kind == "opencv":
-        from services.vision.opencv_camera import OpenCVCamera
-
-        return OpenCVCamera(**opts)
-    raise ConfigError("vision.camera", f"unknown camera {kind!r}, expected one of {CAMERAS}")
-
-
-def camera_from_config(config: VisionConfig) -> Camera:
-    """The camera a `VisionConfig` describes (not opened)."""
-    if config.camera == "sim":
-        return open_camera("sim", config=config)
-    from services.vision.opencv_camera import OpenCVCamera
-
-    return OpenCVCamera.from_config(config)

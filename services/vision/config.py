@@ -5,9 +5,10 @@ from __future__ import annotations
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Literal, NoReturn, get_args
 
+from services.bus.config import section
 from services.bus.errors import ConfigError
 
 CameraKind = Literal["sim", "opencv"]
@@ -116,23 +117,13 @@ class VisionConfig:
 
     @classmethod
     def from_mapping(cls, table: Mapping[str, Any]) -> VisionConfig:
-        """Build from a TOML-like table; an unknown key or a bad value raises `ConfigError`.
-
-        Lists become tuples, and `size = "640x480"` may stand for width and height.
-        """
-        known = {f.name for f in fields(cls)}
-        kwargs: dict[str, Any] = {}
-        for key, value in table.items():
-            if key == "size":
-                kwargs["width"], kwargs["height"] = parse_size(str(value))
-                continue
-            if key not in known:
-                _fail(key, f"unknown key (known: size, {', '.join(sorted(known))})")
-            kwargs[key] = tuple(value) if isinstance(value, list) else value
-        try:
-            return cls(**kwargs)
-        except TypeError as exc:
-            raise ConfigError("vision", str(exc)) from exc
+        """Build from a TOML-like table with the bus's one config reader
+        (`services.bus.config.section`); an unknown key or a bad value raises `ConfigError`
+        naming `vision.<key>`. `size = "640x480"` may stand for width and height."""
+        values = dict(table)
+        if "size" in values:
+            values["width"], values["height"] = parse_size(str(values.pop("size")))
+        return section(cls, values, "vision")
 
 
 _SIZE = re.compile(r"^\s*(\d+)\s*[xX×]\s*(\d+)\s*$")

@@ -16,7 +16,6 @@ import cv2
 import numpy as np
 
 from services.vision.camera import CameraError, Image, Intrinsics, StereoPair
-from services.vision.config import VisionConfig
 
 Source = int | str
 
@@ -53,19 +52,6 @@ class OpenCVCamera:
         self.baseline_m = baseline_m
         self.loop = loop
         self._caps: list[cv2.VideoCapture] = []
-
-    @classmethod
-    def from_config(cls, config: VisionConfig) -> OpenCVCamera:
-        return cls(
-            config.devices or config.files,
-            width=config.width,
-            height=config.height,
-            fps=config.fps,
-            intrinsics=Intrinsics(*config.intrinsics) if config.intrinsics else None,
-            fov_deg=config.fov_deg,
-            baseline_m=config.baseline_m,
-            loop=config.loop_files,
-        )
 
     @property
     def name(self) -> str:

@@ -25,7 +25,7 @@ from services.bus import keys
 from services.bus.errors import ProtocolError
 from services.bus.messages import RobotState, StereoFrame, VisionStats, mat3
 from services.bus.node import Node
-from services.vision.camera import camera_from_config
+from services.vision.backends import open_camera
 from services.vision.config import VisionConfig
 from services.vision.pipeline import StereoPipeline
 from services.vision.sim_camera import SimStereoCamera
@@ -98,7 +98,7 @@ class VisionService:
     def __init__(self, node: Node, config: VisionConfig) -> None:
         self.node = node
         self.config = config
-        self.camera = camera_from_config(config)
+        self.camera = open_camera(config)
         self._left = node.publisher(keys.STEREO_L)
         self._right = node.publisher(keys.STEREO_R)
         self._stats_pub = node.publisher(keys.VISION_STATS)

@@ -13,7 +13,7 @@ from services.bus.errors import RpcError
 from services.bus.keys import CMD, FORCE
 from services.bus.messages import IDENTITY_R, ForceSample, OperatorCommand
 from services.bus.node import Node
-from tests.conftest import Net
+from tests.conftest import Net, wait_until
 
 
 def test_stream_encodes_k_per_engagement_and_engages_again_when_held(net: Net) -> None:
@@ -41,12 +41,12 @@ def test_stream_encodes_k_per_engagement_and_engages_again_when_held(net: Net) -
     assert n >= 11, f"only {n} commands in 0.5 s"
     assert [k for k, _ in run.sent] == list(range(n))
     assert [k0 for _, k0 in run.starts] == [0, 10]
-    deadline = time.monotonic() + 5.0
-    while True:
+
+    def bench_msgs() -> int:
         with lock:
-            if sum(m.master == "bench" for m in got) >= n + 3 or time.monotonic() > deadline:
-                break
-        time.sleep(0.01)
+            return sum(m.master == "bench" for m in got)
+
+    assert wait_until(lambda: bench_msgs() >= n + 3, 5.0)
     with lock:
         msgs = [m for m in got if m.master == "bench"]
     assert len(msgs) == n + 3
@@ -131,9 +131,7 @@ def test_stream_probe_records_and_counts_rejections(net: Net) -> None:
         pub.put(ForceSample(seq=i, t_ns=1000 + i, f=zero, c=zero))
     pub.put_bytes(b"\x93not a map")
     assert probe.wait_count(warm + 20, 5.0)
-    deadline = time.monotonic() + 5.0
-    while probe.rejected < 1 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    assert wait_until(lambda: probe.rejected >= 1, 5.0)
     records = [r for r in probe.stop() if r[1][0] > 0]
     assert [r[1] for r in records] == [(i, 1000 + i) for i in range(1, 21)]
     assert probe.rejected == 1

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from services.bench.procs import ChildFailed, Children, wait_alive, wait_log
+from tests.conftest import wait_until
 
 IGNORES_TERM = (
     "import signal, sys, time\n"
@@ -63,9 +63,7 @@ def test_cpu_by_child_counts_what_a_child_started(tmp_path: Path) -> None:
         idle = kids.spawn("idle", [sys.executable, "-c", BEHAVES])
         wait_log(parent, "up and running", 20.0)
         wait_log(idle, "up and running", 20.0)
-        deadline = time.monotonic() + 20.0
-        while kids.cpu_by_child()["parent"] < 0.2 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        assert wait_until(lambda: kids.cpu_by_child()["parent"] >= 0.2, 20.0, poll_s=0.05)
         used = kids.cpu_by_child()
         # the sleeping parent alone would take far less: the burning grandchild is counted
         assert used["parent"] >= 0.2

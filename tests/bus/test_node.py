@@ -23,19 +23,9 @@ from services.bus.errors import ProtocolError, RpcError, Unavailable
 from services.bus.messages import IDENTITY_R, Event, ForceSample, Joints, OperatorCommand
 from services.bus.node import Node, Publisher, Subscription, opened
 from services.bus.rate import RateLoop
-from tests.conftest import Net
+from tests.conftest import Net, wait_until
 
 DEADLINE_S = 10.0
-
-
-def wait_until(pred: Callable[[], bool], timeout_s: float = DEADLINE_S) -> bool:
-    """Poll `pred` until true or the deadline (for state with no condition to wait on)."""
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 def matching(zpub: Any) -> bool:

@@ -124,6 +124,9 @@ class ChildProcess:
                 self.proc.wait(timeout=5.0)
         for t in self._readers:
             t.join(timeout=5.0)
+        for pipe in (self.proc.stdout, self.proc.stderr):
+            if pipe is not None:  # closed here, never left to the collector (a warning)
+                pipe.close()
 
 
 @contextmanager

@@ -27,7 +27,7 @@ from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown
 from services.cli import launcher
 from tests.bus.test_router import spawned, telerobot
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_until
 
 DEADLINE_S = 20.0
 PY = sys.executable
@@ -123,13 +123,8 @@ def pid_gone(pid: int) -> bool:
     return state in ("Z", "X")
 
 
-def wait_gone(pids: list[int], timeout_s: float = DEADLINE_S) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not all(pid_gone(p) for p in pids):
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(0.02)
-    return True
+def all_gone(pids: list[int]) -> bool:
+    return all(pid_gone(p) for p in pids)
 
 
 def started_pids(lines: list[str], name: str) -> list[int]:
@@ -214,7 +209,7 @@ def test_up_starts_restarts_and_stops_everything(tmp_path: Path) -> None:
     assert len(started_pids(lines, "hello")) == 1 and len(started_pids(lines, "family")) == 1
     # stopping killed every child and the grandchild (its process group)
     pids = started_pids(lines, "hello") + started_pids(lines, "family") + crasher_pids
-    assert wait_gone([*pids, grandchild])
+    assert wait_until(lambda: all_gone([*pids, grandchild]))
     assert f"[hello] stopped (exit {-signal.SIGTERM})" in lines
     assert any(line.startswith("[family] stopped (exit") for line in lines)
 
@@ -235,7 +230,7 @@ def test_a_child_that_cannot_start_makes_up_fail(tmp_path: Path) -> None:
     assert "[broken] no device" in lines
     assert "[broken] could not start (exit 1); stopping everything" in lines
     assert any(line.startswith("[hello] stopped (exit") for line in lines)
-    assert wait_gone(started_pids(lines, "hello"))
+    assert wait_until(lambda: all_gone(started_pids(lines, "hello")))
     assert len(started_pids(lines, "broken")) == 1  # not restarted
 
 
@@ -271,7 +266,7 @@ def test_a_child_that_ignores_sigterm_is_killed(tmp_path: Path) -> None:
     assert launch.status == 0
     assert "[stubborn] did not stop in time; killing" in lines
     assert f"[stubborn] stopped (exit {-signal.SIGKILL})" in lines
-    assert wait_gone(started_pids(lines, "stubborn"))
+    assert wait_until(lambda: all_gone(started_pids(lines, "stubborn")))
 
 
 def test_telerobot_up_stops_its_children_on_sigterm(tmp_path: Path) -> None:
@@ -284,7 +279,7 @@ def test_telerobot_up_stops_its_children_on_sigterm(tmp_path: Path) -> None:
         lines = up.rest()
     pids = started_pids(lines, "hello") + started_pids(lines, "family")
     assert len(pids) == 2
-    assert wait_gone([*pids, grandchild])
+    assert wait_until(lambda: all_gone([*pids, grandchild]))
     assert any(line.startswith("[hello] stopped (exit") for line in lines)
 
 
@@ -341,7 +336,7 @@ def test_children_die_with_a_killed_launcher(tmp_path: Path) -> None:
         up.proc.send_signal(signal.SIGKILL)
         up.wait(DEADLINE_S)
     assert len(pids) == 1
-    assert wait_gone(pids), "a child outlived its SIGKILLed launcher"
+    assert wait_until(lambda: all_gone(pids)), "a child outlived its SIGKILLed launcher"
 
 
 # --- issue 23, items 5 and 6 -------------------------------------------------------------
@@ -373,7 +368,7 @@ def test_a_configuration_error_stops_everything_and_names_the_key(tmp_path: Path
     assert len(started_pids(lines, "typo")) == 1  # never restarted
     assert not any("restarting" in line for line in lines)
     assert any(line.startswith("[hello] stopped (exit") for line in lines)
-    assert wait_gone(started_pids(lines, "hello"))
+    assert wait_until(lambda: all_gone(started_pids(lines, "hello")))
 
 
 def test_a_real_service_with_a_misspelt_key_fails_the_launch(tmp_path: Path) -> None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 from types import TracebackType
 from typing import Any
 
@@ -24,16 +23,9 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
 from services.bus.messages import IDENTITY_R, RobotState
+from tests.conftest import wait_until
 
-
-def wait_until(pred: Callable[[], bool], timeout_s: float = 10.0, poll_s: float = 0.01) -> bool:
-    """Poll `pred` until it holds or the deadline passes; returns the last answer."""
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(poll_s)
-    return True
+__all__ = ["FakeBrowser", "gui_uuid", "ready_state", "wait_until"]
 
 
 def ready_state(seq: int, tool_p: tuple[float, float, float]) -> RobotState:

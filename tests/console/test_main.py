@@ -8,12 +8,13 @@ import re
 import signal
 import subprocess
 import sys
-import time
 import urllib.request
 from pathlib import Path
 from typing import Any
 
 import pytest
+
+from tests.conftest import wait_until
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(90)]
 
@@ -56,19 +57,10 @@ def test_console_process_serves_and_stops(net: Any) -> None:
     finally:
         if proc.poll() is None:
             proc.kill()
-            proc.wait()
+        proc.communicate()  # reaps it and closes both pipes
     # Both liveliness tokens go with the process.
-    assert _gone(alive, "console")
-    assert _gone(alive, "master/console")
-
-
-def _gone(alive: Any, name: str, timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while alive.is_alive(name):
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)
-    return True
+    assert wait_until(lambda: not alive.is_alive("console"), 5.0, what="console token gone")
+    assert wait_until(lambda: not alive.is_alive("master/console"), 5.0, what="master gone")
 
 
 def test_the_in_process_master_does_not_listen_twice() -> None:

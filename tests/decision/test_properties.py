@@ -163,7 +163,7 @@ class Checker:
         self.pending.append(cmd)
 
 
-@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # the codec squaring 1e308 on its way to "no"
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")  # 1e308 squared → "no"
 @settings(max_examples=120, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     p=start,

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -100,13 +99,3 @@ def install(
     shutil.copy(DEPLOY / "router" / "users.txt", root / "zenoh" / "users.txt")
     tcp, tls = ports if ports is not None else (7447, 7448)
     return Cell(root, tcp, tls)
-
-
-def wait_until(pred: Callable[[], bool], timeout_s: float, poll_s: float = 0.01) -> bool:
-    """Poll `pred` until it holds or the deadline passes."""
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(poll_s)
-    return True

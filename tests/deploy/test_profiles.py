@@ -18,8 +18,8 @@ import pytest
 from services.bus.config import NodeConfig
 from services.bus.node import Node
 from tests.bus.test_router import ChildProcess, spawned, telerobot
-from tests.conftest import free_port
-from tests.deploy.cell import Cell, install, wait_until
+from tests.conftest import free_port, wait_until
+from tests.deploy.cell import Cell, install
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
 

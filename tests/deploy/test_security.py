@@ -33,8 +33,8 @@ from services.bus.messages import OperatorCommand, RobotState
 from services.bus.node import Node, Subscription
 from tests.bus.test_node import wait_matched
 from tests.bus.test_router import ChildProcess, spawned, telerobot
-from tests.conftest import free_port
-from tests.deploy.cell import Cell, install, wait_until
+from tests.conftest import free_port, wait_until
+from tests.deploy.cell import Cell, install
 
 DEADLINE_S = 15.0
 DELIVERED = 20

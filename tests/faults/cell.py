@@ -18,8 +18,9 @@ import numpy as np
 from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import RobotState
 from services.master.scripted import generate_motion, save_trajectory
+from tests.conftest import wait_until
 from tests.faults.observe import Observer
-from tests.faults.procs import Cell, Proc, wait_until
+from tests.faults.procs import Cell, Proc
 
 MASTER_ID = "master"
 START_TIMEOUT_S = 60.0

@@ -11,8 +11,10 @@ them into artifacts/faults.json (docs/faults.md copies them from there).
 
 from __future__ import annotations
 
+import fcntl
 import itertools
 import json
+import os
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -45,16 +47,24 @@ def record(name: str, **numbers: Any) -> None:
 
 
 def write_results(path: Path = ARTIFACT) -> None:
-    """Merge RESULTS into the JSON file (other test modules write their own entries)."""
+    """Merge RESULTS into the JSON file (other test modules write their own entries).
+
+    Under a lock and by rename: test modules may run in parallel pytest workers, and a
+    read-merge-write that interleaves with another would lose its entries.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        old = json.loads(path.read_text())
-    except (OSError, ValueError):
-        old = {}
-    if not isinstance(old, dict):
-        old = {}
-    old.update(RESULTS)
-    path.write_text(json.dumps(old, indent=2, sort_keys=True) + "\n")
+    with open(path.with_suffix(".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            old = json.loads(path.read_text())
+        except (OSError, ValueError):
+            old = {}
+        if not isinstance(old, dict):
+            old = {}
+        old.update(RESULTS)
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(old, indent=2, sort_keys=True) + "\n")
+        tmp.replace(path)
 
 
 # --- pure analyses ------------------------------------------------------------------------

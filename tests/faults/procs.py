@@ -15,11 +15,10 @@ import signal
 import socket
 import subprocess
 import sys
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
-from tests.conftest import free_port
+from tests.conftest import free_port, wait_until
 
 REPO = Path(__file__).resolve().parents[2]
 LOOPBACK_LISTEN = "tcp/127.0.0.1:0"
@@ -185,13 +184,3 @@ def port_open(port: int) -> bool:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.settimeout(0.5)
         return s.connect_ex(("127.0.0.1", port)) == 0
-
-
-def wait_until(pred: Callable[[], bool], timeout_s: float, poll_s: float = 0.01) -> bool:
-    """Poll `pred` until it holds or the deadline passes; whether it held."""
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() >= deadline:
-            return False
-        time.sleep(poll_s)
-    return True

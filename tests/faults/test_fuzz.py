@@ -45,9 +45,8 @@ from services.master.config import MasterConfig
 from services.master.service import MasterService
 from services.puma.config import HOME_Q_RAD, PumaConfig
 from services.puma.service import MOTIONS, PumaService
-from tests.conftest import Net
+from tests.conftest import Net, wait_until
 from tests.faults.observe import REST_TOL_RAD, record
-from tests.faults.procs import wait_until
 
 pytestmark = [pytest.mark.faults, pytest.mark.timeout(180)]
 

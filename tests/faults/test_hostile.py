@@ -25,8 +25,9 @@ from services.bus.config import NodeConfig
 from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import IDENTITY_R, OperatorCommand
 from services.bus.node import Node
+from tests.conftest import wait_until
 from tests.faults.observe import Observer, record
-from tests.faults.procs import LOOPBACK_LISTEN, Cell, wait_until
+from tests.faults.procs import LOOPBACK_LISTEN, Cell
 
 pytestmark = [pytest.mark.faults, pytest.mark.timeout(300)]
 

@@ -25,6 +25,7 @@ from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import RobotState
 from services.puma.config import HOME_Q_RAD, PumaConfig
 from services.puma.fake_controller import FakeController
+from tests.conftest import wait_until
 from tests.faults.cell import MASTER_ID, FaultCell, path_length
 from tests.faults.observe import (
     REST_TOL_RAD,
@@ -34,7 +35,7 @@ from tests.faults.observe import (
     record,
     tool_steps,
 )
-from tests.faults.procs import Proc, wait_until
+from tests.faults.procs import Proc
 from tests.faults.rogue import MARK
 
 pytestmark = [pytest.mark.faults, pytest.mark.timeout(180)]

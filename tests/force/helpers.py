@@ -1,27 +1,35 @@
-"""Helpers for the force tests: waiting on conditions with deadlines, recording callbacks."""
+"""Helpers for the force tests: recording callbacks, rotations."""
 
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from services.force.sensors import ForceSensor, Reading
 from services.geometry import R_from_wxyz, rot_x, rot_y, rot_z
+from tests.conftest import wait_until
 
 DEADLINE_S = 10.0
 
 
-def wait_for(cond: Callable[[], bool], timeout_s: float = DEADLINE_S, what: str = "") -> None:
-    """Poll `cond` until true; fail the test at the deadline (never a bare sleep as sync)."""
-    end = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > end:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what or cond}")
-        time.sleep(0.002)
+def drain_until(
+    sensor: ForceSensor, cond: Callable[[], object], timeout_s: float = DEADLINE_S
+) -> Reading | None:
+    """Read continuously (as the sampler would) until cond() holds; the last reading."""
+    last: list[Reading | None] = [None]
+
+    def step() -> bool:
+        r = sensor.read()
+        if r is not None:
+            last[0] = r
+        return bool(cond())
+
+    assert wait_until(step, timeout_s, what="the sensor's condition")
+    return last[0]
 
 
 class Events:

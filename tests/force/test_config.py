@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from typing import Any
 
 import numpy as np
@@ -11,9 +13,10 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from services.bus.errors import ConfigError
+from services.force.backends import BACKENDS, open_force_sensor, sensor_options
 from services.force.config import ForceConfig
 from services.force.netft import NetFTSensor
-from services.force.sensors import open_sensor
+from services.force.sensors import SENSOR_KINDS, open_sensor
 from services.force.serial_sensor import SerialSensor
 from services.force.sim_sensor import SimSensor
 
@@ -76,13 +79,36 @@ def test_stiffness_must_be_positive_and_finite(k: float) -> None:
         assert k > 0 and np.isfinite(k)
 
 
-def test_sensor_options_build_each_backend() -> None:
-    assert isinstance(open_sensor("sim", **ForceConfig().sensor_options()), SimSensor)
+def test_open_force_sensor_builds_each_backend_from_the_config() -> None:
+    assert set(BACKENDS.names) == set(SENSOR_KINDS)
+    assert isinstance(open_force_sensor(ForceConfig()), SimSensor)
     serial = ForceConfig(sensor="serial", port="socket://127.0.0.1:1")
-    assert isinstance(open_sensor("serial", **serial.sensor_options()), SerialSensor)
+    assert isinstance(open_force_sensor(serial), SerialSensor)
+    assert sensor_options(serial) == {"port": "socket://127.0.0.1:1", "baudrate": 921_600}
     net = ForceConfig(sensor="netft", host="127.0.0.1", netft_port=2)
-    sensor = open_sensor("netft", **net.sensor_options())
+    sensor = open_force_sensor(net)
     assert isinstance(sensor, NetFTSensor) and sensor.name == "netft 127.0.0.1:2"
+    # the config's own method and the core's factory give the same options and backend
+    assert net.sensor_options() == sensor_options(net)
+    assert isinstance(open_sensor("netft", **net.sensor_options()), NetFTSensor)
+
+
+def test_a_name_without_a_backend_is_a_config_error() -> None:
+    with pytest.raises(ConfigError) as e:
+        BACKENDS.build("usb", {})
+    assert e.value.key == "force.sensor"
+
+
+def test_the_simulation_does_not_load_pyserial() -> None:
+    code = (
+        "import sys\n"
+        "from services.force.backends import open_force_sensor\n"
+        "from services.force.config import ForceConfig\n"
+        "open_force_sensor(ForceConfig())\n"
+        "print('serial' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
 
 
 def test_reads_from_a_deployment_table() -> None:

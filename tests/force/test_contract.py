@@ -13,13 +13,17 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from services.bus.errors import ConfigError
+from services.force.backends import open_force_sensor
+from services.force.config import ForceConfig
 from services.force.fake_netft import FakeNetFT
 from services.force.fake_serial_sensor import FakeSerialSensor
 from services.force.gravity import ToolLoad
 from services.force.model import Vec, WristModel
 from services.force.sensors import ForceSensor, Reading, SensorError, open_sensor
 from services.force.sim_sensor import SimSensor
-from tests.force.helpers import Events, wait_for
+from tests.conftest import wait_until
+from tests.force.helpers import Events
 
 COUNTS = np.diag([1e-7, 1e-7, 1e-7, 1e-6, 1e-6, 1e-6])  # 0.1 µm, 1 µrad per ADC count
 
@@ -46,7 +50,9 @@ def serial_rig() -> Generator[Rig, None, None]:
         def apply(f: Vec, c: Vec) -> None:
             fake.set_signals([round(v) for v in model.signals_from_wrench(f, c)])
 
-        yield Rig(open_sensor("serial", port=fake.url), model, apply, 5e-3)
+        yield Rig(
+            open_force_sensor(ForceConfig(sensor="serial", port=fake.url)), model, apply, 5e-3
+        )
 
 
 def netft_rig() -> Generator[Rig, None, None]:
@@ -57,7 +63,12 @@ def netft_rig() -> Generator[Rig, None, None]:
             fs, cs = model.sensor_wrench_from_tool(f, c)
             fake.set_wrench(fs.tolist(), cs.tolist())
 
-        yield Rig(open_sensor("netft", host="127.0.0.1", port=fake.port), model, apply, 1e-5)
+        yield Rig(
+            open_force_sensor(ForceConfig(sensor="netft", host="127.0.0.1", netft_port=fake.port)),
+            model,
+            apply,
+            1e-5,
+        )
 
 
 @pytest.fixture(params=["sim", "serial", "netft"])
@@ -93,7 +104,7 @@ def reads_wrench(rig: Rig, f: Vec, c: Vec) -> None:
             np.allclose(got[0], f, atol=rig.tol * 10) and np.allclose(got[1], c, atol=rig.tol)
         )
 
-    wait_for(matches, what=f"wrench {f}, {c}")
+    assert wait_until(matches, what=f"wrench {f}, {c}")
 
 
 def test_contract(rig: Rig) -> None:
@@ -128,5 +139,5 @@ def test_contract(rig: Rig) -> None:
 
 
 def test_unknown_kind() -> None:
-    with pytest.raises(ValueError, match="unknown sensor kind"):
+    with pytest.raises(ConfigError, match="unknown sensor kind"):
         open_sensor("usb")  # type: ignore[arg-type]

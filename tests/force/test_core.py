@@ -16,14 +16,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
+from services.bus import codec
 from services.bus.errors import ProtocolError, RpcError
+from services.bus.messages import ForceSample
 from services.force.config import ForceConfig
-from services.force.core import ForceCore, ForceSampleFields
+from services.force.core import ForceCore
 from services.force.fake_serial_sensor import FakeSerialSensor
 from services.force.sensors import SensorError
 from services.force.serial_sensor import SerialSensor
 from services.force.sim_sensor import SimSensor
-from tests.force.helpers import Events, rot, wait_for
+from tests.conftest import wait_until
+from tests.force.helpers import Events, rot
 
 DOWN = np.diag([1.0, -1.0, -1.0])  # tool z pointing at the floor
 TABLE_TOP_Z = 0.40
@@ -33,9 +36,9 @@ COUNTS = (1e-7, 1e-7, 1e-7, 1e-6, 1e-6, 1e-6)
 
 class Published:
     def __init__(self) -> None:
-        self.items: list[ForceSampleFields] = []
+        self.items: list[ForceSample] = []
 
-    def __call__(self, s: ForceSampleFields) -> None:
+    def __call__(self, s: ForceSample) -> None:
         self.items.append(s)
 
 
@@ -66,7 +69,7 @@ def test_samples_at_1khz_have_no_seq_gaps(sim: tuple[ForceCore, Published, Event
     core, pub, _ = sim
     core.update_robot_state(FREE, DOWN)
     core.rpc_sensor_start({})
-    wait_for(lambda: len(pub.items) >= 2000, timeout_s=30.0)
+    assert wait_until(lambda: len(pub.items) >= 2000, timeout_s=30.0)
     core.rpc_sensor_stop({})
     assert [s.seq for s in pub.items[:2000]] == list(range(1, 2001))
     t = [s.t_ns for s in pub.items[:2000]]
@@ -75,7 +78,7 @@ def test_samples_at_1khz_have_no_seq_gaps(sim: tuple[ForceCore, Published, Event
     assert st_["drops"] == 0
     s = pub.items[-1]
     assert len(s.f) == 3 and len(s.c) == 3 and len(s.raw) == 6
-    d = s.as_dict()
+    d = codec.to_fields(s)
     assert set(d) == {"seq", "t_ns", "f", "c", "raw"}
 
 
@@ -97,13 +100,13 @@ def test_status_start_stop(sim: tuple[ForceCore, Published, Events]) -> None:
     core.update_robot_state(FREE, DOWN)
     assert core.rpc_sensor_start({})["running"] is True
     assert core.rpc_sensor_start({})["running"] is True  # idempotent
-    wait_for(lambda: core.rpc_sensor_status({})["samples"] >= 50)
+    assert wait_until(lambda: core.rpc_sensor_status({})["samples"] >= 50)
     assert core.rpc_sensor_read({})["seq"] >= 50
     st_ = core.rpc_sensor_stop({})
     assert st_["running"] is False and st_["rate_hz"] == 0.0
     n = st_["samples"]
     assert core.rpc_sensor_status({})["samples"] == n  # stopped means stopped
-    wait_for(lambda: ev.kinds().count("status") == 2)
+    assert wait_until(lambda: ev.kinds().count("status") == 2)
     assert [d["running"] for k, _, d in ev.items if k == "status"] == [True, False]
 
 
@@ -115,13 +118,13 @@ def test_sim_contact_with_the_table_in_the_tool_frame(
     # the table pushes up, i.e. along −z of the tool.
     core.update_robot_state((0.6, 0.3, TABLE_TOP_Z + 0.005 - 0.010), DOWN)
     core.rpc_sensor_start({})
-    wait_for(lambda: core.latest is not None and core.latest.seq > 5)
+    assert wait_until(lambda: core.latest is not None and core.latest.seq > 5)
     s = core.rpc_sensor_read({})
     assert_allclose(s["f"], [0.0, 0.0, -20_000.0 * 0.010], atol=1e-6)
     assert_allclose(s["c"], [0.0, 0.0, 0.0], atol=1e-9)
     # Back in free space, weight compensated: zero.
     core.update_robot_state(FREE, rot("x", 0.7) @ DOWN)
-    wait_for(lambda: np.allclose(core.rpc_sensor_read({})["f"], 0.0, atol=1e-9))
+    assert wait_until(lambda: np.allclose(core.rpc_sensor_read({})["f"], 0.0, atol=1e-9))
     assert core.rpc_sensor_status({})["gravity_compensated"] is True
 
 
@@ -136,10 +139,10 @@ def test_bias_makes_the_current_reading_zero(sim: tuple[ForceCore, Published, Ev
     assert out["samples"] == 16
     assert_allclose(out["f_bias"], [0, 0, -100.0], atol=1e-6)
     seq = core.rpc_sensor_read({})["seq"]
-    wait_for(lambda: core.rpc_sensor_read({})["seq"] > seq)
+    assert wait_until(lambda: core.rpc_sensor_read({})["seq"] > seq)
     assert_allclose(core.rpc_sensor_read({})["f"], 0.0, atol=1e-6)
     core.rpc_sensor_bias({"clear": True})
-    wait_for(lambda: core.rpc_sensor_read({})["f"][2] < -99.0)
+    assert wait_until(lambda: core.rpc_sensor_read({})["f"][2] < -99.0)
     with pytest.raises(RpcError) as e:
         core.rpc_sensor_bias({"clear": "yes"})
     assert e.value.code == "bad_request" and "clear" in e.value.message
@@ -224,11 +227,11 @@ def test_compliance_scales_the_measured_force() -> None:
     try:
         core.update_robot_state((0.6, 0.3, TABLE_TOP_Z), DOWN)  # −100 N on the simulated wrist
         core.rpc_sensor_start({})
-        wait_for(lambda: core.latest is not None)
+        assert wait_until(lambda: core.latest is not None)
         out = core.rpc_sensor_compliance({"K_l": [10_000.0, 10_000.0, 20_000.0]})
         assert out["K_l"] == [10_000.0, 10_000.0, 20_000.0] and out["K_r"] == [50.0] * 3
         # The simulated wrist is unchanged: a model twice as stiff reads twice the force.
-        wait_for(lambda: abs(core.rpc_sensor_read({})["f"][2] + 200.0) < 1e-6)
+        assert wait_until(lambda: abs(core.rpc_sensor_read({})["f"][2] + 200.0) < 1e-6)
     finally:
         core.close()
 
@@ -244,11 +247,11 @@ def test_tool_placement_follows_robot_state(sim: tuple[ForceCore, Published, Eve
     sensor = core.sensor
     assert isinstance(sensor, SimSensor)
     assert_allclose(sensor.model.p_et, [0, 0, 0.3], atol=1e-12)
-    wait_for(lambda: "status" in ev.kinds())
+    assert wait_until(lambda: "status" in ev.kinds())
     n = len(ev.items)
     core.update_robot_state(tool_p, flange_R, flange_p, flange_R)  # unchanged: no event
     core.set_tool([0, 0, 0.3], np.eye(3))
-    wait_for(lambda: len(ev.items) == n + 1)
+    assert wait_until(lambda: len(ev.items) == n + 1)
     with pytest.raises(ProtocolError):
         core.set_tool([0, 0, 0.2], 2 * np.eye(3))
     with pytest.raises(ProtocolError):
@@ -280,15 +283,15 @@ def test_serial_sensor_stall_and_bad_data_reach_the_events() -> None:
         core = ForceCore(SerialSensor(fake.url), config, pub, ev)
         try:
             core.rpc_sensor_start({})
-            wait_for(lambda: len(pub.items) >= 20)
+            assert wait_until(lambda: len(pub.items) >= 20)
             fake.stall(0.3)
-            wait_for(lambda: "recovered" in ev.kinds(), what="stale then recovered")
+            assert wait_until(lambda: "recovered" in ev.kinds(), what="stale then recovered")
             kinds = [k for k in ev.kinds() if k in ("stale", "recovered")]
             assert kinds[0] == "stale"
             assert all(a != b for a, b in itertools.pairwise(kinds))  # once per stall
             fake.inject_garbage(3)
-            wait_for(lambda: core.rpc_sensor_status({})["bad"] == 3)
-            wait_for(lambda: "bad_data" in ev.kinds())
+            assert wait_until(lambda: core.rpc_sensor_status({})["bad"] == 3)
+            assert wait_until(lambda: "bad_data" in ev.kinds())
             seqs = [s.seq for s in pub.items]
             assert seqs == list(range(1, len(seqs) + 1))
         finally:

@@ -20,7 +20,7 @@ from services.bus import keys
 from services.bus.errors import ProtocolError
 from services.bus.messages import Event, ForceSample, RobotState, vec
 from services.force.config import ForceConfig
-from services.force.core import ForceCore, ForceSampleFields
+from services.force.core import ForceCore
 from services.force.service import ForceService
 from services.force.sim_sensor import SimSensor
 from services.workcell.config import WorkcellConfig
@@ -28,8 +28,7 @@ from services.workcell.messages import WORKCELL_STATE, WorkcellState, object_map
 from services.workcell.physics import WorkcellSim
 from services.workcell.scene import BLOCK_SIZE_M, TABLE, default_scene
 from services.workcell.service import WorkcellService
-from tests.conftest import Net
-from tests.force.helpers import wait_for
+from tests.conftest import Net, wait_until
 
 DOWN = np.diag([-1.0, 1.0, -1.0])  # tool z at the floor, as the gripper grasps (W1)
 TOP = TABLE.top_z
@@ -59,10 +58,10 @@ def core() -> Iterator[ForceCore]:
     c.close()
 
 
-def fresh(core: ForceCore) -> ForceSampleFields:
+def fresh(core: ForceCore) -> ForceSample:
     """A sample taken after everything before this call."""
     start = core.latest.seq if core.latest else 0
-    wait_for(lambda: core.latest is not None and core.latest.seq > start + 2)
+    assert wait_until(lambda: core.latest is not None and core.latest.seq > start + 2)
     assert core.latest is not None
     return core.latest
 
@@ -179,7 +178,7 @@ def test_lifting_a_block_adds_its_weight_to_robot_force(net: Net) -> None:
         def mean_f(n: int = 300) -> np.ndarray:
             with lock:
                 start = len(samples)
-            wait_for(lambda: len(samples) >= start + n, timeout_s=20.0)
+            assert wait_until(lambda: len(samples) >= start + n, timeout_s=20.0)
             with lock:
                 return np.mean([s.f for s in samples[start : start + n]], axis=0)
 
@@ -198,9 +197,11 @@ def test_lifting_a_block_adds_its_weight_to_robot_force(net: Net) -> None:
         assert lifted is not None
         sensor = force.core.sensor
         assert isinstance(sensor, SimSensor)
-        wait_for(lambda: sensor.carried is not None, what="the force service sees the grasp")
+        assert wait_until(
+            lambda: sensor.carried is not None, what="the force service sees the grasp"
+        )
         # The lift was a jump: wait until its estimated acceleration (inertia) has died out.
-        wait_for(lambda: max(map(abs, sensor.acceleration)) < 1e-3, what="the arm at rest")
+        assert wait_until(lambda: max(map(abs, sensor.acceleration)) < 1e-3, what="the arm at rest")
         held = mean_f()
         weight = DOWN.T @ np.array([0.0, 0.0, -BLOCK_KG * G])  # m·g in the tool frame
         assert np.linalg.norm(held - empty - weight) <= 0.05 * BLOCK_KG * G
@@ -208,7 +209,7 @@ def test_lifting_a_block_adds_its_weight_to_robot_force(net: Net) -> None:
 
         driver.grip = 0.0  # let go: the weight is gone
         assert scene.wait_for(lambda w: w.held == "", 5.0) is not None
-        wait_for(lambda: sensor.carried is None)
+        assert wait_until(lambda: sensor.carried is None)
         np.testing.assert_allclose(mean_f(), 0.0, atol=0.02)
     finally:
         driver.close()
@@ -278,8 +279,8 @@ def test_a_forged_workcell_state_on_the_bus_is_reported_not_sensed(net: Net) -> 
     other.subscribe(keys.EVENTS, events.append)
     try:
         other.publisher(WORKCELL_STATE).put(workcell_state({"block2": (0.7, 0.3, 1e9)}))
-        wait_for(lambda: force.node.rejected.get(WORKCELL_STATE.key, 0) >= 1)
-        wait_for(lambda: any(e.kind == "rejected" and e.source == "force" for e in events))
+        assert wait_until(lambda: force.node.rejected.get(WORKCELL_STATE.key, 0) >= 1)
+        assert wait_until(lambda: any(e.kind == "rejected" and e.source == "force" for e in events))
         ev = next(e for e in events if e.kind == "rejected")
         assert "objects.block2.p" in ev.message
         sensor = force.core.sensor

@@ -23,8 +23,9 @@ from services.force.netft import (
     unpack_record,
     unpack_request,
 )
-from services.force.sensors import Reading, SensorError
-from tests.force.helpers import Events, wait_for
+from services.force.sensors import SensorError
+from tests.conftest import wait_until
+from tests.force.helpers import Events, drain_until
 
 
 def test_golden_request_bytes() -> None:
@@ -71,19 +72,6 @@ def fake() -> Iterator[FakeNetFT]:
         yield f
 
 
-def drain_until(sensor: NetFTSensor, cond: object, timeout_s: float = 10.0) -> Reading | None:
-    last: list[Reading | None] = [None]
-
-    def step() -> bool:
-        r = sensor.read()
-        if r is not None:
-            last[0] = r
-        return bool(cond())  # type: ignore[operator]
-
-    wait_for(step, timeout_s)
-    return last[0]
-
-
 def test_streams_scaled_wrench(fake: FakeNetFT) -> None:
     s = NetFTSensor("127.0.0.1", fake.port)
     with pytest.raises(SensorError):
@@ -96,8 +84,8 @@ def test_streams_scaled_wrench(fake: FakeNetFT) -> None:
     assert (s.bad, s.gaps) == (0, 0)
     assert fake.requests[0] == (CMD_START_STREAMING, 0)
     s.close()
-    wait_for(lambda: (CMD_STOP_STREAMING, 0) in fake.requests)
-    wait_for(lambda: not fake.streaming)
+    assert wait_until(lambda: (CMD_STOP_STREAMING, 0) in fake.requests)
+    assert wait_until(lambda: not fake.streaming)
 
 
 def test_counts_per_unit_are_configurable() -> None:
@@ -148,7 +136,7 @@ def test_hardware_bias(fake: FakeNetFT) -> None:
     fake.set_wrench((3.0, 0, 0), (0, 0, 0))
     drain_until(s, lambda: s.records >= 20)
     s.set_hardware_bias()
-    wait_for(lambda: (CMD_SET_SOFTWARE_BIAS, 0) in fake.requests)
+    assert wait_until(lambda: (CMD_SET_SOFTWARE_BIAS, 0) in fake.requests)
     n = s.records
     r = drain_until(s, lambda: s.records >= n + 20)
     assert r is not None and r.values == (0.0,) * 6
@@ -164,7 +152,7 @@ def test_sample_count_limits_the_stream() -> None:
             c.send(pack_request(CMD_START_STREAMING, 5))
             recs = [unpack_record(c.recv(64)) for _ in range(5)]
         assert [r.rdt_sequence for r in recs] == [1, 2, 3, 4, 5]
-        wait_for(lambda: not f.streaming)
+        assert wait_until(lambda: not f.streaming)
 
 
 def test_values_are_finite_even_at_the_extremes() -> None:

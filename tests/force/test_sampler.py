@@ -18,7 +18,8 @@ import pytest
 
 from services.force.priority import level_of, read_thread_priority, supported
 from services.force.sampler import PERIOD_MAX_MS, PERIOD_MIN_MS, Sampler, check_period_ms
-from tests.force.helpers import Events, wait_for
+from tests.conftest import wait_until
+from tests.force.helpers import Events
 
 MS = 1_000_000
 
@@ -83,26 +84,26 @@ def diffs(xs: list[int]) -> list[int]:
 def test_ticks_on_absolute_deadlines(closing: list[Sampler[Any]]) -> None:
     s, script, out, _ = virtual_sampler(closing, period_ms=1.0)
     s.start()
-    wait_for(lambda: len(script.ticks) >= 100)
+    assert wait_until(lambda: len(script.ticks) >= 100)
     s.stop()
     assert set(diffs(script.ticks)) == {1 * MS}
     st = s.stats()
     assert st.overruns == 0 and st.drops == 0
-    wait_for(lambda: len(out) == st.samples)
+    assert wait_until(lambda: len(out) == st.samples)
     assert out == list(range(1, st.samples + 1))
 
 
 def test_period_change_takes_effect_from_the_last_tick(closing: list[Sampler[Any]]) -> None:
     s, script, _, _ = virtual_sampler(closing, period_ms=1.0)
     s.start()
-    wait_for(lambda: len(script.ticks) >= 50)
+    assert wait_until(lambda: len(script.ticks) >= 50)
     s.set_period_ms(5.0)
     assert s.period_ms == 5.0 and s.stats().period_ms == 5.0
     n = len(script.ticks)
-    wait_for(lambda: len(script.ticks) >= n + 50)
+    assert wait_until(lambda: len(script.ticks) >= n + 50)
     s.set_period_ms(0.5)
     n = len(script.ticks)
-    wait_for(lambda: len(script.ticks) >= n + 50)
+    assert wait_until(lambda: len(script.ticks) >= n + 50)
     s.stop()
     d = diffs(script.ticks)
     # 1 ms steps, then 5 ms steps, then 0.5 ms steps: each change once, in that order.
@@ -114,7 +115,7 @@ def test_overruns_count_missed_deadlines_and_do_not_burst(closing: list[Sampler[
     s, script, _, _ = virtual_sampler(closing, period_ms=2.0)
     script.advance_ns = 5 * MS  # every read takes 2.5 periods
     s.start()
-    wait_for(lambda: len(script.ticks) >= 20)
+    assert wait_until(lambda: len(script.ticks) >= 20)
     s.stop()
     st = s.stats()
     # Each tick misses 2 deadlines; the next tick is on the schedule, 3 periods later.
@@ -128,9 +129,9 @@ def test_stale_once_per_stall_within_ten_periods(closing: list[Sampler[Any]]) ->
 
     s, script, _, events = virtual_sampler(closing, data, period_ms=1.0, stale_after_periods=5)
     s.start()
-    wait_for(lambda: len(script.ticks) >= 260)
+    assert wait_until(lambda: len(script.ticks) >= 260)
     s.stop()
-    wait_for(lambda: len(events.of("recovered")) == 2)
+    assert wait_until(lambda: len(events.of("recovered")) == 2)
     kinds = [k for k in events.kinds() if k in ("stale", "recovered")]
     assert kinds == ["stale", "recovered", "stale", "recovered"]
     for _, _, data_ in events.of("stale"):
@@ -145,7 +146,7 @@ def test_rate_is_measured_from_sample_times(closing: list[Sampler[Any]]) -> None
         closing, lambda k: k if k % 2 else None, period_ms=1.0, stale_after_periods=10
     )
     s.start()
-    wait_for(lambda: len(script.ticks) >= 2500)
+    assert wait_until(lambda: len(script.ticks) >= 2500)
     assert 499.0 <= s.rate_hz() <= 501.0  # ±1 sample in the 1 s window
     s.stop()
     assert s.rate_hz() == 0.0
@@ -161,15 +162,15 @@ def test_device_errors_are_counted_and_bugs_stop_sampling(closing: list[Sampler[
 
     s, _script, out, events = virtual_sampler(closing, data, period_ms=1.0)
     s.start()
-    wait_for(lambda: not s.running)
+    assert wait_until(lambda: not s.running)
     st = s.stats()
     assert st.read_errors == 3
     assert st.samples == 6  # ticks 4…9
     assert "ZeroDivisionError" in st.last_error
-    wait_for(lambda: any(d.get("fatal") for _, _, d in events.of("error")))
+    assert wait_until(lambda: any(d.get("fatal") for _, _, d in events.of("error")))
     # Device errors are rate-limited to one event a second; the bug is always reported.
     assert len(events.of("error")) == 2
-    wait_for(lambda: len(out) == 6)
+    assert wait_until(lambda: len(out) == 6)
 
 
 def test_publish_blocking_never_stalls_sampling(closing: list[Sampler[Any]]) -> None:
@@ -184,12 +185,12 @@ def test_publish_blocking_never_stalls_sampling(closing: list[Sampler[Any]]) -> 
     s: Sampler[int] = Sampler(lambda: next(seq), publish, period_ms=1.0, queue_len=8)
     closing.append(s)
     s.start()
-    wait_for(lambda: s.stats().samples >= 100, what="sampling while publish is blocked")
+    assert wait_until(lambda: s.stats().samples >= 100, what="sampling while publish is blocked")
     assert out == [] and s.stats().drops > 0
     gate.set()
     s.stop()
     st = s.stats()
-    wait_for(lambda: len(out) + s.stats().drops == st.samples)
+    assert wait_until(lambda: len(out) + s.stats().drops == st.samples)
     assert out == sorted(out) and len(set(out)) == len(out)
     assert out[0] == 1 and out[-1] == st.samples  # oldest dropped, newest kept
 
@@ -200,7 +201,7 @@ def test_one_kilohertz_two_thousand_samples_no_gaps(closing: list[Sampler[Any]])
     s: Sampler[int] = Sampler(lambda: next(seq), out.append, period_ms=1.0)
     closing.append(s)
     s.start()
-    wait_for(lambda: len(out) >= 2000, timeout_s=30.0)
+    assert wait_until(lambda: len(out) >= 2000, timeout_s=30.0)
     s.stop()
     assert out[:2000] == list(range(1, 2001))
     assert s.stats().drops == 0
@@ -228,12 +229,12 @@ def test_stop_start_close(closing: list[Sampler[Any]]) -> None:
     assert not s.running and s.stats().rate_hz == 0.0
     s.start()
     s.start()  # idempotent
-    wait_for(lambda: len(script.ticks) >= 5)
+    assert wait_until(lambda: len(script.ticks) >= 5)
     assert s.stop() is True
     n = len(script.ticks)
     assert not s.running
     s.start()
-    wait_for(lambda: len(script.ticks) >= n + 5)
+    assert wait_until(lambda: len(script.ticks) >= n + 5)
     s.close()
     with pytest.raises(RuntimeError, match="closed"):
         s.start()
@@ -260,7 +261,7 @@ def test_inline_handoff_publishes_on_the_sampling_thread(closing: list[Sampler[A
     )
     closing.append(s)
     s.start()
-    wait_for(lambda: len(out) >= 300)
+    assert wait_until(lambda: len(out) >= 300)
     s.stop()
     st = s.stats()
     assert [x for x, _ in out] == list(range(1, st.samples + 1))
@@ -285,7 +286,7 @@ def test_inline_publish_that_blocks_shows_as_overruns(closing: list[Sampler[Any]
     s: Sampler[int] = Sampler(acquire, slow_publish, period_ms=2.0, clock=clock, handoff="inline")
     closing.append(s)
     s.start()
-    wait_for(lambda: len(ticks) >= 20)
+    assert wait_until(lambda: len(ticks) >= 20)
     s.stop()
     st = s.stats()
     assert st.overruns == 2 * st.ticks  # each tick misses 2 deadlines, honestly counted
@@ -308,12 +309,12 @@ def test_inline_publish_errors_are_counted_and_sampling_goes_on(
     )
     closing.append(s)
     s.start()
-    wait_for(lambda: s.stats().samples >= 20)
+    assert wait_until(lambda: s.stats().samples >= 20)
     s.stop()
     st = s.stats()
     assert st.publish_errors + st.published == st.samples
     assert st.publish_errors == (st.samples + 1) // 2
-    wait_for(lambda: len(events.of("error")) >= 1)
+    assert wait_until(lambda: len(events.of("error")) >= 1)
     assert "session closed" in events.of("error")[0][1]
 
 
@@ -387,7 +388,7 @@ def test_the_sampling_thread_has_a_tight_timer_slack(closing: list[Sampler[Any]]
     )
     closing.append(s)
     s.start()
-    wait_for(lambda: len(seen) >= 1)
+    assert wait_until(lambda: len(seen) >= 1)
     s.stop()
     assert seen[0] == TIMER_SLACK_NS
     assert libc.prctl(30, 0, 0, 0, 0) == main_slack  # the sampling thread's only

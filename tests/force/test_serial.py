@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.force.fake_serial_sensor import FakeSerialSensor
-from services.force.sensors import Reading, SensorError
+from services.force.sensors import SensorError
 from services.force.serial_sensor import (
     LineError,
     SerialFrame,
@@ -20,7 +20,8 @@ from services.force.serial_sensor import (
     encode_command,
     encode_sample,
 )
-from tests.force.helpers import Events, wait_for
+from tests.conftest import wait_until
+from tests.force.helpers import Events, drain_until
 
 # --- golden bytes -------------------------------------------------------------------------
 
@@ -101,20 +102,6 @@ def fake() -> Iterator[FakeSerialSensor]:
         yield f
 
 
-def drain_until(sensor: SerialSensor, cond: object, timeout_s: float = 10.0) -> Reading | None:
-    """Read continuously (as the sampler would) until cond() holds; the last reading."""
-    last: list[Reading | None] = [None]
-
-    def step() -> bool:
-        r = sensor.read()
-        if r is not None:
-            last[0] = r
-        return bool(cond())  # type: ignore[operator]
-
-    wait_for(step, timeout_s)
-    return last[0]
-
-
 def test_reads_the_stream_and_sends_start_stop(fake: FakeSerialSensor) -> None:
     events = Events()
     s = SerialSensor(fake.url, on_event=events)
@@ -129,7 +116,7 @@ def test_reads_the_stream_and_sends_start_stop(fake: FakeSerialSensor) -> None:
     assert (s.bad, s.gaps) == (0, 0)
     assert events.items == []
     s.close()
-    wait_for(lambda: len(fake.commands) == 2)
+    assert wait_until(lambda: len(fake.commands) == 2)
     assert fake.commands == [encode_command("START"), encode_command("STOP")]
 
 
@@ -160,7 +147,7 @@ def test_stall_gives_no_data_then_resumes_without_gap(fake: FakeSerialSensor) ->
     s.open()
     drain_until(s, lambda: s.frames >= 20)
     fake.stall(0.2)
-    wait_for(lambda: s.read() is None)  # nothing new while stalled
+    assert wait_until(lambda: s.read() is None)  # nothing new while stalled
     n = s.frames
     drain_until(s, lambda: s.frames >= n + 50)
     assert (s.bad, s.gaps) == (0, 0)

@@ -14,6 +14,9 @@ from services.force.config import ForceConfig
 from services.force.service import ForceService
 from services.puma.kinematics import DEFAULT_eMt, Puma560, qn
 
+# A 1 kHz stream over Zenoh, checked for gaps: run alone in `make pytest`'s second pass.
+pytestmark = pytest.mark.system
+
 
 def _publish_pose(node) -> None:  # type: ignore[no-untyped-def]
     kin = Puma560()

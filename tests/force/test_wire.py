@@ -12,7 +12,6 @@ from services.bus import codec
 from services.bus.errors import ProtocolError
 from services.bus.messages import ForceSample
 from services.force.config import ForceConfig
-from services.force.core import ForceSampleFields
 from services.force.service import ForceService
 from services.force.wire import ForceSampleEncoder
 
@@ -63,7 +62,7 @@ def test_huge_but_finite_values_are_not_mistaken_for_infinite() -> None:
 def test_the_service_publishes_the_codecs_bytes(net) -> None:  # type: ignore[no-untyped-def]
     svc = ForceService(net.node("force"), ForceConfig(autostart=False))
     try:
-        s = ForceSampleFields(7, 123, (1.0, -2.0, 0.5), (0.0, 0.1, -0.2), (1.0,) * 6)
+        s = ForceSample(seq=7, t_ns=123, f=(1.0, -2.0, 0.5), c=(0.0, 0.1, -0.2), raw=(1.0,) * 6)
         assert svc.encode_sample(s) == codec.encode(
             ForceSample(seq=7, t_ns=123, f=s.f, c=s.c, raw=s.raw)
         )

@@ -1,37 +1,36 @@
-"""One contract test over every MasterDevice backend, and open_device / open_master."""
+"""One contract test over every MasterDevice backend, each opened by `open_master_device`."""
 
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from collections.abc import Iterator
 
 import numpy as np
 import pytest
 
+from services.bus.errors import ConfigError
 from services.geometry import is_rotation
-from services.master.config import MasterConfig
-from services.master.devices import (
-    DeviceNotFound,
-    HandReading,
-    MasterDevice,
-    device_options,
-    open_device,
-    open_master,
-)
+from services.master.backends import BACKENDS, device_options, open_master_device
+from services.master.config import DEVICE_KINDS, MasterConfig
+from services.master.devices import DeviceNotFound, HandReading, MasterDevice
 from services.master.fake_haply import FakeInverseService, HandPose
-from services.master.fake_hid import FakeHidApi, FakeHidInfo
 from services.master.fake_master_arm import FakeMasterArm
+from tests.master.fake_hid import FakeHidApi, FakeHidInfo
 
 NAVIGATOR = FakeHidInfo(b"/dev/hidraw1", 0x046D, 0xC626, "SpaceNavigator")
-BACKENDS = ["virtual", "scripted", "keyboard", "spacemouse", "serial_arm", "haply"]
+KINDS = ["virtual", "scripted", "keyboard", "spacemouse", "serial_arm", "haply", "haptic_sim"]
 
 
-@pytest.fixture(params=BACKENDS)
-def device(request: pytest.FixtureRequest) -> Iterator[MasterDevice]:
+@pytest.fixture(params=KINDS)
+def device(
+    request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch
+) -> Iterator[MasterDevice]:
     kind = request.param
     if kind == "keyboard":
         operator, terminal = os.openpty()
-        dev = open_device("keyboard", fd=terminal)
+        dev = open_master_device(MasterConfig(device="keyboard", port=os.ttyname(terminal)))
         yield dev
         dev.close()
         os.close(operator)
@@ -39,23 +38,28 @@ def device(request: pytest.FixtureRequest) -> Iterator[MasterDevice]:
     elif kind == "spacemouse":
         api = FakeHidApi([NAVIGATOR])
         api.push(NAVIGATOR.path, bytes.fromhex("01 5e 01 00 00 00 00"))
-        dev = open_device("spacemouse", hid_api=api)
+        monkeypatch.setitem(sys.modules, "hid", api)  # the backend imports hidapi as `hid`
+        dev = open_master_device(MasterConfig(device="spacemouse"))
         yield dev
         dev.close()
     elif kind == "serial_arm":
         with FakeMasterArm() as arm:
-            dev = open_device("serial_arm", url=arm.url)
+            dev = open_master_device(MasterConfig(device="serial_arm", port=arm.url))
             yield dev
             dev.close()
     elif kind == "haply":
         with FakeInverseService(pose=HandPose(a=True)) as service:
-            dev = open_device("haply", url=service.url)
+            dev = open_master_device(MasterConfig(device="haply", haply_url=service.url))
             yield dev
             dev.close()
     else:
-        dev = open_device(kind)
+        dev = open_master_device(MasterConfig(device=kind))
         yield dev
         dev.close()
+
+
+def test_every_device_kind_has_a_backend_and_the_contract_covers_it() -> None:
+    assert set(BACKENDS.names) == set(DEVICE_KINDS) == set(KINDS)
 
 
 def test_backend_honours_the_master_device_contract(device: MasterDevice) -> None:
@@ -77,15 +81,32 @@ def test_backend_honours_the_master_device_contract(device: MasterDevice) -> Non
 
 
 def test_unknown_kind() -> None:
-    with pytest.raises(ValueError, match="unknown master device"):
-        open_device("joystick")
+    config = MasterConfig()
+    object.__setattr__(config, "device", "joystick")  # past MasterConfig's own check
+    with pytest.raises(ConfigError, match="unknown master device") as info:
+        open_master_device(config)
+    assert info.value.key == "master.device"
 
 
-def test_missing_spacemouse_lists_hid_devices() -> None:
+def test_missing_spacemouse_lists_hid_devices(monkeypatch: pytest.MonkeyPatch) -> None:
     mouse = FakeHidInfo(b"/dev/hidraw0", 0x046D, 0xC52B, "USB Receiver", "Logitech", 1, 2)
+    monkeypatch.setitem(sys.modules, "hid", FakeHidApi([mouse]))
     with pytest.raises(DeviceNotFound) as info:
-        open_device("spacemouse", hid_api=FakeHidApi([mouse]))
+        open_master_device(MasterConfig(device="spacemouse"))
     assert "046d:c52b" in str(info.value)
+
+
+def test_the_simulated_devices_do_not_load_device_libraries() -> None:
+    code = (
+        "import sys\n"
+        "from services.master.backends import open_master_device\n"
+        "from services.master.config import MasterConfig\n"
+        "for kind in ('virtual', 'scripted', 'haptic_sim'):\n"
+        "    open_master_device(MasterConfig(device=kind)).close()\n"
+        "print(sorted(m for m in ('hid', 'serial', 'websockets') if m in sys.modules))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
 
 
 def test_hand_reading_validation() -> None:
@@ -109,11 +130,11 @@ def test_options_from_config() -> None:
     assert device_options(MasterConfig(device="keyboard"))["tty_path"] is None
 
 
-def test_open_master_with_scripted_and_serial_configs() -> None:
-    dev = open_master(MasterConfig(device="scripted", script="square"))
+def test_open_master_device_with_scripted_and_serial_configs() -> None:
+    dev = open_master_device(MasterConfig(device="scripted", script="square"))
     assert dev.name == "scripted:square"
     dev.close()
     with FakeMasterArm() as arm:
-        dev = open_master(MasterConfig(device="serial_arm", port=arm.url, rate_hz=100))
+        dev = open_master_device(MasterConfig(device="serial_arm", port=arm.url, rate_hz=100))
         assert dev.read(0.01).hand_R.shape == (3, 3)
         dev.close()

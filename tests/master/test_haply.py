@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 import math
 import socket
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -26,9 +26,8 @@ from services.master.haply_protocol import (
     parse_frame,
 )
 from services.master.teleop import Teleop
+from tests.conftest import wait_until
 from tests.master.test_teleop import Slave
-
-Waiter = Callable[..., bool]
 
 #: The documented 3.5 inventory, trimmed to what we read, plus a wireless VerseGrip entry
 #: shaped as IsaacLab's and LeRobot's clients read it.
@@ -242,7 +241,7 @@ def haply(fake: FakeInverseService) -> Iterator[HaplyMaster]:
 
 
 def test_open_reads_the_inventory_and_sends_the_session_handshake(
-    fake: FakeInverseService, haply: HaplyMaster, wait_until: Waiter
+    fake: FakeInverseService, haply: HaplyMaster
 ) -> None:
     assert haply.name == "haply:049D" and haply.can_display_force and haply.session_id == 7
     assert wait_until(lambda: fake.messages == 1)
@@ -254,9 +253,7 @@ def test_open_reads_the_inventory_and_sends_the_session_handshake(
     assert r.clutch and r.buttons == 0 and r.grip == 0.0
 
 
-def test_one_message_per_read_and_one_state_frame_per_message(
-    fake: FakeInverseService, wait_until: Waiter
-) -> None:
+def test_one_message_per_read_and_one_state_frame_per_message(fake: FakeInverseService) -> None:
     haply = HaplyMaster(fake.url, reply_timeout_s=5.0)  # every read waits for a frame
     haply.open()
     for _ in range(50):
@@ -273,7 +270,7 @@ def test_one_message_per_read_and_one_state_frame_per_message(
 
 
 def test_a_is_a_dead_man_and_b_toggles_the_grip(
-    fake: FakeInverseService, haply: HaplyMaster, wait_until: Waiter
+    fake: FakeInverseService, haply: HaplyMaster
 ) -> None:
     q = (math.cos(0.3), 0.0, 0.0, math.sin(0.3))
     fake.set_pose(a=True, orientation_wxyz=q)
@@ -290,7 +287,7 @@ def test_a_is_a_dead_man_and_b_toggles_the_grip(
     assert wait_until(lambda: haply.read(0.01).clutch)
 
 
-def test_the_dead_man_can_be_another_button(fake: FakeInverseService, wait_until: Waiter) -> None:
+def test_the_dead_man_can_be_another_button(fake: FakeInverseService) -> None:
     device = HaplyMaster(fake.url, deadman_button=2, grip_button=0)
     device.open()
     try:
@@ -304,7 +301,7 @@ def test_the_dead_man_can_be_another_button(fake: FakeInverseService, wait_until
 
 
 def test_forces_are_clipped_and_zero_while_the_dead_man_is_released(
-    fake: FakeInverseService, haply: HaplyMaster, wait_until: Waiter
+    fake: FakeInverseService, haply: HaplyMaster
 ) -> None:
     def exchange(f: list[float] | None = None) -> tuple[float, float, float]:
         """display_force(f) if given, then read until a message went; what the fake got."""
@@ -327,7 +324,7 @@ def test_forces_are_clipped_and_zero_while_the_dead_man_is_released(
 
 
 def test_a_teleport_reads_as_master_shift_for_one_tick(
-    fake: FakeInverseService, haply: HaplyMaster, wait_until: Waiter
+    fake: FakeInverseService, haply: HaplyMaster
 ) -> None:
     fake.set_pose(a=True)
     assert wait_until(lambda: not haply.read(0.01).clutch)
@@ -338,9 +335,7 @@ def test_a_teleport_reads_as_master_shift_for_one_tick(
     assert not r.clutch and r.hand_p[0] == pytest.approx(0.3)
 
 
-def test_a_missing_grip_releases_the_dead_man(
-    fake: FakeInverseService, haply: HaplyMaster, wait_until: Waiter
-) -> None:
+def test_a_missing_grip_releases_the_dead_man(fake: FakeInverseService, haply: HaplyMaster) -> None:
     fake.set_pose(a=True)
     assert wait_until(lambda: not haply.read(0.01).clutch)
     fake.set_grip_present(False)
@@ -349,7 +344,7 @@ def test_a_missing_grip_releases_the_dead_man(
     assert wait_until(lambda: not haply.read(0.01).clutch)
 
 
-def test_a_silent_service_reads_as_master_shift_then_is_lost(wait_until: Waiter) -> None:
+def test_a_silent_service_reads_as_master_shift_then_is_lost() -> None:
     with FakeInverseService(pose=HandPose(a=True)) as fake:
         device = HaplyMaster(fake.url, stale_s=0.05, lost_s=0.3)
         device.open()
@@ -364,7 +359,7 @@ def test_a_silent_service_reads_as_master_shift_then_is_lost(wait_until: Waiter)
 
 
 def test_a_drop_is_device_lost_and_open_starts_a_new_session(
-    fake: FakeInverseService, haply: HaplyMaster, wait_until: Waiter
+    fake: FakeInverseService, haply: HaplyMaster
 ) -> None:
     fake.set_pose(a=True)
     assert wait_until(lambda: not haply.read(0.01).clutch)
@@ -406,7 +401,7 @@ def test_no_inverse3_is_device_not_found_with_the_listing() -> None:
 
 
 def test_an_oversized_frame_closes_the_link_as_lost(
-    fake: FakeInverseService, haply: HaplyMaster, wait_until: Waiter
+    fake: FakeInverseService, haply: HaplyMaster
 ) -> None:
     fake.inject(" " * (MAX_MESSAGE_BYTES + 10))
     with pytest.raises(DeviceLost):
@@ -414,7 +409,7 @@ def test_an_oversized_frame_closes_the_link_as_lost(
 
 
 def test_the_config_table_opens_a_haply(fake: FakeInverseService) -> None:
-    from services.master.devices import device_options, open_master
+    from services.master.backends import device_options, open_master_device
 
     cfg = MasterConfig(device="haply", haply_url=fake.url, haply_max_force_n=2.0, grip_button=2)
     assert device_options(cfg) == {
@@ -423,7 +418,7 @@ def test_the_config_table_opens_a_haply(fake: FakeInverseService) -> None:
         "grip_button": 2,
         "max_force_n": 2.0,
     }
-    device = open_master(cfg)
+    device = open_master_device(cfg)
     try:
         assert device.name == "haply:049D"
     finally:
@@ -472,7 +467,7 @@ def test_hostile_frames_never_move_the_slave(
 )
 @given(f=st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=3, max_size=3))
 def test_no_force_asked_for_ever_reaches_the_device_above_the_maximum(
-    engaged: tuple[FakeInverseService, HaplyMaster], f: list[float], wait_until: Waiter
+    engaged: tuple[FakeInverseService, HaplyMaster], f: list[float]
 ) -> None:
     fake, device = engaged
     assert wait_until(lambda: not device.read(0.01).clutch)

@@ -23,18 +23,9 @@ from services.master.config import MasterConfig
 from services.master.fake_haply import FakeInverseService, HandPose
 from services.master.haply import HaplyMaster
 from services.master.service import MasterService
-from tests.conftest import Net, free_port
-from tests.master.conftest import _wait_until
+from tests.conftest import Net, free_port, wait_until
 
 pytestmark = pytest.mark.system
-
-Waiter = Callable[..., bool]
-
-
-@pytest.fixture
-def wait_until() -> Waiter:
-    """The shared helper with a 10 s default: several services share two loaded cores."""
-    return lambda condition, timeout_s=10.0: _wait_until(condition, timeout_s)
 
 
 ALIGN = rot_z(math.pi / 2)
@@ -115,7 +106,7 @@ def slide_x(distance_m: float, duration_s: float, a: bool = True) -> Callable[[f
     return motion
 
 
-def engage(s: Station, wait_until: Waiter) -> int:
+def engage(s: Station) -> int:
     """Release `a` (until the master has read it), then press and hold it; the engagement
     number the master started."""
     s.fake.set_pose(a=False)
@@ -129,12 +120,12 @@ def engage(s: Station, wait_until: Waiter) -> int:
 
 
 def test_holding_a_moves_the_tool_by_the_scaled_aligned_motion_and_releasing_holds(
-    station: Station, wait_until: Waiter
+    station: Station,
 ) -> None:
     s = station
     assert wait_until(lambda: len(s.cmds()) > 5)
     assert not any(c.active for c in s.cmds()), "engaged before the dead-man was held"
-    k = engage(s, wait_until)
+    k = engage(s)
     first = next(c for c in s.cmds() if c.engage == k)
     assert first.active and first.dp == (0.0, 0.0, 0.0)
 
@@ -193,7 +184,7 @@ class ForceSource:
 
 
 def test_forces_arrive_every_tick_finite_clipped_ramped_and_zero_when_released(
-    station: Station, net: Net, wait_until: Waiter
+    station: Station, net: Net
 ) -> None:
     s = station
     source = ForceSource(net, (0.0, 20.0, 0.0))  # 20 N along the tool's +y
@@ -203,7 +194,7 @@ def test_forces_arrive_every_tick_finite_clipped_ramped_and_zero_when_released(
         assert all(r.force_n == (0.0, 0.0, 0.0) for r in s.fake.forces)  # not engaged yet
 
         n0 = s.fake.forces_received
-        engage(s, wait_until)
+        engage(s)
         # Aᵀ maps the slave's +y back onto the operator's +x; 20 N is cut to 3 N.
         assert wait_until(lambda: s.fake.forces[-1].force_n == pytest.approx((3.0, 0.0, 0.0)))
         mags = [math.hypot(*r.force_n) for r in s.fake.forces_since(n0)]
@@ -235,10 +226,10 @@ def test_forces_arrive_every_tick_finite_clipped_ramped_and_zero_when_released(
 
 
 def test_a_dropped_connection_holds_reconnects_and_engages_again_without_a_jump(
-    station: Station, wait_until: Waiter
+    station: Station,
 ) -> None:
     s = station
-    k = engage(s, wait_until)
+    k = engage(s)
     s.fake.set_motion(slide_x(0.02, 0.3))
     assert wait_until(lambda: s.last().dp[1] == pytest.approx(0.01))  # type: ignore[union-attr]
     n = len(s.cmds())
@@ -270,7 +261,7 @@ def test_a_dropped_connection_holds_reconnects_and_engages_again_without_a_jump(
 
 
 def test_a_service_that_stays_down_is_retried_with_back_off_and_the_master_stays_up(
-    station: Station, wait_until: Waiter
+    station: Station,
 ) -> None:
     s = station
     s.fake.set_down(True)
@@ -280,14 +271,12 @@ def test_a_service_that_stays_down_is_retried_with_back_off_and_the_master_stays
     assert not any(c.active for c in s.cmds()[n:])
     s.fake.set_down(False)
     assert wait_until(lambda: s.master._status()["device_ok"], timeout_s=5.0)
-    assert engage(s, wait_until) > 0
+    assert engage(s) > 0
 
 
-def test_hostile_frames_are_counted_reported_and_move_nothing(
-    station: Station, wait_until: Waiter
-) -> None:
+def test_hostile_frames_are_counted_reported_and_move_nothing(station: Station) -> None:
     s = station
-    engage(s, wait_until)
+    engage(s)
     dp = s.last().dp  # type: ignore[union-attr]
     s.fake.inject(
         '{"inverse3": [{"device_id": "049D", "state": {"cursor_position": '
@@ -331,22 +320,22 @@ def test_no_inverse_service_at_start_up_exits_with_a_clear_message() -> None:
     assert f"no Haply Inverse Service at ws://127.0.0.1:{port}" in proc.stderr
 
 
-def test_the_fake_runs_by_hand_and_the_backend_drives_it(wait_until: Waiter) -> None:
+def test_the_fake_runs_by_hand_and_the_backend_drives_it() -> None:
     port = free_port()
-    proc = subprocess.Popen(
+    with subprocess.Popen(  # `with`: the pipe is closed, never left to the collector
         [sys.executable, "-m", "services.cli.main", "haply-fake", "--port", str(port)],
         stdout=subprocess.PIPE,
         text=True,
-    )
-    try:
-        assert proc.stdout is not None
-        assert f"ws://127.0.0.1:{port}" in proc.stdout.readline()
-        device = HaplyMaster(f"ws://127.0.0.1:{port}")
-        device.open()
-        try:  # the scripted operator holds a for most of its cycle
-            assert wait_until(lambda: not device.read(0.01).clutch, timeout_s=10.0)
+    ) as proc:
+        try:
+            assert proc.stdout is not None
+            assert f"ws://127.0.0.1:{port}" in proc.stdout.readline()
+            device = HaplyMaster(f"ws://127.0.0.1:{port}")
+            device.open()
+            try:  # the scripted operator holds a for most of its cycle
+                assert wait_until(lambda: not device.read(0.01).clutch, timeout_s=10.0)
+            finally:
+                device.close()
         finally:
-            device.close()
-    finally:
-        proc.terminate()
-        assert proc.wait(timeout=10) == 0
+            proc.terminate()
+            assert proc.wait(timeout=10) == 0

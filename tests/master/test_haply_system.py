@@ -22,19 +22,10 @@ from services.master.fake_haply import FakeInverseService, HandPose
 from services.master.service import MasterService
 from services.puma.config import PumaConfig
 from services.puma.service import PumaService
-from tests.conftest import Net
-from tests.master.conftest import _wait_until
+from tests.conftest import Net, Waited, wait_until
 from tests.master.test_haply_service import ALIGN, HOME, SCALE_T, haply_master
 
 pytestmark = pytest.mark.system
-
-Waiter = Callable[..., bool]
-
-
-@pytest.fixture
-def wait_until() -> Waiter:
-    """The shared helper with a 10 s default: several services share two loaded cores."""
-    return lambda condition, timeout_s=10.0: _wait_until(condition, timeout_s)
 
 
 TOL_M = 1e-3
@@ -93,13 +84,11 @@ def slide(start: tuple[float, float, float], dx_m: float, duration_s: float) -> 
     return motion
 
 
-def settled(cell: Cell, target: np.ndarray, wait_until: Waiter) -> bool:
+def settled(cell: Cell, target: np.ndarray) -> Waited:
     return wait_until(lambda: bool(np.linalg.norm(cell.tool_p() - target) < TOL_M), 15.0)
 
 
-def test_the_tool_follows_a_and_holds_through_a_dropped_connection(
-    cell: Cell, wait_until: Waiter
-) -> None:
+def test_the_tool_follows_a_and_holds_through_a_dropped_connection(cell: Cell) -> None:
     cell.fake.set_pose(a=True)
     assert wait_until(cell.following, 10.0), "the decision server never followed the haply"
     p0 = cell.tool_p()
@@ -107,7 +96,7 @@ def test_the_tool_follows_a_and_holds_through_a_dropped_connection(
     # 4 cm to the operator's right at 4 cm/s: 2 cm along the world's +y at the tool.
     cell.fake.set_motion(slide(HOME, 0.04, 1.0))
     p1 = p0 + SCALE_T * ALIGN @ np.array([0.04, 0.0, 0.0])
-    assert settled(cell, p1, wait_until), f"tool at {cell.tool_p()}, want {p1}"
+    assert settled(cell, p1), f"tool at {cell.tool_p()}, want {p1}"
 
     # Cut the WebSocket; the hand keeps moving and keeps `a` held: the arm holds.
     cell.fake.drop()
@@ -128,4 +117,4 @@ def test_the_tool_follows_a_and_holds_through_a_dropped_connection(
     assert np.linalg.norm(cell.tool_p() - p1) < TOL_M, "the re-engagement jumped"
     cell.fake.set_motion(slide((HOME[0] + 0.08, HOME[1], HOME[2]), -0.02, 0.5))
     p2 = p1 + SCALE_T * ALIGN @ np.array([-0.02, 0.0, 0.0])
-    assert settled(cell, p2, wait_until), f"tool at {cell.tool_p()}, want {p2}"
+    assert settled(cell, p2), f"tool at {cell.tool_p()}, want {p2}"

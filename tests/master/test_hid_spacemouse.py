@@ -12,7 +12,6 @@ from hypothesis import strategies as st
 
 from services.geometry import rot_z
 from services.master.devices import DeviceLost, DeviceNotFound
-from services.master.fake_hid import FakeHidApi, FakeHidInfo
 from services.master.hid_spacemouse import (
     SINGLE_REPORT,
     TWO_REPORTS,
@@ -22,6 +21,7 @@ from services.master.hid_spacemouse import (
     find_model,
 )
 from services.master.jog import MAX_STEP_S, apply_deadband
+from tests.master.fake_hid import FakeHidApi, FakeHidInfo
 
 
 def hx(text: str) -> bytes:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import select
-from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -21,9 +20,7 @@ from services.master.keyboard import (
 )
 from services.master.service import MasterService
 from services.master.status_line import WIDTH, StatusInfo, render
-from tests.conftest import Net
-
-Waiter = Callable[..., bool]
+from tests.conftest import Net, wait_until
 
 
 def test_parse_keys_splits_characters_and_arrows() -> None:
@@ -86,7 +83,7 @@ def test_hold_timing_clutch_grip_and_stop() -> None:
     assert s.grip == 1.0
 
 
-def test_keyboard_on_a_pty(wait_until: Waiter) -> None:
+def test_keyboard_on_a_pty() -> None:
     operator, terminal = os.openpty()
     kb = KeyboardMaster(fd=terminal, speed_m_s=0.05, rate_rad_s=0.3, hold_s=0.5)
     try:
@@ -108,13 +105,11 @@ def test_keyboard_on_a_pty(wait_until: Waiter) -> None:
         os.close(terminal)
 
 
-def test_the_keyboard_station_shows_its_status_line_on_its_terminal(
-    net: Net, wait_until: Waiter
-) -> None:
+def test_the_keyboard_station_shows_its_status_line_on_its_terminal(net: Net) -> None:
     keys_in, terminal = os.openpty()
     screen, status_tty = os.openpty()
     kb = KeyboardMaster(fd=terminal, status_fd=status_tty, hold_s=0.5)
-    kb.open()  # a device handed to the service comes open, as open_master() gives it
+    kb.open()  # a device handed to the service comes open, as open_master_device() gives it
     seen: list[str] = []
 
     def screen_has(text: str) -> bool:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import binascii
 import math
 import socket
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -33,8 +33,7 @@ from services.master.arm_protocol import (
 from services.master.devices import DeviceNotFound
 from services.master.fake_master_arm import FakeMasterArm
 from services.master.serial_arm import SerialMasterArm
-
-Waiter = Callable[..., bool]
+from tests.conftest import wait_until
 
 PUMA_DH = (
     (0.67183, 0.0, math.pi / 2),
@@ -186,7 +185,7 @@ def test_open_identifies_and_streams(fake: FakeMasterArm, arm: SerialMasterArm) 
 
 
 def test_torque_display_is_jacobian_transpose_times_wrench(
-    fake: FakeMasterArm, arm: SerialMasterArm, wait_until: Waiter
+    fake: FakeMasterArm, arm: SerialMasterArm
 ) -> None:
     arm.read(0.01)
     q = arm.q_rad
@@ -202,7 +201,7 @@ def test_torque_display_is_jacobian_transpose_times_wrench(
     assert arm.stats.torques_sent == 1
 
 
-def test_torques_are_clamped(fake: FakeMasterArm, arm: SerialMasterArm, wait_until: Waiter) -> None:
+def test_torques_are_clamped(fake: FakeMasterArm, arm: SerialMasterArm) -> None:
     arm.read(0.01)
     arm.display_force([500.0, 0, 0], [0, 0, 0])
     assert wait_until(lambda: len(fake.torques) == 1)
@@ -210,7 +209,7 @@ def test_torques_are_clamped(fake: FakeMasterArm, arm: SerialMasterArm, wait_unt
     assert np.max(np.abs(tau)) == pytest.approx(5.0)
 
 
-def test_buttons_and_grip(fake: FakeMasterArm, arm: SerialMasterArm, wait_until: Waiter) -> None:
+def test_buttons_and_grip(fake: FakeMasterArm, arm: SerialMasterArm) -> None:
     fake.set_buttons(0b01)
     fake.set_grip(0.4)
     assert wait_until(lambda: arm.read(0.0).clutch)
@@ -219,9 +218,7 @@ def test_buttons_and_grip(fake: FakeMasterArm, arm: SerialMasterArm, wait_until:
     assert wait_until(lambda: not arm.read(0.0).clutch)
 
 
-def test_motion_script_is_followed(
-    fake: FakeMasterArm, arm: SerialMasterArm, wait_until: Waiter
-) -> None:
+def test_motion_script_is_followed(fake: FakeMasterArm, arm: SerialMasterArm) -> None:
     fake.set_motion(lambda t: (min(t, 0.05), *Q_TEST[1:]))
     assert wait_until(
         lambda: abs(arm.read(0.0).hand_p[0] - forward_kinematics((0.05, *Q_TEST[1:]))[0][0]) < 1e-9
@@ -229,7 +226,7 @@ def test_motion_script_is_followed(
 
 
 def test_corrupted_frames_are_counted_and_skipped(
-    fake: FakeMasterArm, arm: SerialMasterArm, wait_until: Waiter
+    fake: FakeMasterArm, arm: SerialMasterArm
 ) -> None:
     fake.corrupt_next(3)
     assert wait_until(lambda: (arm.read(0.0), arm.stats.crc_errors)[1] == 3)
@@ -238,7 +235,7 @@ def test_corrupted_frames_are_counted_and_skipped(
     assert arm.stats.lost >= 3  # the three bad frames leave a gap in seq
 
 
-def test_silent_line_reads_as_master_shift(fake: FakeMasterArm, wait_until: Waiter) -> None:
+def test_silent_line_reads_as_master_shift(fake: FakeMasterArm) -> None:
     arm = SerialMasterArm(fake.url, stale_s=0.05)
     arm.open()
     try:
@@ -251,7 +248,7 @@ def test_silent_line_reads_as_master_shift(fake: FakeMasterArm, wait_until: Wait
         arm.close()
 
 
-def test_arm_watchdog_zeroes_torque_when_the_host_stops(wait_until: Waiter) -> None:
+def test_arm_watchdog_zeroes_torque_when_the_host_stops() -> None:
     with FakeMasterArm(q_rad=Q_TEST, torque_watchdog_s=0.05) as fake:
         arm = SerialMasterArm(fake.url)
         arm.open()
@@ -265,7 +262,7 @@ def test_arm_watchdog_zeroes_torque_when_the_host_stops(wait_until: Waiter) -> N
             arm.close()
 
 
-def test_close_stops_streaming_and_zeroes_torque(fake: FakeMasterArm, wait_until: Waiter) -> None:
+def test_close_stops_streaming_and_zeroes_torque(fake: FakeMasterArm) -> None:
     arm = SerialMasterArm(fake.url)
     arm.open()
     arm.read(0.0)
@@ -301,7 +298,7 @@ def test_wrong_joint_count_is_refused() -> None:
     assert "7 joints" in str(info.value)
 
 
-def test_fake_naks_bad_host_lines(fake: FakeMasterArm, wait_until: Waiter) -> None:
+def test_fake_naks_bad_host_lines(fake: FakeMasterArm) -> None:
     with socket.create_connection(("127.0.0.1", fake.port)) as s:
         s.sendall(b"$Q*0000\r\n" + encode_line("Q") + encode_line("S", ["5000"]))
         assert wait_until(lambda: fake.naks_sent == 3)

@@ -11,10 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import ArrayLike
 
+from services.bus import codec
+from services.bus.messages import OperatorCommand
 from services.geometry import exp_so3, rot_x, rot_y, rot_z, rotation_angle, rxyz
 from services.master.config import MasterConfig
 from services.master.devices import HandReading
-from services.master.teleop import CommandFields, Teleop, check_command, scaled_motion
+from services.master.teleop import Teleop, check_command, scaled_motion
 
 DEG = math.pi / 180.0
 SCALES = (0.1, 0.25, 0.5, 1.0)
@@ -211,7 +213,7 @@ def test_state_carries_the_contract_fields() -> None:
     s1, s2 = t.state(), t.state(99)
     assert (s1.seq, s2.seq) == (1, 2)
     assert (s1.t_ns, s2.t_ns) == (77, 99)
-    d = s1.as_dict()
+    d = codec.to_fields(s1)
     assert d["master"] == "m1" and d["device"] == "test" and d["frame"] == "tool"
     assert (d["scale_t"], d["scale_r"], d["engage"], d["active"]) == (0.5, 0.25, 1, True)
     np.testing.assert_allclose(d["hand_p"], [0.1, 0.2, 0.3])
@@ -220,8 +222,8 @@ def test_state_carries_the_contract_fields() -> None:
 
 def test_command_as_dict_and_grip() -> None:
     t = teleop()
-    with_grip = t.tick(reading(grip=0.75), 1).as_dict()
-    without = t.tick(reading(), 2).as_dict()
+    with_grip = codec.to_fields(t.tick(reading(grip=0.75), 1))
+    without = codec.to_fields(t.tick(reading(), 2))
     assert with_grip["grip"] == 0.75 and "grip" not in without
     assert set(without) == {"seq", "t_ns", "master", "engage", "active", "frame", "dp", "dR"}
     assert len(without["dR"]) == 9 and len(without["dp"]) == 3
@@ -247,7 +249,7 @@ class Slave:
         self.seq = -1
         self.p0, self.R0 = self.p.copy(), self.R.copy()
 
-    def apply(self, cmd: CommandFields) -> None:
+    def apply(self, cmd: OperatorCommand) -> None:
         check_command(cmd)
         if cmd.seq <= self.seq or (self.engage is not None and cmd.engage < self.engage):
             return

@@ -27,3 +27,15 @@ def test_cli_writes_json_and_plots(tmp_path: Path) -> None:
     doc = json.loads(out.read_text())
     assert doc["settings"]["delays_ms"] == [50]
     assert (tmp_path / "passivity_50ms.png").stat().st_size > 1000
+
+
+def test_at_700ms_the_master_limiter_is_what_settles_the_contact() -> None:
+    with_limit, _ = run((700,))
+    damper_only, _ = run((700,), master_limit=False)
+    assert with_limit["settings"]["master_limit"] is True
+    assert with_limit["passivity_700_on_stable"] is True
+    assert damper_only["passivity_700_on_stable"] is False
+    assert (
+        with_limit["passivity_700_on_oscillation_rms_n"]
+        < damper_only["passivity_700_on_oscillation_rms_n"] / 10
+    )

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.master.backends import open_master_device
 from services.master.config import MasterConfig
-from services.master.devices import open_master
 from services.master.haptic_sim import SimHapticMaster
 
 
@@ -39,7 +39,7 @@ def test_against_a_wall_the_operator_presses_to_the_force_meant() -> None:
 def test_config_opens_it_engaged() -> None:
     cfg = MasterConfig(device="haptic_sim")
     assert cfg.engage_on_start
-    dev = open_master(cfg)
+    dev = open_master_device(cfg)
     assert dev.can_display_force and dev.name == "haptic_sim"
     assert not dev.read(0.01).clutch
     with pytest.raises(ValueError, match="depth_m"):

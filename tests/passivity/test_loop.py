@@ -48,7 +48,9 @@ def test_without_delay_tdpa_changes_nothing_the_operator_feels(dofs: int) -> Non
     off, on = contact_metrics(run(0.0, False, dofs)), contact_metrics(run(0.0, True, dofs))
     assert off["stable"] and on["stable"]
     assert on["steady_force_n"] == pytest.approx(off["steady_force_n"], rel=0.05)
-    assert on["peak_force_n"] == pytest.approx(off["peak_force_n"], rel=0.15)
+    # The peak with TDPA is at the release (the slave lets go a tick or two later): 10.0 N
+    # against 8.6 N in 1-DoF; while pressing they agree to the steady force's 5 %.
+    assert on["peak_force_n"] == pytest.approx(off["peak_force_n"], rel=0.2)
 
 
 @pytest.mark.parametrize("dofs", [1, 3])
@@ -95,7 +97,9 @@ def test_slave_port_gives_the_environment_no_more_than_the_operator_put_in(rtt_s
     off_exchanged, _, off_slave = _overdrafts(run(rtt_s, False))
     exchanged, _, slave = _overdrafts(run(rtt_s, True))
     assert off_slave > off_exchanged  # without TDPA the channel creates energy
-    assert slave < 0.1 * exchanged  # with it: only one-tick prediction errors
+    # With it: only one-tick prediction errors, 1.3 mJ at 700 ms. (With the master's
+    # limiter the contact no longer bounces, so far less is exchanged: 10 mJ at 700 ms.)
+    assert slave < max(0.1 * exchanged, 0.002)
 
 
 @pytest.mark.parametrize("rtt_s", [0.1, 0.7])
@@ -104,3 +108,21 @@ def test_master_ramp_keeps_the_master_port_balanced(rtt_s: float) -> None:
     assert master < 0.02 * exchanged
     assert slave < 0.1 * exchanged
     assert contact_metrics(run(rtt_s, True, 1, ramp_n_s=200.0))["penetration_mm"] < 5.0
+
+
+def test_with_the_master_limiter_700ms_settles_and_the_master_port_balances() -> None:
+    """The energy-bounding force limiter at the master (on by default in the simulation):
+    at 700 ms round trip (10 % jitter, 1 % loss, seed 1) the contact settles, and the
+    master port gives the hand no more than the slave sent, beyond its 0.1 mJ reserve, than
+    the one-tick prediction errors (≤ 1 mJ; 23 mJ without the limiter)."""
+    ref = contact_metrics(run(0.0, True))
+    m = contact_metrics(run(0.7, True))
+    assert m["stable"]
+    assert m["oscillation_rms_n"] < 0.1 * m["steady_force_n"]
+    assert m["steady_force_n"] > 0.6 * ref["steady_force_n"]
+    assert m["penetration_mm"] < 1.5 * ref["penetration_mm"]
+    _, master, _ = _overdrafts(run(0.7, True))
+    assert master < 0.001
+    without = simulate(LoopSpec(round_trip_s=0.7, jitter=0.1, loss=0.01, tdpa=True, limit=False))
+    assert not contact_metrics(without)["stable"]  # the damper alone: still hunting
+    assert _overdrafts(without)[1] > 10 * master

@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 
 from services.bus.errors import ConfigError, RpcError
 from services.geometry import angle_between
+from services.puma.backends import arm_options
 from services.puma.config import HOME_Q_RAD, PumaConfig
 from services.puma.kinematics import Puma560, qn
 from services.puma.mapping import TeleopInput
@@ -178,8 +179,13 @@ def test_config_rejects_bad_values_naming_the_key(overrides: dict[str, Any], key
 def test_config_from_a_toml_table() -> None:
     cfg = PumaConfig.from_mapping({"arm": "serial", "port": "/dev/ttyUSB0", "home_q": list(qn)})
     assert cfg.home_q == tuple(qn)
-    assert cfg.arm_options() == {"baudrate": 115_200, "cycle_ms": 28.0, "timeout_s": 0.1}
-    assert PumaConfig().arm_options() == {"calibration_s": 0.5, "q_init": HOME_Q_RAD}
+    assert arm_options(cfg) == {
+        "port": "/dev/ttyUSB0",
+        "baudrate": 115_200,
+        "cycle_ms": 28.0,
+        "timeout_s": 0.1,
+    }
+    assert arm_options(PumaConfig()) == {"calibration_s": 0.5, "q_init": HOME_Q_RAD}
     with pytest.raises(ConfigError) as info:
         PumaConfig.from_mapping({"state_rate": 100})
     assert info.value.key == "puma.state_rate"

@@ -28,16 +28,9 @@ from services.puma.serial_arm import (
     format_joints,
     parse_joints,
 )
+from tests.conftest import wait_until
 
 DEADLINE_S = 5.0
-
-
-def wait_for(pred: Callable[[], bool], what: str, timeout_s: float = DEADLINE_S) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not pred():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.002)
 
 
 # --- codec -----------------------------------------------------------------------------------
@@ -148,7 +141,7 @@ def arm(fake: FakeController) -> Iterator[SerialArm]:
 def make_ready(arm: SerialArm) -> np.ndarray:
     arm.connect()
     arm.initialize()
-    wait_for(lambda: arm.status == "ready", "ready")
+    assert wait_until(lambda: arm.status == "ready", what="ready")
     return arm.read_joints()
 
 
@@ -167,7 +160,7 @@ def stream_until_error(arm: SerialArm, q_from: np.ndarray, direction: np.ndarray
 def recover(arm: SerialArm) -> np.ndarray:
     arm.connect()
     arm.initialize()
-    wait_for(lambda: arm.status == "ready", "ready after recovery")
+    assert wait_until(lambda: arm.status == "ready", what="ready after recovery")
     return arm.read_joints()
 
 
@@ -179,7 +172,7 @@ def assert_held(fake: FakeController) -> np.ndarray:
         seen.append(fake.q)
         return len(seen) > 30 and bool(np.max(np.abs(seen[-1] - seen[-30])) < 1e-9)
 
-    wait_for(still, "the arm to hold")
+    assert wait_until(still, what="the arm to hold")
     return seen[-1]
 
 
@@ -246,7 +239,7 @@ def test_corrupted_setpoint_is_never_executed(fake: FakeController, arm: SerialA
     q0 = make_ready(arm)
     fake.garble_next_rx()
     arm.command(q0 + 0.01)
-    wait_for(lambda: arm.status == "error", "error")
+    assert wait_until(lambda: arm.status == "error", what="error")
     assert fake.errors_sent["CHK"] == 1
     assert "CHK" in (arm.last_error or "")
     assert len(fake.setpoints) == 0
@@ -262,7 +255,7 @@ def test_controller_watchdog_holds_when_setpoints_stop(fake: FakeController) -> 
             time.sleep(0.002)
         # The host loop stops giving setpoints: the link only reads the joints now, and the
         # controller's watchdog holds the arm.
-        wait_for(lambda: fake.watchdog_trips == 1, "the watchdog")
+        assert wait_until(lambda: fake.watchdog_trips == 1, what="the watchdog")
         n = len(fake.setpoints)
         assert_held(fake)
         assert len(fake.setpoints) == n
@@ -356,7 +349,9 @@ def test_proxy_over_the_serial_arm_never_jumps_across_a_fault(fake: FakeControll
         r = proxy.rpc_move_joints({"q": list(q0 + 0.1)})
         run_until(lambda: proxy.state()["status"] == "ready", "the move to finish")
         assert proxy.wait_motion(r["motion"], 0.0)["completed"]
-        wait_for(lambda: bool(np.max(np.abs(fake.q - (q0 + 0.1))) < 1e-3), "the arm to arrive")
+        assert wait_until(
+            lambda: bool(np.max(np.abs(fake.q - (q0 + 0.1))) < 1e-3), what="the arm to arrive"
+        )
         # The controller's own record: no setpoint was ever far from where the arm was.
         assert fake.max_setpoint_jump_rad < 0.1
         assert fake.errors_sent["STEP"] == 0
@@ -392,4 +387,4 @@ def test_fake_controller_runs_as_a_program() -> None:
         arm.close()
     finally:
         proc.terminate()
-        proc.wait(timeout=5)
+        proc.communicate(timeout=5)  # reaps it and closes its pipe

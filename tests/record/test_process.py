@@ -102,7 +102,7 @@ def test_sigkill_leaves_a_file_readable_up_to_its_last_chunk(
         _wait_recorded(out, 50, proc)
     finally:
         proc.kill()
-        proc.wait(10.0)
+        proc.communicate(timeout=10.0)  # reaps it and closes its pipes
     assert proc.returncode == -signal.SIGKILL
     # No summary, no footer: the mcap library's stream reader reads up to the cut.
     n = 0

@@ -18,24 +18,17 @@ from services.bus.messages import Event, StereoFrame
 from services.record import recorder as recorder_mod
 from services.record.archive import Recording
 from services.record.recorder import Recorder, RecorderConfig
-from tests.conftest import Net
+from tests.conftest import Net, wait_until
 from tests.record.helpers import force
-
-
-def _wait(cond: Callable[[], bool], timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() >= deadline:
-            return cond()
-        time.sleep(0.01)
-    return True
 
 
 def _wait_subscribed(node: object, key: str, timeout_s: float = 5.0) -> None:
     """Publish only once the recorder's subscription has reached the publisher's session."""
     probe = node.session.declare_publisher(key)  # type: ignore[attr-defined]
     try:
-        assert _wait(lambda: bool(getattr(probe.matching_status, "matching", False)), timeout_s)
+        assert wait_until(
+            lambda: bool(getattr(probe.matching_status, "matching", False)), timeout_s
+        )
     finally:
         probe.undeclare()
 
@@ -73,7 +66,7 @@ def test_records_contract_and_other_keys_with_video_as_foxglove_images(
             p.put(f)
             sent.append(f)
     pub.session.put("lab/note", codec.pack({"t_ns": 5, "text": "not a contract key"}))
-    assert _wait(lambda: rec.stats().received >= 7)
+    assert wait_until(lambda: rec.stats().received >= 7)
     stats = rec.stop()
     assert stats.dropped == 0 and stats.written == 7
     with out.open("rb") as fh:
@@ -110,7 +103,7 @@ def test_no_video_and_key_filters(net: Net, tmp_path: Path) -> None:
     pub.publisher(keys.STEREO_L).put(_frame("l", 1))
     pub.event("status", "hello")
     pub.session.put("robot/puma/cmd/extra", codec.pack({"x": 1}))
-    assert _wait(
+    assert wait_until(
         lambda: a.stats().received >= 2 and b.stats().received >= 1 and c.stats().received >= 2
     )
     sa, sb, sc = a.stop(), b.stop(), c.stop()
@@ -132,7 +125,7 @@ def test_a_namespaced_recorder_records_keys_without_the_namespace(
     pub = net.node("puma")
     _wait_subscribed(pub, "robot/events")
     pub.event("status", "in cell2")
-    assert _wait(lambda: rec.stats().received >= 1)
+    assert wait_until(lambda: rec.stats().received >= 1)
     rec.stop()
     r = Recording(tmp_path / "ns.mcap")
     assert [m.key for m in r.raw()] == ["robot/events"]
@@ -163,7 +156,7 @@ def test_a_stalled_writer_never_blocks_the_stream_it_drops_and_counts(
     assert stuck.wait(10.0)
     for i in range(200):  # events are reliable (BLOCK): all 200 reach the recorder
         pub.event("data", f"burst {i}")
-    assert _wait(lambda: rec.stats().received == 201), rec.stats().received
+    assert wait_until(lambda: rec.stats().received == 201), rec.stats().received
     during = rec.stats()
     release.set()
     final = rec.stop()

@@ -9,8 +9,7 @@ from services.bus.config import NodeConfig
 from services.ros2 import rmw
 from services.ros2.graph import RosNode
 from services.rosmsg import defs, msgs
-from tests.conftest import Net
-from tests.deploy.cell import wait_until
+from tests.conftest import Net, wait_until
 
 
 def _tokens(s: zenoh.Session) -> set[str]:

@@ -39,8 +39,7 @@ from services.puma.service import PumaService
 from services.puma.sim_arm import SimArm
 from services.ros2.config import Ros2Config
 from services.ros2.service import Ros2Service, bridge_node_config
-from tests.conftest import Net
-from tests.deploy.cell import wait_until as deploy_wait_until
+from tests.conftest import Net, wait_until
 from tests.rosmsg.test_typehash import PUBLISHED
 
 pytestmark = pytest.mark.system
@@ -73,10 +72,6 @@ TOOL_DOWN = np.diag([-1.0, 1.0, -1.0])
 def key(topic: str, dds: str, ns: str = "", domain: int = 0) -> str:
     """The rmw_zenoh data key, written out as the design document gives it."""
     return f"{domain}/{ns + '/' if ns else ''}{topic}/{dds}/{HASH[dds]}"
-
-
-def wait_until(pred: Callable[[], bool], timeout_s: float = DEADLINE_S) -> bool:
-    return deploy_wait_until(pred, timeout_s)
 
 
 @dataclass

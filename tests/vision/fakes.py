@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,15 +14,6 @@ from numpy.typing import NDArray
 from services.vision.camera import CameraError, Intrinsics, StereoPair
 
 MAGENTA = np.array([255, 0, 255], dtype=np.uint8)
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 10.0, what: str = "condition") -> None:
-    """Poll `cond` until it holds; fail the test at the deadline."""
-    deadline = time.monotonic() + timeout_s
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.002)
 
 
 class FakeCamera:

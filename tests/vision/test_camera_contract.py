@@ -8,8 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.vision.camera import Camera, CameraError, camera_from_config, open_camera
-from services.vision.config import VisionConfig
+from services.bus.errors import ConfigError
+from services.vision import backends
+from services.vision.backends import camera_options, open_camera
+from services.vision.camera import Camera, CameraError, Intrinsics
+from services.vision.config import CAMERAS, VisionConfig
 
 from .fakes import FakeCamera, write_video
 
@@ -17,19 +20,19 @@ W, H = 32, 24
 
 
 def _sim(tmp: Path) -> Camera:
-    return open_camera("sim", config=VisionConfig(width=W, height=H), supersample=1)
+    return open_camera(VisionConfig(width=W, height=H))
 
 
 def _opencv_pair(tmp: Path) -> Camera:
     frames = [np.full((H, W, 3), 40 * i, np.uint8) for i in range(4)]
     files = (str(write_video(tmp / "l.avi", frames)), str(write_video(tmp / "r.avi", frames)))
-    return camera_from_config(VisionConfig(camera="opencv", files=files, width=W, height=H))
+    return open_camera(VisionConfig(camera="opencv", files=files, width=W, height=H))
 
 
 def _opencv_sbs(tmp: Path) -> Camera:
     frames = [np.full((H, 2 * W, 3), 40 * i, np.uint8) for i in range(4)]
     path = str(write_video(tmp / "sbs.avi", frames))
-    return camera_from_config(VisionConfig(camera="opencv", files=(path,), width=W, height=H))
+    return open_camera(VisionConfig(camera="opencv", files=(path,), width=W, height=H))
 
 
 def _fake(tmp: Path) -> Camera:
@@ -76,11 +79,35 @@ def test_camera_contract(backend: str, tmp_path: Path) -> None:
         cam.close()
 
 
-def test_unknown_kind_is_a_config_error() -> None:
-    from services.bus.errors import ConfigError
+def test_every_camera_kind_has_a_backend() -> None:
+    assert set(backends.BACKENDS.names) == set(CAMERAS)
 
+
+def test_camera_options_from_the_config() -> None:
+    cfg = VisionConfig()
+    assert camera_options(cfg) == {"config": cfg}
+    files = ("l.avi", "r.avi")
+    k = (70.0, 71.0, 31.0, 23.0)
+    opts = camera_options(
+        VisionConfig(camera="opencv", files=files, width=W, height=H, intrinsics=k, fps=15.0)
+    )
+    assert opts == {
+        "sources": files,
+        "width": W,
+        "height": H,
+        "fps": 15.0,
+        "intrinsics": Intrinsics(*k),
+        "fov_deg": VisionConfig().fov_deg,
+        "baseline_m": VisionConfig().baseline_m,
+        "loop": False,
+    }
+
+
+def test_unknown_kind_is_a_config_error() -> None:
+    config = VisionConfig()
+    object.__setattr__(config, "camera", "kinect")  # past VisionConfig's own check
     with pytest.raises(ConfigError) as err:
-        open_camera("kinect")
+        open_camera(config)
     assert err.value.key == "vision.camera"
 
 
@@ -90,6 +117,6 @@ def test_pure_modules_do_not_load_opencv() -> None:
 
     code = (
         "import sys, services.vision.camera, services.vision.config, services.vision.rig, "
-        "services.vision.pipeline; sys.exit('cv2' in sys.modules)"
+        "services.vision.pipeline, services.vision.backends; sys.exit('cv2' in sys.modules)"
     )
     assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0

@@ -21,8 +21,7 @@ from services.vision.sim_camera import SimStereoCamera
 from services.workcell.messages import M3_PER_ML, WORKCELL_STATE, WorkcellState, object_map
 from services.workcell.physics import WorkcellSim, top_centre
 from services.workcell.scene import BLOCK_SIZE_M, TABLE, default_scene
-
-from .fakes import wait_for
+from tests.conftest import wait_until
 
 SCENE = default_scene()
 TOP = TABLE.top_z
@@ -274,7 +273,7 @@ def test_vision_service_draws_published_workcell_state(net) -> None:
     pub = workcell.publisher(WORKCELL_STATE)
     try:
         pub.put(state({**STACKED, "bottle": BOTTLE_UPRIGHT}, 1))
-        wait_for(lambda: camera._objects is not None, what="workcell/state drawn")
+        assert wait_until(lambda: camera._objects is not None, what="workcell/state drawn")
         objects = camera._objects
         assert objects is not None
         got = {o.name: o.p for o in objects}
@@ -282,7 +281,7 @@ def test_vision_service_draws_published_workcell_state(net) -> None:
             assert np.allclose(got[name], m["p"])
         # A malformed object is rejected with an event, the last poses kept.
         pub.put(state({"block0": _obj("box", (0.5, 0.0, 0.5), (99.0, H, H))}, 2))
-        wait_for(lambda: WORKCELL_STATE.key in vision_node.rejected, what="rejection")
+        assert wait_until(lambda: WORKCELL_STATE.key in vision_node.rejected, what="rejection")
         assert camera._objects is objects
     finally:
         svc.close()

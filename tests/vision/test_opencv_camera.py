@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.vision.backends import open_camera
 from services.vision.camera import CameraError, Intrinsics
 from services.vision.config import VisionConfig
 from services.vision.opencv_camera import OpenCVCamera
@@ -93,7 +94,7 @@ def test_resizes_to_the_configured_size_with_intrinsics_for_it(
     pair_files: tuple[str, str],
 ) -> None:
     cfg = VisionConfig(camera="opencv", files=pair_files, width=32, height=24, fov_deg=90.0)
-    cam = OpenCVCamera.from_config(cfg)
+    cam = open_camera(cfg)
     cam.open()
     try:
         pair = cam.grab()
@@ -105,7 +106,7 @@ def test_resizes_to_the_configured_size_with_intrinsics_for_it(
 
 def test_configured_intrinsics_are_reported(pair_files: tuple[str, str]) -> None:
     k = (70.0, 71.0, 31.0, 23.0)
-    cam = OpenCVCamera.from_config(
+    cam = open_camera(
         VisionConfig(camera="opencv", files=pair_files, width=W, height=H, intrinsics=k)
     )
     cam.open()

@@ -10,13 +10,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from services.vision.backends import open_camera
 from services.vision.camera import CameraError
 from services.vision.config import VisionConfig
-from services.vision.opencv_camera import OpenCVCamera
 from services.vision.pipeline import LatestSlot, StereoPipeline
 from services.vision.sim_camera import SimStereoCamera
+from tests.conftest import wait_until
 
-from .fakes import FakeCamera, Recorder, wait_for, write_video
+from .fakes import FakeCamera, Recorder, write_video
 
 STEREO_FRAME_FIELDS = {
     "seq": int,
@@ -49,7 +50,7 @@ def test_sim_pairs_are_synchronized_and_decode() -> None:
     cam = SimStereoCamera(cfg, supersample=1)
     rec = Recorder()
     with StereoPipeline(cam, cfg, rec.publish, rec.emit) as pipe:
-        wait_for(lambda: len(rec.pairs) >= 12, what="12 published pairs")
+        assert wait_until(lambda: len(rec.pairs) >= 12, what="12 published pairs")
     assert not pipe.running
     pairs = list(rec.pairs)
     seqs = [left["seq"] for left, _ in pairs]
@@ -75,7 +76,7 @@ def test_bgr8_is_the_raw_rows() -> None:
     cfg = VisionConfig(width=16, height=16, fps=100.0, encoding="bgr8")
     cam, rec = FakeCamera(), Recorder()
     with StereoPipeline(cam, cfg, rec.publish, rec.emit) as pipe:
-        wait_for(lambda: len(rec.pairs) >= 3)
+        assert wait_until(lambda: len(rec.pairs) >= 3)
     left, right = rec.pairs[-1]
     assert left["encoding"] == "bgr8" and len(left["data"]) == 16 * 16 * 3
     img = np.frombuffer(left["data"], np.uint8).reshape(16, 16, 3)
@@ -99,15 +100,17 @@ def test_slow_publish_drops_pairs_instead_of_queueing_them() -> None:
     pipe = StereoPipeline(cam, cfg, slow_publish, rec.emit)
     pipe.start()
     try:
-        wait_for(lambda: bool(blocked_seq), what="first publish")
-        wait_for(lambda: pipe.stats()["captured"] >= blocked_seq[0] + 40, what="40 captures")
+        assert wait_until(lambda: bool(blocked_seq), what="first publish")
+        assert wait_until(
+            lambda: pipe.stats()["captured"] >= blocked_seq[0] + 40, what="40 captures"
+        )
         s = pipe.stats()
         assert s["published"] == 0
         in_flight = s["captured"] - s["published"] - s["dropped"]
         assert 0 <= in_flight <= MAX_IN_FLIGHT  # no growth while publish is stuck
         assert s["dropped"] >= 40 - MAX_IN_FLIGHT
         gate.set()
-        wait_for(lambda: len(rec.pairs) >= 3, what="publishing to resume")
+        assert wait_until(lambda: len(rec.pairs) >= 3, what="publishing to resume")
     finally:
         gate.set()
         pipe.stop()
@@ -124,9 +127,9 @@ def test_dead_camera_is_reported_once_and_the_pipeline_keeps_retrying() -> None:
     cfg = VisionConfig(width=16, height=16, fps=100.0, reopen_s=0.02)
     cam, rec = FakeCamera(), Recorder()
     with StereoPipeline(cam, cfg, rec.publish, rec.emit) as pipe:
-        wait_for(lambda: len(rec.pairs) >= 2)
+        assert wait_until(lambda: len(rec.pairs) >= 2)
         cam.fail = CameraError("fake: grab failed on device 0 (disconnected?)")
-        wait_for(lambda: pipe.stats()["grab_errors"] >= 5, what="repeated failures")
+        assert wait_until(lambda: pipe.stats()["grab_errors"] >= 5, what="repeated failures")
         assert pipe.running
         assert cam.open_calls >= 5 and cam.close_calls >= 4  # closed and reopened each time
         errors = [e for e in rec.events if e[0] == "error"]
@@ -136,7 +139,7 @@ def test_dead_camera_is_reported_once_and_the_pipeline_keeps_retrying() -> None:
         assert not pipe.stats()["camera_ok"]
         n = len(rec.pairs)
         cam.fail = None
-        wait_for(lambda: len(rec.pairs) >= n + 2, what="recovery")
+        assert wait_until(lambda: len(rec.pairs) >= n + 2, what="recovery")
         assert rec.kinds() == ["error", "status"]
         assert "recovered" in rec.events[1][1]
         assert pipe.stats()["camera_ok"]
@@ -147,7 +150,7 @@ def test_unexpected_exception_from_a_backend_is_reported_not_fatal() -> None:
     cam, rec = FakeCamera(), Recorder()
     cam.fail = RuntimeError("driver bug")
     with StereoPipeline(cam, cfg, rec.publish, rec.emit) as pipe:
-        wait_for(lambda: pipe.stats()["grab_errors"] >= 3)
+        assert wait_until(lambda: pipe.stats()["grab_errors"] >= 3)
         assert pipe.running
     assert rec.kinds() == ["error"] and "driver bug" in rec.events[0][1]
 
@@ -156,14 +159,14 @@ def test_camera_that_stops_delivering_is_reported_after_the_stall_time() -> None
     cfg = VisionConfig(width=16, height=16, fps=100.0)
     cam, rec = FakeCamera(), Recorder()
     with StereoPipeline(cam, cfg, rec.publish, rec.emit, stall_s=0.1) as pipe:
-        wait_for(lambda: len(rec.pairs) >= 2)
+        assert wait_until(lambda: len(rec.pairs) >= 2)
         cam.starve = True
-        wait_for(lambda: "error" in rec.kinds(), what="stall error")
+        assert wait_until(lambda: "error" in rec.kinds(), what="stall error")
         assert pipe.stats()["grab_misses"] >= 10  # ≥ 0.1 s at 100 fps
-        wait_for(lambda: pipe.stats()["grab_misses"] >= 30)
+        assert wait_until(lambda: pipe.stats()["grab_misses"] >= 30)
         assert rec.kinds() == ["error"] and "no frame" in rec.events[0][1]
         cam.starve = False
-        wait_for(lambda: rec.kinds() == ["error", "status"], what="recovered event")
+        assert wait_until(lambda: rec.kinds() == ["error", "status"], what="recovered event")
 
 
 def test_camera_that_cannot_open_is_retried() -> None:
@@ -171,10 +174,10 @@ def test_camera_that_cannot_open_is_retried() -> None:
     cam, rec = FakeCamera(), Recorder()
     cam.fail_open = True
     with StereoPipeline(cam, cfg, rec.publish, rec.emit):
-        wait_for(lambda: cam.open_calls >= 3, what="open retries")
+        assert wait_until(lambda: cam.open_calls >= 3, what="open retries")
         assert rec.kinds() == ["error"] and "no such device" in rec.events[0][1]
         cam.fail_open = False
-        wait_for(lambda: len(rec.pairs) >= 1, what="first pair after the camera appeared")
+        assert wait_until(lambda: len(rec.pairs) >= 1, what="first pair after the camera appeared")
 
 
 def test_failing_publish_is_counted_and_reported_once() -> None:
@@ -185,7 +188,7 @@ def test_failing_publish_is_counted_and_reported_once() -> None:
         raise OSError("session closed")
 
     with StereoPipeline(cam, cfg, broken, rec.emit) as pipe:
-        wait_for(lambda: pipe.stats()["publish_errors"] >= 5)
+        assert wait_until(lambda: pipe.stats()["publish_errors"] >= 5)
         assert pipe.running
     assert rec.kinds() == ["error"] and "session closed" in rec.events[0][1]
 
@@ -202,10 +205,10 @@ def test_video_file_end_is_an_error_event(tmp_path: Path) -> None:
         fps=100.0,
         reopen_s=30.0,
     )
-    cam, rec = OpenCVCamera.from_config(cfg), Recorder()
+    cam, rec = open_camera(cfg), Recorder()
     with StereoPipeline(cam, cfg, rec.publish, rec.emit) as pipe:
-        wait_for(lambda: "error" in rec.kinds(), what="end of file")
-        wait_for(lambda: pipe.stats()["published"] + pipe.stats()["dropped"] == 5)
+        assert wait_until(lambda: "error" in rec.kinds(), what="end of file")
+        assert wait_until(lambda: pipe.stats()["published"] + pipe.stats()["dropped"] == 5)
     assert "end of file" in rec.events[0][1]
     assert rec.kinds() == ["error"]
     assert pipe.stats()["skew_ms_max"] > 0.0  # two files, grabbed one after the other
@@ -216,7 +219,7 @@ def test_stop_closes_the_camera_and_publishes_no_more() -> None:
     cam, rec = FakeCamera(), Recorder()
     pipe = StereoPipeline(cam, cfg, rec.publish, rec.emit)
     pipe.start()
-    wait_for(lambda: len(rec.pairs) >= 2)
+    assert wait_until(lambda: len(rec.pairs) >= 2)
     pipe.stop()
     # Every thread has ended, so publish cannot be called again.
     assert not pipe.running and not cam.is_open
@@ -230,24 +233,24 @@ def test_nothing_is_grabbed_or_published_while_nobody_watches() -> None:
     cfg = VisionConfig(width=16, height=16, fps=100.0)
     cam, rec = FakeCamera(), Recorder()
     with StereoPipeline(cam, cfg, rec.publish, rec.emit, watched=False) as pipe:
-        wait_for(lambda: pipe.stats()["idle_waits"] == 1, what="the capture thread asleep")
+        assert wait_until(lambda: pipe.stats()["idle_waits"] == 1, what="the capture thread asleep")
         assert cam.is_open, "the camera is opened at start, ready for the first viewer"
         assert (cam.frames, cam.keep_alives, len(rec.pairs)) == (0, 1, 0)
         assert pipe.stats()["idle"] is True
 
         pipe.set_watched(True)
-        wait_for(lambda: len(rec.pairs) >= 5, what="pairs once watched")
+        assert wait_until(lambda: len(rec.pairs) >= 5, what="pairs once watched")
         assert pipe.stats()["idle"] is False
 
         pipe.set_watched(False)
-        wait_for(lambda: pipe.stats()["idle_waits"] == 2, what="the capture thread asleep")
+        assert wait_until(lambda: pipe.stats()["idle_waits"] == 2, what="the capture thread asleep")
         frames, published = cam.frames, pipe.stats()["published"]
         # Asleep on a condition, not polling: a second viewer coming and going wakes it
         # exactly once more, and no frame was grabbed in between.
         assert pipe.stats()["captured"] == frames and cam.keep_alives == 2
 
         pipe.set_watched(True)
-        wait_for(lambda: pipe.stats()["published"] >= published + 3, what="resumed pairs")
+        assert wait_until(lambda: pipe.stats()["published"] >= published + 3, what="resumed pairs")
     assert not pipe.running and not cam.is_open
 
 
@@ -257,9 +260,9 @@ def test_a_new_viewer_gets_a_pair_at_once_not_at_the_next_tick() -> None:
     cfg = VisionConfig(width=16, height=16, fps=0.01)
     cam, rec = FakeCamera(), Recorder()
     with StereoPipeline(cam, cfg, rec.publish, rec.emit, watched=False) as pipe:
-        wait_for(lambda: pipe.stats()["idle_waits"] == 1, what="the capture thread asleep")
+        assert wait_until(lambda: pipe.stats()["idle_waits"] == 1, what="the capture thread asleep")
         pipe.set_watched(True)
-        wait_for(lambda: len(rec.pairs) == 1, what="a pair for the new viewer")
+        assert wait_until(lambda: len(rec.pairs) == 1, what="a pair for the new viewer")
         assert cam.frames == 1
 
 
@@ -268,12 +271,12 @@ def test_a_device_keeps_being_read_but_nothing_is_encoded_while_unwatched() -> N
     cam, rec = FakeCamera(), Recorder()
     cam.device = True
     with StereoPipeline(cam, cfg, rec.publish, rec.emit, watched=False) as pipe:
-        wait_for(lambda: cam.keep_alives >= 10, what="the device kept fresh")
+        assert wait_until(lambda: cam.keep_alives >= 10, what="the device kept fresh")
         s = pipe.stats()
         assert (cam.frames, s["captured"], s["encoded"], s["published"]) == (0, 0, 0, 0)
         assert s["kept_alive"] >= 10 and s["idle_waits"] == 0 and rec.events == []
         pipe.set_watched(True)
-        wait_for(lambda: len(rec.pairs) >= 3, what="pairs once watched")
+        assert wait_until(lambda: len(rec.pairs) >= 3, what="pairs once watched")
 
 
 def test_a_device_that_dies_while_unwatched_is_reported_and_reopened() -> None:
@@ -281,12 +284,12 @@ def test_a_device_that_dies_while_unwatched_is_reported_and_reopened() -> None:
     cam, rec = FakeCamera(), Recorder()
     cam.device = True
     with StereoPipeline(cam, cfg, rec.publish, rec.emit, watched=False):
-        wait_for(lambda: cam.keep_alives >= 2)
+        assert wait_until(lambda: cam.keep_alives >= 2)
         cam.fail = CameraError("fake: unplugged")
-        wait_for(lambda: cam.open_calls >= 3, what="reopen attempts")
+        assert wait_until(lambda: cam.open_calls >= 3, what="reopen attempts")
         assert rec.kinds() == ["error"]
         cam.fail = None
-        wait_for(lambda: rec.kinds() == ["error", "status"], what="the recovered event")
+        assert wait_until(lambda: rec.kinds() == ["error", "status"], what="the recovered event")
 
 
 def test_stop_wakes_an_idle_pipeline() -> None:
@@ -295,7 +298,7 @@ def test_stop_wakes_an_idle_pipeline() -> None:
         cam, VisionConfig(width=16, height=16), rec.publish, rec.emit, watched=False
     )
     pipe.start()
-    wait_for(lambda: pipe.stats()["idle_waits"] == 1)
+    assert wait_until(lambda: pipe.stats()["idle_waits"] == 1)
     pipe.stop()
     assert not pipe.running and not cam.is_open
 

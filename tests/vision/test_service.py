@@ -15,8 +15,7 @@ from services.puma.kinematics import DEFAULT_eMt, Puma560, qn
 from services.vision.config import VisionConfig
 from services.vision.service import VisionService
 from services.vision.sim_camera import SimStereoCamera
-
-from .fakes import wait_for
+from tests.conftest import wait_until
 
 STEREO = (keys.STEREO_L, keys.STEREO_R)
 
@@ -86,10 +85,14 @@ def test_sim_camera_draws_the_newest_robot_state_once_watched(net) -> None:
                     cmd_seq=0,
                 )
             )
-        wait_for(lambda: svc._robot is not None and svc._robot.seq == 3, what="robot/state")
+        assert wait_until(
+            lambda: svc._robot is not None and svc._robot.seq == 3, what="robot/state"
+        )
         assert camera._robot is None, "the arm was drawn while nobody watched"
         frames = viewer.subscribe(keys.STEREO_L)
-        wait_for(lambda: camera._robot is not None, what="the arm drawn for the first viewer")
+        assert wait_until(
+            lambda: camera._robot is not None, what="the arm drawn for the first viewer"
+        )
         assert frames.wait_count(1, 10.0)
         robot = camera._robot
         assert robot is not None
@@ -119,17 +122,21 @@ def test_vision_renders_only_while_someone_subscribes(net) -> None:
             return got[eye]
 
     try:
-        wait_for(lambda: svc.pipeline.stats()["idle_waits"] == 1, what="vision asleep")
+        assert wait_until(lambda: svc.pipeline.stats()["idle_waits"] == 1, what="vision asleep")
         assert stats.wait_for(lambda s: s.data is not None and s.data["idle"], 10.0)
         assert svc.pipeline.stats()["captured"] == 0
 
         subs = [viewer.session.declare_subscriber(k.key, on_sample) for k in STEREO]
-        wait_for(lambda: count("l") >= 5 and count("r") >= 5, what="5 pairs", timeout_s=20.0)
+        assert wait_until(
+            lambda: count("l") >= 5 and count("r") >= 5, what="5 pairs", timeout_s=20.0
+        )
         assert stats.wait_for(lambda s: s.data is not None and not s.data["idle"], 10.0)
 
         for sub in subs:
             sub.undeclare()
-        wait_for(lambda: svc.pipeline.stats()["idle_waits"] == 2, what="vision asleep again")
+        assert wait_until(
+            lambda: svc.pipeline.stats()["idle_waits"] == 2, what="vision asleep again"
+        )
         captured = svc.pipeline.stats()["captured"]
         n = stats.received
         assert stats.wait_count(n + 2, 10.0), "vision/stats stopped flowing"
@@ -149,7 +156,7 @@ def test_a_first_subscriber_gets_a_pair_at_once(make_net, ns: str) -> None:
     viewer = net.node("viewer")
     svc = VisionService(vision_node, VisionConfig(width=160, height=120, fps=0.02))
     try:
-        wait_for(lambda: svc.pipeline.stats()["idle_waits"] == 1, what="vision asleep")
+        assert wait_until(lambda: svc.pipeline.stats()["idle_waits"] == 1, what="vision asleep")
         frames = viewer.subscribe(keys.STEREO_R)
         assert frames.wait_count(1, 20.0), "no pair for the first subscriber"
     finally:

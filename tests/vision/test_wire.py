@@ -11,15 +11,16 @@ from services.bus import codec
 from services.bus.messages import StereoFrame, VisionStats
 from services.vision.config import VisionConfig
 from services.vision.pipeline import StereoPipeline
+from tests.conftest import wait_until
 
-from .fakes import FakeCamera, Recorder, wait_for
+from .fakes import FakeCamera, Recorder
 
 
 def test_frames_and_stats_pass_the_codec() -> None:
     cfg = VisionConfig(width=16, height=16, fps=100.0)
     rec = Recorder()
     with StereoPipeline(FakeCamera(), cfg, rec.publish, rec.emit) as pipe:
-        wait_for(lambda: len(rec.pairs) >= 3)
+        assert wait_until(lambda: len(rec.pairs) >= 3)
         stats: dict[str, Any] = pipe.stats_fields()
     left, right = rec.pairs[-1]
     for fields in (left, right):

@@ -6,6 +6,10 @@ with `path` (bytes), `vendor_id`, `product_id`, `manufacturer_string`, `product_
 `read(max_length, timeout_ms=0)` (a list of ints, empty when nothing is pending),
 `close()`. Reports are queued per path with `push`; `unplug` makes the next read fail as
 hidapi does when the device goes away.
+
+A fake of the library, not of a device, so it lives with the tests: pass it to
+`HidSpaceMouse(hid_api=…)`, or put it in `sys.modules["hid"]` to reach the backend through
+`open_master_device(config)`.
 """
 
 from __future__ import annotations
