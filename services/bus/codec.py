@@ -33,6 +33,7 @@ import numpy as np
 
 from services.bus.errors import ProtocolError
 from services.bus.messages import MAX_TEXT, MaxLen, Message, Range, Rotation, Size
+from services.geometry import ROTATION_TOL, rotation_defect
 
 M = TypeVar("M", bound=Message)
 Validator = Callable[[str, Any], Any]
@@ -106,22 +107,7 @@ def _unwrap_optional(tp: Any) -> tuple[Any, bool]:
 # --- rotations ----------------------------------------------------------------------
 
 
-def rotation_defect(r: Sequence[float]) -> tuple[float, float]:
-    """(‖RᵀR − I‖ Frobenius, det R) of a row-major 3×3 `r`, in plain floats (no numpy)."""
-    a, b, c, d, e, f, g, h, i = r
-    # RᵀR is symmetric: its entries are the dot products of R's columns.
-    n00 = a * a + d * d + g * g - 1.0
-    n11 = b * b + e * e + h * h - 1.0
-    n22 = c * c + f * f + i * i - 1.0
-    n01 = a * b + d * e + g * h
-    n02 = a * c + d * f + g * i
-    n12 = b * c + e * f + h * i
-    err = math.hypot(n00, n11, n22, n01, n01, n02, n02, n12, n12)
-    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-    return err, det
-
-
-def check_rotation(name: str, r: Sequence[float], tol: float = 1e-6) -> None:
+def check_rotation(name: str, r: Sequence[float], tol: float = ROTATION_TOL) -> None:
     """Reject a non-orthonormal (‖RᵀR − I‖ > tol) or reflected (det R < 0) rotation."""
     err, det = rotation_defect(r)
     if not err <= tol:  # NaN (opposite infinities in a product) is rejected too

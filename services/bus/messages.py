@@ -14,6 +14,8 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from services.geometry import ROTATION_TOL
+
 
 @dataclass(frozen=True, slots=True)
 class Size:
@@ -24,9 +26,9 @@ class Size:
 
 @dataclass(frozen=True, slots=True)
 class Rotation:
-    """Annotation: the 9 floats are a proper rotation (‖RᵀR − I‖ ≤ 1e-6, det R > 0)."""
+    """Annotation: the 9 floats are a proper rotation (‖RᵀR − I‖ ≤ tol, det R > 0)."""
 
-    tol: float = 1e-6
+    tol: float = ROTATION_TOL
 
 
 @dataclass(frozen=True, slots=True)

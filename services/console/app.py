@@ -45,7 +45,6 @@ from services.console.geometry import (
     force_arrow,
     hand_pose,
     link_segments,
-    wxyz_from_R,
 )
 from services.console.hand import HandLink, ToolPose
 from services.console.mirror import BusMirror
@@ -69,6 +68,7 @@ from services.console.world import (
     object_nodes,
     puddle_nodes,
 )
+from services.geometry import wxyz_from_R
 from services.puma.kinematics import Puma560
 from services.vision.objects import LIQUID_BGR, SPILL_BGR, Spills
 from services.workcell.messages import WORKCELL_STATE, objects_of

@@ -7,56 +7,16 @@ quaternions `wxyz` (w first, viser's convention). Nothing here touches the bus o
 from __future__ import annotations
 
 import itertools
-from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from services.geometry import R_from_wxyz, wxyz_from_R
+
 Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
-Frame = Literal["world", "tool"]
 
 MIN_SEGMENT_M = 1e-6
-
-
-def wxyz_from_R(R: ArrayLike) -> Vec:
-    """The unit quaternion (w, x, y, z), w ≥ 0, of the rotation matrix R (Shepperd's method,
-    stable for every angle)."""
-    m = np.asarray(R, dtype=float).reshape(3, 3)
-    tr = float(np.trace(m))
-    if tr > 0.0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = np.array(
-            [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-        )
-    else:
-        i = int(np.argmax(np.diag(m)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(max(1.0 + m[i, i] - m[j, j] - m[k, k], 0.0))
-        q = np.zeros(4)
-        q[0] = (m[k, j] - m[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (m[j, i] + m[i, j]) / s
-        q[1 + k] = (m[k, i] + m[i, k]) / s
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0.0 else -q
-
-
-def R_from_wxyz(wxyz: ArrayLike) -> Mat:
-    """The rotation matrix of a quaternion (w, x, y, z); normalised first, so a gizmo pose
-    that drifted off unit length still gives a proper rotation."""
-    q = np.asarray(wxyz, dtype=float).reshape(4)
-    n = float(np.linalg.norm(q))
-    if not np.isfinite(n) or n < 1e-12:
-        raise ValueError(f"not a quaternion: {wxyz!r}")
-    w, x, y, z = q / n
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 def rotation_z_to(direction: ArrayLike) -> Mat:
@@ -96,24 +56,6 @@ def cylinder_pose(a: ArrayLike, b: ArrayLike) -> tuple[Vec, Vec, float]:
     pb = np.asarray(b, dtype=float).reshape(3)
     d = pb - pa
     return 0.5 * (pa + pb), wxyz_from_R(rotation_z_to(d)), float(np.linalg.norm(d))
-
-
-def commanded_tool_pose(
-    p0: ArrayLike, R0: ArrayLike, dp: ArrayLike, dR: ArrayLike, frame: Frame
-) -> tuple[Vec, Mat]:
-    """The tool target an OperatorCommand asks for, PROTOCOL §2 (the paper's eqs. 2–3):
-
-        R_target = R0 · dR
-        p_target = p0 + dp          (frame "world", ΔT_w)
-        p_target = p0 + R0 · dp     (frame "tool",  M_w^t ΔT_t)
-
-    (p0, R0): the tool pose at the engagement's first command (m, world)."""
-    p0v = np.asarray(p0, dtype=float).reshape(3)
-    R0m = np.asarray(R0, dtype=float).reshape(3, 3)
-    dpv = np.asarray(dp, dtype=float).reshape(3)
-    R = R0m @ np.asarray(dR, dtype=float).reshape(3, 3)
-    p = p0v + dpv if frame == "world" else p0v + R0m @ dpv
-    return p, R
 
 
 def force_arrow(

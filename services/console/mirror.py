@@ -52,8 +52,9 @@ from services.bus.messages import (
     mat3,
 )
 from services.bus.node import Node, Subscription
-from services.console.geometry import Mat, Vec, commanded_tool_pose
+from services.console.geometry import Mat, Vec
 from services.console.tdpa import PortSeen, TdpaView, newer, plot_row, tdpa_view
+from services.geometry import tool_target_pose
 from services.workcell.messages import WORKCELL_STATE, WorkcellState
 
 M = TypeVar("M", bound=Message)
@@ -390,7 +391,7 @@ class BusMirror:
             return None
         if time.monotonic() - rx > TARGET_STALE_S:
             return None
-        p, R = commanded_tool_pose(ref.p0, ref.R0, cmd.dp, mat3(cmd.dR), cmd.frame)
+        p, R = tool_target_pose(ref.p0, ref.R0, cmd.dp, mat3(cmd.dR), cmd.frame)
         return p, R, cmd.active
 
     def set_status(

@@ -18,7 +18,7 @@ import numpy as np
 
 from services.bus.bounds import each_out_of_bounds
 from services.bus.errors import ProtocolError
-from services.console.geometry import wxyz_from_R
+from services.geometry import wxyz_from_R
 from services.vision.objects import Spills
 from services.workcell.messages import M3_PER_ML, ObjectView
 from services.workcell.scene import Box, Cylinder, Scene

@@ -50,7 +50,6 @@ from services.bus.bounds import norm_out_of_bounds
 from services.bus.errors import ErrorCode, RpcError
 from services.bus.messages import ForceSample, OperatorCommand, RobotState
 from services.decision.config import DecisionConfig
-from services.decision.filters import log_so3
 from services.decision.masters import MasterRecord, Masters
 from services.decision.notices import Notice, Notices, floats
 from services.decision.target import MOVING_STATUSES, Sensed, SupervisedTarget
@@ -58,6 +57,7 @@ from services.decision.taskrun import TaskRun, Tasks, run_tick
 from services.decision.tasks import TaskPlan
 from services.decision.watch import WATCH_PERIOD_NS, Watch, WatchStop, watch_step
 from services.decision.watchdogs import follow_deadline_ns, follow_problem, fresh
+from services.geometry import log_so3
 
 
 class Mode(Enum):

@@ -25,14 +25,10 @@ from services.decision.filters import (
     clip_norm,
     effective_box,
     engagement_command,
-    exp_so3,
-    log_so3,
-    norm3,
-    operator_target,
-    orthonormalize,
     without_motion_into,
 )
 from services.decision.notices import Notices, floats
+from services.geometry import exp_so3, log_so3, norm3, orthonormalize, tool_target_pose
 
 Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
@@ -125,7 +121,7 @@ class SupervisedTarget:
         from the engagement pose), keeping what the filters remove as the offset. False
         (nothing moved) if that pose is not finite."""
         assert self.p0 is not None
-        p_des, R_des = operator_target(self.p0, self.R0, cmd.dp, mat3(cmd.dR), cmd.frame)
+        p_des, R_des = tool_target_pose(self.p0, self.R0, cmd.dp, mat3(cmd.dR), cmd.frame)
         g_p = p_des + self.off_p
         g_R = R_des @ self.off_R
         if not (np.isfinite(g_p).all() and np.isfinite(g_R).all()):

@@ -18,10 +18,11 @@ from numpy.typing import NDArray
 
 from services.bus.errors import ErrorCode
 from services.bus.messages import RobotState, mat3
-from services.decision.filters import clip_norm, norm3
+from services.decision.filters import clip_norm
 from services.decision.notices import Notices, floats
 from services.decision.target import MOVING_STATUSES, STEP_EPS_M, Sensed, SupervisedTarget
 from services.decision.tasks import Grip, GuardedMove, MoveTo, Step, TaskPlan
+from services.geometry import norm3
 
 Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]

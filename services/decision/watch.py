@@ -15,8 +15,9 @@ import numpy as np
 
 from services.bus.messages import ForceSample, RobotState, mat3
 from services.decision.config import DecisionConfig
-from services.decision.filters import in_box, norm3
+from services.decision.filters import in_box
 from services.decision.notices import floats
+from services.geometry import norm3
 
 WATCH_PERIOD_NS = 5_000_000
 """A forwarded motion is checked this often (200 Hz): at 0.5 m/s, 2.5 mm between checks."""

@@ -22,13 +22,14 @@ moments in N·m about the tool point, both in the tool frame R_t.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+
+from services.geometry import ROTATION_TOL, exp_so3, log_so3, rotation_problem, skew, vee
 
 Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
@@ -37,46 +38,6 @@ RotationMode = Literal["exact", "small_angle"]
 _I3 = np.eye(3)
 CALIBRATION_MAX_COND = 1e12
 """A calibration this ill-conditioned cannot be inverted for the simulated sensor."""
-
-
-def skew(v: ArrayLike) -> Mat:
-    """[v]×, the 3×3 matrix with [v]× u = v × u."""
-    x, y, z = np.asarray(v, dtype=float)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-
-
-def vee(m: Mat) -> Vec:
-    """The vector of the skew-symmetric part of m (inverse of `skew`)."""
-    return 0.5 * np.array([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1]])
-
-
-def exp_so3(theta: ArrayLike) -> Mat:
-    """Rotation matrix of the rotation vector `theta` (rad), Rodrigues' formula."""
-    th = np.asarray(theta, dtype=float)
-    angle = float(np.linalg.norm(th))
-    k = skew(th)
-    if angle < 1e-8:
-        return _I3 + k + 0.5 * (k @ k)
-    return _I3 + (math.sin(angle) / angle) * k + ((1.0 - math.cos(angle)) / angle**2) * (k @ k)
-
-
-def log_so3(r: Mat) -> Vec:
-    """Rotation vector (rad, angle in [0, π]) of the rotation matrix `r`."""
-    cos = min(1.0, max(-1.0, 0.5 * (float(np.trace(r)) - 1.0)))
-    angle = math.acos(cos)
-    w = vee(r)  # = sin(angle) · axis
-    if angle < 1e-8:
-        return w
-    if angle < math.pi - 1e-4:
-        return (angle / math.sin(angle)) * w
-    # Near π, sin → 0: take the axis from the symmetric part, (1 − cos) a aᵀ.
-    aat = 0.5 * (r + r.T) - cos * _I3
-    j = int(np.argmax(np.diag(aat)))
-    axis = aat[:, j] / math.sqrt(max(aat[j, j], 1e-300))
-    axis /= np.linalg.norm(axis)
-    if float(axis @ w) < 0.0:
-        axis = -axis
-    return angle * axis
 
 
 def rotation_from_vector(theta: ArrayLike, mode: RotationMode) -> Mat:
@@ -188,13 +149,12 @@ def as_vec3(value: float | Sequence[float] | Vec, name: str) -> Vec:
     return v
 
 
-def as_rotation(value: ArrayLike, name: str, tol: float = 1e-6) -> Mat:
+def as_rotation(value: ArrayLike, name: str, tol: float = ROTATION_TOL) -> Mat:
     """A proper rotation from 9 row-major floats or a 3×3 array (PROTOCOL.md conventions)."""
     r = np.asarray(value, dtype=float).reshape(3, 3)
-    if not np.all(np.isfinite(r)):
-        raise ValueError(f"{name}: not finite")
-    if np.linalg.norm(r.T @ r - _I3) > tol or np.linalg.det(r) < 0.0:
-        raise ValueError(f"{name}: not a proper rotation (‖RᵀR − I‖ > {tol} or det R < 0)")
+    why = rotation_problem(r, tol)
+    if why is not None:
+        raise ValueError(f"{name}: not a proper rotation: {why}")
     return r
 
 

@@ -16,9 +16,9 @@ import numpy as np
 
 from services.bus.config import section
 from services.bus.errors import ConfigError
+from services.geometry import is_rotation
 from services.master.arm_kinematics import DEFAULT_MASTER_DH, DhRow
 from services.master.haply_protocol import BUTTONS, DEFAULT_URL
-from services.master.so3 import is_rotation
 
 DeviceKind = Literal[
     "spacemouse", "serial_arm", "keyboard", "scripted", "virtual", "haply", "haptic_sim"

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from services.bus.errors import TelerobotError
-from services.master.so3 import is_rotation
+from services.geometry import is_rotation
 
 
 class DeviceNotFound(TelerobotError):

@@ -20,9 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from services.geometry import is_rotation
 from services.master.config import Frame, MasterConfig
 from services.master.devices import HandReading
-from services.master.so3 import is_rotation
 
 Vec3 = NDArray[np.float64]
 

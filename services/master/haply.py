@@ -32,6 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from services.bus.errors import ProtocolError
+from services.geometry import R_from_wxyz, rotation_angle
 from services.master.devices import DeviceLost, DeviceNotFound, HandReading
 from services.master.feedback import saturate
 from services.master.haply_protocol import (
@@ -42,7 +43,6 @@ from services.master.haply_protocol import (
     force_message,
     parse_frame,
 )
-from services.master.so3 import rot_from_quat, rotation_angle
 
 log = logging.getLogger("telerobot.master.haply")
 
@@ -332,7 +332,7 @@ class HaplyMaster:
             self._grip_id = _pick([g.device_id for g in frame.grips], self._wanted_grip)
         grip = frame.grip(self._grip_id) if self._grip_id else None
         p = np.array(cursor.position_m)
-        R = self._R if grip is None else rot_from_quat(*grip.orientation_wxyz)
+        R = self._R if grip is None else R_from_wxyz(grip.orientation_wxyz)
         if self._stats["frames"] > 0:
             dt = now - self._valid_t
             step_m = float(np.linalg.norm(p - self._p))

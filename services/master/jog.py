@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.master.so3 import exp_so3, orthonormalize
+from services.geometry import exp_so3, orthonormalize
 
 MAX_STEP_S = 0.05
 """Longest time step integrated at once: after a stall (a slow read, a paused process) the

@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from services.geometry import exp_so3, is_rotation, rot_z, slerp
 from services.master.devices import HandReading
-from services.master.so3 import exp_so3, is_rotation, rot_z, slerp
 from services.master.virtual import VirtualMaster
 
 GENERATED_MOTIONS = ("circle", "line", "square")

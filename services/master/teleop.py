@@ -17,9 +17,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from services.bus.messages import MasterState, OperatorCommand
+from services.geometry import is_rotation, rxyz, rxyz_inv, rxyz_inv_near
 from services.master.config import FRAMES, Frame, MasterConfig
 from services.master.devices import HandReading
-from services.master.so3 import is_rotation, rxyz, rxyz_inv, rxyz_inv_near
 
 Vec3 = NDArray[np.float64]
 Mat3 = NDArray[np.float64]

@@ -16,13 +16,11 @@ from numpy.typing import NDArray
 
 from services.bus.bounds import short
 from services.bus.errors import RpcError
+from services.geometry import rotation_problem
 
 Vec = NDArray[np.float64]
 RelFrame = Literal["world", "wrist", "tool"]
 REL_FRAMES: tuple[str, ...] = get_args(RelFrame)
-
-ROTATION_TOL = 1e-6
-"""‖RᵀR − I‖_F above this, or det R < 0, is not a rotation (PROTOCOL.md conventions)."""
 
 
 def is_number(x: Any) -> bool:
@@ -50,17 +48,6 @@ def arg_vector(args: Mapping[str, Any], key: str, n: int) -> Vec:
     if v is None:
         raise RpcError("bad_request", f"{key}: missing ({n} numbers)")
     return v
-
-
-def rotation_problem(R: NDArray[np.float64]) -> str | None:
-    """Why a 3×3 matrix is not a rotation, or None (PROTOCOL conventions)."""
-    if R.shape != (3, 3) or not np.all(np.isfinite(R)):
-        return "not a finite 3x3 matrix"
-    if float(np.linalg.norm(R.T @ R - np.eye(3))) > ROTATION_TOL:
-        return "not orthonormal"
-    if float(np.linalg.det(R)) < 0.0:
-        return "a reflection (det < 0)"
-    return None
 
 
 def opt_rotation(args: Mapping[str, Any], key: str) -> Vec | None:

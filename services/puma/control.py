@@ -33,7 +33,8 @@ import pinocchio as pin
 from numpy.typing import NDArray
 
 from services.bus.events import EventLimiter
-from services.puma.arguments import RelFrame, is_number, rotation_problem, too_long
+from services.geometry import rotation_problem
+from services.puma.arguments import RelFrame, is_number, too_long
 from services.puma.arm import Arm, ArmError
 from services.puma.config import PumaConfig
 from services.puma.kinematics import DEFAULT_eMt, Puma560, Unreachable

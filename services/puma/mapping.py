@@ -10,14 +10,14 @@ tool placement eMt. Frames: world R_w; tool R_t; `dR` is a rotation in the tool 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import pinocchio as pin
 from numpy.typing import NDArray
 
+from services.geometry import TeleopFrame, tool_target_pose
+
 Vec = NDArray[np.float64]
-TeleopFrame = Literal["world", "tool"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -48,24 +48,6 @@ class TeleopInput:
             raise ValueError(f"frame must be 'world' or 'tool', got {self.frame!r}")
         object.__setattr__(self, "dp", dp)
         object.__setattr__(self, "dR", dR)
-
-
-def target_pose(p0: Vec, R0: Vec, dp: Vec, dR: Vec, frame: TeleopFrame) -> tuple[Vec, Vec]:
-    """Target tool pose (p, R) in the world from the engagement pose (p0, R0) (PROTOCOL §2).
-
-    R_target = R0·dR (dR = ΔM_t, in the tool frame); p_target = p0 + dp in "world" mode
-    (ΔT_w) or p0 + R0·dp in "tool" mode (M_w^t ΔT_t): the right-hand side of eq. (2) with the
-    tool-point term moved into the effector conversion. Units: m.
-    """
-    p0 = np.asarray(p0, dtype=np.float64)
-    R0 = np.asarray(R0, dtype=np.float64)
-    dp = np.asarray(dp, dtype=np.float64)
-    R_target = R0 @ np.asarray(dR, dtype=np.float64)
-    if frame == "world":
-        return p0 + dp, R_target
-    if frame == "tool":
-        return p0 + R0 @ dp, R_target
-    raise ValueError(f"frame must be 'world' or 'tool', got {frame!r}")
 
 
 def effector_target(p_target: Vec, R_target: Vec, eMt: pin.SE3) -> pin.SE3:
@@ -120,7 +102,7 @@ class TeleopMapping:
             offset = cmd.dp if cmd.frame == "world" else self._R0 @ cmd.dp
             self._p0 = p_now - offset
         self.engage = cmd.engage
-        p, R = target_pose(self._p0, self._R0, cmd.dp, cmd.dR, cmd.frame)
+        p, R = tool_target_pose(self._p0, self._R0, cmd.dp, cmd.dR, cmd.frame)
         return pin.SE3(R, p)
 
     def rebase(self) -> None:

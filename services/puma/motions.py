@@ -14,8 +14,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.geometry import angle_between
 from services.puma.planning import PLAN_SPEED_MARGIN
-from services.puma.safety import MotionLimits, ToolPoseFn, rotation_angle
+from services.puma.safety import MotionLimits, ToolPoseFn
 from services.puma.trajectory import Trapezoid, discrete_brake_speed
 
 Vec = NDArray[np.float64]
@@ -131,7 +132,7 @@ def servo_target(
 
     def over(v: Vec) -> float:
         p1, R1 = tool_pose(q + v * dt_s)
-        return max(float(np.linalg.norm(p1 - p0)) / max_dp, rotation_angle(R0, R1) / max_dth)
+        return max(float(np.linalg.norm(p1 - p0)) / max_dp, angle_between(R0, R1) / max_dth)
 
     k = over(v_des)
     if k > 1.0:

@@ -9,20 +9,15 @@ Units: rad, m, s.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from services.geometry import angle_between
+
 Vec = NDArray[np.float64]
-
-
-def rotation_angle(Ra: NDArray[np.float64], Rb: NDArray[np.float64]) -> float:
-    """The angle (rad) of RaᵀRb, accurate for small angles: ‖Ra − Rb‖_F = 2√2·sin(θ/2)."""
-    d = float(np.linalg.norm(Ra - Rb))
-    return 2.0 * math.asin(min(1.0, d / (2.0 * math.sqrt(2.0))))
 
 
 @dataclass(frozen=True, slots=True)
@@ -95,7 +90,7 @@ def safe_step(
     max_dth = lim.tool_rot_speed_rad_s * dt_s
     p1, R1 = tool_pose(q_next)
     for _ in range(8):
-        over = max(float(np.linalg.norm(p1 - p0)) / max_dp, rotation_angle(R0, R1) / max_dth)
+        over = max(float(np.linalg.norm(p1 - p0)) / max_dp, angle_between(R0, R1) / max_dth)
         if over <= 1.0:
             break
         limited.add("tool_speed")

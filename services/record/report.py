@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, Protocol, cast
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from services.bus import codec, keys
 from services.bus.errors import ProtocolError
@@ -48,6 +48,7 @@ from services.bus.messages import (
     RobotState,
     mat3,
 )
+from services.geometry import tool_target_point
 from services.record import plots
 from services.record.archive import Recording
 
@@ -204,16 +205,6 @@ class Report:
         return out
 
 
-def command_target(p0: ArrayLike, R0: ArrayLike, dp: ArrayLike, frame: str) -> NDArray[np.float64]:
-    """The tool-point target of a command (PROTOCOL.md §2, the paper's eq. 2):
-    `p0 + dp` in the world frame, `p0 + R0·dp` in the tool frame, where (p0, R0) is the tool
-    pose at the engagement's first active command."""
-    p0a, dpa = np.asarray(p0, dtype=float), np.asarray(dp, dtype=float)
-    if frame == "tool":
-        return p0a + np.asarray(R0, dtype=float).reshape(3, 3) @ dpa
-    return p0a + dpa
-
-
 class _Stamped(Protocol):
     """Every contract message has these (messages.py's base class does not declare them)."""
 
@@ -332,7 +323,7 @@ def analyze(paths: Sequence[str | Path], select: Callable[[str], bool] | None = 
                     eng = engaged[k] = _Engagement(msg.engage, tool[0].copy(), tool[1].copy())
                 if eng is None or eng.engage != msg.engage:
                     continue  # no arm pose known yet: the target is unknown
-                p = command_target(eng.p0, eng.R0, msg.dp, msg.frame)
+                p = tool_target_point(eng.p0, eng.R0, msg.dp, msg.frame)
                 ts, ps = traces.targets.setdefault(m.key, ([], []))
                 ts.append(t_s)
                 ps.append(tuple(float(x) for x in p))

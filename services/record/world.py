@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from services.geometry import R_from_wxyz, quat_of_rotation, quat_of_rx_rz
 from services.puma.kinematics import PUMA560_DH, DHLink
 from services.puma.urdf import (
     JOINT_LENGTH_M,
@@ -181,36 +182,13 @@ SCHEMAS: dict[str, dict[str, Any]] = {
 # --- geometry ------------------------------------------------------------------------------
 def quaternion(R: Sequence[float] | F64) -> dict[str, float]:
     """The unit quaternion {x, y, z, w} (w ≥ 0) of a rotation (3×3 or 9 row-major)."""
-    m = np.asarray(R, dtype=np.float64).reshape(3, 3)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0.0:
-        s = 2.0 * math.sqrt(1.0 + tr)
-        q = (0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s)
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = ((m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s)
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = ((m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s)
-    else:
-        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = ((m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s)
-    w, x, y, z = q
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    sign = -1.0 if w < 0 else 1.0
-    return {"x": sign * x / n, "y": sign * y / n, "z": sign * z / n, "w": sign * w / n}
+    w, x, y, z = quat_of_rotation(np.asarray(R, dtype=np.float64).reshape(9).tolist())
+    return {"x": x, "y": y, "z": z, "w": w}
 
 
 def rotation(q: Mapping[str, float]) -> F64:
     """The 3×3 rotation of a unit quaternion {x, y, z, w}."""
-    x, y, z, w = (float(q[k]) for k in "xyzw")
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return R_from_wxyz([q["w"], q["x"], q["y"], q["z"]])
 
 
 def _time(t_ns: int) -> dict[str, int]:
@@ -223,12 +201,9 @@ def _vec(v: Sequence[float] | F64) -> dict[str, float]:
 
 
 def _joint_quaternion(alpha_rad: float, q_rad: float) -> dict[str, float]:
-    """The quaternion of Rx(α)·Rz(q), in closed form (w ≥ 0)."""
-    ca, sa = math.cos(0.5 * alpha_rad), math.sin(0.5 * alpha_rad)
-    cq, sq = math.cos(0.5 * q_rad), math.sin(0.5 * q_rad)
-    w, x, y, z = ca * cq, sa * cq, -sa * sq, ca * sq
-    sign = -1.0 if w < 0.0 else 1.0
-    return {"x": sign * x, "y": sign * y, "z": sign * z, "w": sign * w}
+    """The quaternion of Rx(α)·Rz(q) (w ≥ 0)."""
+    w, x, y, z = quat_of_rx_rz(alpha_rad, q_rad)
+    return {"x": x, "y": y, "z": z, "w": w}
 
 
 def joint_transforms(

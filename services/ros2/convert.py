@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from services.bus.messages import ForceSample, RobotState, StereoFrame
+from services.geometry import quat_of_rotation, quat_of_rx_rz, rotation_of_quat
 from services.puma.kinematics import PUMA560_DH, DHLink
 from services.puma.urdf import UrdfFrames
 from services.rosmsg import msgs
@@ -24,34 +25,15 @@ JPEG_FORMAT = "bgr8; jpeg compressed bgr8"
 
 
 def quat_of(R: Sequence[float]) -> Quat:
-    """The unit quaternion (x, y, z, w), w ≥ 0, of a row-major rotation (Shepperd's method)."""
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = R
-    tr = m00 + m11 + m22
-    if tr > 0.0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        x, y, z, w = (m21 - m12) / s, (m02 - m20) / s, (m10 - m01) / s, 0.25 * s
-    elif m00 >= m11 and m00 >= m22:
-        s = 2.0 * math.sqrt(max(1.0 + m00 - m11 - m22, 0.0))
-        x, y, z, w = 0.25 * s, (m01 + m10) / s, (m02 + m20) / s, (m21 - m12) / s
-    elif m11 >= m22:
-        s = 2.0 * math.sqrt(max(1.0 + m11 - m00 - m22, 0.0))
-        x, y, z, w = (m01 + m10) / s, 0.25 * s, (m12 + m21) / s, (m02 - m20) / s
-    else:
-        s = 2.0 * math.sqrt(max(1.0 + m22 - m00 - m11, 0.0))
-        x, y, z, w = (m02 + m20) / s, (m12 + m21) / s, 0.25 * s, (m10 - m01) / s
-    n = math.sqrt(x * x + y * y + z * z + w * w)
-    sign = 1.0 if w >= 0.0 else -1.0
-    return (sign * x / n, sign * y / n, sign * z / n, sign * w / n)
+    """The unit quaternion in ROS's order (x, y, z, w), w ≥ 0, of a row-major rotation."""
+    w, x, y, z = quat_of_rotation(R)
+    return (x, y, z, w)
 
 
 def rotation_of(q: Quat) -> tuple[float, ...]:
-    """The row-major rotation of a unit quaternion (x, y, z, w)."""
+    """The row-major rotation of a quaternion in ROS's order (x, y, z, w)."""
     x, y, z, w = q
-    return (
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    )  # fmt: skip
+    return rotation_of_quat(w, x, y, z)
 
 
 def relative_pose(
@@ -74,14 +56,11 @@ def relative_pose(
 
 def _joint_transform(prev: DHLink | None, q_rad: float) -> tuple[Vec3, Quat]:
     """link<i−1> → link<i>: the fixed part of DH link i−1, then Rz(q_i) (see urdf.py)."""
-    half = 0.5 * q_rad
-    bz, bw = math.sin(half), math.cos(half)
     if prev is None:
-        return (0.0, 0.0, 0.0), (0.0, 0.0, bz, bw)
-    ha = 0.5 * prev.alpha_rad
-    ax, aw = math.sin(ha), math.cos(ha)
-    # Rx(α)·Rz(q) as quaternions: (ax, 0, 0, aw) ⊗ (0, 0, bz, bw)
-    return (prev.a_m, 0.0, prev.d_m), (ax * bw, -ax * bz, aw * bz, aw * bw)
+        w, x, y, z = quat_of_rx_rz(0.0, q_rad)
+        return (0.0, 0.0, 0.0), (x, y, z, w)
+    w, x, y, z = quat_of_rx_rz(prev.alpha_rad, q_rad)
+    return (prev.a_m, 0.0, prev.d_m), (x, y, z, w)
 
 
 @dataclass(frozen=True, slots=True)

@@ -37,7 +37,7 @@ from services.bus.errors import RpcError, TelerobotError, Unavailable
 from services.bus.messages import Event, MasterState, Message, RobotState, mat3, vec
 from services.bus.node import Node, wait_latest
 from services.bus.rate import RateLoop
-from services.master.so3 import exp_so3, rotation_angle, rxyz, rxyz_inv, slerp
+from services.geometry import angle_between, exp_so3, rotation_angle, rxyz, rxyz_inv, slerp
 from services.master.virtual import VirtualMaster
 from services.workcell.messages import WORKCELL_STATE, ObjectView, WorkcellState, objects_of
 
@@ -305,11 +305,6 @@ def tool_for_hand(
     p = ref.p0 + (dp if ref.frame == "world" else ref.R0 @ dp)
     a = rxyz_inv(ref.M0.T @ np.asarray(Mh, dtype=float))
     return p, ref.R0 @ rxyz(ref.scale_r * a)
-
-
-def angle_between(Ra: ArrayLike, Rb: ArrayLike) -> float:
-    """The angle (rad) of the rotation taking Ra to Rb."""
-    return rotation_angle(np.asarray(Ra, dtype=float).T @ np.asarray(Rb, dtype=float))
 
 
 def ball_fraction(start: Vec, goal: Vec, centre: Vec, radius: float) -> float:
@@ -740,7 +735,6 @@ __all__ = [
     "OperatorStats",
     "Reference",
     "TaskFailed",
-    "angle_between",
     "ball_fraction",
     "hand_for_tool",
     "tool_for_hand",

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.master.so3 import rot_x, rot_z
-from services.tasks.operator import Operator, TaskFailed, angle_between
+from services.geometry import angle_between, rot_x, rot_z
+from services.tasks.operator import Operator, TaskFailed
 from services.workcell.messages import ObjectView
 from services.workcell.physics import BodyState, stack_heights
 

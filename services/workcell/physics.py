@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from services.bus.errors import ConfigError
+from services.geometry import rot_z, rotation_about
 from services.workcell.scene import Box, Cylinder, Scene
 
 Vec = NDArray[np.float64]
@@ -163,17 +164,6 @@ def yaw_of(R: ArrayLike) -> float:
     m = np.asarray(R, dtype=float)
     x = m[:, 0] if abs(m[2, 0]) < 0.999 else m[:, 1]
     return float(math.atan2(x[1], x[0]))
-
-
-def rot_z(a: float) -> Mat:
-    c, s = math.cos(a), math.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _axis_angle(axis: Vec, angle: float) -> Mat:
-    k = axis / np.linalg.norm(axis)
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
 
 
 def tipping_angle(solid: Solid) -> float:
@@ -574,7 +564,7 @@ class WorkcellSim:
             axis = np.cross(np.array([0.0, 0.0, 1.0]), z)
             if np.linalg.norm(axis) < 1e-9:
                 axis = np.array([1.0, 0.0, 0.0])
-            b.R = _axis_angle(axis, _LYING_RAD - tilt) @ b.R
+            b.R = rotation_about(axis, _LYING_RAD - tilt) @ b.R
             phase: Phase = "toppled"
         else:
             b.R = rot_z(yaw_of(b.R))

@@ -27,11 +27,11 @@ from services.bus.messages import Event, RobotState
 from services.bus.node import Node, Subscription
 from services.console.app import Console
 from services.console.config import ConsoleConfig
-from services.console.geometry import R_from_wxyz
 from services.decision.config import DecisionConfig
 from services.decision.service import DecisionService
 from services.force.config import ForceConfig
 from services.force.service import ForceService
+from services.geometry import R_from_wxyz
 from services.master.config import MasterConfig
 from services.master.service import MasterService
 from services.puma.config import PumaConfig

@@ -9,16 +9,14 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from services.console.geometry import (
-    R_from_wxyz,
     box_edges,
-    commanded_tool_pose,
     cylinder_pose,
     force_arrow,
     hand_pose,
     link_segments,
     rotation_z_to,
-    wxyz_from_R,
 )
+from services.geometry import R_from_wxyz, tool_target_pose
 from services.master.teleop import scaled_motion
 from services.puma.kinematics import Puma560
 
@@ -29,40 +27,6 @@ quat = (
     .filter(lambda q: float(np.linalg.norm(q)) > 1e-3)
     .map(lambda q: np.array(q) / np.linalg.norm(q))
 )
-
-
-def _rot(axis: str, angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    return {
-        "x": np.array([[1, 0, 0], [0, c, -s], [0, s, c]]),
-        "y": np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
-        "z": np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]),
-    }[axis]
-
-
-def test_quaternion_of_hand_worked_rotations() -> None:
-    assert np.allclose(wxyz_from_R(np.eye(3)), [1, 0, 0, 0])
-    h = np.sqrt(0.5)
-    assert np.allclose(wxyz_from_R(_rot("z", np.pi / 2)), [h, 0, 0, h])
-    # 180° about x: the trace branch fails, the diagonal branch takes over.
-    assert np.allclose(wxyz_from_R(np.diag([1.0, -1.0, -1.0])), [0, 1, 0, 0])
-    # The home tool orientation (tool z down): 180° about y.
-    assert np.allclose(wxyz_from_R(np.diag([-1.0, 1.0, -1.0])), [0, 0, 1, 0])
-
-
-@given(quat)
-def test_quaternion_round_trip(q: np.ndarray) -> None:
-    R = R_from_wxyz(q)
-    assert np.allclose(R.T @ R, np.eye(3), atol=1e-9)
-    assert np.linalg.det(R) == pytest.approx(1.0)
-    back = wxyz_from_R(R)
-    # q and −q are the same rotation.
-    assert np.allclose(back, q, atol=1e-7) or np.allclose(back, -q, atol=1e-7)
-
-
-def test_a_null_quaternion_is_refused() -> None:
-    with pytest.raises(ValueError):
-        R_from_wxyz([0.0, 0.0, 0.0, 0.0])
 
 
 @given(vec3.filter(lambda d: float(np.linalg.norm(d)) > 1e-3))
@@ -104,17 +68,6 @@ def test_cylinder_pose_joins_the_two_points() -> None:
     assert np.allclose(centre - R @ [0, 0, length / 2], a)
 
 
-def test_commanded_target_world_and_tool_frames() -> None:
-    """PROTOCOL §2 by hand: R0 = Rz(90°), dp = (0.1, 0, 0), dR = Rx(90°)."""
-    p0, R0 = np.array([0.5, 0.0, 0.6]), _rot("z", np.pi / 2)
-    dp, dR = np.array([0.1, 0.0, 0.0]), _rot("x", np.pi / 2)
-    p, R = commanded_tool_pose(p0, R0, dp, dR, "world")
-    assert np.allclose(p, [0.6, 0.0, 0.6])
-    assert np.allclose(R, R0 @ dR)
-    p, _ = commanded_tool_pose(p0, R0, dp, dR, "tool")
-    assert np.allclose(p, [0.5, 0.1, 0.6])  # the tool's x axis is the world's y
-
-
 def test_force_arrow_is_rotated_into_the_world_and_clipped() -> None:
     tool_R = np.diag([-1.0, 1.0, -1.0])  # tool z down
     pts = force_arrow([0.5, 0.0, 0.6], tool_R, [0.0, 0.0, 10.0], 0.01, 0.4)
@@ -144,7 +97,7 @@ def test_with_scale_one_the_tool_target_is_the_gizmo(
     p0, M0 = hand_pose(E0, q0)
     p, M = hand_pose(E, q)
     motion = scaled_motion(p0, M0, p, M, 1.0, 1.0)
-    tp, tR = commanded_tool_pose(p0, M0, motion.dp, motion.dR, "world")
+    tp, tR = tool_target_pose(p0, M0, motion.dp, motion.dR, "world")
     assert np.allclose(tp, p, atol=1e-9)
     assert np.allclose(tR, M, atol=1e-6)
 
@@ -155,6 +108,6 @@ def test_a_scaled_translation_moves_the_target_by_the_scaled_hand_motion(
 ) -> None:
     p0, M0 = hand_pose(E0, q0)
     motion = scaled_motion(p0, M0, p0 + dE, M0, s_t, 1.0)
-    tp, tR = commanded_tool_pose(p0, M0, motion.dp, motion.dR, "world")
+    tp, tR = tool_target_pose(p0, M0, motion.dp, motion.dR, "world")
     assert np.allclose(tp, p0 + s_t * dE, atol=1e-9)
     assert np.allclose(tR, M0, atol=1e-9)

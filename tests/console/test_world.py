@@ -22,7 +22,6 @@ from services.bus.errors import ProtocolError
 from services.bus.node import Node
 from services.console.app import FINGER_HOLDING_COLOR, Console
 from services.console.config import ConsoleConfig
-from services.console.geometry import R_from_wxyz
 from services.console.world import (
     FINGER_SIZE_M,
     GRIPPER_OPEN_M,
@@ -30,6 +29,7 @@ from services.console.world import (
     object_node,
     puddle_nodes,
 )
+from services.geometry import R_from_wxyz, rot_x
 from services.vision.objects import Spills
 from services.workcell.messages import WORKCELL_STATE, ObjectView, WorkcellState, objects_of
 from services.workcell.scene import BLOCK_SIZE_M, TABLE, default_scene
@@ -42,8 +42,7 @@ H = BLOCK_SIZE_M
 
 
 def _rot_x(deg: float) -> np.ndarray:
-    a = math.radians(deg)
-    return np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    return rot_x(math.radians(deg))
 
 
 def _obj(

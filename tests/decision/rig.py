@@ -16,7 +16,6 @@ from numpy.typing import ArrayLike, NDArray
 
 from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3, vec
 from services.decision.config import DecisionConfig
-from services.decision.filters import exp_so3, log_so3
 from services.decision.notices import Notice
 from services.decision.supervisor import Inputs, Supervisor, TickResult
 from services.workcell.scene import Scene, default_scene
@@ -26,14 +25,6 @@ TOOL_DOWN: NDArray[np.float64] = np.diag([-1.0, 1.0, -1.0])
 I3 = np.eye(3)
 TICK_NS = 2_000_000
 PROBE_RADIUS_M = 0.005
-
-
-def rot_z(a: float) -> NDArray[np.float64]:
-    return exp_so3((0.0, 0.0, a))
-
-
-def angle_between(Ra: ArrayLike, Rb: ArrayLike) -> float:
-    return float(np.linalg.norm(log_so3(np.asarray(Ra).T @ np.asarray(Rb))))
 
 
 class Rig:

@@ -23,9 +23,10 @@ from services.bus.codec import from_fields, to_fields
 from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import OperatorCommand
 from services.decision.config import DecisionConfig
-from services.decision.filters import exp_so3, in_box
+from services.decision.filters import in_box
 from services.decision.tasks import guarded_move_plan
-from tests.decision.rig import Rig, angle_between
+from services.geometry import angle_between, exp_so3
+from tests.decision.rig import Rig
 
 CFG = DecisionConfig()
 LO, HI = np.array(CFG.workspace_min), np.array(CFG.workspace_max)

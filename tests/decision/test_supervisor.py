@@ -14,8 +14,9 @@ from services.decision.supervisor import Mode
 from services.decision.target import HOLD_RESEND_NS
 from services.decision.tasks import TaskPlan, guarded_move_plan
 from services.decision.watch import target_problem
+from services.geometry import angle_between, rot_z
 from services.workcell.scene import TABLE, Scene
-from tests.decision.rig import TICK_NS, TOOL_DOWN, Rig, angle_between, rot_z
+from tests.decision.rig import TICK_NS, TOOL_DOWN, Rig
 
 V_STEP = 0.25 * 0.002  # default speed limit per 2 ms tick (m)
 W_STEP = 1.0 * 0.002  # default rotation limit per tick (rad)

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.force.sensors import ForceSensor, Reading
+from services.geometry import R_from_wxyz, rot_x, rot_y, rot_z
 from tests.conftest import wait_until
 
 DEADLINE_S = 10.0
@@ -53,21 +54,9 @@ class Events:
 
 def rot(axis: str, angle: float) -> NDArray[np.float64]:
     """Elementary rotation about x, y or z (rad)."""
-    c, s = np.cos(angle), np.sin(angle)
-    if axis == "x":
-        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-    if axis == "y":
-        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    return {"x": rot_x, "y": rot_y}.get(axis, rot_z)(angle)
 
 
 def quat_to_R(q: tuple[float, float, float, float]) -> NDArray[np.float64]:
     """A rotation from any non-zero quaternion (w, x, y, z)."""
-    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return R_from_wxyz(q)

@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from numpy.typing import ArrayLike
 
 from services.bus.errors import ConfigError
+from services.geometry import exp_so3, rot_x, rot_z
 from services.master.config import Frame, MasterConfig
 from services.master.devices import HandReading
 from services.master.feedback import (
@@ -21,7 +22,6 @@ from services.master.feedback import (
     ramp_gain,
     saturate,
 )
-from services.master.so3 import exp_so3, rot_x, rot_z
 
 
 def test_defaults_are_valid() -> None:

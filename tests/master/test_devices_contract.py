@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 
 from services.bus.errors import ConfigError
+from services.geometry import is_rotation
 from services.master.backends import BACKENDS, device_options, open_master_device
 from services.master.config import DEVICE_KINDS, MasterConfig
 from services.master.devices import DeviceNotFound, HandReading, MasterDevice
 from services.master.fake_haply import FakeInverseService, HandPose
 from services.master.fake_master_arm import FakeMasterArm
-from services.master.so3 import is_rotation
 from tests.master.fake_hid import FakeHidApi, FakeHidInfo
 
 NAVIGATOR = FakeHidInfo(b"/dev/hidraw1", 0x046D, 0xC626, "SpaceNavigator")

@@ -15,6 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from services.bus.errors import ProtocolError
+from services.geometry import R_from_wxyz, rot_x, rot_z
 from services.master.config import MasterConfig
 from services.master.devices import DeviceLost, DeviceNotFound
 from services.master.fake_haply import FakeInverseService, HandPose
@@ -24,7 +25,6 @@ from services.master.haply_protocol import (
     force_message,
     parse_frame,
 )
-from services.master.so3 import rot_from_quat, rot_x, rot_z
 from services.master.teleop import Teleop
 from tests.conftest import wait_until
 from tests.master.test_teleop import Slave
@@ -158,14 +158,14 @@ def test_force_message_is_the_documented_shape() -> None:
 def test_quaternions_map_to_the_rotations_they_name() -> None:
     half = 0.6
     np.testing.assert_allclose(
-        rot_from_quat(math.cos(half), 0, 0, math.sin(half)), rot_z(2 * half), atol=1e-12
+        R_from_wxyz((math.cos(half), 0, 0, math.sin(half))), rot_z(2 * half), atol=1e-12
     )
     np.testing.assert_allclose(
-        rot_from_quat(-math.cos(half), -math.sin(half), 0, 0), rot_x(2 * half), atol=1e-12
+        R_from_wxyz((-math.cos(half), -math.sin(half), 0, 0)), rot_x(2 * half), atol=1e-12
     )
-    np.testing.assert_allclose(rot_from_quat(2.0, 0, 0, 0), np.eye(3))
+    np.testing.assert_allclose(R_from_wxyz((2.0, 0, 0, 0)), np.eye(3))
     with pytest.raises(ValueError):
-        rot_from_quat(0, 0, 0, 0)
+        R_from_wxyz((0, 0, 0, 0))
 
 
 HOSTILE_NUMBERS = st.one_of(

@@ -18,11 +18,11 @@ import pytest
 from services.bus import keys
 from services.bus.messages import Event, ForceSample, OperatorCommand, RobotState
 from services.cli.main import main as telerobot
+from services.geometry import rot_z
 from services.master.config import MasterConfig
 from services.master.fake_haply import FakeInverseService, HandPose
 from services.master.haply import HaplyMaster
 from services.master.service import MasterService
-from services.master.so3 import rot_z
 from tests.conftest import Net, free_port, wait_until
 
 pytestmark = pytest.mark.system

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from services.geometry import rot_z
 from services.master.devices import DeviceLost, DeviceNotFound
 from services.master.hid_spacemouse import (
     SINGLE_REPORT,
@@ -20,7 +21,6 @@ from services.master.hid_spacemouse import (
     find_model,
 )
 from services.master.jog import MAX_STEP_S, apply_deadband
-from services.master.so3 import rot_z
 from tests.master.fake_hid import FakeHidApi, FakeHidInfo
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from services.geometry import exp_so3, rot_z
 from services.master.config import MasterConfig
 from services.master.scripted import (
     ScriptedMaster,
@@ -20,7 +21,6 @@ from services.master.scripted import (
     load_trajectory,
     save_trajectory,
 )
-from services.master.so3 import exp_so3, rot_z
 from services.master.teleop import Teleop
 from services.master.virtual import VirtualMaster
 

@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from services.geometry import log_so3
 from services.master.arm_kinematics import (
     DEFAULT_MASTER_DH,
     DhRow,
@@ -32,7 +33,6 @@ from services.master.arm_protocol import (
 from services.master.devices import DeviceNotFound
 from services.master.fake_master_arm import FakeMasterArm
 from services.master.serial_arm import SerialMasterArm
-from services.master.so3 import log_so3
 from tests.conftest import wait_until
 
 PUMA_DH = (

@@ -13,9 +13,9 @@ from numpy.typing import ArrayLike
 
 from services.bus import codec
 from services.bus.messages import OperatorCommand
+from services.geometry import exp_so3, rot_x, rot_y, rot_z, rotation_angle, rxyz
 from services.master.config import MasterConfig
 from services.master.devices import HandReading
-from services.master.so3 import exp_so3, rot_x, rot_y, rot_z, rotation_angle, rxyz
 from services.master.teleop import Teleop, check_command, scaled_motion
 
 DEG = math.pi / 180.0

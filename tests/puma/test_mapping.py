@@ -12,14 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import ArrayLike, NDArray
 
+from services.geometry import TeleopFrame, tool_target_pose
 from services.puma.kinematics import Puma560, qn
-from services.puma.mapping import (
-    TeleopFrame,
-    TeleopInput,
-    TeleopMapping,
-    effector_target,
-    target_pose,
-)
+from services.puma.mapping import TeleopInput, TeleopMapping, effector_target
 
 Mat = NDArray[np.float64]
 ARM = Puma560()
@@ -61,15 +56,15 @@ def test_world_and_tool_translation() -> None:
     p0 = np.array([0.5, 0.1, 0.9])
     R0 = pin.utils.rotate("z", math.pi / 2)
     dp = np.array([0.1, 0.0, 0.0])
-    p, R = target_pose(p0, R0, dp, I3, "world")
+    p, R = tool_target_pose(p0, R0, dp, I3, "world")
     assert np.allclose(p, [0.6, 0.1, 0.9]) and np.allclose(R, R0)
-    p, R = target_pose(p0, R0, dp, I3, "tool")
+    p, R = tool_target_pose(p0, R0, dp, I3, "tool")
     assert np.allclose(p, [0.5, 0.2, 0.9]) and np.allclose(R, R0)
     dR = pin.utils.rotate("x", 0.3)
-    _, R = target_pose(p0, R0, ZERO, dR, "world")
+    _, R = tool_target_pose(p0, R0, ZERO, dR, "world")
     assert np.allclose(R, R0 @ dR)  # dR acts in the tool frame in both modes
     with pytest.raises(ValueError):
-        target_pose(p0, R0, dp, I3, "wrist")  # type: ignore[arg-type]
+        tool_target_pose(p0, R0, dp, I3, "wrist")  # type: ignore[arg-type]
 
 
 def test_effector_target_inverts_the_tool_placement() -> None:
@@ -157,7 +152,7 @@ def test_re_engagement_after_the_arm_moved_never_jumps(
     assert first is not None and same_pose(first, moved)
     # The engagement's later commands are relative to `moved`, whatever the arm does now.
     t = m.apply(cmd(5, 2, dp=dp2, dR=pin.exp3(dr2), frame=frame), start)
-    p, R = target_pose(moved.translation, moved.rotation, dp2, pin.exp3(dr2), mode(frame))
+    p, R = tool_target_pose(moved.translation, moved.rotation, dp2, pin.exp3(dr2), mode(frame))
     assert t is not None and np.allclose(t.translation, p) and np.allclose(t.rotation, R)
     assert m.engage == 2
 
@@ -188,7 +183,7 @@ def test_rebase_inside_an_engagement_never_jumps(
     # A new engagement after a rebase records the plain current pose (PROTOCOL §2).
     m.rebase()
     t3 = m.apply(cmd(5, 2, dp=dp2, frame=frame), moved)
-    p, _ = target_pose(moved.translation, moved.rotation, dp2, I3, mode(frame))
+    p, _ = tool_target_pose(moved.translation, moved.rotation, dp2, I3, mode(frame))
     assert t3 is not None and np.allclose(t3.translation, p)
 
 

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from services.geometry import angle_between
 from services.puma.config import PumaConfig
 from services.puma.kinematics import DEFAULT_eMt, Puma560
-from services.puma.safety import MotionLimits, rotation_angle, safe_step
+from services.puma.safety import MotionLimits, safe_step
 from services.puma.trajectory import SampledPath, Trapezoid, discrete_brake_speed
 
 KIN = Puma560()
@@ -108,7 +107,7 @@ def test_safe_step_never_leaves_the_limits(
     np.testing.assert_allclose(step.tool_p, p1, atol=1e-12)
     np.testing.assert_allclose(step.tool_R, R1, atol=1e-12)
     assert np.linalg.norm(p1 - pose[0]) <= LIM.tool_speed_m_s * DT_S * (1 + 1e-9)
-    assert rotation_angle(pose[1], R1) <= LIM.tool_rot_speed_rad_s * DT_S * (1 + 1e-9)
+    assert angle_between(pose[1], R1) <= LIM.tool_rot_speed_rad_s * DT_S * (1 + 1e-9)
     inside = np.all(step.q > LIM.q_lo) and np.all(step.q < LIM.q_hi)
     if "tool_speed" not in step.limited and inside:
         assert np.all(np.abs(step.qd - qd) <= LIM.amax * DT_S * (1 + 1e-9))
@@ -126,10 +125,3 @@ def test_safe_step_reports_what_acted() -> None:
     np.testing.assert_allclose(far.qd, LIM.amax * DT_S)  # from rest: one step of acceleration
     out = safe_step(q, np.zeros(6), LIM.q_hi + 1.0, DT_S, LIM, tool_pose, pose)
     assert "joint_limit" in out.limited
-
-
-def test_rotation_angle_of_a_known_turn() -> None:
-    c, s = math.cos(0.3), math.sin(0.3)
-    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    assert rotation_angle(np.eye(3), Rz) == pytest.approx(0.3, rel=1e-12)
-    assert rotation_angle(Rz, Rz) == 0.0

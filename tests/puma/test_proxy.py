@@ -19,12 +19,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from services.bus.errors import ConfigError, RpcError
+from services.geometry import angle_between
 from services.puma.backends import arm_options
 from services.puma.config import HOME_Q_RAD, PumaConfig
 from services.puma.kinematics import Puma560, qn
 from services.puma.mapping import TeleopInput
 from services.puma.proxy import PumaProxy
-from services.puma.safety import rotation_angle
 from services.puma.sim_arm import SimArm
 
 KIN = Puma560()
@@ -110,7 +110,7 @@ def check_setpoints(sent: list[np.ndarray], dt: float = DT) -> None:
     poses = [KIN.fk_tool(q) for q in S]
     for i in range(len(poses) - 1):
         dp = float(np.linalg.norm(poses[i + 1].translation - poses[i].translation))
-        dth = rotation_angle(poses[i].rotation, poses[i + 1].rotation)
+        dth = angle_between(poses[i].rotation, poses[i + 1].rotation)
         assert dp <= CFG.max_tool_speed_m_s * dt * (1 + 1e-9), f"tool speed {dp / dt} m/s"
         assert dth <= CFG.max_tool_rot_speed_rad_s * dt * (1 + 1e-9), f"tool turn {dth / dt}"
 

@@ -21,6 +21,7 @@ from services.bus.messages import (
     StereoFrame,
     vec,
 )
+from services.geometry import rotation_about
 from services.record import schemas
 from tests.bus.test_golden import GOLDEN
 from tests.record.helpers import conforms
@@ -123,11 +124,8 @@ vec3 = st.tuples(finite, finite, finite)
 
 
 def _rotation(axis: tuple[float, float, float], angle: float) -> tuple[float, ...]:
-    a = np.asarray(axis)
-    n = float(np.linalg.norm(a))
-    k = a / n if n > 1e-6 else np.array([0.0, 0.0, 1.0])
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return vec(np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * K @ K)
+    a = axis if float(np.linalg.norm(axis)) > 1e-6 else (0.0, 0.0, 1.0)
+    return vec(rotation_about(a, angle))
 
 
 commands = st.builds(

@@ -14,6 +14,7 @@ from mcap.reader import make_reader
 
 from services.bus import codec
 from services.bus.messages import RobotState, vec
+from services.geometry import rot_x
 from services.puma.kinematics import DEFAULT_eMt, Puma560, qn
 from services.record import world
 from services.workcell.messages import WORKCELL_STATE, WorkcellState
@@ -50,8 +51,7 @@ def robot_state(seq: int, q: np.ndarray) -> bytes:
 
 
 def _rx(deg: float) -> np.ndarray:
-    a = np.radians(deg)
-    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    return rot_x(np.radians(deg))
 
 
 def workcell_objects(k: int) -> dict[str, dict[str, Any]]:

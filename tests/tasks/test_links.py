@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from services.geometry import rot_z
 from services.master.config import MasterConfig
 from services.master.service import MasterService
-from services.master.so3 import rot_z
 from services.master.virtual import VirtualMaster
 from services.tasks.operator import BusLink, DeviceLink, MasterLink
 from tests.conftest import Net

@@ -10,8 +10,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from services.decision.filters import operator_target
-from services.master.so3 import exp_so3, rotation_angle, rxyz_inv
+from services.geometry import exp_so3, rotation_angle, rxyz_inv, tool_target_pose
 from services.master.teleop import scaled_motion
 from services.tasks.operator import (
     OperatorConfig,
@@ -70,7 +69,7 @@ def test_property_the_hand_the_person_chooses_puts_the_tool_on_the_aim(
     E, M = hand_for_tool(r, aim_p, aim_R, A)
     # the master (eq. 5) and the slave (§2), as the services compute them
     motion = scaled_motion(r.E0, r.M0, E, M, s_t, s_r, A)
-    p, R = operator_target(r.p0, r.R0, motion.dp, motion.dR, frame)
+    p, R = tool_target_pose(r.p0, r.R0, motion.dp, motion.dR, frame)
     np.testing.assert_allclose(p, aim_p, atol=1e-9)
     assert rotation_angle(R.T @ aim_R) < 1e-7
     p2, R2 = tool_for_hand(r, E, M, A)

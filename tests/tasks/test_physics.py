@@ -15,7 +15,7 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from services.master.so3 import exp_so3, rot_x, rot_z
+from services.geometry import exp_so3, rot_x, rot_z
 from services.workcell.physics import (
     PhysicsParams,
     WorkcellSim,

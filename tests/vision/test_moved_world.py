@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 
 from services.bus.errors import ProtocolError
 from services.bus.messages import vec
+from services.geometry import rot_x
 from services.vision.config import VisionConfig
 from services.vision.objects import LIQUID_BGR, SPILL_BGR, composite
 from services.vision.service import VisionService
@@ -30,8 +31,7 @@ FULL_ML = math.pi * BOTTLE.radius**2 * BOTTLE.liquid_height_m / M3_PER_ML
 
 
 def _rx(deg: float) -> np.ndarray:
-    a = math.radians(deg)
-    return np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    return rot_x(math.radians(deg))
 
 
 def _obj(kind: str, p: Any, size: Any, R: Any = None, **extra: Any) -> dict[str, Any]:
