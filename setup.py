@@ -13,7 +13,7 @@ _ENCODER = ["telerobot = services.bus.zenoh_cli_codec:encode"]
 
 setup(
     entry_points={
-        "console_scripts": ["telerobot = services.cli.main:main"],
+        "console_scripts": ["telerobot = services.tools.cli.main:main"],
         "zenoh-cli.codecs.decoders": _DECODER,
         "zenoh-cli.codecs.encoders": _ENCODER,
         "zenoh_cli.codecs.decoders": _DECODER,

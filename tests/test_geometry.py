@@ -111,7 +111,7 @@ def test_orthonormalize_and_is_rotation() -> None:
     assert abs(rotation_angle(rot_y(2.0)) - 2.0) < 1e-12
 
 
-# --- moved from tests/decision, tests/force and tests/console ------------------------------
+# --- moved from the decision, force and console tests -------------------------------------
 
 TOOL_DOWN = np.diag([-1.0, 1.0, -1.0])
 quats = st.tuples(

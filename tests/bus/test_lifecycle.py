@@ -23,16 +23,16 @@ MAINS = [
     *(
         f"services.{name}.__main__"
         for name in (
-            "puma",
-            "force",
-            "decision",
-            "master",
-            "vision",
-            "console",
-            "workcell",
-            "ros2",
-            "record",
-            "tasks",
+            "control.puma",
+            "control.force",
+            "control.decision",
+            "control.master",
+            "control.vision",
+            "frontends.console",
+            "world.workcell",
+            "frontends.ros2",
+            "tools.record",
+            "tools.tasks",
         )
     ),
     "services.bus.router",

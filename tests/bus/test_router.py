@@ -139,7 +139,7 @@ def spawned(argv: list[str], merge_stderr: bool = True) -> Iterator[ChildProcess
 
 
 def telerobot(*args: str) -> list[str]:
-    return [sys.executable, "-m", "services.cli.main", *args]
+    return [sys.executable, "-m", "services.tools.cli.main", *args]
 
 
 # A client-mode session that counts ForceSamples and prints what it got.

@@ -21,14 +21,14 @@ import zenoh
 
 from services.bus.config import NodeConfig, load_deploy, section
 from services.bus.router import router_config
-from services.cli.launcher import UpConfig
-from services.cli.main import COMMANDS
-from services.console.config import ConsoleConfig
-from services.decision.config import DecisionConfig
-from services.force.config import ForceConfig
-from services.master.config import MasterConfig
-from services.puma.config import PumaConfig
-from services.vision.config import VisionConfig
+from services.control.decision.config import DecisionConfig
+from services.control.force.config import ForceConfig
+from services.control.master.config import MasterConfig
+from services.control.puma.config import PumaConfig
+from services.control.vision.config import VisionConfig
+from services.frontends.console.config import ConsoleConfig
+from services.tools.cli.launcher import UpConfig
+from services.tools.cli.main import COMMANDS
 from tests.deploy.cell import DEPLOY, REPO, install, make_certs
 
 ZENOH_FILES = sorted([*DEPLOY.glob("router/*.json5"), *DEPLOY.glob("zenoh/*.json5")])

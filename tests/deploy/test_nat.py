@@ -214,7 +214,7 @@ def in_ns(ns: str, *argv: str) -> list[str]:
 
 
 def telerobot_in(ns: str, *args: str) -> list[str]:
-    return in_ns(ns, "-m", "services.cli.main", *args)
+    return in_ns(ns, "-m", "services.tools.cli.main", *args)
 
 
 def test_scripted_master_drives_the_arm_through_a_nat_over_tls(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ import numpy as np
 
 from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import RobotState
-from services.master.scripted import generate_motion, save_trajectory
+from services.control.master.scripted import generate_motion, save_trajectory
 from tests.conftest import wait_until
 from tests.faults.observe import Observer
 from tests.faults.procs import Cell, Proc

@@ -1,7 +1,7 @@
 """Services as separate processes, for the fault suite: a router and the real services in
 simulation, each spawned with `subprocess` (never forked), killed in `finally`.
 
-Every process is `python -m services.cli.main <svc> --connect tcp/127.0.0.1:PORT --listen
+Every process is `python -m services.tools.cli.main <svc> --connect tcp/127.0.0.1:PORT --listen
 tcp/127.0.0.1:0`: the router is on a free loopback port of this test only, and a peer's own
 listener (which Zenoh would otherwise open on every interface) stays on loopback. Output
 goes to a log file per process so a failing test can show what the process said.
@@ -114,7 +114,7 @@ def service_argv(service: str, endpoint: str, *extra: str) -> list[str]:
     return [
         sys.executable,
         "-m",
-        "services.cli.main",
+        "services.tools.cli.main",
         service,
         "--connect",
         endpoint,
@@ -125,7 +125,7 @@ def service_argv(service: str, endpoint: str, *extra: str) -> list[str]:
 
 
 def router_argv(endpoint: str) -> list[str]:
-    return [sys.executable, "-m", "services.cli.main", "router", "--listen", endpoint]
+    return [sys.executable, "-m", "services.tools.cli.main", "router", "--listen", endpoint]
 
 
 class Cell:

@@ -36,15 +36,15 @@ from services.bus.messages import (
     RobotState,
 )
 from services.bus.node import REJECT_REPORT_INTERVAL_S, Node
-from services.console.mirror import BusMirror
-from services.decision.config import DecisionConfig
-from services.decision.service import FORCE_METHODS, PUMA_METHODS, DecisionService
-from services.force.config import ForceConfig
-from services.force.service import ForceService
-from services.master.config import MasterConfig
-from services.master.service import MasterService
-from services.puma.config import HOME_Q_RAD, PumaConfig
-from services.puma.service import MOTIONS, PumaService
+from services.control.decision.config import DecisionConfig
+from services.control.decision.service import FORCE_METHODS, PUMA_METHODS, DecisionService
+from services.control.force.config import ForceConfig
+from services.control.force.service import ForceService
+from services.control.master.config import MasterConfig
+from services.control.master.service import MasterService
+from services.control.puma.config import HOME_Q_RAD, PumaConfig
+from services.control.puma.service import MOTIONS, PumaService
+from services.frontends.console.mirror import BusMirror
 from tests.conftest import Net, wait_until
 from tests.faults.observe import REST_TOL_RAD, record
 

@@ -23,8 +23,8 @@ import pytest
 
 from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import RobotState
-from services.puma.config import HOME_Q_RAD, PumaConfig
-from services.puma.fake_controller import FakeController
+from services.control.puma.config import HOME_Q_RAD, PumaConfig
+from services.control.puma.fake_controller import FakeController
 from tests.conftest import wait_until
 from tests.faults.cell import MASTER_ID, FaultCell, path_length
 from tests.faults.observe import (

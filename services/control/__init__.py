@@ -1,0 +1,2 @@
+"""The control services: the processes of the teleoperation loop (puma, force,
+decision, master, vision) and the passivity controllers they share."""

@@ -1,0 +1,153 @@
+"""The slave side of time-domain passivity on the bus (docs/passivity.md).
+
+The decision server runs on the robot host and sees the supervised command, robot/state and
+robot/force, so it holds the slave port: the wrist force (tool frame → world by `tool_R`)
+against the tool's measured motion, both taken at one instant from short timestamped
+histories (`SlavePort`, `TimedHistory`). `SlaveTdpa.apply` observes that port, corrects the
+command's target so the robot never puts more energy into the workcell than the operator
+put into the channel (energies from `robot/passivity/master`), and publishes its own on
+`robot/passivity/slave`. Above the supervisor's contact limit the supervisor retracts the
+target itself: the energy that brings in is not the channel's (excluded).
+
+Engagements: a new operator engagement (master, engage) starts a new count, as the master
+does; a new engagement of the arm (the supervisor's own `engage`, e.g. after a hold) takes
+the tool pose then as (p0, R0) and the offset restarts at zero (the puma records its start
+pose at that command, so the offset is already in it: nothing jumps). A hold (inactive
+command) passes unchanged and is not observed. The correction only shortens motion into a
+contact or backs it out along the contact force (at most 2 mm past the tool); the
+supervisor checked the uncorrected target.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from services.bus import keys
+from services.bus.messages import ForceSample, OperatorCommand, RobotState
+from services.bus.node import Node
+from services.control.passivity.slave import SlavePort, TimedHistory
+from services.control.passivity.wire import passivity_state
+
+DEADBAND_N = 1.0
+"""A wrist force below this is sensor noise, not contact: the slave port sees none (the
+energy of a motion against less than 1 N goes unobserved; with noise counted instead, its
+random direction would hold back free motion)."""
+DT_MIN_S = 1e-4
+DT_MAX_S = 0.1
+
+
+class SlaveTdpa:
+    """enabled: correct (true) or only observe and publish (false). drift_m_s: see
+    `SlavePort`; deadband_n: see DEADBAND_N; contact_n: the supervisor's contact force
+    limit (N): above it the supervisor moves the target itself (retraction), so the energy
+    its motion brings in is not the operator channel's (excluded)."""
+
+    def __init__(
+        self,
+        node: Node,
+        enabled: bool = True,
+        drift_m_s: float = 0.01,
+        deadband_n: float = DEADBAND_N,
+        contact_n: float = math.inf,
+    ) -> None:
+        self.deadband_n = deadband_n
+        self.contact_n = contact_n
+        self.pc = SlavePort(enabled=enabled, drift_m_s=drift_m_s)
+        self._pub = node.publisher(keys.PASSIVITY_SLAVE)
+        self._master_energy = node.latest(keys.PASSIVITY_MASTER)
+        self._seq = 0
+        self._operator: tuple[str, int] | None = None
+        self._arm_engage: int | None = None
+        self._R0 = np.eye(3)
+        self._p0 = np.zeros(3)
+        self._last_ns = 0
+        self._tool = TimedHistory()
+        self._force = TimedHistory()
+        self._force_seq = -1
+        self._state_seq = -1
+        self._paired_ns = 0
+
+    def apply(
+        self,
+        cmd: OperatorCommand,
+        operator: tuple[str, int] | None,
+        state: RobotState | None,
+        force: ForceSample | None,
+        now_ns: int,
+    ) -> OperatorCommand:
+        """The command to send to the puma in place of `cmd`.
+
+        operator: (master id, engage) of the operator command being carried out, or None
+        (no lease); force: None when there is none fresh. Energies are counted per operator
+        engagement (the master counts the same way); the arm's own engagements (`cmd.engage`,
+        renumbered by the supervisor, e.g. after a hold) only rebase the offset. A hold
+        (inactive command) passes unchanged and is not observed (the supervisor's).
+        """
+        self._remember(state, force)
+        if not cmd.active or operator is None:
+            self.pc.restart()
+            return cmd
+        if operator != self._operator:
+            self._operator = operator
+            self.pc.reset(operator[1])
+            self._arm_engage = None
+        if cmd.engage != self._arm_engage:
+            self._arm_engage = cmd.engage
+            self.pc.rebase()
+            if state is not None:
+                self._R0 = np.asarray(state.tool_R, dtype=float).reshape(3, 3)
+                self._p0 = np.asarray(state.tool_p, dtype=float)
+        d = np.asarray(cmd.dp, dtype=float)
+        if cmd.frame == "tool":
+            d = self._R0 @ d
+        dt_s = min(max((now_ns - self._last_ns) * 1e-9, DT_MIN_S), DT_MAX_S)
+        self._last_ns = now_ns
+        got = self._master_energy.read()
+        if got is not None and got[0].master == operator[0] and got[0].side == "master":
+            self.pc.remote.update(got[0].engage, got[0].e_in)
+        f_now = self._observe()
+        if state is None:
+            return cmd
+        target = self.pc.correct((self._p0 + d).tolist(), list(state.tool_p), f_now.tolist(), dt_s)
+        self._publish(operator)
+        out = np.asarray(target) - self._p0
+        if cmd.frame == "tool":
+            out = self._R0.T @ out
+        return dataclasses.replace(cmd, dp=tuple(float(x) for x in out))
+
+    def _remember(self, state: RobotState | None, force: ForceSample | None) -> None:
+        """Keep the tool positions and the wrist forces (world frame) with their own times."""
+        if state is not None and state.seq != self._state_seq:
+            self._state_seq = state.seq
+            self._tool.add(state.t_ns, state.tool_p)
+        if force is not None and state is not None and force.seq != self._force_seq:
+            self._force_seq = force.seq
+            R = np.asarray(state.tool_R, dtype=float).reshape(3, 3)
+            f = R @ np.asarray(force.f, dtype=float)
+            if float(np.linalg.norm(f)) < self.deadband_n:
+                f = np.zeros(3)  # sensor noise: no contact, nothing to pay for
+            self._force.add(force.t_ns, f.tolist())
+
+    def _observe(self) -> np.ndarray:
+        """Observe the port at the newest instant both streams cover (force and position at
+        that same time); returns the force there (world, N)."""
+        t_f, t_p = self._force.newest_ns, self._tool.newest_ns
+        if t_f is None or t_p is None:
+            return np.zeros(3)
+        t = min(t_f, t_p)
+        f = self._force.at(t)
+        p = self._tool.at(t)
+        assert f is not None and p is not None
+        if t > self._paired_ns:
+            self._paired_ns = t
+            supervised = math.sqrt(sum(x * x for x in f)) > self.contact_n
+            self.pc.observe(f, p, supervised)
+        f_new = self._force.at(t_f)
+        return np.asarray(f_new if f_new is not None else f, dtype=float)
+
+    def _publish(self, operator: tuple[str, int]) -> None:
+        self._seq += 1
+        self._pub.put(passivity_state(self._seq, operator[0], operator[1], "slave", self.pc))

@@ -1,0 +1,619 @@
+"""The decision service on the bus: the operator's single entry point (IDecisionServer).
+
+It serves `robot/decision/rpc/…` (every IProxyRobot and IForceSensor method forwarded to the
+puma and force services, plus `status`, `supervisor`, `estop`, `reset`, `task`), and
+supervises `robot/cmd` into `robot/puma/cmd`.
+
+Reactive: an operator command is supervised and its result published in the Zenoh callback
+that delivers it, so the puma has it one hop later; a lost service is handled the same way.
+Between inputs a timer thread sleeps until the supervisor's next deadline (a watchdog, the
+20 Hz hold re-send, a task's or a catching-up target's next step): an idle decision server
+does nothing. robot/state and robot/force are not decoded per sample: Zenoh keeps the newest
+of each, read when a tick needs them (`Node.latest`).
+
+Threads: every tick runs under one lock (`_cond`), and the command it yields is published
+under it too, so `robot/puma/cmd` leaves in `seq` order whichever thread ticked; events go
+out after the lock is released. RPC handlers touch the supervisor under the same lock,
+briefly; a task's caller waits on its condition.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+import traceback
+from collections.abc import Callable, Mapping
+from dataclasses import fields
+from functools import partial
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from services.bus.bounds import each_out_of_bounds, norm_out_of_bounds, out_of_bounds, short
+from services.bus.codec import arg, jsonable
+from services.bus.config import section
+from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
+from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
+from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3
+from services.bus.node import Node, PendingCall
+from services.control.decision.config import STARTUP_ONLY, DecisionConfig
+from services.control.decision.notices import INTERVENTIONS, Notice
+from services.control.decision.passivity import SlaveTdpa
+from services.control.decision.supervisor import Inputs, Mode, Supervisor
+from services.control.decision.taskrun import TaskRun
+from services.control.decision.tasks import TASK_NAMES, TaskPlan, plan_task
+from services.control.decision.watch import target_problem
+from services.control.decision.watchdogs import fresh
+
+log = logging.getLogger("telerobot.decision")
+
+SERVICE = "decision"
+#: IProxyRobot (PROTOCOL §4) forwarded to robot/puma/rpc/…; puma's `status` is part of ours.
+PUMA_METHODS: tuple[str, ...] = (
+    "connect",
+    "initialize",
+    "set_tool",
+    "set_frame",
+    "move_joints",
+    "move_pose",
+    "move_relative",
+    "stop",
+    "home",
+    "fk",
+    "ik",
+    "limits",
+)
+#: IForceSensor (PROTOCOL §4) forwarded to robot/force/rpc/…
+FORCE_METHODS: tuple[str, ...] = (
+    "sensor_status",
+    "sensor_start",
+    "sensor_stop",
+    "sensor_config",
+    "sensor_bias",
+    "sensor_compliance",
+    "sensor_read",
+)
+#: forwarded methods that move the arm: refused while teleoperation or a task commands it
+#: (busy) and under the e-stop latch (estop)
+MOTION_METHODS: frozenset[str] = frozenset({"move_joints", "move_pose", "move_relative", "home"})
+SUPERVISED_BY = "supervised_by"
+"""The argument the decision adds to the motion calls it forwards (its service name): while a
+decision server is alive, the puma refuses motion calls without it."""
+ALIVE_WAIT_S = 0.5
+"""How long a forwarded call waits for the target's liveliness token before `unavailable`."""
+STATUS_CALL_TIMEOUT_S = 1.0
+HOLD_REPEATS = 3
+"""Inactive commands sent at close (each a new seq): one lost packet must not matter."""
+IDLE_WAIT_S = 1.0
+"""The timer re-checks this often when nothing is due (a safety net; inputs wake it)."""
+
+
+class DecisionService:
+    """The DecisionServer: declares its streams and methods, starts the loop, announces.
+
+    `close()` holds the arm (an inactive command, then puma `stop`) and stops the loop; it
+    does not close the node.
+    """
+
+    def __init__(self, node: Node, config: DecisionConfig) -> None:
+        self.node = node
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        wall = time.time_ns()
+        # Counters seeded from the wall clock, like the masters': a restarted decision server
+        # still counts upwards, so the puma never ignores it as stale.
+        self.supervisor = Supervisor(
+            config, seq_start=wall // 1_000, engage_start=wall // 1_000_000
+        )
+        self._stop = threading.Event()
+        self._closed = False
+        self.loop_errors = 0
+        self.publish_errors = 0
+        self.timer_ticks = 0
+        self.timer_late = 0
+        self.timer_late_max_ms = 0.0
+
+        self._pub = node.publisher(PUMA_CMD)
+        self.passivity = SlaveTdpa(node, contact_n=config.max_force_n) if config.passivity else None
+        self._op_engage: dict[str, int] = {}
+        node.batches(CMD, self._on_commands)
+        self._state = node.latest(STATE)
+        self._force = node.latest(FORCE)
+        node.alive.on_change(self._on_alive)
+        node.serve(
+            SERVICE,
+            self._methods(),
+            inline=("supervisor", "reset"),
+            first={"estop": self._latch_estop, "stop": self._hold_first},
+        )
+        self._thread = threading.Thread(target=self._timer, name="decision-timer", daemon=True)
+        self._thread.start()
+        node.announce()
+
+    # --- Zenoh callbacks: react to commands and losses, store the rest --------------------
+    def _on_commands(self, msgs: tuple[OperatorCommand, ...]) -> None:
+        """Each arrival, at once; what piled up while the last one was handled, together."""
+        self._react(commands=msgs)
+
+    def _on_alive(self, name: str, up: bool) -> None:
+        if not up:
+            self._react(lost=(name,))
+
+    # --- ticks -----------------------------------------------------------------------------
+    @property
+    def config(self) -> DecisionConfig:
+        return self.supervisor.config
+
+    def _inputs(
+        self, commands: tuple[OperatorCommand, ...] = (), lost: tuple[str, ...] = ()
+    ) -> Inputs:
+        """The tick's inputs (under the lock: the newest state and force are read here)."""
+        state, force = self._state.read(), self._force.read()
+        return Inputs(
+            now_ns=time.monotonic_ns(),
+            wall_ns=time.time_ns(),
+            state=state[0] if state else None,
+            state_rx_ns=state[1] if state else 0,
+            force=force[0] if force else None,
+            force_rx_ns=force[1] if force else 0,
+            commands=commands,
+            lost=lost,
+        )
+
+    def _react(
+        self, commands: tuple[OperatorCommand, ...] = (), lost: tuple[str, ...] = ()
+    ) -> None:
+        """Tick now with these inputs (or none, after a method changed the mode): publish
+        the result at once and let the timer re-plan its next wake-up."""
+        with self._cond:
+            if self._closed:
+                return
+            notices = self._tick_locked(self._inputs(commands, lost))
+            self._cond.notify_all()
+        self._emit(notices)
+
+    def _tick_locked(self, inp: Inputs) -> tuple[Notice, ...]:
+        """One supervisor tick under the lock; the command goes out before the lock is
+        released. Returns the notices to publish after it."""
+        try:
+            res = self.supervisor.tick(inp)
+        except Exception as e:  # a bug: count it, report it, latch the safe state
+            self.loop_errors += 1
+            log.exception("supervisor tick failed")
+            self.supervisor.estop(inp.now_ns, f"internal error in the supervisor: {e}")
+            bug = Notice(
+                "error",
+                f"supervisor tick failed: {e}",
+                {"traceback": traceback.format_exc(limit=8)},
+            )
+            return (bug,)
+        if res.command is not None:
+            cmd = res.command
+            if self.passivity is not None:
+                cmd = self.passivity.apply(
+                    cmd, self._operator(inp), inp.state, self._fresh_force(inp), inp.now_ns
+                )
+            self._put(cmd)
+        if res.stop_arm:
+            self._stop_puma_soon()
+        return res.notices
+
+    def _operator(self, inp: Inputs) -> tuple[str, int] | None:
+        """(lease holder, its engage) for the passivity count, or None without a lease."""
+        for c in inp.commands:
+            if len(self._op_engage) >= 16 and c.master not in self._op_engage:
+                self._op_engage.clear()  # masters come and go; only the lease holder matters
+            self._op_engage[c.master] = c.engage
+        lease = self.supervisor.lease
+        if lease is None or lease not in self._op_engage:
+            return None
+        return (lease, self._op_engage[lease])
+
+    def _fresh_force(self, inp: Inputs) -> ForceSample | None:
+        if inp.force is None or not fresh(self.config.stale_ms, inp.now_ns, inp.force_rx_ns):
+            return None
+        return inp.force
+
+    def _stop_puma_soon(self) -> None:
+        """A watched motion broke a limit: the puma's `stop`, from a worker (never from the
+        tick, which holds the lock)."""
+
+        def stop() -> None:
+            try:
+                self._forward("puma", "stop", {})
+            except RpcError as e:
+                log.warning("could not stop a forwarded motion: %s", e.message)
+
+        threading.Thread(target=stop, name="decision-stop", daemon=True).start()
+
+    def _timer(self) -> None:
+        """Sleep until the supervisor's next deadline (or an input re-plans it); tick."""
+        while True:
+            with self._cond:
+                if self._stop.is_set():
+                    return
+                wake = self.supervisor.next_wake_ns()
+                now = time.monotonic_ns()
+                if wake is None or wake > now:
+                    left_s = IDLE_WAIT_S if wake is None else min((wake - now) * 1e-9, IDLE_WAIT_S)
+                    self._cond.wait(left_s)
+                    continue
+                late_ms = (now - wake) * 1e-6
+                if late_ms > self.config.period_s * 1e3:
+                    self.timer_late += 1
+                    self.timer_late_max_ms = max(self.timer_late_max_ms, late_ms)
+                self.timer_ticks += 1
+                notices = self._tick_locked(self._inputs())
+                self._cond.notify_all()
+            self._emit(notices)
+
+    def _emit(self, notices: tuple[Notice, ...]) -> None:
+        for n in notices:
+            self._event(n.kind, n.message, n.data)
+
+    def _put(self, cmd: OperatorCommand) -> None:
+        try:
+            self._pub.put(cmd)
+        except (zenoh.ZError, ProtocolError):
+            self.publish_errors += 1
+            log.warning("could not publish on robot/puma/cmd", exc_info=True)
+
+    def _event(self, kind: str, message: str, data: Mapping[str, Any]) -> None:
+        if not self.node.closed:
+            self.node.event(kind, message, data)
+
+    # --- methods ---------------------------------------------------------------------------
+    def _methods(self) -> dict[str, Callable[[dict[str, Any]], dict[str, Any]]]:
+        methods: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {}
+        for name in PUMA_METHODS:
+            methods[name] = partial(self._puma_method, name)
+        for name in FORCE_METHODS:
+            methods[name] = partial(self._forward, "force", name)
+        methods.update(
+            status=self.rpc_status,
+            supervisor=self.rpc_supervisor,
+            estop=self.rpc_estop,
+            reset=self.rpc_reset,
+            task=self.rpc_task,
+        )
+        return methods
+
+    def _forward(
+        self, service: str, method: str, args: Mapping[str, Any], timeout_s: float | None = None
+    ) -> dict[str, Any]:
+        """Call `service.method` with the same arguments; its error codes pass through, and a
+        service that is down is `unavailable`."""
+        if timeout_s is None:
+            wait = args.get("wait") is True
+            timeout_s = self.config.wait_timeout_s if wait else self.config.rpc_timeout_s
+            asked = args.get("timeout_s")
+            # The caller's own wait (the target checks its bounds): ours outlasts it.
+            if (
+                wait
+                and isinstance(asked, int | float)
+                and not isinstance(asked, bool)
+                and out_of_bounds("timeout_s", float(asked), "timeout_s") is None
+            ):
+                timeout_s = max(timeout_s, float(asked) + self.config.rpc_timeout_s)
+        if not self.node.alive.wait(service, min(ALIVE_WAIT_S, timeout_s)):
+            raise RpcError("unavailable", f"the {service} service is not running")
+        try:
+            return self.node.call(service, method, args, timeout_s)
+        except Unavailable as e:
+            raise RpcError("unavailable", f"{service}.{method}: {e}") from None
+
+    def _puma_method(self, method: str, args: dict[str, Any]) -> dict[str, Any]:
+        # `stop` held already, before its arguments were read (`_hold_first`).
+        if method in MOTION_METHODS:
+            self._check_target(method, args)
+            with self._cond:
+                self.supervisor.claim(method, time.monotonic_ns())
+                self._cond.notify_all()  # the timer watches the motion
+            try:
+                return self._forward("puma", method, {**args, SUPERVISED_BY: SERVICE})
+            except RpcError:
+                with self._cond:
+                    self.supervisor.end_watch()
+                raise
+        elif method == "set_tool":
+            with self._cond:
+                if self.supervisor.mode in (Mode.FOLLOW, Mode.TASK):
+                    raise RpcError("busy", "set_tool refused: the supervisor is commanding the arm")
+        return self._forward("puma", method, args)
+
+    def _check_target(self, method: str, args: Mapping[str, Any]) -> None:
+        """Refuse (`limit`) a forwarded motion whose target tool point lies outside the
+        workspace box. Arguments the puma would refuse anyway are left to it."""
+        p: list[float] | None = None
+        if method == "move_pose":
+            p = _floats3(args.get("p"))
+            if p is not None and each_out_of_bounds("p", p, "position_m"):
+                p = None  # absurd, not merely outside the box: the puma says `bad_request`
+        elif method == "move_relative":
+            p = self._relative_target(args)
+        elif method == "move_joints":
+            q = args.get("q")
+            if (
+                isinstance(q, list)
+                and len(q) == 6
+                and all(_number(x) for x in q)
+                and each_out_of_bounds("q", [float(x) for x in q], "joint_rad") is None
+            ):
+                try:
+                    p = _floats3(self._forward("puma", "fk", {"q": q}).get("tool_p"))
+                except RpcError:
+                    p = None  # the puma will refuse the call for the same reason
+        if p is None:
+            return
+        with self._cond:
+            why = target_problem(self.config, method, p)
+        if why is not None:
+            raise RpcError("limit", why)
+
+    def _relative_target(self, args: Mapping[str, Any]) -> list[float] | None:
+        """`move_relative`'s target tool point: p + R_f·dp (R_f of its frame; PROTOCOL §4
+        and the puma's `set_frame` default), from the newest robot/state."""
+        dp = _floats3(args.get("dp"))
+        with self._cond:
+            read = self._state.read()
+        if dp is None or read is None or norm_out_of_bounds("dp", dp, "displacement_m"):
+            return None
+        state = read[0]
+        frame = args.get("frame")
+        if frame is None:
+            frame = self._forward("puma", "status", {}).get("frame", "world")
+        if frame == "world":
+            R_f = np.eye(3)
+        elif frame == "wrist":
+            R_f = mat3(state.flange_R)
+        elif frame == "tool":
+            R_f = mat3(state.tool_R)
+        else:
+            return None
+        return [float(x) for x in np.asarray(state.tool_p) + R_f @ np.asarray(dp)]
+
+    def rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The superset status: robot (robot/state and puma's `status`), sensor (robot/force
+        and `sensor_status`), supervisor (mode, lease, task, settings), alive services and the
+        intervention counters."""
+        puma = self._peek_start("puma", "status")
+        sensor = self._peek_start("force", "sensor_status")
+        with self._cond:
+            snap = self.supervisor.snapshot()
+            settings = self.config.settings()
+            state, force = self._state.read(), self._force.read()
+        now = time.monotonic_ns()
+        interventions = dict(snap["interventions"])
+        interventions["rejected"] = interventions.get("rejected", 0) + self._cmd_rejections()
+        return {
+            "service": SERVICE,
+            "mode": snap["mode"],
+            "lease": snap["lease"],
+            "estop": snap["estop"],
+            "supervisor": snap,
+            "settings": settings,
+            "interventions": interventions,
+            "robot": _stamped(state, now),
+            "force": _stamped(force, now),
+            "puma": _peek_result(puma),
+            "sensor": _peek_result(sensor),
+            "alive": sorted(self.node.alive.names()),
+            "loop": {
+                "rate_hz": self.config.rate_hz,
+                "ticks": snap["stats"]["ticks"],
+                "timer_ticks": self.timer_ticks,
+                "late": self.timer_late,
+                "late_max_ms": round(self.timer_late_max_ms, 3),
+                "errors": self.loop_errors,
+                "publish_errors": self.publish_errors,
+            },
+        }
+
+    def _cmd_rejections(self) -> int:
+        return sum(
+            n
+            for key, n in dict(self.node.rejected).items()
+            if key == CMD.key or key.endswith("/" + CMD.key)
+        )
+
+    def _peek_start(self, service: str, method: str) -> PendingCall | dict[str, Any]:
+        """Start a nested call of `status` (they run concurrently), or its error map."""
+        if not self.node.alive.is_alive(service):
+            return {"error": "unavailable", "message": f"the {service} service is not running"}
+        try:
+            return self.node.call_start(service, method, {}, STATUS_CALL_TIMEOUT_S)
+        except Unavailable as e:
+            return {"error": "unavailable", "message": str(e)}
+
+    def rpc_supervisor(self, args: dict[str, Any]) -> dict[str, Any]:
+        """No arguments: the supervisory settings and mode. With arguments: change those
+        settings (same names and checks as the `[decision]` table; bad_request otherwise)."""
+        if args:
+            fixed = sorted(set(args) & STARTUP_ONLY)
+            if fixed:
+                raise RpcError("bad_request", f"{', '.join(fixed)}: fixed at start-up")
+            with self._cond:
+                current = self.config.settings()
+            try:
+                new = section(DecisionConfig, {**current, **args}, "decision")
+            except ConfigError as e:
+                raise RpcError("bad_request", str(e)) from None
+            with self._cond:
+                self.supervisor.set_config(new)
+                self._cond.notify_all()  # the timer's next deadline may have moved
+            changed = sorted(k for k in args if current.get(k) != new.settings().get(k))
+            self._event(
+                "status",
+                f"supervisor settings changed: {', '.join(changed) or 'none'}",
+                {"changed": {k: new.settings()[k] for k in changed}},
+            )
+        with self._cond:
+            return {
+                "settings": self.config.settings(),
+                "mode": self.supervisor.mode.value,
+                "startup_only": sorted(STARTUP_ONLY),
+            }
+
+    def _latch_estop(self) -> None:
+        """`estop`'s first action, before its arguments are even read: latch and hold."""
+        with self._cond:
+            self.supervisor.estop(time.monotonic_ns(), "estop requested")
+        self._react()  # the hold goes out now
+
+    def _hold_first(self) -> None:
+        """`stop`'s first action, before its arguments are read: hold teleoperation, cancel
+        a task."""
+        with self._cond:
+            self.supervisor.stop(time.monotonic_ns())
+        self._react()
+
+    def rpc_estop(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Latch the emergency stop (done before this runs, whatever the arguments: see
+        `_latch_estop`), pre-empt any task, stop the puma; everything that moves is refused
+        until `reset`. An optional `reason` (str) is echoed back, shortened."""
+        reason = args.get("reason")
+        method = "estop" if self.config.estop_power_off else "stop"
+        try:
+            puma: dict[str, Any] = self._forward("puma", method, {})
+        except RpcError as e:
+            puma = {"error": e.code, "message": e.message}
+        out: dict[str, Any] = {"estop": True, "puma": puma}
+        if isinstance(reason, str):
+            out["reason"] = short(reason)
+        return out
+
+    def rpc_reset(self, args: dict[str, Any]) -> dict[str, Any]:
+        """Clear the e-stop latch; masters must engage anew to move."""
+        with self._cond:
+            was = self.supervisor.reset(time.monotonic_ns())
+            self._cond.notify_all()
+        return {"estop": False, "was_latched": was}
+
+    def rpc_task(self, args: dict[str, Any]) -> dict[str, Any]:
+        """`task {name, …}`: guarded_move, pick_place (streamed by the supervisor), home
+        (forwarded), cancel. Replies on completion unless `"wait": false`."""
+        name = arg(args, "name", str)
+        if self._closed:
+            raise RpcError("unavailable", "the decision server is shutting down")
+        if name not in TASK_NAMES:
+            raise ProtocolError("name", f"unknown task {name!r} (tasks: {', '.join(TASK_NAMES)})")
+        now = time.monotonic_ns()
+        if name == "cancel":
+            with self._cond:
+                run = self.supervisor.cancel_task(now)
+            self._react()
+            if run is not None and run.external:
+                self._forward("puma", "stop", {})
+            return {"cancelled": run.name if run is not None else None}
+        if name == "home":
+            return self._home_task(args, now)
+        with self._cond:
+            plan = plan_task(name, args, self.config)
+            run = self.supervisor.start_task(plan, now)
+        self._react()  # the task's first step now; the timer takes the next ones
+        if not plan.wait:
+            return {"accepted": True, "task": name, "id": run.id}
+        return self._wait(run)
+
+    def _wait(self, run: TaskRun) -> dict[str, Any]:
+        with self._cond:
+            if not self._cond.wait_for(lambda: run.done, self.config.wait_timeout_s):
+                self.supervisor.cancel_task(time.monotonic_ns())
+                raise RpcError("internal", f"task {run.name!r} did not finish in time: cancelled")
+        return _outcome(run)
+
+    def _home_task(self, args: Mapping[str, Any], now: int) -> dict[str, Any]:
+        wait = bool(arg(args, "wait", bool, True))
+        with self._cond:
+            run = self.supervisor.start_task(TaskPlan("home", (), wait), now, external=True)
+
+        def go() -> None:
+            result: dict[str, Any] | None = None
+            error: tuple[ErrorCode, str] | None = None
+            try:
+                reply = self._forward(
+                    "puma",
+                    "home",
+                    {"wait": True, SUPERVISED_BY: SERVICE},
+                    self.config.wait_timeout_s,
+                )
+                result = {"task": "home", "done": True, **reply}
+            except RpcError as e:
+                error = (e.code, e.message)
+            with self._cond:
+                self.supervisor.finish_external(run, result=result, error=error)
+            self._react()
+
+        if not wait:
+            threading.Thread(target=go, name="decision-home", daemon=True).start()
+            return {"accepted": True, "task": "home", "id": run.id}
+        go()
+        return _outcome(run)
+
+    # --- shutdown --------------------------------------------------------------------------
+    def close(self) -> None:
+        """Hold the arm (inactive command, puma `stop`), stop the loop. Idempotent."""
+        if self._closed:
+            return
+        with self._cond:
+            self._closed = True
+            self._stop.set()
+            self._cond.notify_all()
+        self._thread.join(timeout=2.0)
+        with self._cond:
+            final = self.supervisor.shutdown(time.monotonic_ns(), time.time_ns(), HOLD_REPEATS)
+            self._cond.notify_all()
+            for cmd in final:
+                self._put(cmd)
+        if self.node.closed or not self.node.alive.is_alive("puma"):
+            return
+        try:
+            self.node.call("puma", "stop", {}, self.config.rpc_timeout_s)
+        except (RpcError, Unavailable) as e:
+            log.info("puma stop at close: %s", e)
+
+
+def _number(x: object) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _floats3(v: object) -> list[float] | None:
+    """3 finite numbers as floats, or None (the puma answers for malformed arguments)."""
+    if isinstance(v, list | tuple) and len(v) == 3 and all(_number(x) for x in v):
+        return [float(x) for x in v]
+    return None
+
+
+def _peek_result(call: PendingCall | dict[str, Any]) -> dict[str, Any]:
+    """The nested call's reply, or its error as a map (status never fails for it)."""
+    if isinstance(call, dict):
+        return call
+    try:
+        return call.result()
+    except RpcError as e:
+        return {"error": e.code, "message": e.message}
+    except Unavailable as e:
+        return {"error": "unavailable", "message": str(e)}
+
+
+def _stamped(
+    item: tuple[RobotState, int] | tuple[ForceSample, int] | None, now_ns: int
+) -> dict[str, Any] | None:
+    if item is None:
+        return None
+    msg, rx_ns = item
+    out: dict[str, Any] = jsonable({f.name: getattr(msg, f.name) for f in fields(msg)})
+    out["age_ms"] = (now_ns - rx_ns) / 1e6
+    return out
+
+
+def _outcome(run: TaskRun) -> dict[str, Any]:
+    if run.error is not None:
+        raise RpcError(run.error[0], run.error[1])
+    return dict(run.result or {"task": run.name, "done": run.done})
+
+
+__all__ = ["FORCE_METHODS", "INTERVENTIONS", "PUMA_METHODS", "DecisionService"]

@@ -1,0 +1,90 @@
+"""Forwarded motions (`move_*`, `home`): the puma plans and executes them, the decision
+server watches them and has them stopped at a contact or at the workspace's edge.
+
+Pure: `watch_step` judges one tick's robot state and force; the supervisor counts and
+reports what it returns and asks the service to call the puma's `stop`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from services.bus.messages import ForceSample, RobotState, mat3
+from services.control.decision.config import DecisionConfig
+from services.control.decision.filters import in_box
+from services.control.decision.notices import floats
+from services.geometry import norm3
+
+WATCH_PERIOD_NS = 5_000_000
+"""A forwarded motion is checked this often (200 Hz): at 0.5 m/s, 2.5 mm between checks."""
+WATCH_START_NS = 500_000_000
+"""A forwarded motion that has not shown `moving` this long after it was sent is over."""
+WATCH_BOX_TOL_M = 0.002
+"""A forwarded motion stops when the tool leaves the workspace box by more than this."""
+
+
+@dataclass(slots=True)
+class Watch:
+    """A forwarded motion the supervisor watches: its method, when it was sent (monotonic
+    ns), and whether the robot has shown `moving` since."""
+
+    method: str
+    since_ns: int
+    moving: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class WatchStop:
+    """Why a watched motion must stop: the intervention's kind, message and event data."""
+
+    kind: str
+    message: str
+    data: dict[str, Any]
+
+
+def target_problem(cfg: DecisionConfig, method: str, p: Sequence[float]) -> str | None:
+    """Why a forwarded motion's target tool point `p` (m, world) may not be reached
+    (outside the workspace box), or None."""
+    if in_box(p, cfg.workspace_min, cfg.workspace_max, tol=1e-9):
+        return None
+    return (
+        f"{method}: target {[round(float(x), 4) for x in p]} m is outside the workspace "
+        f"{list(cfg.workspace_min)} … {list(cfg.workspace_max)}"
+    )
+
+
+def watch_step(
+    watch: Watch,
+    cfg: DecisionConfig,
+    now_ns: int,
+    state: RobotState,
+    force: ForceSample | None,
+) -> WatchStop | Watch | None:
+    """One check of a watched motion, given a fresh robot/state and the force sample (None
+    if stale): the watch itself while the motion goes on, None once the robot shows it
+    ended (ready, or error: the puma already holds), or why it must stop (a contact above
+    max_force_n, the tool outside the box by more than WATCH_BOX_TOL_M)."""
+    if state.status == "moving":
+        watch.moving = True
+    elif watch.moving or now_ns - watch.since_ns > WATCH_START_NS:
+        return None
+    if force is not None:
+        f_w = mat3(state.tool_R) @ np.asarray(force.f, dtype=float)
+        f_n = norm3(f_w)
+        if f_n > cfg.max_force_n:
+            return WatchStop(
+                "contact",
+                f"{watch.method} stopped: contact force {f_n:.1f} N > {cfg.max_force_n:g} N",
+                {"reason": "force", "f": floats(f_w), "force_n": f_n, "method": watch.method},
+            )
+    if not in_box(state.tool_p, cfg.workspace_min, cfg.workspace_max, tol=WATCH_BOX_TOL_M):
+        return WatchStop(
+            "limit",
+            f"{watch.method} stopped: the tool left the workspace box",
+            {"reason": "workspace", "tool_p": list(state.tool_p), "method": watch.method},
+        )
+    return watch

@@ -1,0 +1,98 @@
+"""The `force` service on the bus: `robot/force` at 1 kHz and IForceSensor at robot/force/rpc.
+
+Each sample is encoded by a dedicated ForceSample encoder (wire.py, byte-identical to the
+codec) and put on the bus from the sampling thread itself (`handoff = "inline"`, the
+default): no queue and no thread wake-up per sample. The arm's pose from `robot/state`
+drives gravity compensation and the sim sensor's contact, and follows the puma's
+`set_tool`; with the sim sensor, `workcell/state` moves the objects it touches and puts
+the carried one's weight on the wrist.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from services.bus import codec, keys
+from services.bus.bounds import check_norm
+from services.bus.errors import ProtocolError, RpcError
+from services.bus.messages import IDENTITY_R, ForceSample, RobotState, Rot, Vec3
+from services.bus.node import Node
+from services.control.force.backends import open_force_sensor
+from services.control.force.config import ForceConfig
+from services.control.force.core import ForceCore
+from services.control.force.wire import ForceSampleEncoder
+from services.world.workcell.messages import WORKCELL_STATE, WorkcellState
+
+log = logging.getLogger("telerobot.force")
+
+
+class ForceService:
+    """Runs the force sensor; `close()` stops sensing and closes the sensor."""
+
+    def __init__(self, node: Node, config: ForceConfig) -> None:
+        self.node = node
+        self.config = config
+        self._pub = node.publisher(keys.FORCE)
+        self._encode = ForceSampleEncoder().encode
+        self.core = ForceCore(open_force_sensor(config), config, self._publish, self._emit)
+        node.subscribe(keys.STATE, self._on_state)
+        if config.sensor == "sim":
+            node.subscribe(WORKCELL_STATE, self._on_workcell)
+        core = self.core
+        node.serve(
+            "force",
+            {
+                "sensor_status": core.rpc_sensor_status,
+                "sensor_start": core.rpc_sensor_start,
+                "sensor_stop": core.rpc_sensor_stop,
+                "sensor_config": core.rpc_sensor_config,
+                "sensor_bias": core.rpc_sensor_bias,
+                "sensor_compliance": core.rpc_sensor_compliance,
+                "sensor_read": core.rpc_sensor_read,
+                "set_tool": self._rpc_set_tool,
+            },
+        )
+        if config.autostart:
+            try:
+                core.rpc_sensor_start({})
+            except RpcError as e:
+                node.event(
+                    "error", f"force sensor did not start: {e.message}", {"sensor": config.sensor}
+                )
+        node.announce()
+
+    def encode_sample(self, s: ForceSample) -> bytes:
+        """The sample's `robot/force` payload (what `codec.encode(ForceSample(...))` gives)."""
+        return self._encode(s.seq, s.t_ns, s.f, s.c, s.raw)
+
+    def _publish(self, s: ForceSample) -> None:
+        self._pub.put_bytes(self._encode(s.seq, s.t_ns, s.f, s.c, s.raw))
+
+    def _emit(self, kind: str, message: str, data: dict[str, Any]) -> None:
+        self.node.event(kind, message, data)
+
+    def _on_state(self, st: RobotState) -> None:
+        # Decoded by the codec: finite, rotations proper (PROTOCOL.md conventions).
+        self.core.update_robot_state_checked(
+            st.tool_p,  # type: ignore[arg-type]
+            st.tool_R,  # type: ignore[arg-type]
+            (st.flange_p, st.flange_R),  # type: ignore[arg-type]
+            st.t_ns,
+        )
+
+    def _on_workcell(self, ws: WorkcellState) -> None:
+        try:
+            self.core.update_workcell(ws)
+        except ProtocolError as e:
+            self.node.report_rejected(WORKCELL_STATE.key, str(e))
+
+    def _rpc_set_tool(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The tool placement eMt (as puma's `set_tool {p, R}`); also followed from robot/state."""
+        p = codec.arg(args, "p", Vec3)
+        check_norm("p", p, "tool_offset_m")  # as the puma's set_tool: a tool within 1 m
+        self.core.set_tool(p, codec.arg(args, "R", Rot, IDENTITY_R))
+        return self.core.rpc_sensor_status({})
+
+    def close(self) -> None:
+        self.core.close()

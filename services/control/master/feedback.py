@@ -1,0 +1,191 @@
+"""Force feedback: the wrist wrench measured at the slave's tool, shown on the operator's hand.
+
+Inputs: a ForceSample (f, c at the tool point, tool frame) and the tool orientation
+`tool_R` (world ← tool) from RobotState. The operator moves in the master frame, which A
+maps onto the slave axes the command is expressed in: world axes in `world` mode, tool axes
+in `tool` mode (PROTOCOL §2). The displayed wrench is mapped back the same way (A is a
+rotation, so its inverse is Aᵀ), scaled, and saturated with its direction kept.
+
+`ForceDisplay` is the one path from the wrist to the hand that the master service uses:
+that mapping, then zero unless engaged, a ramp-in after each engagement, and a hook where a
+master-side controller (passivity) can change the wrench before the device shows it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from services.control.master.config import Frame, MasterConfig
+from services.control.master.devices import HandReading
+from services.geometry import is_rotation
+
+Vec3 = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class DisplayWrench:
+    """What to show the operator: force f (3,) N and moment c (3,) N·m in the master frame,
+    and whether each was cut down to its limit."""
+
+    f: Vec3
+    c: Vec3
+    force_saturated: bool
+    torque_saturated: bool
+
+
+def saturate(v: ArrayLike, max_norm: float) -> tuple[Vec3, bool]:
+    """v scaled down to norm max_norm when longer, direction kept; (v', was_saturated)."""
+    x = np.asarray(v, dtype=float).reshape(3)
+    norm = math.hypot(*x)  # no overflow for huge components, unlike a dot product
+    if norm > max_norm:
+        return x * (max_norm / norm), True
+    return x, False
+
+
+def operator_wrench(
+    f_tool: ArrayLike,
+    c_tool: ArrayLike,
+    tool_R: ArrayLike,
+    *,
+    alignment: ArrayLike,
+    frame: Frame,
+    force_scale: float,
+    max_force_n: float,
+    max_torque_nm: float,
+) -> DisplayWrench:
+    """The wrench to display on the operator's hand.
+
+    world mode: f_m = s · Aᵀ · tool_R · f_tool (tool → world → master frame);
+    tool mode:  f_m = s · Aᵀ · f_tool (the operator's axes are mapped onto the tool's);
+    the same for c; then |f_m| ≤ max_force_n and |c_m| ≤ max_torque_nm, direction kept.
+    Raises ValueError on non-finite input or a tool_R that is not a rotation.
+    """
+    f = np.asarray(f_tool, dtype=float).reshape(3)
+    c = np.asarray(c_tool, dtype=float).reshape(3)
+    if not (np.all(np.isfinite(f)) and np.all(np.isfinite(c))):
+        raise ValueError("force and moment must be finite")
+    A = np.asarray(alignment, dtype=float).reshape(3, 3)
+    if frame == "world":
+        R = np.asarray(tool_R, dtype=float).reshape(3, 3)
+        if not is_rotation(R):
+            raise ValueError("tool_R must be a rotation")
+        to_master = A.T @ R
+    elif frame == "tool":
+        to_master = A.T
+    else:
+        raise ValueError("frame must be 'world' or 'tool'")
+    f_m, f_sat = saturate(force_scale * (to_master @ f), max_force_n)
+    c_m, c_sat = saturate(force_scale * (to_master @ c), max_torque_nm)
+    return DisplayWrench(f_m, c_m, f_sat, c_sat)
+
+
+class ForceFeedback:
+    """`operator_wrench` with the settings of a MasterConfig."""
+
+    def __init__(self, config: MasterConfig) -> None:
+        self._A = config.alignment_matrix
+        self._force_scale = config.force_scale
+        self._max_force_n = config.max_force_n
+        self._max_torque_nm = config.max_torque_nm
+
+    def compute(
+        self, f_tool: ArrayLike, c_tool: ArrayLike, tool_R: ArrayLike, frame: Frame
+    ) -> DisplayWrench:
+        """The display wrench for a ForceSample (f, c) and RobotState.tool_R (9 or 3×3);
+        `frame` is the teleoperation frame in use (Teleop.frame)."""
+        return operator_wrench(
+            f_tool,
+            c_tool,
+            tool_R,
+            alignment=self._A,
+            frame=frame,
+            force_scale=self._force_scale,
+            max_force_n=self._max_force_n,
+            max_torque_nm=self._max_torque_nm,
+        )
+
+    @staticmethod
+    def zero() -> DisplayWrench:
+        """Nothing to display (no or stale force data)."""
+        return DisplayWrench(np.zeros(3), np.zeros(3), False, False)
+
+
+WrenchHook = Callable[[DisplayWrench, HandReading, float], DisplayWrench]
+"""hook(wrench, hand, dt_s) -> wrench: changes the wrench about to be displayed (master
+frame), knowing the hand reading of this tick and the time since the previous one. Called
+by the loop thread, only while engaged; its output is saturated again."""
+
+
+def ramp_gain(since_engaged_s: float, ramp_s: float) -> float:
+    """0 → 1 linearly over `ramp_s` after an engagement (1 at once when ramp_s is 0)."""
+    if ramp_s <= 0.0:
+        return 1.0
+    return min(max(since_engaged_s / ramp_s, 0.0), 1.0)
+
+
+class ForceDisplay:
+    """The displayed wrench, tick by tick (the loop thread only).
+
+    `update(measured, frame, engaged, hand, dt_s, now_s)`:
+    1. `measured` = (f, c, tool_R) from the freshest ForceSample and RobotState, or None when
+       there is none or it is stale: mapped by `operator_wrench` (scale, A, saturation);
+       non-finite input counts a fault and shows zero;
+    2. zero unless the master is engaged (master-shift, before the first engagement, after
+       a device fault: the hand is not coupled to the slave, so it is not pushed);
+    3. × `ramp_gain` since the tick the master engaged (a rebase while engaged does not
+       restart it), so a contact force held through a re-clutch does not kick the hand;
+    4. `hook` (None: unchanged), then saturated again to max_force_n / max_torque_nm.
+    """
+
+    def __init__(self, config: MasterConfig, hook: WrenchHook | None = None) -> None:
+        self.feedback = ForceFeedback(config)
+        self.hook = hook
+        self._ramp_s = config.force_ramp_s
+        self._max_force_n = config.max_force_n
+        self._max_torque_nm = config.max_torque_nm
+        self._engaged_since_s: float | None = None
+        self.faults = 0
+
+    def update(
+        self,
+        measured: tuple[ArrayLike, ArrayLike, ArrayLike] | None,
+        frame: Frame,
+        engaged: bool,
+        hand: HandReading,
+        dt_s: float,
+        now_s: float,
+    ) -> DisplayWrench:
+        """The wrench to display this tick (see the class docstring); now_s is monotonic."""
+        if not engaged:
+            self._engaged_since_s = None
+            return ForceFeedback.zero()
+        if self._engaged_since_s is None:
+            self._engaged_since_s = now_s
+        if measured is None:
+            mapped = ForceFeedback.zero()
+        else:
+            try:
+                mapped = self.feedback.compute(*measured, frame)
+            except ValueError:
+                self.faults += 1
+                return ForceFeedback.zero()
+        gain = ramp_gain(now_s - self._engaged_since_s, self._ramp_s)
+        shown = DisplayWrench(
+            gain * mapped.f, gain * mapped.c, mapped.force_saturated, mapped.torque_saturated
+        )
+        if self.hook is None:
+            return shown
+        hooked = self.hook(shown, hand, dt_s)
+        f, f_sat = saturate(hooked.f, self._max_force_n)
+        c, c_sat = saturate(hooked.c, self._max_torque_nm)
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(c))):
+            self.faults += 1
+            return ForceFeedback.zero()
+        return DisplayWrench(
+            f, c, hooked.force_saturated or f_sat, hooked.torque_saturated or c_sat
+        )

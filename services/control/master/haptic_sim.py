@@ -1,0 +1,108 @@
+"""A simulated haptic master with an operator on it: the bilateral loop closes in simulation.
+
+The device has its own mass and damping; the operator's hand is a spring–damper pulling it
+towards an intended path (down `depth_m` along the master's −z over `approach_s`, hold
+`hold_s`, back up over `release_s`), and while holding the operator presses until the force
+felt reaches `goal_force_n` (`services.control.passivity.dynamics`). The force the master service
+displays acts on the device from the next read on, so the whole loop — hand → master →
+decision → puma → contact → force → master → hand — runs with the real services. Physics
+is integrated in steps of at most `STEP_S` within each read.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from services.control.master.devices import HandReading
+from services.control.passivity.dynamics import Device, Operator, press_hold_release
+
+STEP_S = 0.001
+
+
+class SimHapticMaster:
+    """`MasterDevice`: a simulated device and operator; engaged (no clutch) from the start."""
+
+    def __init__(
+        self,
+        name: str = "haptic_sim",
+        depth_m: float = 0.1,
+        approach_s: float = 2.0,
+        hold_s: float = 4.0,
+        release_s: float = 1.0,
+        goal_force_n: float = 8.0,
+        mass_kg: float = 0.5,
+        damping_ns_m: float = 2.0,
+        hand_stiffness_n_m: float = 300.0,
+        hand_damping_ns_m: float = 10.0,
+        push_gain_m_ns: float = 0.001,
+    ) -> None:
+        for key, value in (
+            ("depth_m", depth_m),
+            ("approach_s", approach_s),
+            ("mass_kg", mass_kg),
+            ("hand_stiffness_n_m", hand_stiffness_n_m),
+        ):
+            if not value > 0.0:
+                raise ValueError(f"{key} must be positive")
+        self._name = name
+        self._lock = threading.Lock()
+        self.t_s = 0.0
+        hold = (approach_s, approach_s + hold_s)
+        path = press_hold_release(
+            [0.0, 0.0, 0.0],
+            [0.0, 0.0, -depth_m],
+            approach_s=approach_s,
+            hold_s=hold_s,
+            release_s=release_s,
+        )
+        self.operator = Operator(
+            path,
+            hand_stiffness_n_m,
+            hand_damping_ns_m,
+            press=(0.0, 0.0, -1.0),
+            goal_force_n=goal_force_n,
+            gain_m_ns=push_gain_m_ns,
+            pressing=lambda t: hold[0] <= t < hold[1],
+        )
+        self.device = Device(mass_kg, damping_ns_m, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        self._f_display = [0.0, 0.0, 0.0]
+
+    @property
+    def name(self) -> str:
+        return self._name
+
+    @property
+    def can_display_force(self) -> bool:
+        return True
+
+    def open(self) -> None:
+        """Nothing to connect."""
+
+    def read(self, dt_s: float) -> HandReading:
+        """Advance the simulation by dt_s (at most 0.1 s at once) and return the hand."""
+        left = min(max(float(dt_s), 0.0), 0.1)
+        with self._lock:
+            f_show = list(self._f_display)
+            while left > 1e-9:
+                h = min(STEP_S, left)
+                self.operator.feel(self.t_s, f_show, h)
+                f_hand = self.operator.force(self.t_s, self.device.x, self.device.v)
+                self.device.step([a + b for a, b in zip(f_hand, f_show, strict=True)], h)
+                self.t_s += h
+                left -= h
+            p = np.array(self.device.x)
+        return HandReading(p, np.eye(3), False, None, 0)
+
+    def display_force(self, f: ArrayLike, c: ArrayLike) -> None:
+        """The force (master frame, N) acts on the device from the next read on."""
+        force = [float(x) for x in np.asarray(f, dtype=float).reshape(3)]
+        with self._lock:
+            self._f_display = force
+
+    def close(self) -> None:
+        """Nothing to release; the displayed force is dropped."""
+        with self._lock:
+            self._f_display = [0.0, 0.0, 0.0]

@@ -1,0 +1,82 @@
+"""The master side of time-domain passivity on the bus (docs/passivity.md).
+
+`MasterTdpa.hook` is a `ForceDisplay` hook: it observes the master port (the wrench shown ×
+the hand's motion, master frame), damps the displayed force when the channel has no energy
+left to give the operator and bounds it to what the reservoir can pay over the next tick
+(`MasterPassivity`, limiter on), and publishes the port's energies on
+`robot/passivity/master`; it reads the slave's on `robot/passivity/slave`. A new engagement
+starts a new count on both sides (no energy is in the channel then, so nothing jumps: the
+display also ramps in). Called by the master loop thread only.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+
+import numpy as np
+
+from services.bus import keys
+from services.bus.node import Node
+from services.control.master.devices import HandReading
+from services.control.master.feedback import DisplayWrench
+from services.control.passivity.controller import MasterPassivity
+from services.control.passivity.wire import passivity_state
+
+DEVICE_MASS_KG = 0.5
+"""The device mass the force limiter predicts with (the simulated haptic master's; a lighter
+real device is accelerated more by a force step than predicted: set it to that device's)."""
+RESERVE_J = 1e-4
+"""The most the master port may ever owe the channel (J): see docs/passivity.md."""
+HAND_RATE_N_S = 20.0
+"""How fast the limiter assumes the hand's own force may change (N/s)."""
+HORIZON_TICKS = 50
+"""The limiter predicts over the longest of the last this many tick intervals (a loop late
+once may be late again)."""
+
+
+class MasterTdpa:
+    """enabled: damp (true) or only observe and publish (false)."""
+
+    def __init__(
+        self, node: Node, master_id: str, engage: Callable[[], int], enabled: bool = True
+    ) -> None:
+        self.master_id = master_id
+        self.pc = MasterPassivity(
+            enabled=enabled,
+            limit=True,
+            mass_kg=DEVICE_MASS_KG,
+            reserve_j=RESERVE_J,
+            hand_rate_n_s=HAND_RATE_N_S,
+        )
+        self._engage = engage
+        self._pub = node.publisher(keys.PASSIVITY_MASTER)
+        self._slave = node.latest(keys.PASSIVITY_SLAVE)
+        self._seq = 0
+        self._epoch: int | None = None
+        self._dts: deque[float] = deque(maxlen=HORIZON_TICKS)
+
+    def hook(self, wrench: DisplayWrench, hand: HandReading, dt_s: float) -> DisplayWrench:
+        engage = self._engage()
+        if engage != self._epoch:
+            self._epoch = engage
+            self.pc.reset(engage)
+        got = self._slave.read()
+        if got is not None:
+            msg = got[0]
+            if msg.master == self.master_id and msg.side == "slave":
+                self.pc.remote.update(msg.engage, msg.e_in)
+        self._dts.append(dt_s)
+        self.pc.horizon_s = max(self._dts)
+        f = self.pc.step([float(x) for x in wrench.f], [float(x) for x in hand.hand_p], dt_s)
+        self._publish(engage)
+        return DisplayWrench(
+            np.asarray(f, dtype=float),
+            wrench.c,
+            wrench.force_saturated,
+            wrench.torque_saturated,
+        )
+
+    def _publish(self, engage: int) -> None:
+        self._seq += 1
+        self._pub.put(passivity_state(self._seq, self.master_id, engage, "master", self.pc))

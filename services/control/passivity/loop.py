@@ -1,0 +1,267 @@
+"""A whole position–force bilateral loop over a bad link, in simulation (pure, seeded).
+
+hand → device → [link] → slave (kinematic, follows the commanded position, as the simulated
+PUMA does) → wall → force → [link] → device → hand. The master sends its position and its
+cumulative input energy each tick; the slave sends the wall force and its cumulative input
+energy. The link delays every packet by `delay_s` ± `jitter` (a fraction, uniform), loses a
+fraction `loss`, and the receiver keeps the newest packet (highest seq), as our latest-wins
+subscribers do. With `tdpa` both passivity controllers run.
+
+`simulate` returns a `LoopResult` with the traces and the energy figures; `contact_metrics`
+turns it into the bench's measures (peak and steady force, oscillation RMS, penetration).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import random
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from services.control.passivity.controller import MasterPassivity, SlavePassivity
+from services.control.passivity.dynamics import Device, Operator, Path, Wall, press_hold_release
+from services.control.passivity.observer import dot
+
+
+@dataclass(frozen=True, slots=True)
+class LinkSpec:
+    """One direction's link: delay_s one way, jitter as a fraction of it, loss in [0, 1)."""
+
+    delay_s: float = 0.0
+    jitter: float = 0.0
+    loss: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.delay_s <= 10.0):
+            raise ValueError("delay_s must be within 0 … 10 s")
+        if not (0.0 <= self.jitter <= 1.0):
+            raise ValueError("jitter must be within 0 … 1")
+        if not (0.0 <= self.loss < 1.0):
+            raise ValueError("loss must be within 0 … 1 (excluded)")
+
+
+class Link:
+    """Packets in, the newest delivered packet out (latest-wins), with delay/jitter/loss."""
+
+    def __init__(self, spec: LinkSpec, rng: random.Random) -> None:
+        self.spec = spec
+        self._rng = rng
+        self._queue: list[tuple[float, int, Any]] = []
+        self._seq = 0
+        self._newest = -1
+        self.latest: Any = None
+        self.sent = 0
+        self.lost = 0
+
+    def send(self, t_s: float, payload: Any) -> None:
+        self._seq += 1
+        self.sent += 1
+        if self._rng.random() < self.spec.loss:
+            self.lost += 1
+            return
+        j = self.spec.jitter * self.spec.delay_s
+        arrive = t_s + self.spec.delay_s + (self._rng.uniform(-j, j) if j > 0 else 0.0)
+        heapq.heappush(self._queue, (arrive, self._seq, payload))
+
+    def receive(self, t_s: float) -> Any:
+        """Delivers what has arrived by t_s; returns the newest payload so far (or None)."""
+        while self._queue and self._queue[0][0] <= t_s:
+            _, seq, payload = heapq.heappop(self._queue)
+            if seq > self._newest:
+                self._newest = seq
+                self.latest = payload
+        return self.latest
+
+
+@dataclass(frozen=True, slots=True)
+class LoopSpec:
+    """The simulated contact task. Defaults: 1 kHz, 1-DoF, a 5 kN/m wall 5 cm away, the hand
+    aiming 3 cm past it."""
+
+    round_trip_s: float = 0.0
+    jitter: float = 0.0
+    loss: float = 0.0
+    tdpa: bool = False
+    dofs: int = 1
+    dt_s: float = 0.001
+    duration_s: float = 7.0
+    force_scale: float = 1.0
+    max_force_n: float = 40.0
+    drift_m_s: float = 0.01
+    slack_m: float = 0.0
+    ramp_n_s: float = 0.0
+    limit: bool = True
+    limit_mass: bool = True
+    reserve_j: float = 1e-4
+    hand_rate_n_s: float = 20.0
+    bound_current: bool = True
+    damp: bool = True
+    seed: int = 1
+    wall: Wall = field(default_factory=Wall)
+    operator_stiffness_n_m: float = 300.0
+    operator_damping_ns_m: float = 10.0
+    target_m: tuple[float, ...] = (0.08,)
+    goal_force_n: float = 8.0
+    push_gain_m_ns: float = 0.001
+    approach_s: float = 1.0
+    hold_s: float = 4.0
+    release_s: float = 1.0
+
+
+@dataclass(slots=True)
+class LoopResult:
+    """Traces at every tick: t, displayed force and slave contact force (along the wall
+    normal, N), penetration (m), and the cumulative energies of both ports."""
+
+    spec: LoopSpec
+    t: list[float] = field(default_factory=list)
+    f_display: list[float] = field(default_factory=list)
+    f_contact: list[float] = field(default_factory=list)
+    penetration: list[float] = field(default_factory=list)
+    x_master: list[float] = field(default_factory=list)
+    x_slave: list[float] = field(default_factory=list)
+    master_in: list[float] = field(default_factory=list)
+    master_out: list[float] = field(default_factory=list)
+    slave_in: list[float] = field(default_factory=list)
+    slave_out: list[float] = field(default_factory=list)
+    master_dissipated_j: float = 0.0
+    slave_dissipated_j: float = 0.0
+    master_active: int = 0
+    slave_active: int = 0
+    diverged: bool = False
+
+
+def simulate(spec: LoopSpec) -> LoopResult:
+    """Runs the contact task once; deterministic for a given spec (its seed)."""
+    n = spec.dofs
+    if n not in (1, 3) or len(spec.target_m) != n or len(spec.wall.normal) != n:
+        raise ValueError("dofs must be 1 or 3, with target_m and wall.normal of that length")
+    rng = random.Random(spec.seed)
+    one_way = LinkSpec(spec.round_trip_s / 2.0, spec.jitter, spec.loss)
+    to_slave, to_master = Link(one_way, rng), Link(one_way, rng)
+    path: Path = press_hold_release(
+        [0.0] * n,
+        spec.target_m,
+        approach_s=spec.approach_s,
+        hold_s=spec.hold_s,
+        release_s=spec.release_s,
+    )
+    norm = math.sqrt(dot(spec.target_m, spec.target_m))
+    hold = (spec.approach_s, spec.approach_s + spec.hold_s)
+    hand = Operator(
+        path,
+        spec.operator_stiffness_n_m,
+        spec.operator_damping_ns_m,
+        press=tuple(x / norm for x in spec.target_m),
+        goal_force_n=spec.goal_force_n,
+        gain_m_ns=spec.push_gain_m_ns,
+        pressing=lambda t: hold[0] <= t < hold[1],
+    )
+    device = Device(x=[0.0] * n, v=[0.0] * n)
+    master = MasterPassivity(
+        enabled=spec.tdpa,
+        ramp_n_s=spec.ramp_n_s,
+        limit=spec.limit,
+        mass_kg=device.mass_kg if spec.limit_mass else 0.0,
+        reserve_j=spec.reserve_j,
+        hand_rate_n_s=spec.hand_rate_n_s,
+        bound_current=spec.bound_current,
+        damp=spec.damp,
+    )
+    slave = SlavePassivity(enabled=spec.tdpa, drift_m_s=spec.drift_m_s, slack_m=spec.slack_m)
+    x_s = [0.0] * n
+    v_s = [0.0] * n
+    x_cmd_prev = [0.0] * n
+    f_env = [0.0] * n
+    res = LoopResult(spec)
+    normal = spec.wall.normal
+    steps = round(spec.duration_s / spec.dt_s)
+    for k in range(steps):
+        t = k * spec.dt_s
+        # --- master side ---
+        back = to_master.receive(t)
+        f_show = [0.0] * n
+        if back is not None:
+            f_remote, e_in_s = back
+            master.remote.update(0, e_in_s)
+            f_show = _saturate([spec.force_scale * fi for fi in f_remote], spec.max_force_n)
+        f_show = master.step(f_show, device.x, spec.dt_s)
+        hand.feel(t, f_show, spec.dt_s)
+        f_hand = hand.force(t, device.x, device.v)
+        device.step([a + b for a, b in zip(f_hand, f_show, strict=True)], spec.dt_s)
+        to_slave.send(t, (list(device.x), master.observer.e_in))
+        # --- slave side ---
+        cmd = to_slave.receive(t)
+        if cmd is not None:
+            x_cmd, e_in_m = cmd
+            slave.remote.update(0, e_in_m)
+            dx = [a - b for a, b in zip(x_cmd, x_cmd_prev, strict=True)]
+            x_cmd_prev = list(x_cmd)
+        else:
+            dx = [0.0] * n
+        dx = slave.step(f_env, dx, spec.dt_s)
+        v_s = [d / spec.dt_s for d in dx]
+        x_s = [a + d for a, d in zip(x_s, dx, strict=True)]
+        f_env = spec.wall.force(x_s, v_s)
+        to_master.send(t, (list(f_env), slave.observer.e_in))
+        # --- traces ---
+        res.t.append(t)
+        res.f_display.append(-dot(f_show, normal))
+        res.f_contact.append(-dot(f_env, normal))
+        res.penetration.append(spec.wall.penetration_m(x_s))
+        res.x_master.append(dot(device.x, normal))
+        res.x_slave.append(dot(x_s, normal))
+        res.master_in.append(master.observer.e_in)
+        res.master_out.append(master.observer.e_out)
+        res.slave_in.append(slave.observer.e_in)
+        res.slave_out.append(slave.observer.e_out)
+        if not all(math.isfinite(x) and abs(x) < 10.0 for x in device.x):
+            res.diverged = True
+            break
+    res.master_dissipated_j = master.telemetry.dissipated_j
+    res.slave_dissipated_j = slave.telemetry.dissipated_j
+    res.master_active = master.telemetry.active_steps
+    res.slave_active = slave.telemetry.active_steps
+    return res
+
+
+def _saturate(f: Sequence[float], max_n: float) -> list[float]:
+    norm = math.sqrt(dot(f, f))
+    if norm <= max_n:
+        return list(f)
+    return [x * max_n / norm for x in f]
+
+
+def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float | bool]:
+    """The bench's measures of one run.
+
+    peak_force_n: largest contact force; steady_force_n / oscillation_rms_n: mean and RMS
+    about the mean of the contact force over the hold after `settle_s`; penetration_mm: the
+    largest; energy_generated_j: how far the channel's observed output ever exceeded its
+    input (> 0 means energy was created); stable: no divergence and oscillation RMS below
+    10 % of the steady force.
+    """
+    spec = res.spec
+    lo = spec.approach_s + settle_s
+    hi = spec.approach_s + spec.hold_s
+    window = [f for t, f in zip(res.t, res.f_contact, strict=True) if lo <= t < hi]
+    steady = sum(window) / len(window) if window else 0.0
+    rms = math.sqrt(sum((f - steady) ** 2 for f in window) / len(window)) if window else 0.0
+    generated = 0.0
+    for mi, mo, si, so in zip(
+        res.master_in, res.master_out, res.slave_in, res.slave_out, strict=True
+    ):
+        generated = max(generated, (mo + so) - (mi + si))
+    stable = (not res.diverged) and steady > 0.0 and rms < 0.1 * steady
+    return {
+        "peak_force_n": max(res.f_contact, default=0.0),
+        "steady_force_n": steady,
+        "oscillation_rms_n": rms,
+        "penetration_mm": 1e3 * max(res.penetration, default=0.0),
+        "energy_generated_j": generated,
+        "master_dissipated_j": res.master_dissipated_j,
+        "slave_dissipated_j": res.slave_dissipated_j,
+        "stable": stable,
+    }

@@ -1,0 +1,34 @@
+"""One port's PassivityState, from either side's controller (docs/protocol-extensions.md)."""
+
+from __future__ import annotations
+
+import time
+from typing import Literal
+
+from services.bus.messages import PassivityState
+from services.control.passivity.controller import MasterPassivity, SlavePassivity
+from services.control.passivity.slave import SlavePort
+
+
+def passivity_state(
+    seq: int,
+    master: str,
+    engage: int,
+    side: Literal["master", "slave"],
+    pc: MasterPassivity | SlavePassivity | SlavePort,
+) -> PassivityState:
+    """What the port at `side` has observed and done since `engage` began."""
+    t = pc.telemetry
+    return PassivityState(
+        seq=seq,
+        t_ns=time.time_ns(),
+        master=master,
+        engage=engage,
+        side=side,
+        enabled=pc.enabled,
+        e_in=pc.observer.e_in,
+        e_out=pc.observer.e_out,
+        dissipated_j=t.dissipated_j,
+        gain=t.last_gain,
+        active_steps=t.active_steps,
+    )

@@ -1,0 +1,461 @@
+"""The PUMA proxy's control core: the fixed-rate tick, streamed commands, motions, status.
+
+`ProxyControl` holds the proxy's state and turns the streamed operator commands (PROTOCOL.md
+§2, §3) and the motion generators into one joint setpoint per control cycle for an `Arm`,
+through the safety filter (`safety.safe_step`); it reports status changes and other events
+through `emit(kind, message, data)`. `PumaProxy` (proxy.py) adds the methods of §4 on top.
+
+Frames: world R_w (the DH base frame), wrist R_e (the flange, DH frame 6, origin at the wrist
+centre), tool R_t (placed in R_e by `eMt`, set with `set_tool`). Units: m, rad, s.
+
+Who calls what: `tick(dt_s)` is called by the service's fixed-rate loop and is the only
+place that talks to the arm's setpoint stream; `on_command` and the proxy's methods may be
+called from any thread (the bus's callbacks). One lock serialises them; motion planning (many
+IK solves) runs outside it on a kinematics instance of its own.
+
+Safety, whatever the source of the motion: `safe_step` applies every tick. Motions are
+planned, and streamed commands chased, within the limits (with margin), so the filter is a
+last line that seldom has to act. An arm error, a following error or a failed read puts the
+proxy in `error`: the motion is abandoned, the arm holds, and nothing moves until `connect`
+and `initialize`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+from typing import Any, Literal, Self
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import NDArray
+
+from services.bus.events import EventLimiter
+from services.control.puma.arguments import RelFrame, is_number, too_long
+from services.control.puma.arm import Arm, ArmError
+from services.control.puma.config import PumaConfig
+from services.control.puma.kinematics import DEFAULT_eMt, Puma560, Unreachable
+from services.control.puma.mapping import TeleopInput, TeleopMapping
+from services.control.puma.motions import (
+    GOAL_TOL_RAD,
+    Brake,
+    Generator,
+    Motion,
+    Planned,
+    Servo,
+    servo_target,
+)
+from services.control.puma.safety import MotionLimits, safe_step
+from services.geometry import rotation_problem
+
+Vec = NDArray[np.float64]
+Status = Literal["disconnected", "connected", "initializing", "ready", "moving", "error"]
+EmitFn = Callable[[str, str, dict[str, Any]], None]
+
+MAX_MOTION_HISTORY = 128
+
+
+class ProxyControl:
+    """The state and control loop of `PumaProxy` over an `Arm` (see the module docstring).
+
+    Events go out through `emit`, outside the lock, in the order they happened.
+    """
+
+    def __init__(self, arm: Arm, config: PumaConfig, emit: EmitFn) -> None:
+        self.arm = arm
+        self.config = config
+        self._emit = emit
+        self._lock = threading.RLock()
+        self._status_changed = threading.Condition(self._lock)
+        self._plan_lock = threading.Lock()
+        self._emit_lock = threading.RLock()
+        self._events: list[tuple[str, str, dict[str, Any]]] = []
+        self._kin = Puma560()  # the loop's: tick, on_command, state
+        self._plan_kin = Puma560()  # the methods': planning, fk, ik
+        self.limits = MotionLimits(
+            q_lo=self._kin.q_lo.copy(),
+            q_hi=self._kin.q_hi.copy(),
+            vmax=np.array(config.max_joint_speed_rad_s, dtype=np.float64),
+            amax=np.array(config.max_joint_accel_rad_s2, dtype=np.float64),
+            tool_speed_m_s=config.max_tool_speed_m_s,
+            tool_rot_speed_rad_s=config.max_tool_rot_speed_rad_s,
+        )
+        self._status: Status = "disconnected"
+        self._estopped = False
+        self._last_error: str | None = None
+        self._eMt: pin.SE3 = pin.SE3(DEFAULT_eMt)
+        self._tool_version = 0
+        self._frame: RelFrame = "world"
+        self._t_s = 0.0
+        self._q_cmd = np.zeros(6)
+        self._qd_cmd = np.zeros(6)
+        self._q_meas: Vec | None = None
+        self._pose_cmd: tuple[Vec, Vec] = self._tool_pose(self._q_cmd)
+        self._gen: Generator | None = None
+        self._motion: Motion | None = None
+        self._motions: OrderedDict[int, Motion] = OrderedDict()
+        self._next_id = 1
+        self._mapping = TeleopMapping()
+        self._grip: float | None = None
+        self._last_cmd_t_ns = 0
+        self._cmd_rx_ns: int | None = None
+        self._cmd_origin_t_ns: int | None = None
+        self._setpoint_ns: int | None = None
+        self._awaiting_setpoint = False
+        self._fk_cache: tuple[bytes, int, dict[str, Any]] | None = None
+        self._limiter = EventLimiter(config.event_interval_s)  # on proxy time
+        self.counters: dict[str, int] = {
+            "ticks": 0,
+            "commands": 0,
+            "commands_ignored": 0,
+            "rejected": 0,
+            "unreachable": 0,
+            "limited": 0,
+        }
+
+    @property
+    def status(self) -> Status:
+        """The robot status of PROTOCOL §5 (cheap: no kinematics)."""
+        with self._lock:
+            return self._status
+
+    @property
+    def needs_tick(self) -> bool:
+        """Whether the control loop must tick at its rate: a motion, a brake or a teleop
+        servo runs, the setpoint still has velocity, or calibration is under way. Otherwise
+        nothing changes between commands and a slow watch tick is enough."""
+        with self._lock:
+            if self._status == "initializing":
+                return True
+            if self._status not in ("ready", "moving"):
+                return False
+            return self._gen is not None or bool(self._qd_cmd.any())
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- the loop -------------------------------------------------------------------------
+
+    def tick(self, dt_s: float) -> None:
+        """One control cycle of `dt_s` seconds: advance the motion, filter, command the arm."""
+        if not dt_s > 0.0:
+            raise ValueError("dt_s must be > 0")
+        with self._lock:
+            self._t_s += dt_s
+            self.counters["ticks"] += 1
+            self._tick_locked(dt_s)
+        self._flush()
+
+    def _tick_locked(self, dt_s: float) -> None:
+        st = self._status
+        if st in ("disconnected", "error"):
+            return
+        arm_status = self.arm.status
+        if arm_status == "error" or arm_status == "disconnected":
+            self._fail("internal", f"arm: {self.arm.last_error or arm_status}")
+            return
+        if st == "initializing":
+            if arm_status == "ready":
+                self._finish_initialization()
+            return
+        if st not in ("ready", "moving"):
+            return
+        try:
+            q_meas = self.arm.read_joints()
+        except ArmError as e:
+            self._fail("internal", f"arm: {e}")
+            return
+        self._q_meas = q_meas
+        follow = float(np.max(np.abs(q_meas - self._q_cmd)))
+        if follow > self.config.max_following_error_rad:
+            self._fail("internal", f"following error {follow:.3f} rad: the arm does not follow")
+            return
+        if self._gen is None and not self._qd_cmd.any():
+            return  # at rest with nothing to do: the arm already holds this setpoint
+        q_des = self._desired(dt_s)
+        step = safe_step(
+            self._q_cmd, self._qd_cmd, q_des, dt_s, self.limits, self._tool_pose, self._pose_cmd
+        )
+        if step.limited:
+            self.counters["limited"] += 1
+            self._event_limited(
+                "limit", "limit", "a limit held the motion back", {"limits": sorted(step.limited)}
+            )
+        self._q_cmd, self._qd_cmd = step.q, step.qd
+        self._pose_cmd = (step.tool_p, step.tool_R)
+        self.arm.command(self._q_cmd)
+        if self._awaiting_setpoint:
+            self._awaiting_setpoint = False
+            self._setpoint_ns = time.time_ns()
+        self._update_motion(dt_s)
+
+    def _desired(self, dt_s: float) -> Vec:
+        gen = self._gen
+        if gen is None:
+            return self._q_cmd
+        if isinstance(gen, Planned):
+            return gen.next(dt_s)
+        if isinstance(gen, Brake):
+            t_stop = float(np.max(np.abs(self._qd_cmd) / self.limits.amax))
+            k = max(0.0, 1.0 - dt_s / t_stop) if t_stop > 0.0 else 0.0
+            return self._q_cmd + self._qd_cmd * k * dt_s
+        return servo_target(
+            gen.goal, self._q_cmd, self._qd_cmd, self._pose_cmd, dt_s, self.limits, self._tool_pose
+        )
+
+    def _update_motion(self, dt_s: float) -> None:
+        gen = self._gen
+        if gen is None:
+            return
+        at_rest = not np.any(self._qd_cmd)
+        if isinstance(gen, Brake):
+            if at_rest:
+                self._end_motion("stopped")
+            return
+        if isinstance(gen, Planned):
+            if gen.finished:
+                if float(np.max(np.abs(gen.goal - self._q_cmd))) <= GOAL_TOL_RAD:
+                    self._q_cmd = gen.goal.copy()
+                    self._end_motion("completed")
+                else:
+                    # The filter held the plan back somewhere: finish by chasing the goal.
+                    self._gen = Servo(gen.goal, self._t_s, 0.0)
+            return
+        e = float(np.max(np.abs(gen.goal - self._q_cmd)))
+        if e <= GOAL_TOL_RAD and float(np.max(np.abs(self._qd_cmd))) < 1e-6:
+            self._q_cmd = gen.goal.copy()
+            if self._t_s - gen.last_goal_t_s >= gen.settle_s:
+                self._qd_cmd = np.zeros(6)
+                self._end_motion("completed")
+
+    def _end_motion(self, reason: str) -> None:
+        motion = self._motion
+        self._gen = None
+        self._motion = None
+        if motion is None or motion.kind != "teleop" or reason != "completed":
+            # Something other than the operator's commands moved the arm (or cut a command
+            # short): the next command re-bases there instead of jumping back.
+            self._mapping.rebase()
+        if motion is not None:
+            motion.finish(reason, self._q_cmd)
+        self._set_status("ready")
+        p, _ = self._pose_cmd
+        self._event(
+            "moved",
+            f"motion {motion.id if motion else '-'} {reason}",
+            {
+                "motion": motion.id if motion else None,
+                "reason": reason,
+                "q": [float(x) for x in self._q_cmd],
+                "tool_p": [float(x) for x in p],
+            },
+        )
+
+    def _finish_initialization(self) -> None:
+        try:
+            q = self.arm.read_joints()
+        except ArmError as e:
+            self._fail("internal", f"arm: {e}")
+            return
+        self._q_meas = q.copy()
+        self._q_cmd = q.copy()
+        self._qd_cmd = np.zeros(6)
+        self._pose_cmd = self._tool_pose(self._q_cmd)
+        self._mapping.rebase()
+        self._set_status("ready")
+        # The first setpoint is where the arm is: from here on it holds what it was sent.
+        self.arm.command(self._q_cmd)
+        self._event("data", "arm calibrated", {"q": [float(x) for x in q]})
+
+    # --- streamed commands ----------------------------------------------------------------
+
+    def on_command(
+        self,
+        cmd: TeleopInput,
+        t_ns: int,
+        grip: float | None,
+        rx_ns: int | None = None,
+        origin_t_ns: int | None = None,
+    ) -> None:
+        """A streamed OperatorCommand (`robot/puma/cmd`, after supervision; PROTOCOL §2–3).
+
+        Ignored unless `ready` or `moving` (and while `stop` brakes). A command with a
+        non-finite or too large `dp` (> `max_dp_m`), a `dR` that is not a rotation or a grip
+        outside [0, 1] is rejected (a rate-limited `rejected` event) and moves nothing. An
+        active command maps to a tool target (TeleopMapping, eqs. 1–3) and joints
+        (`Puma560.solve`) that the arm then chases within every limit, pre-empting a running
+        motion. An unreachable target leaves the last reachable goal in place (the arm holds
+        there) and raises a rate-limited `error` event with code `unreachable`.
+
+        `rx_ns` (when the service received it) and `origin_t_ns` (the operator's send time
+        it carries) are reported in the state with the time of the first setpoint it
+        produced, so the operator's path can be timed on one clock.
+        """
+        with self._lock:
+            self._on_command_locked(cmd, t_ns, grip, rx_ns, origin_t_ns)
+        self._flush()
+
+    def _on_command_locked(
+        self,
+        cmd: TeleopInput,
+        t_ns: int,
+        grip: float | None,
+        rx_ns: int | None,
+        origin_t_ns: int | None,
+    ) -> None:
+        self.counters["commands"] += 1
+        if self._status not in ("ready", "moving") or isinstance(self._gen, Brake):
+            self.counters["commands_ignored"] += 1
+            return
+        dp = np.asarray(cmd.dp, dtype=np.float64)
+        dR = np.asarray(cmd.dR, dtype=np.float64)
+        why: str | None = None
+        if dp.shape != (3,) or not np.all(np.isfinite(dp)):
+            why = "dp: not 3 finite numbers"
+        elif too_long(dp, self.config.max_dp_m):
+            why = f"dp: |dp| above {self.config.max_dp_m} m"
+        elif (r := rotation_problem(dR)) is not None:
+            why = f"dR: {r}"
+        elif grip is not None and not (is_number(grip) and 0.0 <= grip <= 1.0):
+            why = "grip: must be within [0, 1]"
+        if why is not None:
+            self.counters["rejected"] += 1
+            self._event_limited(
+                "rejected",
+                "rejected",
+                f"command {cmd.seq} rejected: {why}",
+                {"seq": cmd.seq, "reason": why},
+            )
+            return
+        before = self._mapping.last_seq
+        target = self._mapping.apply(cmd, pin.SE3(self._pose_cmd[1], self._pose_cmd[0]))
+        if self._mapping.last_seq == before:
+            self.counters["commands_ignored"] += 1
+            return  # stale: an older seq or engagement
+        self._last_cmd_t_ns = int(t_ns)
+        self._cmd_rx_ns = rx_ns
+        self._cmd_origin_t_ns = origin_t_ns
+        self._setpoint_ns = None
+        self._awaiting_setpoint = cmd.active
+        if grip is not None:
+            self._grip = float(grip)
+        if target is None:
+            return  # master-shift: hold; the goal in place is where the arm stays
+        try:
+            sol = self._kin.solve(self._q_cmd, target, self._eMt)
+        except Unreachable as e:
+            self.counters["unreachable"] += 1
+            self._event_limited(
+                "unreachable",
+                "error",
+                f"command {cmd.seq} unreachable: {e}",
+                {"code": "unreachable", "seq": cmd.seq},
+            )
+            return
+        if sol.near_singular:
+            self._event_limited(
+                "singular",
+                "limit",
+                "near a singularity: motion slowed",
+                {"singularity": self._kin.singularity(sol.q)},
+            )
+        goal = np.clip(sol.q, self.limits.q_lo, self.limits.q_hi)
+        gen = self._gen
+        if isinstance(gen, Servo) and self._motion is not None and self._motion.kind == "teleop":
+            gen.goal = goal
+            gen.last_goal_t_s = self._t_s
+            return
+        if self._motion is not None:
+            self._motion.finish("preempted", self._q_cmd)
+        self._start(
+            Motion(self._new_id(), "teleop"), Servo(goal, self._t_s, self.config.teleop_settle_s)
+        )
+
+    # --- lifecycle --------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Hold the arm and release it (every exit path of the service calls this)."""
+        with self._lock:
+            self._abandon("closed")
+            try:
+                self.arm.stop()
+            finally:
+                self.arm.close()
+                self._set_status("disconnected")
+        self._flush()
+
+    # --- internals --------------------------------------------------------------------------
+
+    def _tool_pose(self, q: Vec) -> tuple[Vec, Vec]:
+        oMt = self._kin.fk_tool(q, self._eMt)
+        return np.array(oMt.translation), np.array(oMt.rotation)
+
+    def _start(self, motion: Motion, gen: Generator) -> None:
+        self._motions[motion.id] = motion
+        while len(self._motions) > MAX_MOTION_HISTORY:
+            self._motions.popitem(last=False)
+        self._motion = motion
+        self._gen = gen
+        if motion.kind != "teleop":
+            self._mapping.rebase()
+        self._set_status("moving")
+
+    def _new_id(self) -> int:
+        i = self._next_id
+        self._next_id += 1
+        return i
+
+    def _abandon(self, reason: str) -> None:
+        """End the motion where the setpoint is (the arm holds there)."""
+        if self._motion is not None:
+            self._motion.finish(reason, self._q_cmd)
+        self._motion = None
+        self._gen = None
+        self._qd_cmd = np.zeros(6)
+        self._mapping.rebase()
+
+    def _fail(self, code: str, why: str) -> None:
+        self._abandon("error")
+        try:
+            self.arm.stop()
+        except ArmError as e:
+            why = f"{why}; hold failed: {e}"
+        self._event("error", why, {"code": code})
+        self._set_status("error", why)
+
+    def _set_status(self, new: Status, why: str | None = None) -> None:
+        if new == "error" and why is not None:
+            self._last_error = why
+        if new == self._status:
+            return
+        old, self._status = self._status, new
+        self._status_changed.notify_all()
+        data: dict[str, Any] = {"status": new, "previous": old}
+        if why is not None:
+            data["reason"] = why
+        self._event("status", f"status: {new}", data)
+
+    def _event(self, kind: str, message: str, data: dict[str, Any]) -> None:
+        self._events.append((kind, message, data))
+
+    def _event_limited(self, key: str, kind: str, message: str, data: dict[str, Any]) -> None:
+        suppressed = self._limiter.allow(key, self._t_s)
+        if suppressed is None:
+            return
+        if suppressed:
+            data = {**data, "suppressed": suppressed}
+        self._event(kind, message, data)
+
+    def _flush(self) -> None:
+        with self._emit_lock:
+            while True:
+                with self._lock:
+                    if not self._events:
+                        return
+                    kind, message, data = self._events.pop(0)
+                self._emit(kind, message, data)

@@ -1,0 +1,249 @@
+"""The bare-Zenoh floor: the least a Python process can do on our bus, in the same run.
+
+- pub/sub: a minimal publisher process — plain zenoh-python, one session, one publisher with
+  `robot/force`'s QoS (REAL_TIME, express, block on congestion) and no code of our services —
+  sends the very bytes of a ForceSample at 1 kHz on `FLOOR_TOPIC` through the bench's router.
+  The bench receives them with the probe it uses on `robot/force` (stamp first, decode,
+  validate, append), so whatever our force path costs above this is ours, not Zenoh's.
+- get→reply: a minimal queryable in a process of the same kind replies inline in Zenoh's
+  callback with a fixed msgpack map (puma's own `status` map) to plain `get`s from the bench's
+  session: the floor under every method call.
+
+The publisher waits until Zenoh reports a matching subscriber before its first sample (no
+sample is lost to route set-up), then reports on stdout what it sent and the CPU it used
+while sending: `time.process_time()` over the send loop, every thread of the process (Zenoh's
+own included).
+
+Run as `python -m services.tools.bench.floor pub|serve …` (the bench spawns it like a service).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from types import FrameType
+
+import zenoh
+
+from services.bus import codec
+from services.bus.config import NodeConfig
+from services.bus.keys import ENCODING, QoS, Topic
+from services.bus.messages import ForceSample
+from services.bus.rate import RateLoop
+from services.tools.bench.baselines import force_payload
+
+FLOOR_TOPIC = Topic("bench/floor/force", ForceSample, QoS.CONTROL, latest_wins=True)
+"""Where the floor publisher sends: a key of the bench's own, so no service receives it."""
+FLOOR_RPC_KEY = "bench/floor/rpc/status"
+MATCH_TIMEOUT_S = 20.0
+SERVING = "floor serving"
+
+#: robot/force's delivery, as services.bus.node declares QoS.CONTROL (tests hold them equal)
+FLOOR_PRIORITY = zenoh.Priority.REAL_TIME
+FLOOR_EXPRESS = True
+FLOOR_CONGESTION = zenoh.CongestionControl.BLOCK
+
+
+def _session(endpoint: str, mode: str) -> zenoh.Session:
+    cfg = NodeConfig(mode="peer" if mode == "peer" else "client", connect=(endpoint,))
+    return zenoh.open(cfg.to_zenoh())
+
+
+def _matching(pub: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches. The 1.10 stub types `matching_status` as a bool; the
+    library returns a MatchingStatus, whose `matching` says it (either is read right)."""
+    status: object = pub.matching_status
+    return bool(getattr(status, "matching", status))
+
+
+# --- the processes ---------------------------------------------------------------------------
+
+
+def publish(endpoint: str, mode: str, rate_hz: float, duration_s: float) -> FloorSent:
+    """The publisher: once a subscriber matches, one ForceSample per tick for `duration_s`."""
+    with _session(endpoint, mode) as session:
+        pub = session.declare_publisher(
+            FLOOR_TOPIC.key,
+            encoding=zenoh.Encoding(ENCODING),
+            priority=FLOOR_PRIORITY,
+            express=FLOOR_EXPRESS,
+            congestion_control=FLOOR_CONGESTION,
+        )
+        deadline = time.monotonic() + MATCH_TIMEOUT_S
+        while not _matching(pub):
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no subscriber on {FLOOR_TOPIC.key} in {MATCH_TIMEOUT_S} s")
+            time.sleep(0.005)
+        sent = 0
+        loop = RateLoop(rate_hz)
+        cpu0, wall0 = time.process_time(), time.monotonic()
+        end = wall0 + duration_s
+        while time.monotonic() < end:
+            sent += 1
+            pub.put(force_payload(sent, time.time_ns()))
+            loop.sleep()
+        report = FloorSent(sent, time.process_time() - cpu0, time.monotonic() - wall0)
+        pub.undeclare()
+    return report
+
+
+def serve(endpoint: str, mode: str, reply: bytes, stop: threading.Event) -> None:
+    """The queryable: reply `reply` to every get, inline in the callback, until `stop`."""
+    encoding = zenoh.Encoding(ENCODING)
+
+    def on_query(query: zenoh.Query) -> None:
+        try:
+            query.reply(query.key_expr, reply, encoding=encoding)
+        finally:
+            query.drop()
+
+    with _session(endpoint, mode) as session:
+        queryable = session.declare_queryable(FLOOR_RPC_KEY, on_query)
+        print(f"{SERVING} {FLOOR_RPC_KEY}", flush=True)
+        while not stop.wait(0.2):
+            pass
+        queryable.undeclare()
+
+
+# --- the bench's side ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class FloorSent:
+    """What the floor publisher reports: samples sent, CPU (s) and wall time (s) of its send
+    loop."""
+
+    sent: int
+    cpu_s: float
+    wall_s: float
+
+    @property
+    def cpu_pct(self) -> float:
+        """% of one core over the send loop."""
+        return self.cpu_s / self.wall_s * 100.0 if self.wall_s > 0 else 0.0
+
+    def line(self) -> str:
+        return f"floor sent {self.sent} cpu_s {self.cpu_s:.6f} wall_s {self.wall_s:.6f}"
+
+
+_SENT = re.compile(r"floor sent (\d+) cpu_s ([0-9.eE+-]+) wall_s ([0-9.eE+-]+)")
+
+
+def parse_sent(output: str) -> FloorSent:
+    """The publisher's report from its output (ValueError when it printed none)."""
+    found = _SENT.findall(output)
+    if not found:
+        raise ValueError("the floor publisher printed no report")
+    sent, cpu_s, wall_s = found[-1]
+    return FloorSent(int(sent), float(cpu_s), float(wall_s))
+
+
+def pub_argv(endpoint: str, rate_hz: float, duration_s: float, mode: str = "client") -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "services.tools.bench.floor",
+        "pub",
+        "--connect",
+        endpoint,
+        "--mode",
+        mode,
+        "--rate-hz",
+        f"{rate_hz:g}",
+        "--duration-s",
+        f"{duration_s:g}",
+    ]
+
+
+def serve_argv(endpoint: str, reply_file: Path, mode: str = "client") -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "services.tools.bench.floor",
+        "serve",
+        "--connect",
+        endpoint,
+        "--mode",
+        mode,
+        "--reply",
+        str(reply_file),
+    ]
+
+
+@dataclass(frozen=True, slots=True)
+class GetTimes:
+    """Round trips (ms) of the gets that got a reply map, and how many did not."""
+
+    ms: list[float]
+    failures: int
+
+
+def time_gets(
+    session: zenoh.Session, n: int, timeout_s: float = 5.0, startup_s: float = 20.0
+) -> GetTimes:
+    """`n` sequential plain `get`s of the floor's queryable, each reply unpacked as a map
+    (what `Node.call` does, without its liveliness check). Gets are retried until the first
+    reply (route set-up, ZENOH_NOTES pitfall 5) within `startup_s`; that one is not timed."""
+    payload = codec.pack({})
+    encoding = zenoh.Encoding(ENCODING)
+
+    def once() -> bool:
+        replies = list(session.get(FLOOR_RPC_KEY, payload=payload, encoding=encoding,
+                                   timeout=timeout_s))  # fmt: skip
+        if not replies or replies[0].ok is None:
+            return False
+        return isinstance(codec.unpack(replies[0].ok.payload.to_bytes()), dict)
+
+    deadline = time.monotonic() + startup_s
+    while not once():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no reply from {FLOOR_RPC_KEY} within {startup_s:g} s")
+        time.sleep(0.02)
+    out: list[float] = []
+    failures = 0
+    for _ in range(n):
+        t0 = time.perf_counter()
+        ok = once()
+        dt_ms = (time.perf_counter() - t0) * 1e3
+        if ok:
+            out.append(dt_ms)
+        else:
+            failures += 1
+    return GetTimes(out, failures)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m services.tools.bench.floor", description=__doc__)
+    sub = p.add_subparsers(dest="cmd", required=True)
+    for name, text in (("pub", "the floor publisher"), ("serve", "the floor queryable")):
+        s = sub.add_parser(name, help=text)
+        s.add_argument("--connect", required=True, metavar="ENDPOINT")
+        s.add_argument("--mode", choices=["client", "peer"], default="client")
+        if name == "pub":
+            s.add_argument("--rate-hz", type=float, default=1000.0)
+            s.add_argument("--duration-s", type=float, default=5.0)
+        else:
+            s.add_argument("--reply", required=True, metavar="FILE", help="msgpack map to reply")
+    args = p.parse_args(argv)
+    if args.cmd == "pub":
+        print(publish(args.connect, args.mode, args.rate_hz, args.duration_s).line(), flush=True)
+        return 0
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    serve(args.connect, args.mode, Path(args.reply).read_bytes(), stop)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

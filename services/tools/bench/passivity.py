@@ -1,0 +1,164 @@
+"""`telerobot bench passivity`: the contact task over a bad link, TDPA off and on.
+
+The simulated operator presses the tool onto a stiff surface, holds and releases
+(`services.control.passivity.loop`), at round-trip delays 0, 50, 200 and 700 ms with 10 % jitter and
+1 % loss by default. Per run: peak and steady contact force, oscillation (RMS of the force
+about its mean after settling), penetration, the energy balance (the most the channel's
+observed output ever exceeded its input) and what each controller dissipated. One table,
+one JSON (keys `passivity_<delay_ms>_<on|off>_<measure>`), one plot per delay (contact force
+over time, off and on). "on" is both ports with the master's energy-bounding force limiter
+(`--no-master-limit`: the damper alone). docs/passivity.md.
+
+The link here is the simulation's own (seeded, deterministic, no processes); the netns +
+netem link of `services.tools.bench.netem` is for system tests of the real services.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from services.control.passivity.dynamics import Wall
+from services.control.passivity.loop import LoopResult, LoopSpec, contact_metrics, simulate
+
+DEFAULT_DELAYS_MS = (0, 50, 200, 700)
+MEASURES = (
+    "peak_force_n",
+    "steady_force_n",
+    "oscillation_rms_n",
+    "penetration_mm",
+    "energy_generated_j",
+    "master_dissipated_j",
+    "slave_dissipated_j",
+    "stable",
+)
+
+
+def run(
+    delays_ms: tuple[int, ...] = DEFAULT_DELAYS_MS,
+    jitter: float = 0.1,
+    loss: float = 0.01,
+    dofs: int = 1,
+    seed: int = 1,
+    master_limit: bool = True,
+) -> tuple[dict[str, Any], dict[tuple[int, bool], LoopResult]]:
+    """(the JSON document, the traces per (delay, tdpa))."""
+    extra: dict[str, Any] = {}
+    if dofs == 3:
+        extra = {"dofs": 3, "target_m": (0.02, 0.0, 0.08), "wall": Wall(normal=(0.0, 0.0, 1.0))}
+    doc: dict[str, Any] = {
+        "settings": {
+            "delays_ms": list(delays_ms),
+            "jitter": jitter,
+            "loss": loss,
+            "dofs": dofs,
+            "master_limit": master_limit,
+        },
+    }
+    results: dict[tuple[int, bool], LoopResult] = {}
+    for delay in delays_ms:
+        for on in (False, True):
+            spec = LoopSpec(
+                round_trip_s=delay / 1e3,
+                jitter=jitter,
+                loss=loss,
+                tdpa=on,
+                seed=seed,
+                limit=master_limit,
+                **extra,
+            )
+            res = simulate(spec)
+            results[(delay, on)] = res
+            for name, value in contact_metrics(res).items():
+                key = f"passivity_{delay}_{'on' if on else 'off'}_{name}"
+                doc[key] = value if isinstance(value, bool) else round(float(value), 6)
+    return doc, results
+
+
+def table(doc: dict[str, Any]) -> str:
+    """The results as a fixed-width table, one row per delay and TDPA setting."""
+    head = (
+        f"{'RTT ms':>7} {'TDPA':>4} {'peak N':>8} {'steady N':>9} {'osc RMS N':>10} "
+        f"{'pen mm':>7} {'gen. J':>8} {'stable':>6}"
+    )
+    lines = [head, "-" * len(head)]
+    for delay in doc["settings"]["delays_ms"]:
+        for on in ("off", "on"):
+            k = f"passivity_{delay}_{on}_"
+            lines.append(
+                f"{delay:>7} {on:>4} {doc[k + 'peak_force_n']:>8.1f} "
+                f"{doc[k + 'steady_force_n']:>9.2f} {doc[k + 'oscillation_rms_n']:>10.2f} "
+                f"{doc[k + 'penetration_mm']:>7.1f} {doc[k + 'energy_generated_j']:>8.3f} "
+                f"{'yes' if doc[k + 'stable'] else 'NO':>6}"
+            )
+    return "\n".join(lines)
+
+
+def plots(results: dict[tuple[int, bool], LoopResult], out_dir: Path) -> list[Path]:
+    """One PNG per delay: contact force against time, TDPA off and on (OpenCV)."""
+    import numpy as np
+
+    from services.tools.record.plots import Series, panel, save_png
+
+    paths = []
+    for delay in sorted({d for d, _ in results}):
+        series = []
+        for on in (False, True):
+            res = results[(delay, on)]
+            f = np.clip(np.asarray(res.f_contact), 0.0, 50.0)  # the off runs reach hundreds
+            series.append(Series.of(f"TDPA {'on' if on else 'off'}", np.asarray(res.t), f))
+        img = panel(
+            series,
+            f"contact force, {delay} ms round trip (clipped at 50 N)",
+            "time (s)",
+            "force (N)",
+            size=(900, 320),
+        )
+        paths.append(save_png(out_dir / f"passivity_{delay}ms.png", img))
+    return paths
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="telerobot bench passivity", description=__doc__)
+    p.add_argument(
+        "--delays-ms",
+        default=",".join(str(d) for d in DEFAULT_DELAYS_MS),
+        help="round-trip delays, comma-separated (ms)",
+    )
+    p.add_argument("--jitter", type=float, default=0.1, help="fraction of the delay")
+    p.add_argument("--loss", type=float, default=0.01, help="fraction of packets lost")
+    p.add_argument("--dofs", type=int, default=1, choices=[1, 3])
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument(
+        "--no-master-limit",
+        action="store_true",
+        help="TDPA on without the master's force limiter (the damper alone)",
+    )
+    p.add_argument("--json", default="artifacts/bench_passivity.json", metavar="FILE")
+    p.add_argument("--plots", default="artifacts", metavar="DIR", help="'' for none")
+    args = p.parse_args(argv)
+    try:
+        delays = tuple(int(x) for x in args.delays_ms.split(",") if x.strip())
+    except ValueError:
+        p.error("--delays-ms must be integers separated by commas")
+    if not delays or any(not 0 <= d <= 10_000 for d in delays):
+        p.error("--delays-ms must be within 0 … 10000")
+    if not (0.0 <= args.jitter <= 1.0 and 0.0 <= args.loss < 1.0):
+        p.error("--jitter must be within 0 … 1 and --loss within 0 … 1 (excluded)")
+    doc, results = run(
+        delays, args.jitter, args.loss, args.dofs, args.seed, not args.no_master_limit
+    )
+    path = Path(args.json)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=2) + "\n")
+    print(table(doc))
+    drawn = plots(results, Path(args.plots)) if args.plots else []
+    print(f"\nJSON: {path}" + (f"  plots: {', '.join(str(x) for x in drawn)}" if drawn else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,119 @@
+"""`telerobot bench`: the paper's §3 figures and issue 16's targets measured on the real
+services, beside the floor.
+
+Starts the router and the services as separate processes on 127.0.0.1 (client mode, as
+deployed), measures force, video, commands, method calls, IK and each service's CPU (idle,
+and during 1 kHz teleop with VGA stereo), runs a bare-Zenoh floor (pub/sub and get→reply),
+a raw-TCP floor and an XML-RPC baseline in the same run, and prints one table: ours, the
+floor's, the baseline's, the paper's, the target, the ratios, and plainly which figures
+miss. Writes the JSON (--json) and a force-latency plot (--plot). See docs/bench.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from types import FrameType
+
+from services.bus.errors import RpcError, Unavailable
+
+
+def _exit_on_sigterm(signum: int, frame: FrameType | None) -> None:
+    # SIGTERM's default would end the bench without its `finally` blocks and leave the
+    # services running; as an exception it stops every child first.
+    raise SystemExit(128 + signum)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args_in = sys.argv[1:] if argv is None else argv
+    if args_in[:1] == ["passivity"]:  # `telerobot bench passivity …` (docs/passivity.md)
+        from services.tools.bench.passivity import main as passivity_main
+
+        return passivity_main(args_in[1:])
+    p = argparse.ArgumentParser(
+        prog="telerobot bench",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="5 s phases and windows, fewer calls (about 2 min on 2 cores)",
+    )
+    p.add_argument("--phase-s", type=float, default=None, help="length of each phase (s)")
+    p.add_argument("--rpc-calls", type=int, default=None, help="calls per method")
+    p.add_argument("--ik-n", type=int, default=None, help="poses for the IK throughput")
+    p.add_argument("--port", type=int, default=0, help="router port on 127.0.0.1 (0: free)")
+    p.add_argument(
+        "--force-priority",
+        default="highest",
+        choices=["lowest", "below_normal", "normal", "above_normal", "highest"],
+        help="the force sampler's priority (default: highest, as deploy/robot.toml)",
+    )
+    p.add_argument("--json", default="artifacts/bench.json", metavar="FILE")
+    p.add_argument("--plot", default="artifacts/bench_force_latency.png", metavar="FILE")
+    p.add_argument("--logs", default="artifacts/bench-logs", metavar="DIR", help="children's logs")
+    args = p.parse_args(args_in)
+
+    from services.tools.bench.plot import force_latency_plot
+    from services.tools.bench.procs import ChildFailed
+    from services.tools.bench.report import document, machine, table
+    from services.tools.bench.run import BenchOptions, run_bench
+
+    overrides = {
+        k: v
+        for k, v in (
+            ("phase_s", args.phase_s),
+            ("rpc_calls", args.rpc_calls),
+            ("ik_n", args.ik_n),
+        )
+        if v is not None
+    }
+    overrides["port"] = args.port
+    overrides["force_priority"] = args.force_priority
+    overrides["logs_dir"] = Path(args.logs)
+    opts = BenchOptions.quick_options(**overrides) if args.quick else BenchOptions(**overrides)
+    if opts.phase_s <= 0 or opts.rpc_calls < 1 or opts.ik_n < 1:
+        p.error("--phase-s, --rpc-calls and --ik-n must be positive")
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if main_thread else None
+    t0 = time.monotonic()
+    try:
+        res = run_bench(
+            opts, say=lambda text: print(f"{time.monotonic() - t0:6.1f} s  {text}", flush=True)
+        )
+    except (ChildFailed, TimeoutError, Unavailable, RpcError) as e:
+        print(f"telerobot bench: the run failed: {e}\n(children's logs: {opts.logs_dir})")
+        return 1
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+    res.settings["wall_s"] = round(time.monotonic() - t0, 1)
+    notes = [
+        *res.notes,
+        "force latency: bench arrival − ForceSample.t_ns (the sensor read), one clock; the "
+        "bare-Zenoh floor sends the same bytes from a minimal zenoh-python process through "
+        "the same router to the same probe.",
+        "ours/floor: one-way latencies against the bare-Zenoh pub/sub floor's same "
+        "percentile, calls against its get→reply floor; CPU in % of one core.",
+    ]
+    doc = document(res.phases, machine(), res.settings, notes)
+    json_path = Path(args.json)
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(doc, indent=2) + "\n")
+    plot_path = force_latency_plot(res.traces, args.plot)
+    print()
+    print(table(doc))
+    wall_s = doc["settings"]["wall_s"]
+    print(f"\nJSON: {json_path}  plot: {plot_path}  logs: {opts.logs_dir}  ({wall_s} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,188 @@
+"""A closed loop for the pure Supervisor: an ideal §2 slave and the workcell's contact force.
+
+`Rig.step()` runs one tick: it feeds the supervisor the current robot state and force (the
+slave's tool pose; the sim table pushes on a probe sphere around the tool point), applies the
+published command to the slave like the puma does (records its pose at the first active
+command of a new engagement, then goes to p0 + dp, R0·dR at once) and records everything.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3, vec
+from services.control.decision.config import DecisionConfig
+from services.control.decision.notices import Notice
+from services.control.decision.supervisor import Inputs, Supervisor, TickResult
+from services.world.workcell.scene import Scene, default_scene
+
+TOOL_DOWN: NDArray[np.float64] = np.diag([-1.0, 1.0, -1.0])
+"""The home orientation of the puma config: tool z axis pointing down."""
+I3 = np.eye(3)
+TICK_NS = 2_000_000
+PROBE_RADIUS_M = 0.005
+
+
+class Rig:
+    """The supervisor, an ideal slave, a force model; time advances TICK_NS per step."""
+
+    def __init__(
+        self,
+        config: DecisionConfig | None = None,
+        p: Sequence[float] = (0.6, 0.0, 0.6),
+        R: ArrayLike = TOOL_DOWN,
+        scene: Scene | None = None,
+        status: str = "ready",
+    ) -> None:
+        self.config = config or DecisionConfig()
+        self.sup = Supervisor(self.config, seq_start=0, engage_start=0)
+        self.now_ns = 10_000_000_000
+        self.p = np.asarray(p, dtype=float)
+        self.R = np.asarray(R, dtype=float)
+        self.scene = scene if scene is not None else default_scene()
+        self.status = status
+        self.push_w = np.zeros(3)
+        self.push_c = np.zeros(3)
+        self.state_seq = 0
+        self.force_seq = 0
+        self.slave_engage: int | None = None
+        self.slave_seq = -1
+        self._p0 = self.p.copy()
+        self._R0 = self.R.copy()
+        self.grip: float | None = None
+        self.seqs: dict[str, int] = {}
+        self.outputs: list[OperatorCommand] = []
+        self.notices: list[Notice] = []
+        self.results: list[TickResult] = []
+        self.state_rx_ns = 0
+        self.force_rx_ns = 0
+        self._state: RobotState | None = None
+        self._force: ForceSample | None = None
+
+    # --- inputs ----------------------------------------------------------------------------
+    def robot_state(self) -> RobotState:
+        self.state_seq += 1
+        return RobotState(
+            seq=self.state_seq,
+            t_ns=self.now_ns,
+            status=self.status,  # type: ignore[arg-type]
+            q=(0.0,) * 6,
+            tool_p=vec(self.p),
+            tool_R=vec(self.R),
+            flange_p=vec(self.p),
+            flange_R=vec(self.R),
+            engage=self.slave_engage or 0,
+            cmd_seq=max(self.slave_seq, 0),
+            grip=self.grip,
+        )
+
+    def force_w(self) -> NDArray[np.float64]:
+        return self.scene.contact_force(self.p, PROBE_RADIUS_M) + self.push_w
+
+    def force_sample(self) -> ForceSample:
+        self.force_seq += 1
+        f_t = self.R.T @ self.force_w()
+        return ForceSample(seq=self.force_seq, t_ns=self.now_ns, f=vec(f_t), c=vec(self.push_c))
+
+    def cmd(
+        self,
+        master: str = "m1",
+        engage: int = 1,
+        active: bool = True,
+        dp: Sequence[float] = (0.0, 0.0, 0.0),
+        dR: ArrayLike = I3,
+        frame: str = "world",
+        grip: float | None = None,
+        seq: int | None = None,
+    ) -> OperatorCommand:
+        """An operator command with the next seq of `master` (or `seq`)."""
+        if seq is None:
+            seq = self.seqs.get(master, 0) + 1
+        self.seqs[master] = max(self.seqs.get(master, 0), seq)
+        return OperatorCommand(
+            seq=seq,
+            t_ns=self.now_ns,
+            master=master,
+            engage=engage,
+            active=active,
+            frame=frame,  # type: ignore[arg-type]
+            dp=vec(dp),
+            dR=vec(np.asarray(dR, dtype=float)),
+            grip=grip,
+        )
+
+    # --- the loop --------------------------------------------------------------------------
+    def step(
+        self,
+        commands: Sequence[OperatorCommand] = (),
+        lost: Sequence[str] = (),
+        state: bool = True,
+        force: bool = True,
+        dt_ns: int = TICK_NS,
+    ) -> TickResult:
+        """One tick, `dt_ns` after the last. `state`/`force` False: that stream delivers
+        nothing this tick."""
+        self.now_ns += dt_ns
+        if state:
+            self._state, self.state_rx_ns = self.robot_state(), self.now_ns
+        if force:
+            self._force, self.force_rx_ns = self.force_sample(), self.now_ns
+        inp = Inputs(
+            now_ns=self.now_ns,
+            wall_ns=self.now_ns,
+            state=self._state,
+            state_rx_ns=self.state_rx_ns,
+            force=self._force,
+            force_rx_ns=self.force_rx_ns,
+            commands=tuple(commands),
+            lost=tuple(lost),
+        )
+        res = self.sup.tick(inp)
+        self.results.append(res)
+        self.notices.extend(res.notices)
+        if res.command is not None:
+            self.outputs.append(res.command)
+            self._slave(res.command)
+        return res
+
+    def run(self, n: int, make: object = None, **kw: bool) -> None:
+        """`n` ticks; `make(i)` (if given) returns the commands of tick i."""
+        for i in range(n):
+            cmds = make(i) if callable(make) else ()
+            self.step(cmds, **kw)
+
+    def _slave(self, c: OperatorCommand) -> None:
+        """PROTOCOL §2 as the puma applies it (ideal tracking)."""
+        if c.seq <= self.slave_seq or (
+            self.slave_engage is not None and c.engage < self.slave_engage
+        ):
+            return
+        self.slave_seq = c.seq
+        if c.grip is not None:
+            self.grip = c.grip
+        if not c.active:
+            return
+        if c.engage != self.slave_engage:
+            self._p0, self._R0 = self.p.copy(), self.R.copy()
+            self.slave_engage = c.engage
+        self.p = self._p0 + np.asarray(c.dp)
+        self.R = self._R0 @ mat3(c.dR)
+
+    # --- views -----------------------------------------------------------------------------
+    def kinds(self) -> list[str]:
+        return [n.kind for n in self.notices]
+
+    def notices_of(self, kind: str) -> list[Notice]:
+        return [n for n in self.notices if n.kind == kind]
+
+    def targets(self) -> list[NDArray[np.float64]]:
+        """The target tool point of every published command (p0 + dp of its engagement)."""
+        return [np.asarray(c.dp) for c in self.outputs]
+
+    def with_config(self, **changes: object) -> None:
+        self.config = replace(self.config, **changes)  # type: ignore[arg-type]
+        self.sup.set_config(self.config)

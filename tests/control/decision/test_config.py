@@ -1,0 +1,74 @@
+"""DecisionConfig: defaults, checks naming the key, the TOML table, the command line."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.bus.config import section
+from services.bus.errors import ConfigError
+from services.control.decision.__main__ import main
+from services.control.decision.config import DecisionConfig
+from services.world.workcell.scene import TABLE
+
+
+def test_defaults_keep_the_tool_out_of_the_table() -> None:
+    cfg = DecisionConfig()
+    assert cfg.rate_hz >= 500 and cfg.watchdog_ms == 100 and cfg.stale_ms == 50
+    assert cfg.max_force_n == 40 and cfg.max_torque_nm == 4 and cfg.compliance is False
+    assert cfg.workspace_min[2] >= TABLE.top_z  # the box floor is the table top
+    lo, hi = TABLE.lo, TABLE.hi
+    assert cfg.workspace_min[0] <= lo[0] and cfg.workspace_max[0] >= hi[0]
+    assert cfg.workspace_min[1] <= lo[1] and cfg.workspace_max[1] >= hi[1]
+    assert cfg.period_s == pytest.approx(0.002)
+    assert cfg.settings()["workspace_max"] == [0.95, 0.5, 1.2]
+
+
+@pytest.mark.parametrize(
+    ("changes", "key"),
+    [
+        ({"rate_hz": 0.0}, "decision.rate_hz"),
+        ({"watchdog_ms": -1.0}, "decision.watchdog_ms"),
+        ({"max_force_n": float("nan")}, "decision.max_force_n"),
+        ({"admittance_deadband_n": -0.1}, "decision.admittance_deadband_n"),
+        ({"workspace_min": (0.0, 0.0, 2.0)}, "decision.workspace_max"),
+        ({"workspace_max": (1.0, 1.0)}, "decision.workspace_max"),
+        ({"compliance": 1}, "decision.compliance"),
+        ({"estop_power_off": "yes"}, "decision.estop_power_off"),
+        ({"max_tool_speed_m_s": float("inf")}, "decision.max_tool_speed_m_s"),
+        ({"workspace_min": [0.25, "a", 0.4]}, "decision.workspace_min[1]"),
+        ({"max_force_n": 1e9}, "decision.max_force_n"),
+        ({"guarded_speed_m_s": 0.5}, "decision.guarded_speed_m_s"),
+    ],
+)
+def test_bad_values_name_their_key(changes: dict[str, object], key: str) -> None:
+    """Through the one config reader, as the deployment file and the `supervisor` method
+    build it: types by the reader, ranges by the dataclass."""
+    with pytest.raises(ConfigError) as e:
+        section(DecisionConfig, changes, "decision")
+    assert e.value.key == key
+
+
+def test_the_toml_table() -> None:
+    cfg = section(
+        DecisionConfig,
+        {"watchdog_ms": 150, "compliance": True, "workspace_max": [0.9, 0.4, 1.0]},
+        "decision",
+    )
+    assert cfg.watchdog_ms == 150.0 and cfg.compliance
+    assert cfg.workspace_max == (0.9, 0.4, 1.0)
+    with pytest.raises(ConfigError) as e:
+        section(DecisionConfig, {"watchdog": 150}, "decision")
+    assert e.value.key == "decision.watchdog"
+
+
+def test_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(["--help"])
+    assert e.value.code == 0
+    assert "--compliance" in capsys.readouterr().out
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[decision]\nmax_force_n = -3\n")
+    assert main(["--config", str(bad)]) == 2
+    assert "'decision.max_force_n'" in capsys.readouterr().err

@@ -1,0 +1,63 @@
+"""The supervisor's pure math against hand-worked cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.control.decision.filters import (
+    admittance_step,
+    clamp_box,
+    clip_norm,
+    deadband,
+    effective_box,
+    engagement_command,
+    without_motion_into,
+)
+from services.geometry import exp_so3, tool_target_pose
+
+TOOL_DOWN = np.diag([-1.0, 1.0, -1.0])
+
+
+def test_engagement_command_inverts_the_mapping() -> None:
+    p0 = np.array([0.5, 0.1, 0.6])
+    R = TOOL_DOWN @ exp_so3((0.1, -0.2, 0.3))
+    dp, dR = engagement_command(p0, TOOL_DOWN, (0.55, 0.0, 0.7), R)
+    p, R2 = tool_target_pose(p0, TOOL_DOWN, dp, dR, "world")
+    assert np.allclose(p, [0.55, 0.0, 0.7])
+    assert np.allclose(R2, R)
+
+
+def test_contact_filter_removes_only_motion_into_the_contact() -> None:
+    up = np.array([0.0, 0.0, 30.0])  # the table pushes the tool up
+    inc, removed = without_motion_into((0.01, 0.02, -0.03), up)
+    assert np.allclose(inc, [0.01, 0.02, 0.0])
+    assert removed == pytest.approx(0.03)
+    inc, removed = without_motion_into((0.0, 0.0, 0.02), up)  # away: kept
+    assert np.allclose(inc, [0.0, 0.0, 0.02]) and removed == 0.0
+    inc, removed = without_motion_into((0.0, 0.0, -0.02), np.zeros(3))  # no force: no filter
+    assert np.allclose(inc, [0.0, 0.0, -0.02]) and removed == 0.0
+
+
+def test_deadband_and_admittance() -> None:
+    assert np.allclose(deadband((1.5, 0, 0), 2.0), 0.0)
+    assert np.allclose(deadband((0, 5.0, 0), 2.0), [0, 3.0, 0])
+    # 10 N, band 2 N, 0.002 m/(N·s), 2 ms → 8 N · 0.002 · 0.002 = 32 µm along the force
+    assert np.allclose(admittance_step((10.0, 0, 0), 0.002, 2.0, 0.002), [3.2e-5, 0, 0])
+
+
+def test_clip_norm() -> None:
+    v, clipped = clip_norm((3.0, 4.0, 0.0), 1.0)
+    assert np.allclose(v, [0.6, 0.8, 0.0]) and clipped
+    v, clipped = clip_norm((0.3, 0.4, 0.0), 1.0)
+    assert np.allclose(v, [0.3, 0.4, 0.0]) and not clipped
+
+
+def test_box_clamp_and_the_grown_box() -> None:
+    lo, hi = np.array([0.25, -0.5, 0.4]), np.array([0.95, 0.5, 1.2])
+    assert np.allclose(clamp_box((1.2, 0.0, 0.2), lo, hi), [0.95, 0.0, 0.4])
+    # a target outside (x = 1.1) may come back but never go further out
+    lo2, hi2 = effective_box(lo, hi, (1.1, 0.0, 0.6))
+    assert hi2[0] == pytest.approx(1.1) and lo2[0] == pytest.approx(0.25)
+    assert np.allclose(clamp_box((1.3, 0.0, 0.6), lo2, hi2), [1.1, 0.0, 0.6])
+    assert np.allclose(clamp_box((1.0, 0.0, 0.6), lo2, hi2), [1.0, 0.0, 0.6])

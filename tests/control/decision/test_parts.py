@@ -1,0 +1,159 @@
+"""The supervisor's parts on their own: the events' rate limits and edges (notices.py), the
+per-master records (masters.py), the forwarded-motion watch (watch.py)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.bus.messages import ForceSample, OperatorCommand, RobotState, vec
+from services.control.decision.config import DecisionConfig
+from services.control.decision.masters import MAX_MASTERS, RESTART_GAP_NS, Masters
+from services.control.decision.notices import (
+    EDGE_RELEASE_NS,
+    MAX_NOTICE_KEYS,
+    NOTICES_PER_S,
+    Notices,
+)
+from services.control.decision.watch import WATCH_START_NS, Watch, WatchStop, watch_step
+from tests.control.decision.rig import Rig
+
+MS = 1_000_000
+S = 1_000_000_000
+
+
+def cmd(master: str, seq: int, engage: int = 1, t_ns: int = 0) -> OperatorCommand:
+    return OperatorCommand(
+        seq=seq,
+        t_ns=t_ns,
+        master=master,
+        engage=engage,
+        active=True,
+        frame="world",
+        dp=(0.0, 0.0, 0.0),
+        dR=vec(np.eye(3)),
+    )
+
+
+# --- notices -------------------------------------------------------------------------------
+calls = st.lists(
+    st.tuples(
+        st.integers(0, 400 * MS),  # time since the previous call
+        st.sampled_from(["limit", "lease", "contact"]),
+        st.integers(0, 5),  # which key of that kind
+    ),
+    max_size=120,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(calls)
+def test_every_intervention_is_counted_and_sent_or_said_suppressed(
+    seq: list[tuple[int, str, int]],
+) -> None:
+    notices = Notices(interval_s=1.0)
+    now = 0
+    asked: dict[str, int] = {}
+    sent_at: dict[str, list[int]] = {}
+    for dt, kind, key in seq:
+        now += dt
+        asked[kind] = asked.get(kind, 0) + 1
+        before = len(sent_at.get(f"{kind}:{key}", []))
+        notices.intervene(now, kind, "m", {"k": key}, limit_key=f"{kind}:{key}")
+        out = notices.drain()
+        assert len(out) <= 1
+        if out:
+            sent_at.setdefault(f"{kind}:{key}", []).append(now)
+            assert out[0].kind == kind and out[0].data["k"] == key
+            told = int(out[0].data.get("suppressed", 0))
+            asked[kind] -= 1 + told
+        assert len(sent_at.get(f"{kind}:{key}", [])) - before in (0, 1)
+    for kind, n in asked.items():
+        assert notices.suppressed.get(kind, 0) == n  # the rest is still to be told
+    for times in sent_at.values():  # at most one per key per interval
+        assert all(b - a >= S for a, b in itertools.pairwise(times))
+    assert sum(notices.counters.values()) == len(seq)
+
+
+def test_a_flood_of_keys_is_a_trickle_and_memory_stays_bounded() -> None:
+    notices = Notices(interval_s=1.0)
+    for i in range(3000):
+        notices.intervene(i * MS, "lease", "m", {}, limit_key=f"held:{i}")
+    sent = notices.drain()
+    assert len(sent) == 3 * NOTICES_PER_S  # 3 s of 1 ms calls: NOTICES_PER_S a second
+    assert notices.counters["lease"] == 3000
+    told = sum(int(n.data.get("suppressed", 0)) for n in sent) + notices.suppressed["lease"]
+    assert told == 3000 - len(sent)  # every one held back is said so
+    for i in range(3000, 3000 + 2 * MAX_NOTICE_KEYS):
+        notices.post(i * S, "task", "m", {}, limit_key=f"k{i}")
+    assert notices.keys_remembered == MAX_NOTICE_KEYS
+
+
+def test_an_edge_counts_once_until_it_has_been_off_long_enough() -> None:
+    notices = Notices(interval_s=0.001)
+    for i in range(100):  # 200 ms of continuous contact
+        notices.edge(i * 2 * MS, "contact", True, "contact", "m", {})
+    assert notices.counters["contact"] == 1
+    notices.edge(198 * MS + EDGE_RELEASE_NS, "contact", True, "contact", "m", {})
+    assert notices.counters["contact"] == 1  # off for exactly the release time: same one
+    notices.edge(200 * MS + 2 * EDGE_RELEASE_NS, "contact", True, "contact", "m", {})
+    assert notices.counters["contact"] == 2
+    notices.clear_edges()  # a new engagement
+    notices.edge(201 * MS + 2 * EDGE_RELEASE_NS, "contact", True, "contact", "m", {})
+    assert notices.counters["contact"] == 3
+    assert [n.kind for n in notices.drain()] == ["contact"] * 3
+
+
+# --- masters -------------------------------------------------------------------------------
+def test_masters_classify_new_stale_and_restarted() -> None:
+    masters = Masters()
+    assert masters.classify(cmd("a", 5, 2, t_ns=S)) == "new"
+    masters.record(cmd("a", 5, 2, t_ns=S), lease=None)
+    assert masters.classify(cmd("a", 5, 2, t_ns=S)) == "stale"  # same seq
+    assert masters.classify(cmd("a", 6, 1, t_ns=S)) == "stale"  # lower engage
+    assert masters.classify(cmd("a", 4, 2, t_ns=S + RESTART_GAP_NS)) == "stale"
+    assert masters.classify(cmd("a", 1, 0, t_ns=S + RESTART_GAP_NS + 1)) == "restarted"
+    assert masters.classify(cmd("a", 6, 2, t_ns=S)) == "new"
+    rec = masters.record(cmd("a", 6, 3, t_ns=2 * S), lease=None)
+    assert (rec.seq, rec.engage, rec.t_ns, rec.blocked) == (6, 3, 2 * S, -1)
+    rec.block(2)
+    rec.block(1)
+    assert rec.blocked == 2
+    masters.block_all()
+    assert rec.blocked == 3
+
+
+def test_masters_stay_bounded_and_keep_the_lease_holder() -> None:
+    masters = Masters()
+    masters.record(cmd("holder", 1), lease="holder")
+    for i in range(5 * MAX_MASTERS):
+        masters.record(cmd(f"m{i}", 1), lease="holder")
+        assert len(masters) <= MAX_MASTERS and "holder" in masters
+    assert list(masters)[-1] == f"m{5 * MAX_MASTERS - 1}"
+
+
+# --- watch ---------------------------------------------------------------------------------
+def state(status: str, p: tuple[float, float, float] = (0.6, 0.0, 0.6)) -> RobotState:
+    return Rig(p=p, status=status).robot_state()
+
+
+def test_a_watch_ends_with_the_motion_and_stops_it_at_a_contact_or_the_box() -> None:
+    cfg = DecisionConfig()
+    w = Watch("move_pose", since_ns=0)
+    assert watch_step(w, cfg, 1, state("ready"), None) is w  # not started yet
+    assert watch_step(w, cfg, WATCH_START_NS + 1, state("ready"), None) is None  # never did
+    w = Watch("move_pose", since_ns=0)
+    assert watch_step(w, cfg, 1, state("moving"), None) is w and w.moving
+    assert watch_step(w, cfg, 2, state("ready"), None) is None  # over
+    w = Watch("home", since_ns=0)
+    push = ForceSample(seq=1, t_ns=0, f=(0.0, 0.0, cfg.max_force_n + 1.0), c=(0.0, 0.0, 0.0))
+    stop = watch_step(w, cfg, 1, state("moving"), push)
+    assert isinstance(stop, WatchStop) and stop.kind == "contact"
+    assert stop.data["method"] == "home" and stop.data["force_n"] > cfg.max_force_n
+    out = (0.6, 0.0, cfg.workspace_min[2] - 0.01)
+    stop = watch_step(Watch("home", 0), cfg, 1, state("moving", out), None)
+    assert isinstance(stop, WatchStop) and stop.kind == "limit"
+    assert stop.data["reason"] == "workspace"

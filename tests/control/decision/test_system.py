@@ -1,0 +1,483 @@
+"""Every intervention over Zenoh with the REAL puma and force services in simulation.
+
+One private network per test: the puma (sim arm starting at home: tool at (0.55, 0, 0.65),
+pointing down), the force service (sim wrist in the sim workcell), the decision server, an
+operator's console and masters streaming robot/cmd at 100 Hz, each on a node of its own as
+separate processes would be. Assertions are on events, states and counts; waits have
+deadlines.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+
+import msgpack
+import numpy as np
+import pytest
+
+from services.bus import keys
+from services.bus.errors import RpcError
+from services.bus.messages import IDENTITY_R, Event, OperatorCommand, RobotState, vec
+from services.bus.node import Node
+from services.control.decision.config import DecisionConfig
+from services.control.decision.service import DecisionService
+from services.control.force.config import ForceConfig
+from services.control.force.service import ForceService
+from services.control.puma.arm import QN_RAD
+from services.control.puma.config import HOME_Q_RAD, PumaConfig
+from services.control.puma.service import PumaService
+from services.control.puma.sim_arm import SimArm
+from services.world.workcell.scene import TABLE
+from tests.conftest import Net
+
+pytestmark = pytest.mark.system
+
+HOME_P = np.array([0.55, 0.0, 0.65])
+TOP = TABLE.top_z
+DpFn = Callable[[float], tuple[float, float, float]]
+
+
+class Events:
+    """robot/events as seen by the console, with waits on a condition."""
+
+    def __init__(self, node: Node) -> None:
+        self._cond = threading.Condition()
+        self.items: list[Event] = []
+        node.subscribe(keys.EVENTS, self._on)
+
+    def _on(self, ev: Event) -> None:
+        with self._cond:
+            self.items.append(ev)
+            self._cond.notify_all()
+
+    def of(self, kind: str, source: str = "decision") -> list[Event]:
+        with self._cond:
+            return [e for e in self.items if e.kind == kind and e.source == source]
+
+    def wait(self, pred: Callable[[Event], bool], timeout_s: float = 5.0) -> Event:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                for e in self.items:
+                    if pred(e):
+                        return e
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AssertionError(
+                        "no such event; got "
+                        + repr([(e.source, e.kind, e.message) for e in self.items][-15:])
+                    )
+                self._cond.wait(left)
+
+
+class Recorder:
+    """Every robot/puma/cmd, in arrival order."""
+
+    def __init__(self, node: Node) -> None:
+        self._cond = threading.Condition()
+        self.items: list[OperatorCommand] = []
+        node.subscribe(keys.PUMA_CMD, self._on)
+
+    def _on(self, c: OperatorCommand) -> None:
+        with self._cond:
+            self.items.append(c)
+            self._cond.notify_all()
+
+    def count(self) -> int:
+        with self._cond:
+            return len(self.items)
+
+    def since(self, n: int) -> list[OperatorCommand]:
+        with self._cond:
+            return self.items[n:]
+
+    def held_after(self, n: int, more: int = 50, timeout_s: float = 5.0) -> bool:
+        """From the first inactive command after the n-th on, `more` commands, none active
+        (active ones sent before the hold may still be in flight when it is announced)."""
+        cmds = self.wait_more(n, more, timeout_s)
+        first = next((i for i, c in enumerate(cmds) if not c.active), None)
+        if first is None:
+            return False
+        cmds = self.wait_more(n + first, more, timeout_s)
+        return not any(c.active for c in cmds)
+
+    def wait_more(self, n: int, more: int, timeout_s: float = 5.0) -> list[OperatorCommand]:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while len(self.items) < n + more:
+                left = deadline - time.monotonic()
+                assert left > 0, f"only {len(self.items) - n} of {more} puma commands"
+                self._cond.wait(left)
+            return self.items[n:]
+
+
+class Master:
+    """A master streaming robot/cmd at 100 Hz: dp = dp_fn(seconds since the engagement)."""
+
+    def __init__(self, net: Net, master_id: str, token: bool = True) -> None:
+        self.node = net.node("master", instance=master_id) if token else net.node("script")
+        self.id = master_id
+        self.pub = self.node.publisher(keys.CMD)
+        if token:
+            self.node.announce()
+        self._lock = threading.Lock()
+        self.seq = 0
+        self.engage = 0
+        self.active = False
+        self._dp_fn: DpFn = lambda t: (0.0, 0.0, 0.0)
+        self._t0 = time.monotonic()
+        self._streaming = threading.Event()
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def engage_new(self, dp_fn: DpFn | None = None) -> None:
+        with self._lock:
+            self.engage += 1
+            self.active = True
+            self._dp_fn = dp_fn or (lambda t: (0.0, 0.0, 0.0))
+            self._t0 = time.monotonic()
+        self._streaming.set()
+
+    def disengage(self) -> None:
+        with self._lock:
+            self.active = False
+
+    def pause(self) -> None:
+        self._streaming.clear()
+
+    def resume(self) -> None:
+        self._streaming.set()
+
+    def close(self) -> None:
+        self._closed.set()
+        self._streaming.set()
+        self._thread.join(2.0)
+
+    def _run(self) -> None:
+        while not self._closed.is_set():
+            self._streaming.wait()
+            if self._closed.is_set():
+                return
+            with self._lock:
+                self.seq += 1
+                cmd = OperatorCommand(
+                    seq=self.seq,
+                    t_ns=time.time_ns(),
+                    master=self.id,
+                    engage=self.engage,
+                    active=self.active,
+                    frame="world",
+                    dp=vec(self._dp_fn(time.monotonic() - self._t0)),
+                    dR=IDENTITY_R,
+                )
+            if not self.node.closed:
+                self.pub.put(cmd)
+            time.sleep(0.01)  # the stream's rate (100 Hz), not a synchronisation
+
+
+@dataclass
+class Cell:
+    net: Net
+    console: Node
+    events: Events
+    puma_cmds: Recorder
+    decision: DecisionService
+    force: ForceService
+    force_node: Node
+    state: object
+    closers: list[Callable[[], None]] = field(default_factory=list)
+
+    def call(
+        self, method: str, args: dict[str, object] | None = None, timeout_s: float = 5.0
+    ) -> dict[str, object]:
+        return self.console.call("decision", method, args or {}, timeout_s)
+
+    def robot(self, pred: Callable[[RobotState], bool], timeout_s: float = 5.0) -> RobotState:
+        st = self.state.wait_for(pred, timeout_s)  # type: ignore[attr-defined]
+        assert st is not None, "robot/state never satisfied the condition"
+        return st  # type: ignore[no-any-return]
+
+    def tool_p(self) -> np.ndarray:
+        return np.asarray(self.robot(lambda s: True).tool_p)
+
+    def master(self, master_id: str = "m1", token: bool = True) -> Master:
+        m = Master(self.net, master_id, token)
+        self.closers.append(m.close)
+        return m
+
+
+@pytest.fixture
+def make_cell(net: Net) -> Iterator[Callable[..., Cell]]:
+    made: list[Cell] = []
+
+    def make(**decision: object) -> Cell:
+        puma_node = net.node("puma")
+        puma = PumaService(
+            puma_node,
+            PumaConfig(sim_calibration_s=0.05),
+            arm=SimArm(HOME_Q_RAD, calibration_s=0.05),
+        )
+        force_node = net.node("force")
+        # 500 Hz without the final spin: the same behaviour for a third of the CPU.
+        force = ForceService(force_node, ForceConfig(seed=7, period_ms=2.0))
+        # The default watchdogs (command 100 ms, state 200 ms, force 50 ms), as deployed.
+        dec = DecisionService(net.node("decision"), DecisionConfig(**decision))  # type: ignore[arg-type]
+        console = net.node("console")
+        cell = Cell(
+            net,
+            console,
+            Events(console),
+            Recorder(console),
+            dec,
+            force,
+            force_node,
+            console.subscribe(keys.STATE),
+        )
+        cell.closers += [dec.close, force.close, puma.close]
+        made.append(cell)
+        cell.call("connect")
+        cell.call("initialize")
+        cell.robot(lambda s: s.status == "ready")
+        cell.robot(lambda s: s.engage == 0 and np.allclose(s.tool_p, HOME_P, atol=1e-4))
+        return cell
+
+    try:
+        yield make
+    finally:
+        for cell in made:
+            for close in cell.closers:
+                close()
+
+
+def ramp(target: tuple[float, float, float], speed_m_s: float) -> DpFn:
+    """dp going from 0 to `target` at `speed_m_s`, then staying there."""
+    goal = np.asarray(target, dtype=float)
+    dist = float(np.linalg.norm(goal))
+
+    def fn(t: float) -> tuple[float, float, float]:
+        s = min(1.0, speed_m_s * t / dist) if dist > 0 else 1.0
+        return (float(goal[0] * s), float(goal[1] * s), float(goal[2] * s))
+
+    return fn
+
+
+def test_facade_forwards_and_status_is_a_superset(make_cell: Callable[..., Cell]) -> None:
+    cell = make_cell()
+    st = cell.call("status")
+    assert st["mode"] == "idle" and st["lease"] is None and st["estop"] is False
+    assert st["robot"]["status"] == "ready" and st["puma"]["status"] == "ready"
+    assert st["force"] is not None and st["sensor"]["running"] is True
+    assert {"puma", "force", "decision"} <= set(st["alive"])
+    assert set(st["interventions"]) >= {
+        "watchdog",
+        "lease",
+        "limit",
+        "contact",
+        "estop",
+        "rejected",
+    }
+    fk = cell.call("fk", {"q": list(HOME_Q_RAD)})
+    assert np.allclose(fk["tool_p"], HOME_P, atol=1e-5)
+    assert cell.call("limits")["max_tool_speed_m_s"] > 0
+    assert cell.call("sensor_read")["seq"] > 0
+    # same arguments, same error codes as the puma itself
+    bad = {"q": [10.0, 0, 0, 0, 0, 0]}
+    with pytest.raises(RpcError) as direct:
+        cell.console.call("puma", "move_joints", {**bad, "supervised_by": "decision"}, 5.0)
+    with pytest.raises(RpcError) as forwarded:
+        cell.call("move_joints", bad)
+    assert forwarded.value.code == direct.value.code
+    # a forwarded motion with "wait": true replies on completion
+    reply = cell.call("move_joints", {"q": list(QN_RAD), "speed": 1.0, "wait": True}, 30.0)
+    assert reply["completed"] is True
+    # the `home` task is the puma's home, replied on completion
+    reply = cell.call("task", {"name": "home"}, 30.0)
+    assert reply["task"] == "home" and reply["completed"] is True
+    cell.robot(lambda s: bool(np.allclose(s.tool_p, HOME_P, atol=1e-4)))  # the arm settles
+    assert cell.call("status")["supervisor"]["last_task"]["name"] == "home"
+    # a service that is down: `unavailable`
+    cell.force.close()
+    cell.force_node.close()
+    with pytest.raises(RpcError) as down:
+        cell.call("sensor_status")
+    assert down.value.code == "unavailable"
+
+
+def test_command_watchdog_holds_until_a_new_engagement(make_cell: Callable[..., Cell]) -> None:
+    cell = make_cell()
+    m = cell.master("m1")
+    m.engage_new(ramp((0.0, 0.03, 0.0), 0.1))
+    cell.robot(lambda s: abs(s.tool_p[1] - 0.03) < 5e-4, 5.0)
+    m.pause()  # the master's link stalls
+    ev = cell.events.wait(lambda e: e.kind == "watchdog" and e.source == "decision")
+    assert ev.data is not None and ev.data["reason"] == "command_timeout"
+    assert cell.puma_cmds.held_after(cell.puma_cmds.count())
+    # the same engagement comes back: it must not move the arm
+    m._dp_fn = ramp((0.0, -0.05, 0.0), 1.0)
+    m.resume()
+    cell.events.wait(
+        lambda e: e.kind == "lease" and (e.data or {}).get("reason") == "engagement_held"
+    )
+    assert cell.puma_cmds.held_after(cell.puma_cmds.count())
+    # a new engagement moves again, from where the tool is
+    m.engage_new(ramp((0.0, -0.03, 0.0), 0.1))
+    cell.robot(lambda s: abs(s.tool_p[1] - 0.0) < 5e-4, 5.0)
+    assert cell.call("status")["interventions"]["watchdog"] >= 1
+
+
+def test_a_second_master_is_refused(make_cell: Callable[..., Cell]) -> None:
+    cell = make_cell()
+    m1, m2 = cell.master("m1"), cell.master("m2")
+    m1.engage_new(ramp((0.0, 0.02, 0.0), 0.1))
+    cell.robot(lambda s: abs(s.tool_p[1] - 0.02) < 5e-4, 5.0)
+    m2.engage_new(ramp((0.05, 0.0, 0.0), 0.2))
+    ev = cell.events.wait(lambda e: e.kind == "lease" and (e.data or {}).get("master") == "m2")
+    assert "m1" in ev.message
+    n = cell.puma_cmds.count()
+    cell.puma_cmds.wait_more(n, 100)  # 0.2 s more of both masters streaming
+    assert cell.tool_p()[0] == pytest.approx(0.55, abs=5e-4)  # m2 moved nothing
+    st = cell.call("status")
+    assert st["lease"] == "m1" and st["interventions"]["lease"] >= 10
+    refused = [e for e in cell.events.of("lease") if (e.data or {}).get("master") == "m2"]
+    assert len(refused) <= 2  # rate-limited: at most one a second per master
+
+
+def test_master_liveliness_lost_holds_at_once(make_cell: Callable[..., Cell]) -> None:
+    cell = make_cell()
+    token = cell.net.node("master", instance="m1")
+    token.announce()  # alive/master/m1 on a node of its own …
+    m = cell.master("m1", token=False)  # … while the commands come from another one
+    m.engage_new(ramp((0.0, 0.02, 0.0), 0.1))
+    cell.robot(lambda s: abs(s.tool_p[1] - 0.02) < 5e-4, 5.0)
+    token.close()  # the master's process is gone; its commands still flow
+    ev = cell.events.wait(lambda e: e.kind == "watchdog" and e.source == "decision")
+    assert ev.data is not None and ev.data["reason"] == "master_lost"
+    assert cell.puma_cmds.held_after(cell.puma_cmds.count())
+    assert not [
+        e for e in cell.events.of("watchdog") if (e.data or {}).get("reason") == "command_timeout"
+    ]
+
+
+def test_contact_with_the_table_stops_the_motion(make_cell: Callable[..., Cell]) -> None:
+    cell = make_cell()
+    m = cell.master("m1")
+    depth = HOME_P[2] - (TOP + 0.0015)  # the hand goes to 1.5 mm above the workspace floor
+
+    def down(t: float) -> tuple[float, float, float]:
+        fast = 0.20  # 20 cm at 0.2 m/s, then the last 5 cm at 5 cm/s
+        z = 0.2 * t if t < fast / 0.2 else fast + 0.05 * (t - fast / 0.2)
+        return (0.0, 0.0, -min(z, depth))
+
+    m.engage_new(down)
+    ev = cell.events.wait(lambda e: e.kind == "contact" and e.source == "decision", 10.0)
+    assert ev.data is not None and ev.data["force_n"] > 40.0
+    first = cell.robot(lambda s: True)
+    n = cell.puma_cmds.count()
+    cell.puma_cmds.wait_more(n, 250, 10.0)  # 0.5 s of the master pushing on
+    later = cell.robot(lambda s: s.seq > first.seq)
+    assert TOP < later.tool_p[2] < TOP + 0.005  # touching: the probe has a 5 mm radius
+    assert later.tool_p[2] == pytest.approx(first.tool_p[2], abs=5e-4)  # stopped
+    f = cell.call("sensor_read")["f"]
+    assert 40.0 < float(np.linalg.norm(f)) < 120.0
+    assert cell.call("status")["interventions"]["contact"] >= 1
+
+
+def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) -> None:
+    cell = make_cell()
+    with pytest.raises(RpcError) as bad:
+        cell.call("supervisor", {"workspace_max": [0.95, -0.6, 1.2]})  # max below min
+    assert bad.value.code == "bad_request"
+    with pytest.raises(RpcError):
+        cell.call("supervisor", {"rate_hz": 100})
+    reply = cell.call("supervisor", {"workspace_max": [0.95, 0.05, 1.2]})
+    assert reply["settings"]["workspace_max"] == [0.95, 0.05, 1.2]
+    y0 = cell.tool_p()[1]  # the arm is at rest: the engagement's p0
+    m = cell.master("m1")
+    m.engage_new(ramp((0.0, 0.12, 0.0), 0.2))
+    ev = cell.events.wait(
+        lambda e: e.kind == "limit" and (e.data or {}).get("reason") == "workspace"
+    )
+    assert ev.data is not None and ev.data["max"][1] == 0.05
+    cell.robot(lambda s: abs(s.tool_p[1] - 0.05) < 5e-4, 5.0)
+    n = cell.puma_cmds.count()
+    cell.puma_cmds.wait_more(n, 200)
+    assert cell.tool_p()[1] == pytest.approx(0.05, abs=5e-4)
+    assert max(y0 + c.dp[1] for c in cell.puma_cmds.since(0)) <= 0.05 + 1e-9
+
+
+def test_estop_latches_until_reset(make_cell: Callable[..., Cell]) -> None:
+    cell = make_cell()
+    m = cell.master("m1")
+    m.engage_new(ramp((0.0, 0.02, 0.0), 0.1))
+    cell.robot(lambda s: abs(s.tool_p[1] - 0.02) < 5e-4, 5.0)
+    reply = cell.call("estop")
+    assert reply["estop"] is True and "error" not in reply["puma"]
+    cell.events.wait(lambda e: e.kind == "estop" and (e.data or {}).get("latched") is True)
+    m.engage_new(ramp((0.0, -0.05, 0.0), 0.2))  # a new engagement during the latch
+    cell.events.wait(lambda e: e.kind == "estop" and (e.data or {}).get("master") == "m1")
+    assert cell.puma_cmds.held_after(cell.puma_cmds.count())
+    for method, args in (
+        ("move_joints", {"q": list(HOME_Q_RAD)}),
+        ("home", {}),
+        ("task", {"name": "guarded_move", "direction": [0, 0, -1]}),
+    ):
+        with pytest.raises(RpcError) as e:
+            cell.call(method, args)
+        assert e.value.code == "estop", method
+    assert cell.call("status")["estop"] is True
+    assert cell.call("reset")["was_latched"] is True
+    assert cell.puma_cmds.held_after(cell.puma_cmds.count())  # still that engagement
+    m.engage_new(ramp((0.0, -0.02, 0.0), 0.1))
+    cell.robot(lambda s: abs(s.tool_p[1] - 0.0) < 5e-4, 5.0)
+
+
+def test_bad_commands_never_reach_the_puma(make_cell: Callable[..., Cell]) -> None:
+    cell = make_cell()
+    good = {
+        "seq": 1,
+        "t_ns": 1,
+        "master": "x",
+        "engage": 1,
+        "active": True,
+        "frame": "world",
+        "dp": [0.0, 0.0, 0.0],
+        "dR": list(IDENTITY_R),
+    }
+    for payload in (
+        {**good, "dp": [math.nan, 0.0, 0.0]},
+        {**good, "dR": [1.0, 0, 0, 0, 1.0, 0, 0, 0, -1.0]},
+        {**good, "frame": "base"},
+        b"\xc1 not msgpack",
+    ):
+        data = payload if isinstance(payload, bytes) else msgpack.packb(payload)
+        cell.console.session.put(keys.CMD.key, data)
+    ev = cell.events.wait(lambda e: e.kind == "rejected" and e.source == "decision")
+    assert ev.data is not None and ev.data["key"] == keys.CMD.key
+    deadline = time.monotonic() + 5.0
+    while cell.call("status")["interventions"]["rejected"] < 4:
+        assert time.monotonic() < deadline, "not every bad command was counted"
+    assert cell.puma_cmds.count() == 0  # nothing was ever sent to the puma
+    st = cell.call("status")
+    assert st["mode"] == "idle" and st["supervisor"]["stats"]["commands"] == 0
+
+
+def test_guarded_move_finds_the_table_top(make_cell: Callable[..., Cell]) -> None:
+    cell = make_cell()
+    down = [-1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0]
+    cell.call("move_pose", {"p": [0.55, 0.0, TOP + 0.03], "R": down, "wait": True}, 20.0)
+    m = cell.master("m1")
+    m.engage_new(ramp((0.05, 0.0, 0.0), 0.1))  # an operator tries to move during the task
+    reply = cell.call("task", {"name": "guarded_move", "direction": [0, 0, -1]}, 30.0)
+    assert reply["contact"] is True and reply["stopped"] == "contact", reply
+    assert reply["contact_p"][2] == pytest.approx(TOP, abs=0.002)
+    assert reply["force_n"] > 5.0
+    busy = cell.events.wait(lambda e: e.kind == "busy" and e.source == "decision")
+    assert busy.data is not None and busy.data["master"] == "m1"
+    st = cell.call("status")
+    assert st["mode"] == "hold" and st["supervisor"]["last_task"]["done"] is True
+    assert cell.tool_p()[0] == pytest.approx(0.55, abs=5e-4)  # the operator moved nothing

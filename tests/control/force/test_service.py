@@ -1,0 +1,94 @@
+"""The force service over Zenoh: 1 kHz with no seq gaps, live period/priority changes."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+
+import pytest
+
+from services.bus import keys
+from services.bus.errors import RpcError
+from services.bus.messages import ForceSample, RobotState, vec
+from services.control.force.config import ForceConfig
+from services.control.force.service import ForceService
+from services.control.puma.kinematics import DEFAULT_eMt, Puma560, qn
+
+# A 1 kHz stream over Zenoh, checked for gaps: run alone in `make pytest`'s second pass.
+pytestmark = pytest.mark.system
+
+
+def _publish_pose(node) -> None:  # type: ignore[no-untyped-def]
+    kin = Puma560()
+    oMt, oMe = kin.fk_tool(qn, DEFAULT_eMt), kin.fk_flange(qn)
+    node.publisher(keys.STATE).put(
+        RobotState(
+            seq=1,
+            t_ns=1,
+            status="ready",
+            q=vec(qn),
+            tool_p=vec(oMt.translation),
+            tool_R=vec(oMt.rotation),
+            flange_p=vec(oMe.translation),
+            flange_R=vec(oMe.rotation),
+            engage=0,
+            cmd_seq=0,
+        )
+    )
+
+
+def test_streams_2000_samples_without_seq_gaps(net) -> None:
+    force_node = net.node("force")
+    viewer = net.node("viewer")
+    seqs: list[int] = []
+    lock = threading.Lock()
+    enough = threading.Event()
+
+    def on_sample(s: ForceSample) -> None:
+        with lock:
+            seqs.append(s.seq)
+            if len(seqs) >= 2100:
+                enough.set()
+
+    viewer.subscribe(keys.FORCE, on_sample)
+    svc = ForceService(force_node, ForceConfig())
+    try:
+        _publish_pose(viewer)
+        assert enough.wait(30.0), f"only {len(seqs)} samples arrived"
+        status = viewer.call("force", "sensor_status", {}, timeout_s=5.0)
+    finally:
+        svc.close()
+    with lock:
+        window = seqs[50:2050]  # skip the first samples, published while the link settled
+    gaps = sum(1 for a, b in itertools.pairwise(window) if b != a + 1)
+    assert len(window) == 2000
+    assert gaps == 0, f"{gaps} seq gaps in 2000 samples"
+    assert status["running"] is True
+    assert status["period_ms"] == 1.0
+    assert status["samples"] >= 2000
+    assert status["rate_hz"] > 0
+
+
+def test_period_and_priority_changes_are_applied_and_reported(net) -> None:
+    force_node = net.node("force")
+    client = net.node("client")
+    svc = ForceService(force_node, ForceConfig())
+    try:
+        _publish_pose(client)
+        st = client.call(
+            "force", "sensor_config", {"period_ms": 2.0, "priority": "below_normal"}, timeout_s=5.0
+        )
+        assert st["period_ms"] == 2.0
+        assert st["priority"] == "below_normal"
+        assert st["priority_applied"]["applied"] == "below_normal"
+        st = client.call("force", "sensor_status", {}, timeout_s=5.0)
+        assert st["period_ms"] == 2.0 and st["priority"] == "below_normal"
+        with pytest.raises(RpcError) as err:
+            client.call("force", "sensor_config", {"priority": "ludicrous"}, timeout_s=5.0)
+        assert err.value.code == "bad_request"
+        stopped = client.call("force", "sensor_stop", {}, timeout_s=5.0)
+        assert stopped["running"] is False
+        started = client.call("force", "sensor_start", {}, timeout_s=5.0)
+        assert started["running"] is True
+    finally:
+        svc.close()

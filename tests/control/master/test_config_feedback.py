@@ -1,0 +1,304 @@
+"""MasterConfig validation and force feedback (frames, scaling, saturation)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from numpy.typing import ArrayLike
+
+from services.bus.errors import ConfigError
+from services.control.master.config import Frame, MasterConfig
+from services.control.master.devices import HandReading
+from services.control.master.feedback import (
+    DisplayWrench,
+    ForceDisplay,
+    ForceFeedback,
+    operator_wrench,
+    ramp_gain,
+    saturate,
+)
+from services.geometry import exp_so3, rot_x, rot_z
+
+
+def test_defaults_are_valid() -> None:
+    cfg = MasterConfig()
+    assert cfg.rate_hz == 100.0 and cfg.scale_t == 1.0 and cfg.scale_r == 1.0
+    assert cfg.frame == "world" and cfg.period_s == pytest.approx(0.01)
+    np.testing.assert_array_equal(cfg.alignment_matrix, np.eye(3))
+
+
+@pytest.mark.parametrize(
+    ("device", "engages"),
+    [
+        ("virtual", True),
+        ("scripted", True),
+        ("spacemouse", False),
+        ("serial_arm", False),
+        ("keyboard", False),
+        ("haply", False),
+    ],
+)
+def test_engage_on_start_defaults_by_device(device: str, engages: bool) -> None:
+    assert MasterConfig(device=device).engage_on_start is engages  # type: ignore[arg-type]
+    assert MasterConfig(device=device, engage_on_start=not engages).engage_on_start is (not engages)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [
+        ("master_id", ""),
+        ("master_id", "a/b"),
+        ("master_id", "m" * 129),
+        ("device", "joystick"),
+        ("rate_hz", 0.5),
+        ("rate_hz", 1001),
+        ("rate_hz", math.inf),
+        ("rate_hz", "100"),
+        ("scale_t", 0.0),
+        ("scale_t", 1.01),
+        ("scale_r", -0.5),
+        ("frame", "flange"),
+        ("alignment", (1.0, 0.0, 0.0) * 3),
+        ("alignment", (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0)),
+        ("alignment", (1.0,) * 8),
+        ("force_scale", -1.0),
+        ("max_force_n", 0.0),
+        ("max_torque_nm", -2.0),
+        ("deadband", 1.0),
+        ("deadband", -0.1),
+        ("sensitivity", 0.0),
+        ("clutch_button", 64),
+        ("grip_button", True),
+        ("grip_button", 0),
+        ("engage_on_start", 1),
+        ("arm_dh", ((0.0, 0.0, 0.0),) * 5),
+        ("baudrate", 0),
+        ("force_ramp_s", -0.1),
+        ("force_ramp_s", 11.0),
+        ("haply_max_force_n", 0.0),
+        ("haply_max_force_n", math.nan),
+        ("haply_url", "localhost:10001"),
+        ("haply_url", "http://localhost:10001"),
+        ("haply_url", "ws://localhost"),
+        ("haply_url", "ws://localhost:99999"),
+        ("haply_url", "ws://:10001"),
+        ("haply_url", 10001),
+    ],
+)
+def test_bad_values_name_their_key(key: str, value: object) -> None:
+    with pytest.raises(ConfigError) as info:
+        MasterConfig(**{key: value})  # type: ignore[arg-type]
+    assert info.value.key == f"master.{key}"
+
+
+@pytest.mark.parametrize("key", ["clutch_button", "grip_button"])
+def test_haply_buttons_are_a_b_or_c(key: str) -> None:
+    with pytest.raises(ConfigError) as info:
+        MasterConfig(device="haply", **{key: 3})  # type: ignore[arg-type]
+    assert info.value.key == f"master.{key}"
+    cfg = MasterConfig(device="haply", clutch_button=2, grip_button=0)
+    assert (cfg.clutch_button, cfg.haply_url) == (2, "ws://localhost:10001")
+
+
+def test_from_mapping_accepts_toml_lists_and_rejects_unknown_keys() -> None:
+    a = list(rot_z(math.pi / 2).reshape(9))
+    cfg = MasterConfig.from_mapping({"master_id": "left", "alignment": a, "scale_t": 0.5})
+    assert cfg.master_id == "left" and cfg.scale_t == 0.5
+    np.testing.assert_allclose(cfg.alignment_matrix, rot_z(math.pi / 2))
+    with pytest.raises(ConfigError) as info:
+        MasterConfig.from_mapping({"scale": 0.5})
+    assert info.value.key == "master.scale"
+
+
+# --- feedback -------------------------------------------------------------------------------
+
+
+def wrench(
+    f: ArrayLike,
+    c: ArrayLike,
+    tool_R: ArrayLike,
+    *,
+    A: ArrayLike | None = None,
+    frame: Frame = "world",
+    scale: float = 1.0,
+    fmax: float = 100.0,
+    cmax: float = 100.0,
+) -> DisplayWrench:
+    return operator_wrench(
+        f,
+        c,
+        tool_R,
+        alignment=np.eye(3) if A is None else A,
+        frame=frame,
+        force_scale=scale,
+        max_force_n=fmax,
+        max_torque_nm=cmax,
+    )
+
+
+def test_world_mode_rotates_tool_wrench_to_world_then_to_master() -> None:
+    tool_R = rot_z(math.pi / 2)  # tool x is world y
+    out = wrench((1.0, 0, 0), (0, 0, 2.0), tool_R)
+    np.testing.assert_allclose(out.f, [0, 1.0, 0], atol=1e-12)
+    np.testing.assert_allclose(out.c, [0, 0, 2.0], atol=1e-12)
+    # Master x drives slave y (A = Rz(90°)): a push along world y is felt along master x.
+    out = wrench((1.0, 0, 0), (0, 0, 0), tool_R, A=rot_z(math.pi / 2))
+    np.testing.assert_allclose(out.f, [1.0, 0, 0], atol=1e-12)
+
+
+def test_tool_mode_ignores_tool_orientation() -> None:
+    out = wrench((0, 0, -3.0), (0.1, 0, 0), rot_x(2.0), frame="tool", scale=0.5)
+    np.testing.assert_allclose(out.f, [0, 0, -1.5], atol=1e-12)
+    np.testing.assert_allclose(out.c, [0.05, 0, 0], atol=1e-12)
+
+
+def test_saturation_keeps_direction_and_flags() -> None:
+    out = wrench((30.0, 40.0, 0.0), (0, 0, 5.0), np.eye(3), fmax=10.0, cmax=1.0)
+    np.testing.assert_allclose(out.f, [6.0, 8.0, 0.0])
+    np.testing.assert_allclose(out.c, [0, 0, 1.0])
+    assert out.force_saturated and out.torque_saturated
+    calm = wrench((1.0, 0, 0), (0, 0, 0.1), np.eye(3), fmax=10.0, cmax=1.0)
+    assert not calm.force_saturated and not calm.torque_saturated
+
+
+def test_bad_inputs_are_refused() -> None:
+    with pytest.raises(ValueError):
+        wrench((math.nan, 0, 0), (0, 0, 0), np.eye(3))
+    with pytest.raises(ValueError):
+        wrench((1, 0, 0), (0, 0, 0), 2 * np.eye(3))
+    with pytest.raises(ValueError):
+        wrench((1, 0, 0), (0, 0, 0), np.eye(3), frame="flange")  # type: ignore[arg-type]
+
+
+def test_force_feedback_uses_config() -> None:
+    cfg = MasterConfig(force_scale=0.5, max_force_n=2.0, max_torque_nm=0.1)
+    out = ForceFeedback(cfg).compute((0, 0, 10.0), (0, 0.4, 0), np.eye(3).reshape(9), "world")
+    np.testing.assert_allclose(out.f, [0, 0, 2.0])
+    np.testing.assert_allclose(out.c, [0, 0.1, 0])
+    zero = ForceFeedback.zero()
+    assert not np.any(zero.f) and not np.any(zero.c)
+
+
+vec = st.lists(st.floats(-1e4, 1e4), min_size=3, max_size=3)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    f=vec,
+    c=vec,
+    w=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3),
+    a=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3),
+    frame=st.sampled_from(["world", "tool"]),
+    scale=st.floats(0.0, 5.0),
+    fmax=st.floats(0.1, 50.0),
+    cmax=st.floats(0.01, 5.0),
+)
+def test_displayed_wrench_never_exceeds_limits_and_keeps_direction(
+    f: list[float],
+    c: list[float],
+    w: list[float],
+    a: list[float],
+    frame: Frame,
+    scale: float,
+    fmax: float,
+    cmax: float,
+) -> None:
+    tool_R, A = exp_so3(w), exp_so3(a)
+    out = wrench(f, c, tool_R, A=A, frame=frame, scale=scale, fmax=fmax, cmax=cmax)
+    assert np.linalg.norm(out.f) <= fmax * (1 + 1e-12)
+    assert np.linalg.norm(out.c) <= cmax * (1 + 1e-12)
+    to_master = A.T @ tool_R if frame == "world" else A.T
+    for got, raw in ((out.f, to_master @ f), (out.c, to_master @ c)):
+        if np.linalg.norm(raw) * scale > 1e-9:
+            cos = float(got @ raw) / (np.linalg.norm(got) * np.linalg.norm(raw))
+            assert cos > 1 - 1e-9
+
+
+def test_saturate_passes_short_vectors_unchanged() -> None:
+    v, sat = saturate((0.1, 0.2, 0.3), 1.0)
+    np.testing.assert_array_equal(v, [0.1, 0.2, 0.3])
+    assert not sat
+
+
+# --- the force path: gate, ramp, hook -------------------------------------------------------
+
+HAND = HandReading(np.zeros(3), np.eye(3), False)
+PUSH = ((0.0, 0.0, 4.0), (0.0, 0.0, 0.0), np.eye(3).reshape(9))
+
+
+def test_ramp_gain_goes_from_zero_to_one_over_the_ramp() -> None:
+    assert [ramp_gain(t, 0.5) for t in (-1.0, 0.0, 0.25, 0.5, 9.0)] == [0.0, 0.0, 0.5, 1.0, 1.0]
+    assert ramp_gain(0.0, 0.0) == 1.0
+
+
+def test_force_is_zero_unless_engaged_and_ramps_in_at_each_engagement() -> None:
+    display = ForceDisplay(MasterConfig(force_ramp_s=1.0))
+    assert not display.update(PUSH, "world", False, HAND, 0.01, 10.0).f.any()
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 10.0).f, 0.0)
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 10.5).f[2], 2.0)
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 12.0).f[2], 4.0)
+    assert not display.update(PUSH, "world", False, HAND, 0.01, 13.0).f.any()  # master-shift
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 14.0).f, 0.0)
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 14.25).f[2], 1.0)
+    assert not display.update(None, "world", True, HAND, 0.01, 20.0).f.any()  # stale data
+
+
+def test_non_finite_input_shows_zero_and_counts_a_fault() -> None:
+    display = ForceDisplay(MasterConfig(force_ramp_s=0.0))
+    bad = ((math.nan, 0.0, 0.0), (0.0, 0.0, 0.0), np.eye(3).reshape(9))
+    assert not display.update(bad, "world", True, HAND, 0.01, 0.0).f.any()
+    assert display.faults == 1
+
+
+def test_a_hook_sees_the_wrench_and_cannot_exceed_the_limits() -> None:
+    seen: list[tuple[DisplayWrench, HandReading, float]] = []
+
+    def hook(w: DisplayWrench, hand: HandReading, dt_s: float) -> DisplayWrench:
+        seen.append((w, hand, dt_s))
+        return DisplayWrench(w.f * 100.0, w.c, False, False)
+
+    cfg = MasterConfig(force_ramp_s=0.0, max_force_n=10.0)
+    display = ForceDisplay(cfg, hook)
+    out = display.update(PUSH, "world", True, HAND, 0.02, 0.0)
+    np.testing.assert_allclose(out.f, [0.0, 0.0, 10.0])
+    assert out.force_saturated and seen[0][0].f[2] == 4.0 and seen[0][2] == 0.02
+    assert not display.update(PUSH, "world", False, HAND, 0.02, 1.0).f.any() and len(seen) == 1
+    display.hook = lambda w, hand, dt: DisplayWrench(w.f * math.nan, w.c, False, False)
+    assert not display.update(PUSH, "world", True, HAND, 0.02, 2.0).f.any()
+    assert display.faults == 1
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    ticks=st.lists(
+        st.tuples(
+            st.booleans(),
+            st.floats(0.0, 0.2),
+            st.lists(st.floats(-1e6, 1e6), min_size=6, max_size=6),
+        ),
+        min_size=1,
+        max_size=40,
+    ),
+    ramp_s=st.floats(0.0, 2.0),
+)
+def test_the_displayed_wrench_is_bounded_zero_when_disengaged_and_never_above_the_ramp(
+    ticks: list[tuple[bool, float, list[float]]], ramp_s: float
+) -> None:
+    cfg = MasterConfig(force_ramp_s=ramp_s, max_force_n=3.0, max_torque_nm=0.5)
+    display = ForceDisplay(cfg)
+    now, since = 0.0, None
+    for engaged, dt, w in ticks:
+        now += dt
+        since = (since if since is not None else now) if engaged else None
+        out = display.update((w[:3], w[3:], np.eye(3).reshape(9)), "tool", engaged, HAND, dt, now)
+        assert np.linalg.norm(out.f) <= 3.0 * (1 + 1e-12)
+        assert np.linalg.norm(out.c) <= 0.5 * (1 + 1e-12)
+        if since is None:
+            assert not out.f.any() and not out.c.any()
+        else:
+            limit = 3.0 * ramp_gain(now - since, ramp_s)
+            assert np.linalg.norm(out.f) <= limit * (1 + 1e-9) + 1e-12

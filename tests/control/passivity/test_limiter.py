@@ -1,0 +1,112 @@
+"""The master port's energy-bounding force limiter against hand-worked sequences, and the
+property that the master port never gives the hand more than it received (plus the
+reserve), whatever the hand does within its force rate (hypothesis over reversals)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.control.passivity.controller import TOLERANCE_J, MasterPassivity
+from services.control.passivity.dynamics import Device
+
+
+def test_without_a_mass_model_the_limit_uses_the_current_velocity() -> None:
+    """0.03 J received; 10 N pushing the hand along at 0.5 m/s in 4 ms ticks (0.02 J a
+    tick). Tick 2 sees 0.02 J out, 0.01 J left: the largest force whose work at 0.5 m/s fits
+    is 5 N. Tick 3 sees 0.01 J more: nothing left, 0 N. The output is exactly what came in
+    (the limiter alone, damper off)."""
+    pc = MasterPassivity(limit=True, damp=False, reserve_j=0.0, hand_rate_n_s=0.0)
+    pc.remote.update(0, 0.03)
+    assert pc.step([10.0], [0.0], 0.004) == [10.0]
+    assert pc.step([10.0], [0.002], 0.004) == pytest.approx([5.0])
+    assert pc.step([10.0], [0.004], 0.004) == pytest.approx([0.0], abs=1e-9)
+    assert pc.observer.e_out == pytest.approx(0.03)
+    assert pc.limited_steps == 2
+    assert pc.telemetry.dissipated_j == 0.0
+
+
+def test_a_force_step_on_a_still_hand_is_bounded_by_its_own_work() -> None:
+    """1 mJ received; the device (0.5 kg) at rest, 10 N asked, 10 ms ticks. The force alone
+    would move the device by k·f/m·dt² and do W(k) = k²·f²·dt²/m = 0.02·k² J: the limit is
+    k = √(0.001/0.02) = 0.2236, 2.236 N. Carried out on the device, that is exactly 1 mJ."""
+    dt = 0.01
+    pc = MasterPassivity(limit=True, damp=False, mass_kg=0.5, reserve_j=0.0, hand_rate_n_s=0.0)
+    pc.remote.update(0, 0.001)
+    dev = Device(mass_kg=0.5, damping_ns_m=0.0, x=[0.0], v=[0.0])
+    assert pc.step([0.0], dev.x, dt) == [0.0]
+    dev.step([0.0], dt)
+    f = pc.step([10.0], dev.x, dt)
+    assert f == pytest.approx([10.0 * math.sqrt(0.05)])
+    dev.step(f, dt)
+    assert pc.step([0.0], dev.x, dt) == [0.0]
+    assert pc.observer.e_out == pytest.approx(0.001)
+    assert pc.budget_j == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_hand_pushing_in_holds_the_force_its_input_pays_for() -> None:
+    """Nothing received, the device 0.5 kg, 10 ms ticks. Tick 1: the device still, a force
+    would push it back (work k²·f²·dt²/m > 0): 0 N. Tick 2: the hand moves in at 0.1 m/s;
+    10 N asked: W(k) = k·10·(−0.1)·0.01 + k²·100·1e-4/0.5 = −0.01·k + 0.02·k², root k = 0.5:
+    5 N, the force that just stops it. Tick 3: still 0.1 m/s in against 5 N (the hand's own
+    5 N keeps it going); 20 N asked: w = −0.1 − 5/0.5·0.01 = −0.2, W(k) = −0.04·k + 0.08·k²,
+    k = 0.5: 10 N, again v⁺ = −0.1 + (10 − 5)/0.5·0.01 = 0. Nothing is ever given out."""
+    dt = 0.01
+    pc = MasterPassivity(limit=True, damp=False, mass_kg=0.5, reserve_j=0.0, hand_rate_n_s=0.0)
+    assert pc.step([10.0], [0.0], dt) == [0.0]
+    assert pc.step([10.0], [-0.001], dt) == pytest.approx([5.0])
+    assert pc.step([20.0], [-0.002], dt) == pytest.approx([10.0])
+    assert pc.observer.e_in == pytest.approx(0.005)  # 5 N × 1 mm pushed in
+    assert pc.observer.e_out == 0.0
+
+
+def test_the_reserve_is_spent_once_and_comes_back_only_with_slave_energy() -> None:
+    """reserve 1 mJ, nothing received: the hand moving along at 0.5 m/s, 4 ms ticks. The
+    first limited tick shows 0.5 N (0.5 × 0.5 × 0.004 = 1 mJ), then nothing until the slave
+    sends energy."""
+    pc = MasterPassivity(limit=True, damp=False, reserve_j=0.001, hand_rate_n_s=0.0)
+    pc.step([10.0], [0.0], 0.004)
+    # 10 N × 2 mm = 20 mJ out, unforeseen (no velocity known at the first tick): overdrawn.
+    assert pc.step([10.0], [0.002], 0.004) == [0.0]
+    assert pc.budget_j == pytest.approx(-0.02)
+    assert pc.step([10.0], [0.004], 0.004) == [0.0]
+    pc.remote.update(0, pc.observer.e_out)  # the slave pays it all back
+    assert pc.step([10.0], [0.006], 0.004) == pytest.approx([0.5])
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    asked=st.lists(st.floats(-40.0, 40.0), min_size=30, max_size=120),
+    hand=st.lists(st.floats(-1.0, 1.0), min_size=30, max_size=120),
+    credit=st.lists(st.floats(0.0, 2e-3), min_size=30, max_size=120),
+    dofs=st.sampled_from([1, 3]),
+    reserve=st.sampled_from([0.0, 1e-4]),
+)
+def test_the_master_port_never_gives_more_than_it_received(
+    asked: list[float], hand: list[float], credit: list[float], dofs: int, reserve: float
+) -> None:
+    """A device of 0.5 kg, the hand's force changing by at most `rate`·dt a tick in any
+    direction (the fractions in `hand` pick the change: reversals, pushes, release), the
+    force asked anything up to 40 N and the slave's energy arriving in random amounts:
+    after every tick the master's output ≤ what it received + the reserve."""
+    dt, rate, mass = 0.001, 200.0, 0.5
+    pc = MasterPassivity(limit=True, mass_kg=mass, reserve_j=reserve, hand_rate_n_s=rate)
+    dev = Device(mass_kg=mass, damping_ns_m=0.0, x=[0.0] * dofs, v=[0.0] * dofs)
+    h = [0.0] * dofs
+    received = 0.0
+    n = min(len(asked), len(hand), len(credit))
+    for k in range(n):
+        received += credit[k]
+        pc.remote.update(0, received)
+        axis = k % dofs
+        f_ask = [0.0] * dofs
+        f_ask[axis] = asked[k]
+        f_ask[(axis + 1) % dofs] += 0.5 * asked[(k + 1) % n]
+        f = pc.step(f_ask, dev.x, dt)
+        if k >= 2:  # the hand takes hold of a device at rest, then changes its force
+            h[(k // 7) % dofs] += rate * dt * hand[k]
+        dev.step([a + b for a, b in zip(f, h, strict=True)], dt)
+        assert pc.observer.e_out <= received + reserve + TOLERANCE_J + 1e-12

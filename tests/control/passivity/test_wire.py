@@ -1,0 +1,265 @@
+"""TDPA on the bus: the PassivityState message, the master's display hook and the decision's
+command correction, each talking to a peer over loopback Zenoh."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import pytest
+
+from services.bus import codec, keys
+from services.bus.errors import ProtocolError
+from services.bus.messages import (
+    IDENTITY_R,
+    ForceSample,
+    OperatorCommand,
+    PassivityState,
+    RobotState,
+)
+from services.control.decision.passivity import SlaveTdpa
+from services.control.master.devices import HandReading
+from services.control.master.feedback import DisplayWrench
+from services.control.master.passivity import MasterTdpa
+from tests.conftest import Net, wait_until
+
+
+def state(side: str, engage: int, e_in: float, master: str = "m1") -> PassivityState:
+    return PassivityState(
+        seq=int(time.time_ns() // 1000),
+        t_ns=time.time_ns(),
+        master=master,
+        engage=engage,
+        side=side,  # type: ignore[arg-type]
+        enabled=True,
+        e_in=e_in,
+        e_out=0.0,
+        dissipated_j=0.0,
+        gain=0.0,
+        active_steps=0,
+    )
+
+
+def test_passivity_state_round_trips_and_refuses_absurd_energy() -> None:
+    msg = state("slave", 3, 0.25)
+    assert codec.decode(PassivityState, codec.encode(msg)) == msg
+    bad = codec.to_fields(msg) | {"e_in": -1.0}
+    with pytest.raises(ProtocolError, match="e_in"):
+        codec.from_fields(PassivityState, bad)
+    with pytest.raises(ProtocolError, match="side"):
+        codec.from_fields(PassivityState, codec.to_fields(msg) | {"side": "both"})
+
+
+def hand(x: float) -> HandReading:
+    return HandReading(hand_p=np.array([x, 0.0, 0.0]), hand_R=np.eye(3), clutch=False)
+
+
+def wrench(fx: float) -> DisplayWrench:
+    return DisplayWrench(np.array([fx, 0.0, 0.0]), np.zeros(3), False, False)
+
+
+def test_master_hook_damps_until_the_slave_has_put_energy_in(net: Net) -> None:
+    a, b = net.node("master"), net.node("robot")
+    tdpa = MasterTdpa(a, "m1", lambda: 7)
+    seen: list[PassivityState] = []
+    b.subscribe(keys.PASSIVITY_MASTER, seen.append)
+    slave_pub = b.publisher(keys.PASSIVITY_SLAVE)
+    # The force pushes the hand along its motion (+x): output, and no energy from the slave.
+    x = 0.0
+    tdpa.hook(wrench(10.0), hand(x), 0.001)
+    shown = []
+    for _ in range(5):
+        x += 0.0005
+        shown.append(tdpa.hook(wrench(10.0), hand(x), 0.001).f[0])
+    assert shown[-1] == pytest.approx(0.0, abs=1e-9)
+
+    def published() -> bool:  # the hand holds still, no force: nothing changes but the news
+        tdpa.hook(wrench(0.0), hand(x), 0.001)
+        return len(seen) > 0
+
+    assert wait_until(published)
+    assert seen[-1].engage == 7
+    assert seen[-1].side == "master" and seen[-1].master == "m1"
+    # The slave's energy of another engagement or master is ignored; of this one, spent.
+    twin = a.subscribe(keys.PASSIVITY_SLAVE)  # the master's session: it has what tdpa has
+    for n, other in enumerate((state("slave", 6, 100.0), state("slave", 7, 100.0, master="m2"))):
+        slave_pub.put(other)
+        assert twin.wait_count(n + 1, 10.0)
+        x += 0.0005
+        assert tdpa.hook(wrench(10.0), hand(x), 0.001).f[0] == pytest.approx(0.0, abs=1e-9)
+        assert tdpa.pc.remote.e_in == 0.0
+    slave_pub.put(state("slave", 7, 100.0))
+
+    def passes() -> bool:
+        nonlocal x
+        x += 0.0005
+        return bool(tdpa.hook(wrench(10.0), hand(x), 0.001).f[0] == pytest.approx(10.0))
+
+    assert wait_until(passes)
+    assert tdpa.pc.remote.e_in == 100.0
+    assert wait_until(lambda: seen[-1].e_out > 0.0)
+
+
+def robot_state(
+    tool_R: tuple[float, ...] = IDENTITY_R,
+    tool_p: tuple[float, ...] = (0.5, 0.0, 0.5),
+    seq: int = 1,
+    t_ns: int | None = None,
+) -> RobotState:
+    return RobotState(
+        seq=seq,
+        t_ns=time.time_ns() if t_ns is None else t_ns,
+        status="moving",
+        q=(0.0,) * 6,
+        tool_p=tool_p,
+        tool_R=tool_R,
+        flange_p=(0.5, 0.0, 0.7),
+        flange_R=tool_R,
+        engage=1,
+        cmd_seq=1,
+    )
+
+
+def command(engage: int, dz: float, frame: str = "world", seq: int = 1) -> OperatorCommand:
+    return OperatorCommand(
+        seq=seq,
+        t_ns=time.time_ns(),
+        master="decision",
+        engage=engage,
+        active=True,
+        frame=frame,  # type: ignore[arg-type]
+        dp=(0.0, 0.0, dz),
+        dR=IDENTITY_R,
+    )
+
+
+def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> None:
+    a, b = net.node("decision"), net.node("master")
+    tdpa = SlaveTdpa(a, drift_m_s=0.0)
+    seen: list[PassivityState] = []
+    b.subscribe(keys.PASSIVITY_SLAVE, seen.append)
+    master_pub = b.publisher(keys.PASSIVITY_MASTER)
+    push_up = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
+    op = ("m1", 4)
+    arm = {"p0": np.array([0.5, 0.0, 0.5]), "p": np.array([0.5, 0.0, 0.5]), "engage": 9}
+    clock = {"k": 0}
+
+    def go(engage: int, dz: float) -> float:
+        """One tick: the command through the slave port, then an ideal arm (the puma: start
+        pose at a new engagement, then p0 + dp at once)."""
+        clock["k"] += 1
+        k = clock["k"]
+        if engage != arm["engage"]:
+            arm["engage"], arm["p0"] = engage, arm["p"].copy()
+        # A state and a force sample of this instant (the force measured where the arm is).
+        t = 1_000_000_000 + k * 2_000_000
+        st = robot_state(tool_p=tuple(float(x) for x in arm["p"]), seq=k, t_ns=t)
+        f = dataclasses.replace(push_up, seq=k, t_ns=t)
+        out = tdpa.apply(command(engage, dz, seq=k), op, st, f, t)
+        arm["p"] = arm["p0"] + np.asarray(out.dp)
+        return float(out.dp[2])
+
+    outs = [go(9, 0.0)] + [go(9, -0.001 * k) for k in range(1, 6)]
+    # 1 mm a tick down into a surface pushing up with 20 N, no energy from the operator
+    assert outs == pytest.approx([0.0] * 6, abs=1e-12)
+    assert tdpa.pc.offset[2] == pytest.approx(0.005)
+
+    def heard() -> bool:
+        go(9, -0.005)  # the same depth again (no motion, no energy): one more state out,
+        # since those sent before the subscription reached the decision's peer are lost
+        return len(seen) > 0 and seen[-1].master == "m1" and seen[-1].engage == 4
+
+    assert wait_until(heard)
+    # The operator pays 0.05 J: 2.5 mm more are allowed (20 N × 2.5 mm), the rest waits.
+    master_pub.put(state("master", 4, 0.05))
+
+    def paid() -> bool:
+        go(9, -0.005)
+        return tdpa.pc.remote.e_in == 0.05
+
+    assert wait_until(paid)
+    outs = [go(9, -0.001 * depth_mm) for depth_mm in (6, 7, 8)]
+    assert outs == pytest.approx([-0.001, -0.002, -0.0025])
+    assert go(9, -0.008) == pytest.approx(-0.0025)
+    # Moving back out of the contact is never held back.
+    assert go(9, -0.0055) == pytest.approx(0.0)
+    # A new arm engagement (a rebase) starts the offset from zero: the command is unchanged.
+    assert go(10, 0.0) == 0.0
+    # Holds pass unchanged.
+    hold = OperatorCommand(**{**codec.to_fields(command(10, -0.3)), "active": False})  # type: ignore[arg-type]
+    st = robot_state()
+    assert tdpa.apply(hold, op, st, push_up, 0) is hold
+
+
+def test_decision_ignores_forces_below_the_deadband(net: Net) -> None:
+    tdpa = SlaveTdpa(net.node("decision"), drift_m_s=0.0)
+    op = ("m1", 1)
+    st = robot_state()
+    noise = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.3, 0.0, 0.5), c=(0.0, 0.0, 0.0))
+    tdpa.apply(command(1, 0.0), op, st, noise, 0)
+    out = tdpa.apply(command(1, -0.01, seq=2), op, st, noise, 2_000_000)
+    assert out.dp[2] == pytest.approx(-0.01)
+    assert tdpa.pc.telemetry.active_steps == 0
+
+
+def test_decision_pairs_force_and_motion_at_one_instant(net: Net) -> None:
+    """States at 100 Hz, forces at 500 Hz, each with its own time: the port is observed at
+    the newest instant both cover, with the position interpolated there."""
+    tdpa = SlaveTdpa(net.node("decision"), drift_m_s=0.0)
+    op = ("m1", 1)
+    t0 = 1_000_000_000
+    # The tool goes 1 cm down in 10 ms (state at t0 and t0 + 10 ms), a 20 N contact force.
+    s0 = robot_state(tool_p=(0.5, 0.0, 0.5), seq=1, t_ns=t0)
+    s1 = robot_state(tool_p=(0.5, 0.0, 0.49), seq=2, t_ns=t0 + 10_000_000)
+    f = ForceSample(seq=1, t_ns=t0, f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
+    tdpa.apply(command(1, 0.0), op, s0, f, t0)
+    # A force sample 4 ms later: observed over 4 ms of the state's motion (4 mm), not 10.
+    f4 = dataclasses.replace(f, seq=2, t_ns=t0 + 4_000_000)
+    tdpa.apply(command(1, 0.0, seq=2), op, s1, f4, t0 + 10_000_000)
+    assert tdpa.pc.observer.e_out == pytest.approx(20.0 * 0.004)
+    # A force newer than every state: observed up to the newest state (the rest waits).
+    f12 = dataclasses.replace(f, seq=3, t_ns=t0 + 12_000_000)
+    tdpa.apply(command(1, 0.0, seq=3), op, s1, f12, t0 + 12_000_000)
+    assert tdpa.pc.observer.e_out == pytest.approx(20.0 * 0.01)
+
+
+def test_decision_excludes_the_supervisors_retraction(net: Net) -> None:
+    """Above the supervisor's contact limit the tool backing out under the force is the
+    supervisor's doing: no energy for the master."""
+    tdpa = SlaveTdpa(net.node("decision"), drift_m_s=0.0, contact_n=40.0)
+    op = ("m1", 1)
+    t0 = 1_000_000_000
+    hard = ForceSample(seq=1, t_ns=t0, f=(0.0, 0.0, 60.0), c=(0.0, 0.0, 0.0))
+    for k, z in enumerate((0.490, 0.491, 0.492), start=1):
+        t = t0 + k * 2_000_000
+        st = robot_state(tool_p=(0.5, 0.0, z), seq=k, t_ns=t)
+        tdpa.apply(command(1, 0.0, seq=k), op, st, dataclasses.replace(hard, seq=k, t_ns=t), t)
+    assert tdpa.pc.observer.e_in == 0.0
+    assert tdpa.pc.excluded_j == pytest.approx(60.0 * 0.002)
+    # Below the limit the same motion is the channel's (up to what the workcell was given:
+    # here nothing, so it is clipped rather than credited).
+    soft = SlaveTdpa(net.node("decision2"), drift_m_s=0.0, contact_n=40.0)
+    for k, z in enumerate((0.490, 0.491), start=1):
+        t = t0 + k * 2_000_000
+        st = robot_state(tool_p=(0.5, 0.0, z), seq=k, t_ns=t)
+        f = ForceSample(seq=k, t_ns=t, f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
+        soft.apply(command(1, 0.0, seq=k), op, st, f, t)
+    assert soft.pc.excluded_j == 0.0 and soft.pc.clipped_j == pytest.approx(0.02)
+
+
+def test_decision_tool_frame_correction_is_mapped_back(net: Net) -> None:
+    a = net.node("decision")
+    tdpa = SlaveTdpa(a, drift_m_s=0.0)
+    flip = (1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0)  # tool z points down (world −z)
+    st = robot_state(flip)
+    # tool frame: the wall pushes along tool −z (world +z), the tool moves along tool +z
+    push = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.0, 0.0, -20.0), c=(0.0, 0.0, 0.0))
+    op = ("m1", 1)
+    tdpa.apply(command(1, 0.0, "tool"), op, st, push, 0)
+    out = tdpa.apply(command(1, 0.002, "tool", seq=2), op, st, push, 2_000_000)
+    assert out.dp == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    free = ForceSample(seq=2, t_ns=time.time_ns(), f=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0))
+    assert tdpa.apply(command(1, 0.003, "tool", seq=3), op, st, free, 4_000_000).dp[
+        2
+    ] == pytest.approx(0.001)

@@ -1,0 +1,304 @@
+"""The `Arm` contract, run against every backend: SimArm and SerialArm talking to the fake
+controller over a loopback socket. Real time with deadlines: both run their own threads."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, get_args
+
+import numpy as np
+import pytest
+
+from services.bus.errors import ConfigError
+from services.control.puma.arm import QN_RAD, Arm, ArmError, ArmKind
+from services.control.puma.backends import BACKENDS, open_arm
+from services.control.puma.config import PumaConfig
+from services.control.puma.fake_controller import FakeController
+from services.control.puma.serial_arm import SerialArm
+from services.control.puma.sim_arm import SimArm
+from tests.conftest import wait_until
+
+Q0 = np.array(QN_RAD)
+
+
+@dataclass
+class Rig:
+    """One backend under test: the arm, a way to fail it, and the truth about its joints."""
+
+    arm: Arm
+    fail: Callable[[], None]
+    true_q: Callable[[], np.ndarray]
+
+
+@pytest.fixture(params=["sim", "serial"])
+def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
+    if request.param == "sim":
+        sim = SimArm(calibration_s=0.1)
+        try:
+            yield Rig(sim, lambda: sim.inject_fault("error"), lambda: sim.q_true)
+        finally:
+            sim.close()
+    else:
+        fake = FakeController(calibration_s=0.1).start()
+        # A generous reply timeout: the contract is about behaviour, and two loaded cores can
+        # delay a reply past 100 ms (a timeout then reads as a controller fault).
+        arm = SerialArm(fake.url, cycle_ms=4.0, timeout_s=1.0)
+        try:
+            yield Rig(arm, fake.garble_next_reply, lambda: fake.q)
+        finally:
+            arm.close()
+            fake.close()
+
+
+def ready(rig: Rig) -> np.ndarray:
+    rig.arm.connect()
+    rig.arm.initialize()
+    assert wait_until(lambda: rig.arm.status == "ready", what="ready")
+    return rig.arm.read_joints()
+
+
+def stream_to(arm: Arm, q_from: np.ndarray, q_to: np.ndarray, n: int = 100) -> None:
+    """Stream a smooth ramp of setpoints, one every ~2 ms, as a control loop would."""
+    for k in range(1, n + 1):
+        s = 0.5 - 0.5 * np.cos(np.pi * k / n)
+        arm.command(q_from + s * (q_to - q_from))
+        time.sleep(0.002)
+
+
+def settled(arm: Arm, target: np.ndarray, tol: float = 1e-3) -> bool:
+    return bool(np.max(np.abs(arm.read_joints() - target)) < tol)
+
+
+def holding_at(arm: Arm, target: np.ndarray) -> Callable[[], bool]:
+    """A condition that keeps commanding `target` (as a control loop does) until it is reached."""
+
+    def check() -> bool:
+        arm.command(target)
+        return settled(arm, target)
+
+    return check
+
+
+def test_is_an_arm(rig: Rig) -> None:
+    assert isinstance(rig.arm, Arm)
+    assert rig.arm.status == "disconnected"
+    assert rig.arm.last_error is None
+
+
+def test_connect_then_calibrate_then_joints_report(rig: Rig) -> None:
+    rig.arm.connect()
+    assert rig.arm.status == "connected"
+    with pytest.raises(ArmError):
+        rig.arm.read_joints()  # incremental encoders: nothing known before calibration
+    rig.arm.initialize()
+    assert rig.arm.status in ("initializing", "ready")
+    assert wait_until(lambda: rig.arm.status == "ready", what="calibration")
+    np.testing.assert_allclose(rig.arm.read_joints(), Q0, atol=1e-6)
+
+
+def test_setpoints_before_ready_are_ignored(rig: Rig) -> None:
+    rig.arm.connect()
+    rig.arm.command(Q0 + 0.1)
+    rig.arm.initialize()
+    assert wait_until(lambda: rig.arm.status == "ready", what="ready")
+    time.sleep(0.05)  # give a wrongly queued setpoint the time to show; not a synchronisation
+    np.testing.assert_allclose(rig.true_q(), Q0, atol=1e-9)
+
+
+def test_command_and_readback_converge(rig: Rig) -> None:
+    q0 = ready(rig)
+    target = q0 + np.array([0.2, -0.15, 0.1, 0.3, -0.2, 0.25])
+    stream_to(rig.arm, q0, target)
+    assert wait_until(holding_at(rig.arm, target), what="convergence")
+    assert rig.arm.status == "ready"
+    np.testing.assert_allclose(rig.true_q(), target, atol=1e-3)
+
+
+def test_stop_holds_where_it_is(rig: Rig) -> None:
+    q0 = ready(rig)
+    far = q0 + 1.0
+    # Stream towards a far target (0.003 rad per setpoint) until the arm is really moving
+    # (condition, not a fixed count: a loaded machine sends fewer setpoints per cycle).
+    deadline = time.monotonic() + 20.0
+    k = 0
+    while not np.all(rig.true_q() > q0 + 0.02):
+        assert time.monotonic() < deadline, "the arm never started to move"
+        k += 1
+        rig.arm.command(q0 + min(k * 0.003, 0.3) * (far - q0))
+        time.sleep(0.002)  # the streaming period, not a synchronisation
+    rig.arm.stop()
+    held: list[np.ndarray] = []
+
+    def still() -> bool:
+        held.append(rig.true_q())
+        return len(held) > 20 and bool(np.max(np.abs(held[-1] - held[-20])) < 1e-9)
+
+    assert wait_until(still, what="the arm to come to rest")
+    q_held = held[-1]
+    # It moved, then stopped within its braking distance, far short of where it was going.
+    assert np.all(q_held > q0 + 0.01) and np.all(q_held < q0 + 0.5)
+    assert wait_until(lambda: settled(rig.arm, q_held, 2e-6), what="readback of the held pose")
+    rig.arm.command(q_held)  # streaming may resume from where it holds
+    assert rig.arm.status == "ready"
+
+
+def test_estop_halts_and_reconnect_recovers_without_jump(rig: Rig) -> None:
+    q0 = ready(rig)
+    stream_to(rig.arm, q0, q0 + 0.2, n=30)
+    rig.arm.estop()
+    assert rig.arm.status == "error"
+    assert "emergency" in (rig.arm.last_error or "")
+    q_stop = rig.true_q()
+    rig.arm.command(q_stop + 0.05)
+    time.sleep(0.05)  # a refused setpoint must not move it: look a little later
+    np.testing.assert_allclose(rig.true_q(), q_stop, atol=1e-9)
+    rig.arm.connect()
+    assert rig.arm.status == "connected"
+    rig.arm.initialize()
+    assert wait_until(lambda: rig.arm.status == "ready", what="ready after e-stop")
+    np.testing.assert_allclose(rig.arm.read_joints(), q_stop, atol=1e-6)
+    np.testing.assert_allclose(rig.true_q(), q_stop, atol=1e-9)
+
+
+def test_fault_gives_error_then_reconnect_without_jump(rig: Rig) -> None:
+    q0 = ready(rig)
+    target = q0 + 0.25
+    rig.fail()
+    # Keep streaming: the arm must refuse everything from the fault on.
+    for _ in range(200):
+        rig.arm.command(target)
+        if rig.arm.status == "error":
+            break
+        time.sleep(0.002)
+    assert wait_until(lambda: rig.arm.status == "error", what="error")
+    assert rig.arm.last_error
+    for _ in range(20):
+        rig.arm.command(target)
+    held: list[np.ndarray] = []
+
+    def still() -> bool:
+        held.append(rig.true_q())
+        return len(held) > 20 and bool(np.max(np.abs(held[-1] - held[-20])) < 1e-9)
+
+    assert wait_until(still, what="the arm to hold")
+    q_fault = held[-1]
+    assert np.max(np.abs(q_fault - target)) > 0.1, "setpoints after the fault were executed"
+    rig.arm.connect()
+    rig.arm.initialize()
+    assert wait_until(lambda: rig.arm.status == "ready", what="ready after the fault")
+    q_back = rig.arm.read_joints()
+    np.testing.assert_allclose(q_back, q_fault, atol=1e-6)
+    rig.arm.command(q_back)  # the first setpoint after recovery is where the arm is
+    time.sleep(0.05)  # a jump, were there one, would show by now
+    assert rig.arm.status == "ready"
+    np.testing.assert_allclose(rig.true_q(), q_fault, atol=1e-6)
+
+
+def test_jumping_setpoint_is_refused(rig: Rig) -> None:
+    q0 = ready(rig)
+    rig.arm.command(q0 + np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0]))
+    assert wait_until(lambda: rig.arm.status == "error", what="the jump to be refused")
+    assert "jump" in (rig.arm.last_error or "").lower() or "STEP" in (rig.arm.last_error or "")
+    time.sleep(0.05)  # look again a little later: it must not have moved
+    np.testing.assert_allclose(rig.true_q(), q0, atol=2e-6)  # 1 µrad wire resolution
+
+
+def test_setpoint_outside_the_limits_is_refused(rig: Rig) -> None:
+    q0 = ready(rig)
+    near = q0.copy()
+    near[4] = np.radians(100.0) - 0.1  # joint 5 close to its upper limit
+    # In short legs, so the arm is never far behind its setpoint even on a loaded machine.
+    for leg in np.linspace(0.0, 1.0, 5)[1:]:
+        q_leg = q0 + leg * (near - q0)
+        stream_to(rig.arm, rig.arm.read_joints(), q_leg, n=50)
+        assert wait_until(holding_at(rig.arm, q_leg), what="the next leg")
+    past = near.copy()
+    past[4] = np.radians(100.0) + 0.01  # past the limit, though a small step
+    rig.arm.command(past)
+    assert wait_until(lambda: rig.arm.status == "error", what="the limit to be refused")
+    assert "limit" in (rig.arm.last_error or "").lower()
+    assert np.all(rig.true_q() <= np.radians(100.0) + 1e-9)
+
+
+def test_initialize_needs_a_connection(rig: Rig) -> None:
+    with pytest.raises(ArmError, match="cannot initialize: arm is disconnected"):
+        rig.arm.initialize()
+    assert rig.arm.status == "disconnected"
+
+
+def test_setpoints_outside_ready_are_counted_as_ignored(rig: Rig) -> None:
+    arm = rig.arm
+    assert isinstance(arm, SimArm | SerialArm)
+    arm.command(Q0)
+    arm.connect()
+    arm.command(Q0)
+    assert arm.setpoints_ignored == 2
+    assert arm.status == "connected"
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [[math.nan] * 6, [0.0] * 5, [[0.0] * 6]],
+    ids=["nan", "five", "matrix"],
+)
+def test_a_malformed_setpoint_is_an_error_and_moves_nothing(rig: Rig, bad: Any) -> None:
+    q0 = ready(rig)
+    rig.arm.command(bad)
+    assert wait_until(lambda: rig.arm.status == "error", what="the setpoint to be refused")
+    assert (rig.arm.last_error or "").startswith("bad setpoint: setpoint must")
+    time.sleep(0.05)  # look again a little later: it must not have moved
+    np.testing.assert_allclose(rig.true_q(), q0, atol=2e-6)
+
+
+def test_close_is_idempotent(rig: Rig) -> None:
+    ready(rig)
+    rig.arm.close()
+    rig.arm.close()
+    assert rig.arm.status == "disconnected"
+
+
+def test_every_arm_kind_has_a_backend() -> None:
+    assert set(BACKENDS.names) == set(get_args(ArmKind))
+
+
+def test_open_arm_picks_the_backend_from_the_config() -> None:
+    arm = open_arm(PumaConfig(sim_calibration_s=0.0, home_q=tuple(QN_RAD)))
+    assert isinstance(arm, SimArm)
+    assert arm.status == "disconnected"
+    arm.connect()
+    arm.initialize()
+    assert wait_until(lambda: arm.status == "ready", 10.0, what="the simulated arm to calibrate")
+    np.testing.assert_allclose(arm.read_joints(), Q0)
+    arm.close()
+    ser = open_arm(PumaConfig(arm="serial", port="socket://127.0.0.1:9", serial_cycle_ms=10.0))
+    assert isinstance(ser, SerialArm)
+    assert ser.status == "disconnected"
+    assert ser.port == "socket://127.0.0.1:9"
+
+
+def test_open_arm_refuses_a_name_without_a_backend() -> None:
+    # a PumaConfig refuses the name first; one that slipped through is refused here too
+    config = PumaConfig()
+    object.__setattr__(config, "arm", "usb")
+    with pytest.raises(ConfigError) as info:
+        open_arm(config)
+    assert info.value.key == "puma.arm"
+
+
+def test_sim_and_proxy_do_not_load_pyserial() -> None:
+    code = (
+        "import sys\n"
+        "import services.control.puma.arm, services.control.puma.sim_arm\n"
+        "import services.control.puma.proxy\n"
+        "from services.control.puma.backends import open_arm\n"
+        "from services.control.puma.config import PumaConfig\n"
+        "open_arm(PumaConfig())\n"
+        "print('serial' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

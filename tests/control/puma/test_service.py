@@ -1,0 +1,232 @@
+"""The puma service over Zenoh: methods, the command stream, and bad input that never moves it."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from services.bus import keys
+from services.bus.errors import RpcError
+from services.bus.messages import IDENTITY_R, Event, OperatorCommand, RobotState
+from services.control.puma.config import PumaConfig
+from services.control.puma.service import PumaService
+
+
+@pytest.fixture
+def puma(net):  # type: ignore[no-untyped-def]
+    node = net.node("puma")
+    svc = PumaService(node, PumaConfig(sim_calibration_s=0.05))
+    try:
+        yield svc
+    finally:
+        svc.close()
+
+
+def _ready(client, state) -> RobotState:  # type: ignore[no-untyped-def]
+    client.call("puma", "connect", {}, timeout_s=30.0)
+    client.call("puma", "initialize", {"wait": True}, timeout_s=30.0)
+    st = state.wait_for(lambda s: s.status == "ready", 30.0)
+    assert st is not None, "the arm never became ready"
+    return st
+
+
+def test_status_machine_and_motion_methods(net, puma) -> None:
+    client = net.node("operator")
+    state = client.subscribe(keys.STATE)
+    statuses: list[str] = []
+    moved = threading.Event()
+
+    def on_event(ev: Event) -> None:
+        if ev.source == "puma" and ev.kind == "status" and ev.data:
+            statuses.append(str(ev.data.get("status")))
+        if ev.kind == "moved":
+            moved.set()
+
+    client.subscribe(keys.EVENTS, on_event)
+    assert client.call("puma", "status", {}, timeout_s=5.0)["status"] == "disconnected"
+    with pytest.raises(RpcError) as err:
+        client.call("puma", "home", {}, timeout_s=5.0)
+    assert err.value.code == "not_ready"
+    st = _ready(client, state)
+    reply = client.call(
+        "puma", "move_relative", {"dp": [0.0, 0.0, -0.05], "wait": True}, timeout_s=20.0
+    )
+    assert reply["completed"] is True
+    after = state.wait_for(lambda s: s.status == "ready" and s.seq > st.seq + 5, 5.0)
+    assert after is not None
+    assert after.tool_p[2] == pytest.approx(st.tool_p[2] - 0.05, abs=1e-3)
+    assert moved.wait(5.0)
+    assert statuses[:3] == ["connected", "initializing", "ready"]
+    fk = client.call("puma", "fk", {"q": list(after.q)}, timeout_s=5.0)
+    assert np.allclose(fk["tool_p"], after.tool_p, atol=1e-6)
+    ik = client.call("puma", "ik", {"p": fk["tool_p"], "R": fk["tool_R"]}, timeout_s=5.0)
+    assert len(ik["solutions"]) == 8
+
+
+def test_command_stream_moves_the_tool_and_bad_commands_never_do(net, puma) -> None:
+    client = net.node("master")
+    state = client.subscribe(keys.STATE)
+    rejected: list[Event] = []
+    got_rejected = threading.Event()
+
+    def on_event(ev: Event) -> None:
+        if ev.kind == "rejected":
+            rejected.append(ev)
+            got_rejected.set()
+
+    client.subscribe(keys.EVENTS, on_event)
+    st0 = _ready(client, state)
+    pub = client.publisher(keys.PUMA_CMD)
+    seq = 0
+
+    def send(dp: tuple[float, float, float], engage: int = 1, active: bool = True) -> None:
+        nonlocal seq
+        seq += 1
+        pub.put(
+            OperatorCommand(
+                seq=seq,
+                t_ns=time.time_ns(),
+                master="m",
+                engage=engage,
+                active=active,
+                frame="world",
+                dp=dp,
+                dR=IDENTITY_R,
+            )
+        )
+
+    for i in range(1, 41):
+        send((0.0, 0.001 * i, 0.0))
+    moved = state.wait_for(
+        lambda s: s.cmd_seq == seq and abs(s.tool_p[1] - st0.tool_p[1] - 0.04) < 1e-7, 10.0
+    )
+    assert moved is not None, "the tool did not follow the command stream"
+    q_before = np.array(moved.q)
+
+    # Garbage on the command key: NaN, a reflected R, a huge dp, not msgpack at all.
+    raw = client.session
+    good = {
+        "seq": seq + 1,
+        "t_ns": 1,
+        "master": "m",
+        "engage": 1,
+        "active": True,
+        "frame": "world",
+        "dp": [0.0, 0.04, 0.0],
+        "dR": list(IDENTITY_R),
+    }
+    bad = [
+        {**good, "dp": [float("nan"), 0.0, 0.0]},
+        {**good, "dR": [1.0, 0, 0, 0, 1.0, 0, 0, 0, -1.0]},
+        b"\xc1\xff not msgpack",
+    ]
+    for payload in bad:
+        raw.put(
+            keys.PUMA_CMD.key, payload if isinstance(payload, bytes) else msgpack.packb(payload)
+        )
+    send((5.0, 0.0, 0.0))  # a valid message, but a 5 m jump: refused by the proxy
+    assert got_rejected.wait(5.0), "no rejected event"
+    later = state.wait_for(lambda s: s.seq > moved.seq + 50, 5.0)
+    assert later is not None
+    assert np.allclose(later.q, q_before, atol=1e-6), "bad commands moved the arm"
+    assert any(ev.kind == "rejected" for ev in rejected)
+
+
+def test_a_command_is_applied_on_arrival_and_its_times_are_in_the_state(net, puma) -> None:
+    client = net.node("master")
+    state = client.subscribe(keys.STATE)
+    st0 = _ready(client, state)
+    pub = client.publisher(keys.PUMA_CMD)
+    sent: list[OperatorCommand] = []
+    for i in range(1, 21):
+        now = time.time_ns()
+        cmd = OperatorCommand(
+            seq=i,
+            t_ns=now,
+            master="decision",
+            engage=1,
+            active=True,
+            frame="world",
+            dp=(0.0, 0.0005 * i, 0.0),
+            dR=IDENTITY_R,
+            origin_t_ns=now - 1_000,  # the operator sent it 1 µs earlier
+        )
+        sent.append(cmd)
+        pub.put(cmd)
+    last = sent[-1]
+    st = state.wait_for(lambda s: s.cmd_seq == last.seq and s.setpoint_ns is not None, 10.0)
+    assert st is not None, "the last command was never applied"
+    assert st.cmd_origin_t_ns == last.origin_t_ns
+    assert st.cmd_rx_ns is not None and st.setpoint_ns is not None
+    # one clock: sent, then received, then the first setpoint from it
+    assert last.origin_t_ns is not None
+    assert last.origin_t_ns < last.t_ns <= st.cmd_rx_ns <= st.setpoint_ns <= st.t_ns
+    done = state.wait_for(lambda s: abs(s.tool_p[1] - st0.tool_p[1] - 0.01) < 1e-7, 10.0)
+    assert done is not None, "the tool did not reach the last command's target"
+
+
+def test_at_rest_nothing_is_recomputed_and_the_state_keeps_flowing(net, puma) -> None:
+    client = net.node("observer")
+    state = client.subscribe(keys.STATE)
+    _ready(client, state)
+    settled = state.wait_for(lambda s: s.status == "ready", 10.0)
+    assert settled is not None
+    # Let a settle period pass: the servo's approach ends, the sim arm goes to sleep.
+    first = state.wait_for(lambda s: s.seq > settled.seq + 50, 10.0)
+    assert first is not None
+    ticks0 = puma.proxy.counters["ticks"]
+    setpoints0 = puma.arm.setpoints_accepted
+    t0 = puma.arm.t_s
+    n0 = state.received
+    assert state.wait_count(n0 + 100, 10.0)  # ≥ 100 more states: the stream keeps flowing
+    later = state.get()
+    assert later is not None and later.status == "ready"
+    # One watch tick per state published at rest (100 Hz), not the 500 Hz control rate.
+    states = state.received - n0
+    assert puma.proxy.counters["ticks"] - ticks0 <= states + 5
+    assert puma.arm.setpoints_accepted == setpoints0  # nothing re-sent to a resting arm
+    assert puma.arm.t_s >= t0  # the simulated clock still follows the wall clock
+    assert later.q == first.q  # not a nanoradian of drift
+
+
+def test_while_a_decision_server_runs_only_it_may_start_motions(net, puma) -> None:
+    client = net.node("operator")
+    state = client.subscribe(keys.STATE)
+    _ready(client, state)
+    move = {"dp": [0.0, 0.0, -0.01], "wait": True}
+    assert client.call("puma", "move_relative", move, timeout_s=20.0)["completed"] is True
+    decision = net.node("decision")
+    decision.announce()  # alive/decision: a supervisor is there now
+    assert client.alive.wait("decision", 10.0)
+    sent = puma.arm.setpoints_accepted
+    with pytest.raises(RpcError) as err:
+        client.call("puma", "move_relative", move, timeout_s=20.0)
+    assert err.value.code == "busy" and "robot/decision/rpc/move_relative" in err.value.message
+    assert puma.arm.setpoints_accepted == sent  # refused before anything was planned or sent
+    assert puma.proxy.rpc_status({})["motion"] is None
+    via = {**move, "supervised_by": "decision"}
+    assert client.call("puma", "move_relative", via, timeout_s=20.0)["completed"] is True
+    assert client.call("puma", "status", {}, timeout_s=5.0)["status"] == "ready"
+
+
+def test_a_retried_motion_with_its_request_id_never_moves_twice(net, puma) -> None:
+    client = net.node("operator")
+    state = client.subscribe(keys.STATE)
+    st0 = _ready(client, state)
+    move = {"dp": [0.0, 0.0, -0.02], "request_id": "retry-1"}
+    first = client.call("puma", "move_relative", move, timeout_s=20.0)
+    again = client.call("puma", "move_relative", {**move, "wait": True}, timeout_s=20.0)
+    assert again["motion"] == first["motion"] and again["duplicate"] is True
+    assert again["completed"] is True
+    done = state.wait_for(lambda s: s.status == "ready" and s.seq > st0.seq + 20, 10.0)
+    assert done is not None
+    assert done.tool_p[2] == pytest.approx(st0.tool_p[2] - 0.02, abs=1e-3)  # once, not twice
+    other = client.call("puma", "move_relative", {**move, "request_id": "retry-2"}, 20.0)
+    assert other["motion"] != first["motion"] and "duplicate" not in other
+    with pytest.raises(RpcError) as err:
+        client.call("puma", "move_relative", {**move, "request_id": "x" * 65}, timeout_s=5.0)
+    assert err.value.code == "bad_request"

@@ -1,0 +1,96 @@
+"""The bare-Zenoh floor: the same bytes and QoS as robot/force, and both processes on tiny
+runs over a private Zenoh network (counts and contents, never speed)."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from services.bus import codec, node
+from services.bus.keys import FORCE, QoS
+from services.bus.messages import ForceSample
+from services.tools.bench import floor, stats
+from services.tools.bench.baselines import FORCE_C_NM, FORCE_F_N, FORCE_RAW, force_payload
+from services.tools.bench.probes import StreamProbe
+from tests.conftest import Net
+
+RUN_TIMEOUT_S = 60.0
+
+
+def test_the_floor_sends_exactly_the_bytes_codec_encodes() -> None:
+    for seq, t_ns in ((1, 123), (2**40, 1_700_000_000_000_000_000)):
+        sample = ForceSample(seq=seq, t_ns=t_ns, f=FORCE_F_N, c=FORCE_C_NM, raw=FORCE_RAW)
+        assert force_payload(seq, t_ns) == codec.encode(sample)
+
+
+def test_the_floor_has_robot_force_qos() -> None:
+    assert FORCE.qos is QoS.CONTROL is floor.FLOOR_TOPIC.qos
+    control = node._QOS[QoS.CONTROL]
+    assert control["priority"] == floor.FLOOR_PRIORITY
+    assert control["express"] is floor.FLOOR_EXPRESS
+    assert control["congestion_control"] == floor.FLOOR_CONGESTION
+    assert floor.FLOOR_TOPIC.type is ForceSample
+
+
+def test_parse_sent() -> None:
+    sent = floor.FloorSent(1000, 0.08, 1.0)
+    assert floor.parse_sent("some log\n" + sent.line() + "\n") == sent
+    assert sent.cpu_pct == pytest.approx(8.0)
+    assert floor.FloorSent(0, 0.0, 0.0).cpu_pct == 0.0
+    with pytest.raises(ValueError):
+        floor.parse_sent("nothing here")
+
+
+def test_publisher_process_delivers_every_sample_in_order(net: Net) -> None:
+    sub = net.node("sub")  # listens: the publisher process connects to it as a peer
+    probe = StreamProbe(sub, floor.FLOOR_TOPIC, lambda m: (m.seq, m.t_ns)).start()
+    done = subprocess.run(
+        floor.pub_argv(net.endpoint, 200.0, 0.3, mode="peer"),
+        capture_output=True,
+        text=True,
+        timeout=RUN_TIMEOUT_S,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    sent = floor.parse_sent(done.stdout)
+    assert sent.sent >= 1 and sent.wall_s > 0
+    assert probe.wait_count(sent.sent, 10.0)
+    records = probe.stop()
+    assert [r[1][0] for r in records] == list(range(1, sent.sent + 1))
+    assert probe.rejected == 0
+    # arrival never precedes the stamp on one clock
+    assert (stats.latencies_ms([r[0] for r in records], [r[1][1] for r in records]) >= 0).all()
+
+
+def test_queryable_process_answers_every_get(net: Net, tmp_path: Path) -> None:
+    client = net.node("client")
+    reply = {"status": "ready", "counters": {"commands": 3}, "q": [0.0] * 6}
+    reply_file = tmp_path / "reply.msgpack"
+    reply_file.write_bytes(codec.pack(reply))
+    proc = subprocess.Popen(
+        floor.serve_argv(net.endpoint, reply_file, mode="peer"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        got = floor.time_gets(client.session, 5, startup_s=RUN_TIMEOUT_S)
+        assert len(got.ms) == 5 and got.failures == 0
+        assert all(x > 0 for x in got.ms)
+        proc.terminate()  # SIGTERM: the server leaves through its own close
+        out, err = proc.communicate(timeout=RUN_TIMEOUT_S)
+        assert proc.returncode == 0, err
+        assert f"{floor.SERVING} {floor.FLOOR_RPC_KEY}" in out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_time_gets_gives_up_when_nobody_serves(net: Net) -> None:
+    client = net.node("client")
+    with pytest.raises(TimeoutError, match="no reply"):
+        floor.time_gets(client.session, 1, timeout_s=0.1, startup_s=0.3)

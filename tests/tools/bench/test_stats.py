@@ -1,0 +1,265 @@
+"""The bench's statistics on hand-worked inputs, and properties against brute-force references."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.tools.bench import stats
+
+MS = stats.NS_PER_MS
+
+
+def test_percentile_interpolates_like_numpy() -> None:
+    assert stats.percentile([1, 2, 3, 4], 50) == 2.5
+    assert stats.percentile([5.0], 99) == 5.0
+    # 101 values 0…100: the q-th percentile is q itself
+    assert stats.percentile(list(range(101)), 99) == pytest.approx(99.0)
+    assert math.isnan(stats.percentile([], 50))
+    with pytest.raises(ValueError):
+        stats.percentile([1.0], 101)
+
+
+def test_summarize_values_and_empty() -> None:
+    s = stats.summarize([4.0, 1.0, 3.0, 2.0])
+    assert (s.n, s.p50, s.max, s.mean, s.min) == (4, 2.5, 4.0, 2.5, 1.0)
+    assert s.p99 == pytest.approx(3.97)
+    empty = stats.summarize([])
+    assert empty.n == 0
+    assert empty.as_dict() == {
+        "n": 0,
+        "p50": None,
+        "p99": None,
+        "max": None,
+        "mean": None,
+        "min": None,
+    }
+
+
+def test_latencies_ms_is_arrival_minus_stamp() -> None:
+    got = stats.latencies_ms([3 * MS, 10 * MS], [1 * MS, 9_500_000])
+    assert got.tolist() == [2.0, 0.5]
+    with pytest.raises(ValueError):
+        stats.latencies_ms([1, 2], [1])
+
+
+def test_seq_loss_counts_gaps_duplicates_and_reordering() -> None:
+    loss = stats.seq_loss([10, 11, 13, 12, 12, 16])
+    assert loss.received == 6
+    assert loss.unique == 5
+    assert (loss.first, loss.last, loss.expected) == (10, 16, 7)
+    assert loss.lost == 2  # 14 and 15
+    assert loss.duplicates == 1
+    assert loss.reordered == 2  # 12 after 13, and its duplicate
+    assert loss.loss_ratio == pytest.approx(2 / 7)
+
+
+def test_seq_loss_of_nothing_and_of_a_clean_stream() -> None:
+    assert stats.seq_loss([]).as_dict()["expected"] == 0
+    assert stats.seq_loss([]).loss_ratio == 0.0
+    clean = stats.seq_loss(list(range(1, 1001)))
+    assert (clean.lost, clean.duplicates, clean.reordered, clean.expected) == (0, 0, 0, 1000)
+
+
+@settings(deadline=None)  # a loaded CI host must not turn a slow example into a failure
+@given(st.lists(st.integers(0, 300), min_size=1, max_size=200))
+def test_seq_loss_matches_a_set_count(seqs: list[int]) -> None:
+    loss = stats.seq_loss(seqs)
+    distinct = set(seqs)
+    assert loss.unique == len(distinct)
+    assert loss.lost == max(distinct) - min(distinct) + 1 - len(distinct)
+    assert loss.duplicates == len(seqs) - len(distinct)
+    assert loss.lost >= 0 and 0.0 <= loss.loss_ratio < 1.0
+
+
+def test_rates() -> None:
+    assert stats.rate_hz(500, 0.5) == 1000.0
+    assert stats.rate_hz(3, 0.0) == 0.0
+    with pytest.raises(ValueError):
+        stats.rate_hz(-1, 1.0)
+    # 11 events 1 ms apart: 10 intervals over 10 ms
+    assert stats.rate_from_times([i * MS for i in range(11)]) == pytest.approx(1000.0)
+    assert stats.rate_from_times([5]) == 0.0
+    assert stats.rate_from_times([5, 5]) == 0.0
+
+
+def test_merge_windows() -> None:
+    assert stats.merge_windows([(5, 7), (1, 3), (2, 4), (7, 9), (20, 10)]) == [
+        (1, 4),
+        (5, 9),
+        (10, 20),
+    ]
+    assert stats.merge_windows([]) == []
+
+
+def test_rate_in_windows_counts_only_inside_the_union() -> None:
+    s = stats.NS_PER_S
+    times = [0, s // 2, s, 3 * s // 2, 2 * s, 5 * s]
+    # windows [0, 1 s] and [0.5 s, 2 s] merge into [0, 2 s]: 5 events in 2 s
+    wr = stats.rate_in_windows(times, [(0, s), (s // 2, 2 * s)])
+    assert (wr.count, wr.covered_s, wr.rate_hz) == (5, 2.0, 2.5)
+    assert stats.rate_in_windows(times, []).rate_hz == 0.0
+
+
+@settings(deadline=None)
+@given(
+    st.lists(st.integers(0, 1000), max_size=60),
+    st.lists(st.tuples(st.integers(0, 1000), st.integers(0, 1000)), max_size=8),
+)
+def test_rate_in_windows_agrees_with_brute_force(
+    times: list[int], windows: list[tuple[int, int]]
+) -> None:
+    wr = stats.rate_in_windows(times, windows)
+    inside = sum(1 for t in times if any(min(a, b) <= t <= max(a, b) for a, b in windows))
+    assert wr.count == inside
+
+
+def test_pair_skew_only_for_complete_pairs() -> None:
+    left = {1: 10 * MS, 2: 20 * MS, 3: 30 * MS}
+    right = {1: 11 * MS, 3: 29 * MS, 4: 40 * MS}
+    assert stats.pair_skew_ms(left, right) == [1.0, 1.0]
+
+
+def _ms(x: float) -> int:
+    return int(x * MS)
+
+
+def test_match_commands_hand_worked() -> None:
+    sent = [(0, _ms(1)), (1, _ms(2)), (2, _ms(3)), (3, _ms(4)), (4, _ms(5))]
+    # The decision's commands (rx, seq, k): k=1 is never carried on its own (superseded by
+    # k=2 in the same tick), 11 arrives twice, k=4 is never forwarded.
+    forwarded = [(_ms(1.5), 10, 0), (_ms(3.5), 11, 2), (_ms(3.6), 11, 2), (_ms(4.6), 12, 3)]
+    states = [
+        (_ms(1.8), _ms(1.7), 9),
+        (_ms(2.0), _ms(1.9), 10),
+        (_ms(3.9), _ms(3.8), 11),
+        (_ms(4.1), _ms(4.05), 11),
+        (_ms(5.0), _ms(4.9), 12),
+    ]
+    m = stats.match_commands(sent, forwarded, states)
+    assert m.sent == 5
+    assert m.unforwarded == 1
+    assert m.matched == 4
+    assert m.forwarded_distinct == 3
+    np.testing.assert_allclose(m.forward_ms, [0.5, 1.5, 0.5, 0.6])
+    np.testing.assert_allclose(m.applied_ms, [0.9, 1.8, 0.8, 0.9])
+    np.testing.assert_allclose(m.seen_ms, [1.0, 1.9, 0.9, 1.0])
+
+
+def test_match_commands_forwarded_but_not_yet_applied() -> None:
+    m = stats.match_commands([(0, 0)], [(_ms(1), 7, 0)], [(_ms(2), _ms(2), 6)])
+    assert (m.matched, m.unforwarded, m.forward_ms.tolist()) == (0, 0, [1.0])
+    assert m.applied_ms.size == 0
+
+
+def test_match_commands_empty() -> None:
+    m = stats.match_commands([], [], [])
+    assert (m.sent, m.matched, m.forward_ms.size) == (0, 0, 0)
+    nothing_back = stats.match_commands([(0, 0), (1, 1)], [], [])
+    assert (nothing_back.unforwarded, nothing_back.matched) == (2, 0)
+
+
+def _reference(
+    sent: list[tuple[int, int]],
+    forwarded: list[tuple[int, int, int]],
+    states: list[tuple[int, int, int]],
+) -> tuple[list[int], list[int]]:
+    """Brute force: for each command, the first puma command whose running max index ≥ k,
+    then the first state whose running max cmd_seq ≥ that command's seq."""
+    fwd_lat, app_lat = [], []
+    for k, t in sent:
+        high = None
+        hit = None
+        for rx, seq, fk in forwarded:
+            high = fk if high is None else max(high, fk)
+            if high >= k:
+                hit = (rx, seq)
+                break
+        if hit is None:
+            continue
+        fwd_lat.append(hit[0] - t)
+        top = None
+        for _rx, st_t, cmd in states:
+            top = cmd if top is None else max(top, cmd)
+            if top >= hit[1]:
+                app_lat.append(st_t - t)
+                break
+    return fwd_lat, app_lat
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(1, 30),
+    st.lists(st.tuples(st.integers(0, 40), st.integers(0, 40)), max_size=30),
+    st.lists(st.tuples(st.integers(0, 50), st.integers(0, 50)), max_size=30),
+)
+def test_match_commands_agrees_with_brute_force(
+    n: int, fwd_raw: list[tuple[int, int]], st_raw: list[tuple[int, int]]
+) -> None:
+    sent = [(k, k * 1000) for k in range(n)]
+    forwarded = [(i * 700 + 1, seq, k) for i, (seq, k) in enumerate(fwd_raw)]
+    states = [(i * 900 + 1, i * 900, cmd) for i, (cmd, _) in enumerate(st_raw)]
+    m = stats.match_commands(sent, forwarded, states)
+    ref_fwd, ref_app = _reference(sent, forwarded, states)
+    assert m.forward_ms.tolist() == pytest.approx([x / MS for x in ref_fwd])
+    assert m.applied_ms.tolist() == pytest.approx([x / MS for x in ref_app])
+    assert m.matched == len(ref_app) <= m.sent - m.unforwarded
+
+
+def test_dp_index_survives_the_decisions_rounding() -> None:
+    p0 = 0.5512345678
+    for step in (5e-6, -4e-6, 1e-6):
+        for k in (0, 1, 17, 19_999):
+            dp = (p0 + k * step) - p0  # what the decision sends back: p_sup − p0
+            assert stats.dp_index(dp, step) == k
+
+
+def test_assign_engagements_follows_the_latest_start_before() -> None:
+    starts = [100, 200, 300]
+    # decision engagement 7 answers bench engagement 0, 9 answers 2 (bench engagement 1 was
+    # refused), 5 was seen before the bench engaged at all
+    assert stats.assign_engagements(starts, {7: 150, 9: 310, 5: 50}) == {7: 0, 9: 2}
+    assert stats.assign_engagements([], {1: 10}) == {}
+
+
+def test_first_carriers_keeps_the_lowest_seq_per_origin() -> None:
+    cmds = [(12, 500), (10, 500), (11, None), (13, 700), (14, 700)]
+    assert stats.first_carriers(cmds) == {500: 10, 700: 13}
+    assert stats.first_carriers([]) == {}
+
+
+def test_stamped_commands_hand_worked() -> None:
+    sent = [_ms(1), _ms(2), _ms(3), _ms(4)]
+    # Puma commands (seq, origin): 20 carries 1 ms, 21 carries 2 ms, 22 re-sends 2 ms, 23 is a
+    # hold, 24 carries 4 ms; 3 ms was superseded before the decision sent it; 9 ms is not ours.
+    puma = [(20, _ms(1)), (21, _ms(2)), (22, _ms(2)), (23, None), (24, _ms(4)), (25, _ms(9))]
+    states = [
+        (20, _ms(1.3), None, _ms(1)),  # received, no setpoint yet
+        (20, _ms(1.3), _ms(1.9), _ms(1)),  # its setpoint, one state later
+        (22, _ms(2.9), _ms(3.1), _ms(2)),  # a re-send of 2 ms: its times overstate the path
+        (23, _ms(3.2), _ms(3.3), None),  # a hold
+        (24, _ms(4.2), _ms(4.6), _ms(4)),
+        (25, _ms(9.2), _ms(9.5), _ms(9)),  # another master's
+    ]
+    got = stats.stamped_commands(sent, puma, states)
+    assert got.reached == 3  # 1, 2 and 4 ms
+    assert got.sampled == 2  # 1 and 4 ms: 2 ms was only shown through its re-send
+    np.testing.assert_allclose(got.puma_ms, [0.3, 0.2])
+    np.testing.assert_allclose(got.setpoint_ms, [0.9, 0.6])
+
+
+def test_stamped_commands_without_the_puma_stream_takes_each_origins_first_state() -> None:
+    states = [(5, _ms(1.5), None, _ms(1)), (6, _ms(1.8), _ms(2.0), _ms(1)), (7, None, None, None)]
+    got = stats.stamped_commands([_ms(1)], [], states)
+    assert (got.reached, got.sampled) == (0, 1)
+    np.testing.assert_allclose(got.puma_ms, [0.5])  # seq 5, the first to show it
+    assert got.setpoint_ms.size == 0  # seq 5 never showed a setpoint; 6 is a later carrier
+
+
+def test_stamped_commands_of_services_without_the_fields_is_empty() -> None:
+    got = stats.stamped_commands([1, 2], [(1, None)], [(1, None, None, None)])
+    assert (got.reached, got.sampled, got.puma_ms.size, got.setpoint_ms.size) == (0, 0, 0, 0)

@@ -1,0 +1,263 @@
+"""`telerobot topic|call|alive` as a user runs them: a subprocess against an in-process service.
+
+The service is the first node of a private loopback network (it listens); the CLI connects
+to it with `--connect`. Output is parsed as JSON lines; every wait has a deadline.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import msgpack
+import pytest
+
+from services.bus import codec, keys, zenoh_cli_codec
+from services.bus.errors import RpcError
+from services.bus.messages import IDENTITY_R, ForceSample, OperatorCommand
+from services.bus.node import Node
+from services.tools.cli.introspect import decode_sample
+from tests.bus.test_router import ChildProcess, spawned, telerobot
+from tests.conftest import Net
+
+DEADLINE_S = 20.0
+
+
+def force(seq: int) -> ForceSample:
+    return ForceSample(
+        seq=seq, t_ns=1_000 + seq, f=(float(seq), -float(seq), 0.5), c=(0.0, 0.0, 1.0)
+    )
+
+
+class Streamer:
+    """Publishes ForceSamples (seq 1, 2, …) at ~200 Hz from a thread until stopped."""
+
+    def __init__(self, node: Node) -> None:
+        self.pub = node.publisher(keys.FORCE)
+        self.stop = threading.Event()
+        self.seq = 0
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.stop.wait(0.005):  # pacing, not synchronisation
+            self.seq += 1
+            self.pub.put(force(self.seq))
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5.0)
+
+
+@pytest.fixture
+def service(net: Net) -> Iterator[Node]:
+    """The in-process 'puma' service every CLI run connects to."""
+    node = net.node("puma")
+
+    def status(args: dict[str, Any]) -> dict[str, Any]:
+        return {"status": "ready", "q": [0.0, 1.5, -1.5, 0.0, 0.0, 0.0], "args": args}
+
+    def limit(args: dict[str, Any]) -> dict[str, Any]:
+        raise RpcError("limit", "joint 3 beyond 45°")
+
+    node.serve("puma", {"status": status, "limit": limit})
+    node.announce()
+    yield node
+
+
+def json_lines(child: ChildProcess) -> list[Any]:
+    return [json.loads(line) for line in child.rest()]
+
+
+def run_cli(net: Net, *args: str) -> tuple[int, list[Any]]:
+    """Run `telerobot ARGS --connect <net>` to the end: exit code and JSON stdout lines."""
+    with spawned(telerobot(*args, "--connect", net.endpoint), merge_stderr=False) as child:
+        code = child.wait(DEADLINE_S)
+        return code, json_lines(child)
+
+
+# --- topic echo / hz / list -------------------------------------------------------------
+
+
+def test_topic_echo_prints_decoded_samples(net: Net, service: Node) -> None:
+    streamer = Streamer(service)
+    try:
+        code, rows = run_cli(
+            net, "topic", "echo", "robot/force", "--count", "5", "--timeout", str(DEADLINE_S)
+        )
+    finally:
+        streamer.close()
+    assert code == 0 and len(rows) == 5
+    seqs = [r["seq"] for r in rows]
+    assert seqs == sorted(seqs) and len(set(seqs)) == 5
+    for r in rows:
+        assert r == {
+            "seq": r["seq"],
+            "t_ns": 1_000 + r["seq"],
+            "f": [float(r["seq"]), -float(r["seq"]), 0.5],
+            "c": [0.0, 0.0, 1.0],
+            "raw": None,
+        }
+
+
+def test_topic_echo_with_a_wildcard_names_keys_and_shows_rejections(
+    net: Net, service: Node
+) -> None:
+    pub = service.publisher(keys.CMD)
+    stop = threading.Event()
+
+    def garbage() -> None:
+        while not stop.wait(0.01):
+            pub.put_bytes(b"\xc1not msgpack")
+
+    t = threading.Thread(target=garbage, daemon=True)
+    t.start()
+    try:
+        code, rows = run_cli(net, "topic", "echo", "robot/**", "--count", "2", "--timeout", "20")
+    finally:
+        stop.set()
+        t.join(5.0)
+    assert code == 0 and len(rows) == 2
+    for r in rows:
+        assert r["_key"] == "robot/cmd"
+        assert r["_rejected"].startswith("payload: not valid msgpack")
+
+
+def test_topic_echo_times_out_with_exit_1(net: Net, service: Node) -> None:
+    code, rows = run_cli(net, "topic", "echo", "robot/state", "--count", "1", "--timeout", "0.5")
+    assert code == 1 and rows == []
+
+
+def test_topic_hz_reports_a_rate(net: Net, service: Node) -> None:
+    streamer = Streamer(service)
+    try:
+        code, rows = run_cli(net, "topic", "hz", "robot/force", "--window", "0.5", "--reports", "2")
+    finally:
+        streamer.close()
+    assert code == 0 and len(rows) == 2
+    assert rows[-1]["key"] == "robot/force" and rows[-1]["window_s"] == 0.5
+    assert rows[-1]["samples"] > 1 and rows[-1]["rate_hz"] > 0
+
+
+def test_topic_list_shows_keys_with_their_types(net: Net, service: Node) -> None:
+    streamer = Streamer(service)
+    other = service.session.declare_publisher("lab/notes")
+    stop = threading.Event()
+
+    def notes() -> None:
+        while not stop.wait(0.02):
+            other.put(codec.pack({"n": 1}))
+
+    t = threading.Thread(target=notes, daemon=True)
+    t.start()
+    try:
+        code, rows = run_cli(net, "topic", "list", "--json", "--duration", "1")
+    finally:
+        stop.set()
+        t.join(5.0)
+        streamer.close()
+    assert code == 0 and len(rows) == 1
+    by_key = {r["key"]: r for r in rows[0]}
+    assert by_key["robot/force"]["type"] == "ForceSample"
+    assert by_key["robot/force"]["rate_hz"] > 0
+    assert by_key["lab/notes"]["type"] == "?"
+
+
+# --- call ----------------------------------------------------------------------------
+
+
+def test_call_prints_the_reply(net: Net, service: Node) -> None:
+    code, rows = run_cli(net, "call", "puma", "status", '{"verbose": true}', "--timeout", "10")
+    assert code == 0
+    assert rows == [
+        {"status": "ready", "q": [0.0, 1.5, -1.5, 0.0, 0.0, 0.0], "args": {"verbose": True}}
+    ]
+
+
+def test_call_error_prints_the_code_and_exits_1(net: Net, service: Node) -> None:
+    code, rows = run_cli(net, "call", "puma", "limit", "--timeout", "10")
+    assert code == 1 and rows == [{"error": "limit", "message": "joint 3 beyond 45°"}]
+
+
+def test_call_unknown_method_is_bad_request(net: Net, service: Node) -> None:
+    code, rows = run_cli(net, "call", "puma", "fly", "--timeout", "10")
+    assert code == 1 and rows[0]["error"] == "bad_request"
+
+
+def test_call_without_a_service_is_unavailable_exit_2(net: Net, service: Node) -> None:
+    code, rows = run_cli(net, "call", "force", "sensor_status", "--timeout", "1")
+    assert code == 2 and len(rows) == 1 and rows[0]["error"] == "unavailable"
+
+
+@pytest.mark.parametrize("args", ["{not json", "[1, 2]"])
+def test_call_with_bad_arguments_is_bad_request(net: Net, service: Node, args: str) -> None:
+    code, rows = run_cli(net, "call", "puma", "status", args)
+    assert code == 1 and rows[0]["error"] == "bad_request"
+
+
+# --- alive ---------------------------------------------------------------------------
+
+
+def test_alive_lists_the_tokens(net: Net, service: Node) -> None:
+    master = net.node("master", instance="m1")
+    master.announce()
+    assert service.alive.wait("master/m1", DEADLINE_S)
+    code, rows = run_cli(net, "alive", "--json", "--timeout", "1.5")
+    assert code == 0 and rows == [["master/m1", "puma"]]
+
+
+def test_a_config_error_exits_2_naming_the_key(net: Net) -> None:
+    with spawned(telerobot("alive", "--lease-ms", "9000"), merge_stderr=False) as child:
+        assert child.wait(DEADLINE_S) == 2
+        child.rest()
+        assert any("zenoh.lease_ms" in line for line in child.errors)
+
+
+# --- the zenoh-cli codec -------------------------------------------------------------
+
+
+def test_zenoh_cli_codec_round_trips_a_contract_message() -> None:
+    sample = force(7)
+    text = json.dumps(codec.jsonable(sample))
+    payload = zenoh_cli_codec.encode("robot/force", text)
+    assert codec.decode(ForceSample, payload) == sample
+    assert json.loads(zenoh_cli_codec.decode("robot/force", payload)) == json.loads(text)
+    # Typed by the key even under a namespace.
+    assert json.loads(zenoh_cli_codec.decode("cell2/robot/force", payload)) == json.loads(text)
+
+
+def test_zenoh_cli_codec_shows_other_msgpack_as_json() -> None:
+    payload = zenoh_cli_codec.encode("lab/notes", '{"a": [1, 2.5], "b": "x"}')
+    assert msgpack.unpackb(payload) == {"a": [1, 2.5], "b": "x"}
+    assert json.loads(zenoh_cli_codec.decode("lab/notes", payload)) == {"a": [1, 2.5], "b": "x"}
+    assert json.loads(zenoh_cli_codec.decode("x/y", codec.pack({"d": b"abc"}))) == {
+        "d": "<3 bytes>"
+    }
+
+
+def test_zenoh_cli_codec_shows_a_rejection_instead_of_failing() -> None:
+    bad = codec.pack({"seq": 1, "t_ns": 1, "f": [0, 0], "c": [0, 0, 0]})
+    shown = json.loads(zenoh_cli_codec.decode("robot/force", bad))
+    assert shown["_rejected"].startswith("f: expected 3 numbers")
+    cmd = OperatorCommand(1, 2, "m", 0, True, "world", (0.0, 0.0, 0.0), IDENTITY_R)
+    shown = json.loads(zenoh_cli_codec.decode("cell9/robot/cmd", codec.encode(cmd)))
+    assert shown["master"] == "m" and shown["dR"] == list(IDENTITY_R)
+    assert decode_sample("robot/force", b"\xff\xfe")["_raw"] == "<2 bytes>"
+
+
+@pytest.mark.parametrize(
+    ("key", "plain"),
+    [
+        ("robot/cmd", "robot/cmd"),
+        ("cell2/robot/cmd", "robot/cmd"),
+        ("a/b/vision/stereo/l", "vision/stereo/l"),
+        ("cell2/master/state", "master/state"),
+        ("cell2/alive/puma", "alive/puma"),
+        ("lab/notes", "lab/notes"),
+        ("myrobot/x", "myrobot/x"),
+    ],
+)
+def test_zenoh_cli_codec_strips_a_namespace(key: str, plain: str) -> None:
+    assert zenoh_cli_codec._plain_key(key) == plain
