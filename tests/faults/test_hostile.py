@@ -146,12 +146,15 @@ def test_absurd_commands_never_move_the_arm_and_the_holds_go_on(
         ((1e308, 1e308, 1e308), "tool"),
     ):
         attacker.engage += 1
-        for _ in range(30):  # a sane engagement first: the evil master leads
+
+        def leads(frame: str = frame) -> bool:
+            # A sane engagement first, kept streaming until the evil master leads (a master
+            # that stops streaming loses the lease to the watchdog, as a loaded machine showed).
             attacker.command((0.0, 0.0, 0.0), frame)
-            time.sleep(0.01)
-        assert wait_until(
-            lambda: attacker.call("decision", "status", {}).get("lease") == "evil", 10.0
-        )  # type: ignore[union-attr]
+            status = attacker.call("decision", "status", {})
+            return isinstance(status, dict) and status.get("lease") == "evil"
+
+        assert wait_until(leads, 10.0, 0.01, what="the evil master to lead")
         q0 = joints(obs)
         holds0 = attacker.puma_cmds.received
         for _ in range(20):  # then the absurd one, 20 times at 100 Hz
