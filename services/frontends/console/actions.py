@@ -15,11 +15,7 @@ from typing import TYPE_CHECKING, Any, cast
 from services.bus.errors import RpcError, Unavailable
 from services.bus.node import Node
 from services.frontends.console.config import ConsoleConfig
-from services.frontends.console.geometry import (
-    Mat,
-    Vec,
-    hand_pose,
-)
+from services.frontends.console.geometry import Mat, Vec, hand_pose
 from services.frontends.console.hand import HandLink
 from services.frontends.console.mirror import BusMirror
 from services.frontends.console.video import VIEW_MODES, FrameGate, ViewMode

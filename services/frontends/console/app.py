@@ -15,6 +15,9 @@ connected (viser's connect/disconnect callbacks); without one they sleep, and th
 the supervised command and the video are not even subscribed to (so vision, seeing nobody
 subscribe, renders nothing). An engaged virtual master is clutched when the last browser
 leaves and parked on the tool when one comes back.
+
+The page's parts are mixins of `Console`, one module each: the 3D scene (`scene.py`), the
+controls and panels (`panels.py`), the actions and the poller (`actions.py`).
 """
 
 from __future__ import annotations
@@ -37,10 +40,7 @@ from services.bus.rate import RateLoop
 from services.control.puma.kinematics import Puma560
 from services.frontends.console.actions import DECISION, Actions
 from services.frontends.console.config import ConsoleConfig
-from services.frontends.console.geometry import (
-    Mat,
-    Vec,
-)
+from services.frontends.console.geometry import Mat, Vec
 from services.frontends.console.hand import HandLink, ToolPose
 from services.frontends.console.mirror import BusMirror
 from services.frontends.console.panels import Panels

@@ -13,9 +13,7 @@ import viser
 
 from services.bus.node import Node
 from services.frontends.console.config import ConsoleConfig
-from services.frontends.console.geometry import (
-    box_edges,
-)
+from services.frontends.console.geometry import box_edges
 from services.frontends.console.hand import HandLink
 from services.frontends.console.mirror import BusMirror
 from services.frontends.console.tdpa import TdpaView

@@ -15,11 +15,7 @@ from services.bus.node import Node
 from services.control.puma.kinematics import Puma560
 from services.control.vision.objects import LIQUID_BGR, SPILL_BGR, Spills
 from services.frontends.console.config import ConsoleConfig
-from services.frontends.console.geometry import (
-    cylinder_pose,
-    force_arrow,
-    link_segments,
-)
+from services.frontends.console.geometry import cylinder_pose, force_arrow, link_segments
 from services.frontends.console.mirror import BusMirror
 from services.frontends.console.world import (
     FINGER_SIZE_M,

@@ -19,13 +19,8 @@ from services.tools.bench import cpu, floor, stats
 from services.tools.bench.baselines import force_payload, tcp_floor
 from services.tools.bench.commands import CALL_TIMEOUT_S
 from services.tools.bench.options import BenchOptions, RunResult, Say, Trace
-from services.tools.bench.probes import (
-    StreamProbe,
-)
-from services.tools.bench.procs import (
-    ChildFailed,
-    Children,
-)
+from services.tools.bench.probes import StreamProbe
+from services.tools.bench.procs import ChildFailed, Children
 from services.tools.bench.report import ms_text
 
 FLOOR_DRAIN_S = 2.0

@@ -27,24 +27,11 @@ from services.bus.keys import STATE
 from services.bus.node import Node
 from services.tools.bench import cpu, system
 from services.tools.bench.commands import CALL_TIMEOUT_S, phase_commands
-from services.tools.bench.force_phases import (
-    phase_force,
-    phase_tcp,
-    phase_zenoh_floor,
-)
+from services.tools.bench.force_phases import phase_force, phase_tcp, phase_zenoh_floor
 from services.tools.bench.notes import busy_note, force_note
 from services.tools.bench.options import BenchOptions, RunResult, Say
-from services.tools.bench.probes import (
-    CommandDriver,
-    StreamProbe,
-)
-from services.tools.bench.procs import (
-    Children,
-    free_port,
-    telerobot_argv,
-    wait_alive,
-    wait_log,
-)
+from services.tools.bench.probes import CommandDriver, StreamProbe
+from services.tools.bench.procs import Children, free_port, telerobot_argv, wait_alive, wait_log
 from services.tools.bench.rpc_phase import phase_rpc
 from services.tools.bench.video_phase import phase_video
 

@@ -20,16 +20,8 @@ from services.tools.bench.force_phases import (
     measure_window,
 )
 from services.tools.bench.options import BenchOptions, RunResult, Say
-from services.tools.bench.probes import (
-    FrameRecord,
-    StreamProbe,
-    VideoProbe,
-)
-from services.tools.bench.procs import (
-    Children,
-    telerobot_argv,
-    wait_alive,
-)
+from services.tools.bench.probes import FrameRecord, StreamProbe, VideoProbe
+from services.tools.bench.procs import Children, telerobot_argv, wait_alive
 from services.tools.bench.report import ms_text
 
 VIDEO_WARMUP_S = 1.0
