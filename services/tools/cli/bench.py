@@ -60,10 +60,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--logs", default="artifacts/bench-logs", metavar="DIR", help="children's logs")
     args = p.parse_args(args_in)
 
+    from services.tools.bench.options import BenchOptions
     from services.tools.bench.plot import force_latency_plot
     from services.tools.bench.procs import ChildFailed
     from services.tools.bench.report import document, machine, table
-    from services.tools.bench.run import BenchOptions, run_bench
+    from services.tools.bench.run import run_bench
 
     overrides = {
         k: v

@@ -21,8 +21,9 @@ from services.bus import keys
 from services.bus.errors import ProtocolError
 from services.bus.node import Node
 from services.control.vision.objects import Spills
-from services.frontends.console.app import FINGER_HOLDING_COLOR, Console
+from services.frontends.console.app import Console
 from services.frontends.console.config import ConsoleConfig
+from services.frontends.console.scene import FINGER_HOLDING_COLOR
 from services.frontends.console.world import (
     FINGER_SIZE_M,
     GRIPPER_OPEN_M,

@@ -8,8 +8,8 @@ import sys
 import pytest
 
 from services.tools.bench import cpu
+from services.tools.bench.notes import busy_note
 from services.tools.bench.report import document, machine, table
-from services.tools.bench.run import busy_note
 from services.tools.bench.system import cpu_figures
 
 STAT = """cpu  1000 10 200 5000 40 0 30 20 0 0

@@ -9,6 +9,8 @@ from typing import Any
 import pytest
 
 from services.tools.bench import stats
+from services.tools.bench.force_phases import force_figures
+from services.tools.bench.notes import force_note
 from services.tools.bench.probes import FrameRecord
 from services.tools.bench.report import (
     FIGURE_KEYS,
@@ -23,8 +25,8 @@ from services.tools.bench.report import (
     machine,
     table,
 )
-from services.tools.bench.run import force_figures, force_note, video_figures
 from services.tools.bench.system import cpu_figures
+from services.tools.bench.video_phase import video_figures
 
 MS = stats.NS_PER_MS
 S = stats.NS_PER_S
