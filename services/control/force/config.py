@@ -158,12 +158,6 @@ class ForceConfig:
     def tool_load(self) -> ToolLoad:
         return ToolLoad(self.tool_mass_kg, self.tool_com_m, self.gravity_mps2)
 
-    def sensor_options(self) -> dict[str, Any]:
-        """The sensor backend's constructor arguments: `backends.sensor_options(self)`."""
-        from services.control.force.backends import sensor_options
-
-        return sensor_options(self)
-
 
 def _bad(key: str, message: str) -> None:
     raise ConfigError(f"force.{key}", message)

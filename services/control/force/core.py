@@ -25,6 +25,7 @@ from services.bus import codec
 from services.bus.bounds import BOUNDS, check_each, short
 from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import ForceSample
+from services.control.force.backends import open_force_sensor
 from services.control.force.config import ForceConfig
 from services.control.force.events import EventSink, EventThrottle
 from services.control.force.kernel import (
@@ -46,7 +47,6 @@ from services.control.force.sensors import (
     PoseAwareSensor,
     SensorError,
     WorldAwareSensor,
-    open_sensor,
 )
 from services.world.workcell.messages import WorkcellState, objects_of
 
@@ -143,7 +143,7 @@ class ForceCore:
         emit: EventSink,
     ) -> ForceCore:
         """The core with the sensor backend `config.sensor` (not yet opened)."""
-        return cls(open_sensor(config.sensor, **config.sensor_options()), config, publish, emit)
+        return cls(open_force_sensor(config), config, publish, emit)
 
     @property
     def sensor(self) -> ForceSensor:

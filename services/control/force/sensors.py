@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
 
 from numpy.typing import ArrayLike
 
@@ -113,14 +113,3 @@ class WorldAwareSensor(Protocol):
         """The workcell's objects (validated), the one in the gripper ("" for none), and
         the tool point (m, world) the workcell stepped with."""
         ...
-
-
-def open_sensor(kind: SensorKind, **opts: Any) -> ForceSensor:
-    """The backend `kind` built from `opts` (not opened), through `backends.BACKENDS`.
-
-    Kept for `ForceCore.from_config` alone (force/core.py is being reworked in another
-    branch); everything else calls `services.control.force.backends.open_force_sensor(config)`.
-    """
-    from services.control.force.backends import BACKENDS
-
-    return BACKENDS.build(kind, opts)

@@ -20,7 +20,7 @@ from services.control.force.fake_netft import FakeNetFT
 from services.control.force.fake_serial_sensor import FakeSerialSensor
 from services.control.force.gravity import ToolLoad
 from services.control.force.model import Vec, WristModel
-from services.control.force.sensors import ForceSensor, Reading, SensorError, open_sensor
+from services.control.force.sensors import ForceSensor, Reading, SensorError
 from services.control.force.sim_sensor import SimSensor
 from tests.conftest import wait_until
 from tests.control.force.helpers import Events
@@ -139,5 +139,6 @@ def test_contract(rig: Rig) -> None:
 
 
 def test_unknown_kind() -> None:
-    with pytest.raises(ConfigError, match="unknown sensor kind"):
-        open_sensor("usb")  # type: ignore[arg-type]
+    # refused at the config, naming the key, before any backend is looked up
+    with pytest.raises(ConfigError, match=r"force\.sensor"):
+        open_force_sensor(ForceConfig(sensor="usb"))  # type: ignore[arg-type]
