@@ -58,6 +58,10 @@ def _number(key: str, value: object) -> float:
     return float(value)
 
 
+MIN_DEVICE_MASS_KG, MAX_DEVICE_MASS_KG = 0.01, 20.0
+"""A haptic device's moving mass at the hand: from a pen-sized stylus to a large arm."""
+
+
 @dataclass(frozen=True, slots=True)
 class MasterConfig:
     """Settings of one master station.
@@ -90,6 +94,9 @@ class MasterConfig:
     passivity: time-domain passivity on the displayed force (docs/passivity.md): the
         master port's energy is observed and published, and the force damped when the
         channel has no energy left to give the operator.
+    passivity_device_mass_kg: the moving mass of the device (kg, at the hand) that the
+        passivity force limiter predicts with; set it to your device's (a lighter device
+        than assumed is accelerated more by a force step than predicted).
     force_ramp_s: the displayed wrench ramps from zero to full over this time after each
         engagement (0 = at once); it is zero whenever the master is not engaged.
     haply_url: `haply`: the Inverse Service's WebSocket, `ws://HOST:PORT`.
@@ -122,6 +129,7 @@ class MasterConfig:
     haply_url: str = DEFAULT_URL
     haply_max_force_n: float = 3.0
     passivity: bool = False
+    passivity_device_mass_kg: float = 0.5
 
     def __post_init__(self) -> None:
         if not isinstance(self.master_id, str) or not self.master_id:
@@ -162,6 +170,12 @@ class MasterConfig:
                     raise _err(key, "must be 0, 1 or 2 for haply (VerseGrip a, b, c)")
         if not isinstance(self.passivity, bool):
             raise _err("passivity", "must be true or false")
+        mass = _number("passivity_device_mass_kg", self.passivity_device_mass_kg)
+        if not MIN_DEVICE_MASS_KG <= mass <= MAX_DEVICE_MASS_KG:
+            raise _err(
+                "passivity_device_mass_kg",
+                f"must be within {MIN_DEVICE_MASS_KG:g} … {MAX_DEVICE_MASS_KG:g} kg",
+            )
         if not 0.0 <= _number("force_ramp_s", self.force_ramp_s) <= MAX_RAMP_S:
             raise _err("force_ramp_s", f"must be within 0 … {MAX_RAMP_S:g} s")
         self._check_url()

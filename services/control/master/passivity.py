@@ -23,9 +23,6 @@ from services.control.master.feedback import DisplayWrench
 from services.control.passivity.controller import MasterPassivity
 from services.control.passivity.wire import passivity_state
 
-DEVICE_MASS_KG = 0.5
-"""The device mass the force limiter predicts with (the simulated haptic master's; a lighter
-real device is accelerated more by a force step than predicted: set it to that device's)."""
 RESERVE_J = 1e-4
 """The most the master port may ever owe the channel (J): see docs/passivity.md."""
 HAND_RATE_N_S = 20.0
@@ -39,13 +36,20 @@ class MasterTdpa:
     """enabled: damp (true) or only observe and publish (false)."""
 
     def __init__(
-        self, node: Node, master_id: str, engage: Callable[[], int], enabled: bool = True
+        self,
+        node: Node,
+        master_id: str,
+        engage: Callable[[], int],
+        enabled: bool = True,
+        device_mass_kg: float = 0.5,
     ) -> None:
+        """`device_mass_kg`: the device's moving mass the force limiter predicts with
+        (`[master] passivity_device_mass_kg`; 0.5 kg is the simulated haptic master's)."""
         self.master_id = master_id
         self.pc = MasterPassivity(
             enabled=enabled,
             limit=True,
-            mass_kg=DEVICE_MASS_KG,
+            mass_kg=device_mass_kg,
             reserve_j=RESERVE_J,
             hand_rate_n_s=HAND_RATE_N_S,
         )

@@ -71,7 +71,12 @@ class MasterService:
         self.teleop = Teleop(config, self.device.name)
         self.passivity: MasterTdpa | None = None
         if force_hook is None and config.passivity:
-            self.passivity = MasterTdpa(node, config.master_id, lambda: self.teleop.engage)
+            self.passivity = MasterTdpa(
+                node,
+                config.master_id,
+                lambda: self.teleop.engage,
+                device_mass_kg=config.passivity_device_mass_kg,
+            )
             force_hook = self.passivity.hook
         self.force_display = ForceDisplay(config, force_hook)
         self._cmd = node.publisher(keys.CMD)

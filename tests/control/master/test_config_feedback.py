@@ -87,6 +87,11 @@ def test_engage_on_start_defaults_by_device(device: str, engages: bool) -> None:
         ("haply_url", "ws://localhost:99999"),
         ("haply_url", "ws://:10001"),
         ("haply_url", 10001),
+        ("passivity_device_mass_kg", 0.0),
+        ("passivity_device_mass_kg", 0.009),
+        ("passivity_device_mass_kg", 21.0),
+        ("passivity_device_mass_kg", math.inf),
+        ("passivity_device_mass_kg", "0.5"),
     ],
 )
 def test_bad_values_name_their_key(key: str, value: object) -> None:

@@ -23,6 +23,7 @@ def test_master_damps_the_display_until_the_slave_pays(net: Net) -> None:
         master_id="p1",
         device="haptic_sim",
         passivity=True,
+        passivity_device_mass_kg=0.8,
         rate_hz=200.0,
         force_ramp_s=0.0,
         max_force_n=10.0,
@@ -89,6 +90,7 @@ def test_master_damps_the_display_until_the_slave_pays(net: Net) -> None:
         # downward force is damped away: what is shown stays far below the 6 N measured.
         assert wait_until(lambda: station.passivity is not None and station.ticks > 100)
         assert station.passivity is not None
+        assert station.passivity.pc.mass_kg == 0.8  # [master] passivity_device_mass_kg
         assert wait_until(lambda: station.passivity.pc.telemetry.active_steps > 20)
         shown = []
         for _ in range(20):  # what the hand gets over a few ticks (it chatters at the rate)
