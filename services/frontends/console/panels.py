@@ -15,7 +15,7 @@ from services.bus.node import Node
 from services.frontends.console.config import ConsoleConfig
 from services.frontends.console.geometry import box_edges
 from services.frontends.console.hand import HandLink
-from services.frontends.console.mirror import BusMirror
+from services.frontends.console.mirror import BusMirror, History
 from services.frontends.console.tdpa import TdpaView
 from services.frontends.console.video import VIEW_MODES, FrameGate, Image, ViewMode, compose, decode
 from services.frontends.console.view import (
@@ -277,33 +277,35 @@ class Panels:
             self.loaded = True
             self._loading_html.visible = False
 
-    def _update_plots(self) -> None:
-        t, w = self.mirror.force.window(
+    def _plot_columns(self, history: History, was_empty: bool) -> list[np.ndarray] | None:
+        """The time column and one column per value of `history` over the plot window.
+        Nothing (left) in the window: empty columns, so that a stalled stream empties its
+        plot rather than leaving its last picture up; None when the plot is empty already
+        (nothing to redraw)."""
+        t, w = history.window(
             self.config.plot_window_s, self.config.plot_points, now_s=time.monotonic()
         )
         if len(t) < 2:
-            # Nothing (left) in the window: a stalled stream empties the plot rather than
-            # leaving its last picture up as if the force were still streaming.
-            if self._plot_empty:
-                return
-            t, w = np.zeros(0), np.zeros((0, 6))
-        self._plot_empty = len(t) == 0
-        cols = [np.ascontiguousarray(w[:, k]) for k in range(6)]
-        self._f_plot.data = (t, cols[0], cols[1], cols[2])
-        self._c_plot.data = (t, cols[3], cols[4], cols[5])
+            if was_empty:
+                return None
+            t, w = np.zeros(0), np.zeros((0, history.width))
+        return [t, *(np.ascontiguousarray(w[:, k]) for k in range(history.width))]
+
+    def _update_plots(self) -> None:
+        cols = self._plot_columns(self.mirror.force, self._plot_empty)
+        if cols is None:
+            return
+        self._plot_empty = len(cols[0]) == 0
+        self._f_plot.data = (cols[0], cols[1], cols[2], cols[3])
+        self._c_plot.data = (cols[0], cols[4], cols[5], cols[6])
 
     def _update_tdpa_plot(self) -> None:
-        """The passivity plot: reservoirs and dissipated energy per port over the window
-        (empty, like the force plots, once the figures stop)."""
-        t, w = self.mirror.tdpa.window(
-            self.config.plot_window_s, self.config.plot_points, now_s=time.monotonic()
-        )
-        if len(t) < 2:
-            if self._tdpa_empty:
-                return
-            t, w = np.zeros(0), np.zeros((0, 4))
-        self._tdpa_empty = len(t) == 0
-        self._tdpa_plot.data = (t, *(np.ascontiguousarray(w[:, k]) for k in range(4)))
+        """The passivity plot: reservoirs and dissipated energy per port over the window."""
+        cols = self._plot_columns(self.mirror.tdpa, self._tdpa_empty)
+        if cols is None:
+            return
+        self._tdpa_empty = len(cols[0]) == 0
+        self._tdpa_plot.data = tuple(cols)
 
     def _update_video(self, now: float) -> None:
         mode = self._view_mode
