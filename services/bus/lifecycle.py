@@ -10,6 +10,7 @@ import logging
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
@@ -29,6 +30,9 @@ CONFIG_EXIT = 2
 #: after a stop signal, a process that has not exited by then dumps every thread's stack
 #: to stderr and exits (status 1): an exit hang is reported, never left running.
 EXIT_GRACE_S = 15.0
+
+#: how often a main thread waiting on `Shutdown` wakes so a pending signal handler can run
+SIGNAL_CHECK_S = 0.25
 
 
 class Shutdown:
@@ -62,7 +66,17 @@ class Shutdown:
         return self._event.is_set()
 
     def wait(self, timeout_s: float | None = None) -> bool:
-        return self._event.wait(timeout_s)
+        """Sleep until set (True) or `timeout_s` (False), waking every `SIGNAL_CHECK_S`: a
+        signal the kernel hands to another thread (a Zenoh runtime thread, say) only flags
+        CPython, and the handler runs when the main thread next executes bytecode, which a
+        lock wait never does until it ends."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            left = SIGNAL_CHECK_S if deadline is None else deadline - time.monotonic()
+            if self._event.wait(max(0.0, min(left, SIGNAL_CHECK_S))):
+                return True
+            if deadline is not None and time.monotonic() >= deadline:
+                return False
 
 
 def setup_logging(name: str, verbose: bool = False) -> logging.Logger:

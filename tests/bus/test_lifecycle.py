@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from services.bus.config import LOCAL_ROUTER
-from services.bus.lifecycle import CONFIG_EXIT, ServiceContext, run_service
+from services.bus.lifecycle import CONFIG_EXIT, ServiceContext, Shutdown, run_service
 from tests.conftest import Net, wait_until
 
 #: every service main (and the router's); each must be built on run_service
@@ -162,6 +162,38 @@ def test_sigterm_stops_it_cleanly(net: Net, signals: None) -> None:
     assert status == 0
     assert closed == ["service, session open: True"]
     assert wait_until(lambda: not observer.alive.is_alive("probe"), 10.0)
+
+
+def test_a_signal_delivered_to_another_thread_still_stops_the_wait(signals: None) -> None:
+    """The kernel may hand a process-directed SIGTERM to any thread (a Zenoh runtime thread,
+    say). CPython then only flags it; the main thread, asleep in `Shutdown.wait()`, must
+    still wake and run the handler. A rescuer sets the flag after 20 s so a regression
+    fails instead of hanging."""
+    stop = Shutdown()
+    other_ready = threading.Event()
+    release = threading.Event()
+    rescued: list[bool] = []
+
+    def other() -> None:
+        other_ready.set()
+        release.wait(30.0)
+
+    def rescue() -> None:
+        if not stop.wait(20.0):
+            rescued.append(True)
+            stop.set()
+
+    t = threading.Thread(target=other)
+    t.start()
+    assert other_ready.wait(10.0)
+    threading.Thread(target=rescue, daemon=True).start()
+    assert t.ident is not None
+    signal.pthread_kill(t.ident, signal.SIGTERM)
+    assert stop.wait() is True
+    release.set()
+    t.join()
+    assert rescued == []
+    assert stop.signal == signal.SIGTERM
 
 
 @pytest.mark.parametrize("name", MAINS)
