@@ -4,9 +4,9 @@ Read through the bus's one config reader (`services.bus.config.section`), which 
 unknown keys and checks every value's type against the annotations (a bool, a finite number,
 3 numbers); `__post_init__` checks the ranges. A bad value raises
 `ConfigError("decision.<key>", …)`.
-The supervisory settings (everything but `rate_hz`, `rpc_timeout_s` and `wait_timeout_s`) can
-also be changed while the service runs through the `supervisor` method, which builds a new
-config with the same checks.
+The supervisory settings (everything but `rate_hz`, `rpc_timeout_s`, `wait_timeout_s` and
+`passivity`) can also be changed while the service runs through the `supervisor` method,
+which builds a new config with the same checks.
 """
 
 from __future__ import annotations
@@ -20,7 +20,10 @@ from services.bus.errors import ConfigError
 Vec3T = tuple[float, float, float]
 
 #: settings fixed at start-up: the `supervisor` method refuses to change them.
-STARTUP_ONLY: frozenset[str] = frozenset({"rate_hz", "rpc_timeout_s", "wait_timeout_s"})
+#: (`passivity`: the slave port's energies are counted from the service's start.)
+STARTUP_ONLY: frozenset[str] = frozenset(
+    {"rate_hz", "rpc_timeout_s", "wait_timeout_s", "passivity"}
+)
 
 _POSITIVE = (
     "rate_hz",

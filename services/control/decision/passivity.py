@@ -28,13 +28,9 @@ import numpy as np
 from services.bus import keys
 from services.bus.messages import ForceSample, OperatorCommand, RobotState
 from services.bus.node import Node
-from services.control.passivity.slave import SlavePort, TimedHistory
+from services.control.passivity.slave import DEADBAND_N, SlavePort, TimedHistory
 from services.control.passivity.wire import passivity_state
 
-DEADBAND_N = 1.0
-"""A wrist force below this is sensor noise, not contact: the slave port sees none (the
-energy of a motion against less than 1 N goes unobserved; with noise counted instead, its
-random direction would hold back free motion)."""
 DT_MIN_S = 1e-4
 DT_MAX_S = 0.1
 

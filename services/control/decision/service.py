@@ -443,6 +443,8 @@ class DecisionService:
                 raise RpcError("bad_request", str(e)) from None
             with self._cond:
                 self.supervisor.set_config(new)
+                if self.passivity is not None:
+                    self.passivity.contact_n = new.max_force_n
                 self._cond.notify_all()  # the timer's next deadline may have moved
             changed = sorted(k for k in args if current.get(k) != new.settings().get(k))
             self._event(

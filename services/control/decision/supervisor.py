@@ -57,6 +57,7 @@ from services.control.decision.taskrun import TaskRun, Tasks, run_tick
 from services.control.decision.tasks import TaskPlan
 from services.control.decision.watch import WATCH_PERIOD_NS, Watch, WatchStop, watch_step
 from services.control.decision.watchdogs import follow_deadline_ns, follow_problem, fresh
+from services.control.passivity.slave import DEADBAND_N
 from services.geometry import log_so3
 
 
@@ -141,6 +142,7 @@ class Supervisor:
         self._now_ns = 0
         self.hold_reason: str | None = None
         self._fresh = False
+        self._contact = False
         self._state_rx_ns = 0
         self._force_rx_ns = 0
         self.watch: Watch | None = None
@@ -169,6 +171,7 @@ class Supervisor:
         cfg = self._cfg
         state_ok = inp.state is not None and fresh(cfg.state_stale_ms, inp.now_ns, inp.state_rx_ns)
         force_ok = inp.force is not None and fresh(cfg.stale_ms, inp.now_ns, inp.force_rx_ns)
+        self._contact = cfg.passivity and force_ok and _touching(inp.force)
         for name in inp.lost:
             self._on_lost(name)
         for cmd in inp.commands:
@@ -201,12 +204,15 @@ class Supervisor:
     def next_wake_ns(self) -> int | None:
         """When the service must tick again without new input (monotonic ns), or None:
         only on input. Watchdogs wake at their deadline; a task, a target catching up with
-        the operator, and compliance step every period; a hold is re-sent at 20 Hz."""
+        the operator, and compliance step every period; so does teleoperation with the
+        slave's passivity port on (it watches for a contact, and in one re-sends the target
+        every period for the port to correct between the operator's commands); a hold is
+        re-sent at 20 Hz."""
         cfg = self._cfg
         now = self._now_ns
         period_ns = int(cfg.period_s * 1e9)
         if self.mode is Mode.FOLLOW:
-            if self.target.lagging or cfg.compliance:
+            if self.target.lagging or cfg.compliance or cfg.passivity:
                 return now + period_ns
             deadline = follow_deadline_ns(cfg, self._cmd_rx_ns, self._state_rx_ns)
             return max(deadline + 1, now + 1)
@@ -468,7 +474,7 @@ class Supervisor:
             self._hold("watchdog", *why)
         if self.mode is not Mode.FOLLOW or self._cmd is None or self.target.p0 is None:
             return None
-        if not (self._fresh or self.target.lagging or cfg.compliance):
+        if not (self._fresh or self.target.lagging or cfg.compliance or self._contact):
             return None  # nothing new: the puma already has this target
         cmd = self._cmd
         if not self.target.follow(cmd, self._sensed(inp, force_ok)):
@@ -659,3 +665,10 @@ class Supervisor:
             "stats": dict(self.stats),
             "masters": sorted(self.masters),
         }
+
+
+def _touching(force: ForceSample | None) -> bool:
+    """A wrist force at or above the passivity dead band: the tool is in contact."""
+    if force is None:
+        return False
+    return sum(x * x for x in force.f) >= DEADBAND_N * DEADBAND_N

@@ -34,6 +34,11 @@ from dataclasses import dataclass, field
 from services.control.passivity.controller import TOLERANCE_J, PortTelemetry
 from services.control.passivity.observer import EnergyObserver, RemoteEnergy, dot
 
+DEADBAND_N = 1.0
+"""A wrist force below this is sensor noise, not contact: the slave port sees none (the
+energy of a motion against less than 1 N goes unobserved; with noise counted instead, its
+random direction would hold back free motion). At or above it the decision re-sends the
+target every tick, so the slave port corrects it between the operator's commands."""
 MIN_FORCE_N = 1e-3
 """A force below this is no contact for the controller (its direction means nothing)."""
 MAX_BACKOFF_M = 0.002

@@ -14,6 +14,7 @@ from services.control.decision.supervisor import Mode
 from services.control.decision.target import HOLD_RESEND_NS
 from services.control.decision.tasks import TaskPlan, guarded_move_plan
 from services.control.decision.watch import target_problem
+from services.control.passivity.slave import DEADBAND_N
 from services.geometry import angle_between, rot_z
 from services.world.workcell.scene import TABLE, Scene
 from tests.control.decision.rig import TICK_NS, TOOL_DOWN, Rig
@@ -86,6 +87,39 @@ def test_next_wake_is_a_watchdog_deadline_a_hold_resend_or_nothing() -> None:
     assert rig.sup.next_wake_ns() == rig.now_ns + int(CFG.period_s * 1e9)
     rig.sup.cancel_task(rig.now_ns)
     assert run.done
+
+
+def test_with_passivity_on_a_contact_re_sends_the_target_every_period() -> None:
+    """The slave's passivity port corrects the target only when a command goes out: with it
+    on, teleoperation ticks every period, and while the wrist feels a contact (|f| at or
+    above the port's dead band) each tick re-sends the target; in free space nothing."""
+    period_ns = int(CFG.period_s * 1e9)
+    for passivity in (False, True):
+        rig = Rig(DecisionConfig(passivity=passivity), scene=EMPTY)
+        engaged(rig)
+        rig.step([rig.cmd()])
+        wake = rig.sup.next_wake_ns()
+        watchdog = rig.now_ns + int(CFG.watchdog_ms * 1e6) + 1
+        assert wake == (rig.now_ns + period_ns if passivity else watchdog)
+        n = len(rig.outputs)
+        rig.run(10)  # free space: nothing to correct, nothing sent
+        assert len(rig.outputs) == n
+        rig.push_w = np.array([0.0, 0.0, 0.9 * DEADBAND_N])  # below the dead band: noise
+        rig.run(10)
+        assert len(rig.outputs) == n
+        rig.push_w = np.array([0.0, 0.0, 5.0])  # a contact
+        rig.run(10)
+        sent = rig.outputs[n:]
+        assert len(sent) == (10 if passivity else 0)
+        assert all(c.active and c.origin_t_ns is None for c in sent)
+        assert all(np.allclose(c.dp, rig.outputs[n - 1].dp) for c in sent)  # the same target
+        # The force goes stale (no sample for stale_ms): no contact is known, nothing sent.
+        rig.step([rig.cmd()], force=False, dt_ns=int(CFG.stale_ms * 1e6) + TICK_NS)
+        m = len(rig.outputs)
+        rig.run(10, force=False)
+        assert len(rig.outputs) == m
+        seqs = [c.seq for c in rig.outputs]
+        assert seqs == sorted(set(seqs))
 
 
 def test_a_100_hz_master_at_a_legal_speed_is_followed_without_a_limit() -> None:

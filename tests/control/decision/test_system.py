@@ -392,8 +392,10 @@ def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) 
     with pytest.raises(RpcError) as bad:
         cell.call("supervisor", {"workspace_max": [0.95, -0.6, 1.2]})  # max below min
     assert bad.value.code == "bad_request"
-    with pytest.raises(RpcError):
-        cell.call("supervisor", {"rate_hz": 100})
+    for fixed in ({"rate_hz": 100}, {"passivity": True}):
+        with pytest.raises(RpcError) as refused:
+            cell.call("supervisor", fixed)
+        assert refused.value.code == "bad_request" and "fixed at start-up" in str(refused.value)
     reply = cell.call("supervisor", {"workspace_max": [0.95, 0.05, 1.2]})
     assert reply["settings"]["workspace_max"] == [0.95, 0.05, 1.2]
     y0 = cell.tool_p()[1]  # the arm is at rest: the engagement's p0
