@@ -16,6 +16,7 @@ Rules it enforces so services do not have to remember them (ZENOH_NOTES.md):
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -170,22 +171,45 @@ class Latest(Generic[M]):
     later of the two, so a stream that flows is fresh as often as it is read, and an old
     sample found after a long pause is as old as its `t_ns` says. Bad payloads are counted
     and reported when read. Not thread-safe: one reader.
+
+    `watch(False)` drops the subscription (Zenoh receives nothing, the router forwards
+    nothing, a publisher following its matching status stops sending); `read()` then keeps
+    returning the last message, ageing. `watch(True)` subscribes again. Call it from the
+    reader's thread (or under the reader's lock).
     """
 
-    def __init__(self, node: Node, topic: Topic[M]) -> None:
+    def __init__(self, node: Node, topic: Topic[M], watch: bool = True) -> None:
         self.topic = topic
         self._node = node
-        self._sub = node.session.declare_subscriber(topic.key, zenoh.handlers.RingChannel(1))
+        self._sub: Any = None
+        if watch:
+            self.watch(True)
         self._msg: M | None = None
         self._rx_ns = 0
         self._read_ns = 0
         self.received = 0
         self.rejected = 0
 
+    @property
+    def watching(self) -> bool:
+        return self._sub is not None
+
+    def watch(self, on: bool) -> None:
+        """Subscribe (on) or drop the subscription (off); no-op if already so."""
+        if on and self._sub is None:
+            self._sub = self._node.session.declare_subscriber(
+                self.topic.key, zenoh.handlers.RingChannel(1)
+            )
+        elif not on and self._sub is not None:
+            sub, self._sub = self._sub, None
+            with contextlib.suppress(zenoh.ZError):  # the session is closing
+                sub.undeclare()
+
     def read(self) -> tuple[M, int] | None:
         """(newest message, its arrival on time.monotonic_ns()) or None if none yet."""
+        sub = self._sub
         try:
-            sample = self._sub.try_recv()
+            sample = sub.try_recv() if sub is not None else None
         except zenoh.ZError:  # the session is closing
             sample = None
         now_mono = time.monotonic_ns()
@@ -415,10 +439,11 @@ class Node:
 
         threading.Thread(target=run, name=f"{self.name}-{topic.key}", daemon=True).start()
 
-    def latest(self, topic: Topic[M]) -> Latest[M]:
-        """The newest message of `topic`, decoded when read (see `Latest`)."""
-        handle = Latest(self, topic)
-        self._decls.append(handle._sub)
+    def latest(self, topic: Topic[M], watch: bool = True) -> Latest[M]:
+        """The newest message of `topic`, decoded when read (see `Latest`); `watch=False`:
+        not subscribed until `watch(True)`."""
+        handle = Latest(self, topic, watch)
+        self._decls.append(handle)
         return handle
 
     def subscribe_raw(self, keyexpr: str, on_sample: Callable[[zenoh.Sample], None]) -> Any:

@@ -154,6 +154,30 @@ def test_latest_reads_the_newest_sample_without_a_callback_per_sample(net: Net) 
     assert b.rejected[keys.FORCE.key] == 1
 
 
+def test_latest_unwatched_is_no_subscription_and_keeps_its_last_message(net: Net) -> None:
+    """`watch(False)` undeclares: the publisher's matching status drops (a service that
+    follows it stops sending); the last message stays readable; `watch(True)` resumes."""
+    a, b = net.node("force"), net.node("decision")
+    pub = a.publisher(keys.FORCE)
+    latest = b.latest(keys.FORCE, watch=False)
+    assert not latest.watching and latest.read() is None
+    latest.watch(True)
+    wait_matched(pub)
+    pub.put(force(1))
+    assert wait_until(lambda: (r := latest.read()) is not None and r[0].seq == 1)
+    latest.watch(False)
+    latest.watch(False)  # idempotent
+    assert wait_until(lambda: not matching(pub._pub)), "still matched after watch(False)"
+    pub.put(force(2))
+    got = latest.read()
+    assert got is not None and got[0].seq == 1  # the last one, never the unwatched one
+    latest.watch(True)
+    wait_matched(pub)
+    pub.put(force(3))
+    assert wait_until(lambda: (r := latest.read()) is not None and r[0].seq == 3)
+    assert latest.received == 2
+
+
 def test_latest_wins_accepts_a_restarted_publisher(net: Net) -> None:
     """A lower seq sent well after the newest is a publisher that restarted, not a stale
     sample: it must replace, or the subscriber would ignore it forever."""

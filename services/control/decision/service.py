@@ -9,7 +9,9 @@ that delivers it, so the puma has it one hop later; a lost service is handled th
 Between inputs a timer thread sleeps until the supervisor's next deadline (a watchdog, the
 20 Hz hold re-send, a task's or a catching-up target's next step): an idle decision server
 does nothing. robot/state and robot/force are not decoded per sample: Zenoh keeps the newest
-of each, read when a tick needs them (`Node.latest`).
+of each, read when a tick needs them (`Node.latest`). robot/force is subscribed only while a
+master is alive, teleoperation or a task runs, or a forwarded motion is watched: idle, the
+1 kHz stream is neither received here nor, with no other subscriber, sent at all.
 
 Threads: every tick runs under one lock (`_cond`), and the command it yields is published
 under it too, so `robot/puma/cmd` leaves in `seq` order whichever thread ticked; events go
@@ -66,6 +68,13 @@ PUMA_METHODS: tuple[str, ...] = (
     "ik",
     "limits",
 )
+#: how long a task started while idle waits for robot/force to flow, and how often it looks
+FORCE_WAIT_S = 1.0
+FORCE_POLL_S = 0.002
+
+#: liveliness names of master stations (`alive/master/<id>`)
+MASTER_PREFIX = "master/"
+
 #: IForceSensor (PROTOCOL §4) forwarded to robot/force/rpc/…
 FORCE_METHODS: tuple[str, ...] = (
     "sensor_status",
@@ -121,8 +130,14 @@ class DecisionService:
         self._op_engage: dict[str, int] = {}
         node.batches(CMD, self._on_commands)
         self._state = node.latest(STATE)
-        self._force = node.latest(FORCE)
+        # robot/force only while someone could move the arm through us (`_watch_force`).
+        self._force = node.latest(FORCE, watch=False)
+        self._masters: set[str] = set()
+        self._force_pins = 0  # callers that need robot/force whatever the mode
         node.alive.on_change(self._on_alive)
+        with self._cond:
+            self._masters.update(n for n in node.alive.names() if n.startswith(MASTER_PREFIX))
+            self._watch_force()
         node.serve(
             SERVICE,
             self._methods(),
@@ -139,8 +154,40 @@ class DecisionService:
         self._react(commands=msgs)
 
     def _on_alive(self, name: str, up: bool) -> None:
+        if name.startswith(MASTER_PREFIX):
+            with self._cond:
+                (self._masters.add if up else self._masters.discard)(name)
+                self._watch_force()
         if not up:
             self._react(lost=(name,))
+
+    def _watch_force(self) -> None:
+        """Subscribe to robot/force while a master is alive, teleoperation or a task runs,
+        or a forwarded motion is watched; drop it otherwise, so an idle system neither
+        sends, forwards nor receives 1 kHz of force for nobody (the force service follows
+        its matching status). Under the lock."""
+        sup = self.supervisor
+        need = (
+            bool(self._masters)
+            or self._force_pins > 0
+            or sup.mode in (Mode.FOLLOW, Mode.TASK)
+            or sup.watch is not None
+        )
+        if need != self._force.watching:
+            self._force.watch(need)
+
+    def _await_force(self, timeout_s: float) -> bool:
+        """Wait (under the lock, which the wait releases) until a robot/force sample no
+        older than `stale_ms` is in, polling Zenoh's ring every FORCE_POLL_S."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            got = self._force.read()
+            if got is not None and fresh(self.config.stale_ms, time.monotonic_ns(), got[1]):
+                return True
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            self._cond.wait(min(left, FORCE_POLL_S))
 
     # --- ticks -----------------------------------------------------------------------------
     @property
@@ -199,6 +246,7 @@ class DecisionService:
             self._put(cmd)
         if res.stop_arm:
             self._stop_puma_soon()
+        self._watch_force()
         return res.notices
 
     def _operator(self, inp: Inputs) -> tuple[str, int] | None:
@@ -311,6 +359,7 @@ class DecisionService:
             self._check_target(method, args)
             with self._cond:
                 self.supervisor.claim(method, time.monotonic_ns())
+                self._watch_force()  # the watch stops the motion on a contact
                 self._cond.notify_all()  # the timer watches the motion
             try:
                 return self._forward("puma", method, {**args, SUPERVISED_BY: SERVICE})
@@ -382,9 +431,12 @@ class DecisionService:
         puma = self._peek_start("puma", "status")
         sensor = self._peek_start("force", "sensor_status")
         with self._cond:
+            watching = self._force.watching
             snap = self.supervisor.snapshot()
             settings = self.config.settings()
             state, force = self._state.read(), self._force.read()
+        # Not subscribed to robot/force (idle): the sensor's newest sample, asked for.
+        read = None if watching else self._peek_start("force", "sensor_read")
         now = time.monotonic_ns()
         interventions = dict(snap["interventions"])
         interventions["rejected"] = interventions.get("rejected", 0) + self._cmd_rejections()
@@ -397,7 +449,7 @@ class DecisionService:
             "settings": settings,
             "interventions": interventions,
             "robot": _stamped(state, now),
-            "force": _stamped(force, now),
+            "force": _stamped(force, now) if read is None else _read_sample(read),
             "puma": _peek_result(puma),
             "sensor": _peek_result(sensor),
             "alive": sorted(self.node.alive.names()),
@@ -514,7 +566,15 @@ class DecisionService:
             return self._home_task(args, now)
         with self._cond:
             plan = plan_task(name, args, self.config)
-            run = self.supervisor.start_task(plan, now)
+            # A task senses contact from its first step: subscribe (if idle) and give the
+            # stream up to FORCE_WAIT_S to arrive; without it the task refuses as before.
+            self._force_pins += 1
+            try:
+                self._watch_force()
+                self._await_force(FORCE_WAIT_S)
+                run = self.supervisor.start_task(plan, time.monotonic_ns())
+            finally:
+                self._force_pins -= 1
         self._react()  # the task's first step now; the timer takes the next ones
         if not plan.wait:
             return {"accepted": True, "task": name, "id": run.id}
@@ -599,6 +659,14 @@ def _peek_result(call: PendingCall | dict[str, Any]) -> dict[str, Any]:
         return {"error": e.code, "message": e.message}
     except Unavailable as e:
         return {"error": "unavailable", "message": str(e)}
+
+
+def _read_sample(call: PendingCall | dict[str, Any]) -> dict[str, Any] | None:
+    """A `sensor_read` reply as status's `force` entry (age from its `t_ns`), or None."""
+    got = _peek_result(call)
+    if "error" in got or not isinstance(got.get("t_ns"), int):
+        return None
+    return {**got, "age_ms": max(time.time_ns() - got["t_ns"], 0) / 1e6, "via": "sensor_read"}
 
 
 def _stamped(

@@ -6,6 +6,12 @@ default): no queue and no thread wake-up per sample. The arm's pose from `robot/
 drives gravity compensation and the sim sensor's contact, and follows the puma's
 `set_tool`; with the sim sensor, `workcell/state` moves the objects it touches and puts
 the carried one's weight on the wrist.
+
+Nobody listening, nothing sent: while no one subscribes to `robot/force` (Zenoh's matching
+status, `bus.audience`) the sensor keeps sampling (status, bias and `sensor_read` stay
+current) but no sample is encoded or put, and the router forwards nothing. The first
+subscriber is seen within a round trip to the router; samples flow from then on, their
+`seq` counting the ones not sent (`sensor_status` adds `publishing` and `unsent`).
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ import logging
 from typing import Any
 
 from services.bus import codec, keys
+from services.bus.audience import Audience
 from services.bus.bounds import check_norm
 from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import IDENTITY_R, ForceSample, RobotState, Rot, Vec3
@@ -35,6 +42,11 @@ class ForceService:
         self.config = config
         self._pub = node.publisher(keys.FORCE)
         self._encode = ForceSampleEncoder().encode
+        # Nobody subscribed to robot/force, nothing sent: the sensor keeps sampling (its
+        # status, bias and `sensor_read` stay current), the samples are not encoded or put.
+        self._watched = False
+        self.unsent = 0
+        self.audience = Audience(node.session, (keys.FORCE.key,), self._on_audience)
         self.core = ForceCore(open_force_sensor(config), config, self._publish, self._emit)
         node.subscribe(keys.STATE, self._on_state)
         if config.sensor == "sim":
@@ -43,7 +55,7 @@ class ForceService:
         node.serve(
             "force",
             {
-                "sensor_status": core.rpc_sensor_status,
+                "sensor_status": self._rpc_sensor_status,
                 "sensor_start": core.rpc_sensor_start,
                 "sensor_stop": core.rpc_sensor_stop,
                 "sensor_config": core.rpc_sensor_config,
@@ -67,7 +79,23 @@ class ForceService:
         return self._encode(s.seq, s.t_ns, s.f, s.c, s.raw)
 
     def _publish(self, s: ForceSample) -> None:
+        if not self._watched:
+            self.unsent += 1
+            return
         self._pub.put_bytes(self._encode(s.seq, s.t_ns, s.f, s.c, s.raw))
+
+    def _on_audience(self, watched: bool) -> None:
+        self._watched = watched
+        log.info("robot/force %s", "has subscribers: publishing" if watched else "unwatched")
+
+    def _rpc_sensor_status(self, args: dict[str, Any]) -> dict[str, Any]:
+        """PROTOCOL's `sensor_status`, plus `publishing` (anyone subscribes to robot/force)
+        and `unsent` (samples taken while nobody did)."""
+        return {
+            **self.core.rpc_sensor_status(args),
+            "publishing": self._watched,
+            "unsent": self.unsent,
+        }
 
     def _emit(self, kind: str, message: str, data: dict[str, Any]) -> None:
         self.node.event(kind, message, data)
@@ -92,7 +120,8 @@ class ForceService:
         p = codec.arg(args, "p", Vec3)
         check_norm("p", p, "tool_offset_m")  # as the puma's set_tool: a tool within 1 m
         self.core.set_tool(p, codec.arg(args, "R", Rot, IDENTITY_R))
-        return self.core.rpc_sensor_status({})
+        return self._rpc_sensor_status({})
 
     def close(self) -> None:
         self.core.close()
+        self.audience.close()

@@ -16,12 +16,10 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Sequence
 from typing import Any
 
-import zenoh
-
 from services.bus import keys
+from services.bus.audience import Audience
 from services.bus.errors import ProtocolError
 from services.bus.messages import RobotState, StereoFrame, VisionStats, mat3
 from services.bus.node import Node
@@ -32,64 +30,6 @@ from services.control.vision.sim_camera import SimStereoCamera
 from services.world.workcell.messages import WORKCELL_STATE, WorkcellState
 
 STATS_PERIOD_S = 1.0
-
-
-class Audience:
-    """Whether anyone subscribes to any of `keys`, from Zenoh's matching status.
-
-    One publisher per key is declared for its matching status only (it never puts; the
-    data goes out through the node's own publishers, with their QoS). `on_change(watched)`
-    is called from Zenoh's thread at every change of the union, and once at start.
-    """
-
-    def __init__(
-        self, session: zenoh.Session, keys_: Sequence[str], on_change: Callable[[bool], None]
-    ) -> None:
-        self._lock = threading.Lock()
-        self._on_change = on_change
-        self._matched: dict[str, bool] = {}
-        self._watched: bool | None = None
-        self._probes = [session.declare_publisher(k) for k in keys_]
-        self._listeners = []
-        for key, probe in zip(keys_, self._probes, strict=True):
-            # The listener first, then the status: a subscriber arriving in between is
-            # seen by one or the other, never missed.
-            self._listeners.append(probe.declare_matching_listener(self._updater(key)))
-            self._update(key, _matching(probe.matching_status))
-
-    def _updater(self, key: str) -> Callable[[zenoh.MatchingStatus], None]:
-        return lambda status: self._update(key, status.matching)
-
-    def _update(self, key: str, matched: bool) -> None:
-        with self._lock:
-            self._matched[key] = matched
-            watched = any(self._matched.values())
-            if watched == self._watched:
-                return
-            self._watched = watched
-            # Under the lock, so two changes racing on Zenoh's threads arrive in order.
-            self._on_change(watched)
-
-    @property
-    def watched(self) -> bool:
-        with self._lock:
-            return bool(self._watched)
-
-    def matched(self) -> dict[str, bool]:
-        """Each key's own matching status."""
-        with self._lock:
-            return dict(self._matched)
-
-    def close(self) -> None:
-        for listener in self._listeners:
-            listener.undeclare()
-        for probe in self._probes:
-            probe.undeclare()
-
-
-def _matching(status: object) -> bool:
-    # zenoh 1.10's stubs type `Publisher.matching_status` as bool; it is a MatchingStatus.
-    return bool(getattr(status, "matching", status))
 
 
 class VisionService:

@@ -32,7 +32,7 @@ from services.control.puma.config import HOME_Q_RAD, PumaConfig
 from services.control.puma.service import PumaService
 from services.control.puma.sim_arm import SimArm
 from services.world.workcell.scene import TABLE
-from tests.conftest import Net
+from tests.conftest import Net, wait_until
 
 pytestmark = pytest.mark.system
 
@@ -385,6 +385,36 @@ def test_contact_with_the_table_stops_the_motion(make_cell: Callable[..., Cell])
     f = cell.call("sensor_read")["f"]
     assert 40.0 < float(np.linalg.norm(f)) < 120.0
     assert cell.call("status")["interventions"]["contact"] >= 1
+
+
+def test_robot_force_is_received_only_while_someone_could_move_the_arm(
+    make_cell: Callable[..., Cell],
+) -> None:
+    """Idle, the decision is not subscribed to robot/force (and, with nobody else, the
+    force service sends nothing); a master's token subscribes it, and it stays while the
+    master teleoperates; the token gone and the supervisor holding, it unsubscribes.
+    `status` still reports the force, asked of the sensor while unsubscribed."""
+    cell = make_cell()
+    dec = cell.decision
+    assert not dec._force.watching
+    assert wait_until(lambda: not cell.force._watched)
+    st = cell.call("status")
+    assert st["force"]["via"] == "sensor_read" and st["force"]["seq"] > 0
+    m = cell.master("m1")
+    assert wait_until(lambda: dec._force.watching and cell.force._watched)
+    m.engage_new()
+    assert wait_until(lambda: cell.call("status")["mode"] == "follow")
+    st = cell.call("status")
+    assert "via" not in st["force"] and st["force"]["age_ms"] < 1000.0
+    m.disengage()
+    assert wait_until(lambda: cell.call("status")["mode"] == "hold")
+    assert dec._force.watching  # the master is still there
+    m.close()
+    m.node.close()
+    assert wait_until(lambda: not dec._force.watching, 10.0)
+    assert wait_until(lambda: not cell.force._watched)
+    unsent = cell.force.unsent
+    assert wait_until(lambda: cell.force.unsent > unsent)
 
 
 def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) -> None:

@@ -13,6 +13,7 @@ from services.bus.messages import ForceSample, RobotState, vec
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
 from services.control.puma.kinematics import DEFAULT_eMt, Puma560, qn
+from tests.conftest import Net, wait_until
 
 # A 1 kHz stream over Zenoh, checked for gaps: run alone in `make pytest`'s second pass.
 pytestmark = pytest.mark.system
@@ -90,5 +91,38 @@ def test_period_and_priority_changes_are_applied_and_reported(net) -> None:
         assert stopped["running"] is False
         started = client.call("force", "sensor_start", {}, timeout_s=5.0)
         assert started["running"] is True
+    finally:
+        svc.close()
+
+
+def test_nothing_is_sent_while_nobody_subscribes_and_a_subscriber_gets_it_at_once(
+    net: Net,
+) -> None:
+    """The sensor samples all along; robot/force is put only while someone subscribes
+    (Zenoh's matching status), so an idle system neither sends nor routes 1 kHz of force.
+    A subscriber is fed at once, with `seq` counting what was not sent."""
+    svc = ForceService(net.node("force"), ForceConfig())
+    client = net.node("client")
+    try:
+        _publish_pose(client)
+        assert wait_until(
+            lambda: client.call("force", "sensor_status", {}, timeout_s=5.0)["unsent"] >= 200
+        )
+        st = client.call("force", "sensor_status", {}, timeout_s=5.0)
+        assert st["publishing"] is False and st["running"] is True
+        assert svc._pub.sent == 0
+        got: list[int] = []
+        client.subscribe(keys.FORCE, lambda s: got.append(s.seq))
+        assert wait_until(lambda: len(got) >= 100)
+        st = client.call("force", "sensor_status", {}, timeout_s=5.0)
+        assert st["publishing"] is True
+        assert got[0] > 200  # the samples taken before were counted, not sent
+        assert got == sorted(got)
+        client.close()  # the only subscriber leaves
+        assert wait_until(lambda: not svc._watched)
+        sent = svc._pub.sent
+        unsent = svc.unsent
+        assert wait_until(lambda: svc.unsent >= unsent + 200)
+        assert svc._pub.sent == sent
     finally:
         svc.close()
