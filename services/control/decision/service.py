@@ -9,9 +9,10 @@ that delivers it, so the puma has it one hop later; a lost service is handled th
 Between inputs a timer thread sleeps until the supervisor's next deadline (a watchdog, the
 20 Hz hold re-send, a task's or a catching-up target's next step): an idle decision server
 does nothing. robot/state and robot/force are not decoded per sample: Zenoh keeps the newest
-of each, read when a tick needs them (`Node.latest`). robot/force is subscribed only while a
-master is alive, teleoperation or a task runs, or a forwarded motion is watched: idle, the
-1 kHz stream is neither received here nor, with no other subscriber, sent at all.
+of each, read when a tick needs them (`Node.latest`). robot/force is subscribed only while
+teleoperation or a task runs, or a forwarded motion is watched: idle (masters alive but not
+engaged included), the 1 kHz stream is neither received here nor, with no other subscriber,
+sent at all; a new engagement from idle waits (deferred, not refused) for its first sample.
 
 Threads: every tick runs under one lock (`_cond`), and the command it yields is published
 under it too, so `robot/puma/cmd` leaves in `seq` order whichever thread ticked; events go
@@ -68,12 +69,10 @@ PUMA_METHODS: tuple[str, ...] = (
     "ik",
     "limits",
 )
-#: how long a task started while idle waits for robot/force to flow, and how often it looks
+#: how long a task or an engagement started while idle waits for robot/force to flow, and
+#: how often a task looks
 FORCE_WAIT_S = 1.0
 FORCE_POLL_S = 0.002
-
-#: liveliness names of master stations (`alive/master/<id>`)
-MASTER_PREFIX = "master/"
 
 #: IForceSensor (PROTOCOL §4) forwarded to robot/force/rpc/…
 FORCE_METHODS: tuple[str, ...] = (
@@ -130,14 +129,11 @@ class DecisionService:
         self._op_engage: dict[str, int] = {}
         node.batches(CMD, self._on_commands)
         self._state = node.latest(STATE)
-        # robot/force only while someone could move the arm through us (`_watch_force`).
+        # robot/force only while the arm moves or may start to (`_watch_force`).
         self._force = node.latest(FORCE, watch=False)
-        self._masters: set[str] = set()
         self._force_pins = 0  # callers that need robot/force whatever the mode
+        self._warm_since_ns: int | None = None  # subscribed for an engagement, none yet
         node.alive.on_change(self._on_alive)
-        with self._cond:
-            self._masters.update(n for n in node.alive.names() if n.startswith(MASTER_PREFIX))
-            self._watch_force()
         node.serve(
             SERVICE,
             self._methods(),
@@ -154,27 +150,44 @@ class DecisionService:
         self._react(commands=msgs)
 
     def _on_alive(self, name: str, up: bool) -> None:
-        if name.startswith(MASTER_PREFIX):
-            with self._cond:
-                (self._masters.add if up else self._masters.discard)(name)
-                self._watch_force()
         if not up:
             self._react(lost=(name,))
 
     def _watch_force(self) -> None:
-        """Subscribe to robot/force while a master is alive, teleoperation or a task runs,
-        or a forwarded motion is watched; drop it otherwise, so an idle system neither
-        sends, forwards nor receives 1 kHz of force for nobody (the force service follows
-        its matching status). Under the lock."""
+        """Subscribe to robot/force while teleoperation or a task runs, a forwarded motion
+        is watched, or an engagement waits for the stream; drop it otherwise, so an idle
+        system (masters alive but not engaged included) neither sends, forwards nor
+        receives 1 kHz of force for nobody (the force service follows its matching
+        status). Under the lock."""
         sup = self.supervisor
         need = (
-            bool(self._masters)
+            self._warm_since_ns is not None
             or self._force_pins > 0
             or sup.mode in (Mode.FOLLOW, Mode.TASK)
             or sup.watch is not None
         )
         if need != self._force.watching:
             self._force.watch(need)
+
+    def _warm_force(self, commands: tuple[OperatorCommand, ...], now_ns: int) -> bool:
+        """Whether robot/force is being brought up for an engagement (Inputs.force_warming).
+
+        An active command while unsubscribed subscribes and starts the wait; the supervisor
+        then defers (never refuses) a new engagement until the first sample is in, at most
+        FORCE_WAIT_S (a master repeats its command at ≥ 50 Hz, so it starts a tick or two
+        later). After that the rules for a stale stream apply. Under the lock."""
+        if not self._force.watching and any(c.active for c in commands):
+            self._warm_since_ns = now_ns
+            self._force.watch(True)
+        if self._warm_since_ns is None:
+            return False
+        got = self._force.read()
+        if (got is not None and got[1] >= self._warm_since_ns) or (
+            now_ns - self._warm_since_ns > FORCE_WAIT_S * 1e9
+        ):
+            self._warm_since_ns = None
+            return False
+        return True
 
     def _await_force(self, timeout_s: float) -> bool:
         """Wait (under the lock, which the wait releases) until a robot/force sample no
@@ -198,9 +211,12 @@ class DecisionService:
         self, commands: tuple[OperatorCommand, ...] = (), lost: tuple[str, ...] = ()
     ) -> Inputs:
         """The tick's inputs (under the lock: the newest state and force are read here)."""
+        now_ns = time.monotonic_ns()
+        warming = self._warm_force(commands, now_ns)
         state, force = self._state.read(), self._force.read()
         return Inputs(
-            now_ns=time.monotonic_ns(),
+            now_ns=now_ns,
+            force_warming=warming,
             wall_ns=time.time_ns(),
             state=state[0] if state else None,
             state_rx_ns=state[1] if state else 0,

@@ -87,7 +87,8 @@ class Inputs:
     their arrival times state_rx_ns, force_rx_ns on the monotonic clock.
     commands: the robot/cmd messages received since the last tick, in arrival order (already
     validated by the codec). lost: liveliness names gone since the last tick ("master/<id>",
-    "puma", "force").
+    "puma", "force"). force_warming: the service has just subscribed to robot/force for an
+    engagement and no sample is in yet: a new engagement is deferred (not refused).
     """
 
     now_ns: int
@@ -98,6 +99,7 @@ class Inputs:
     force_rx_ns: int = 0
     commands: tuple[OperatorCommand, ...] = ()
     lost: tuple[str, ...] = ()
+    force_warming: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -134,6 +136,7 @@ class Supervisor:
             "commands": 0,
             "stale_commands": 0,
             "engagements": 0,
+            "deferred": 0,
             "published": 0,
             "holds": 0,
             "tasks": 0,
@@ -385,6 +388,9 @@ class Supervisor:
         self, cmd: OperatorCommand, rec: MasterRecord, inp: Inputs, state_ok: bool, force_ok: bool
     ) -> None:
         state = inp.state
+        if inp.force_warming and not force_ok:
+            self.stats["deferred"] += 1
+            return  # the force stream is on its way: the master's next command starts it
         why = None
         if not state_ok or state is None:
             why = "no fresh robot/state"

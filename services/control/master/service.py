@@ -83,8 +83,8 @@ class MasterService:
         self._state = node.publisher(keys.MASTER_STATE)
         self._fb = node.publisher(keys.MASTER_FEEDBACK)
         # Read when the loop displays force (its rate, not the sensor's 1 kHz): no Python
-        # work per sample (`Node.latest`).
-        self._force = node.latest(keys.FORCE)
+        # work per sample (`Node.latest`); subscribed only while the station is not idle.
+        self._force = node.latest(keys.FORCE, watch=False)
         self._robot = node.latest(keys.STATE)
         self._notice: tuple[str, str] | None = None
         self._notice_engage = 0
@@ -125,6 +125,9 @@ class MasterService:
             while not self._stop.is_set():
                 now = time.perf_counter()
                 dt, last = now - last, now
+                # robot/force only while the station may engage: an idle virtual master
+                # (nobody at the console) asks for none, so none is sent for it.
+                self._force.watch(not self._idle())
                 self._tick(dt)
                 if self.ticks % state_every == 0:
                     self._publish_state()

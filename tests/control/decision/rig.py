@@ -123,6 +123,7 @@ class Rig:
         state: bool = True,
         force: bool = True,
         dt_ns: int = TICK_NS,
+        force_warming: bool = False,
     ) -> TickResult:
         """One tick, `dt_ns` after the last. `state`/`force` False: that stream delivers
         nothing this tick."""
@@ -140,6 +141,7 @@ class Rig:
             force_rx_ns=self.force_rx_ns,
             commands=tuple(commands),
             lost=tuple(lost),
+            force_warming=force_warming,
         )
         res = self.sup.tick(inp)
         self.results.append(res)

@@ -122,6 +122,25 @@ def test_with_passivity_on_a_contact_re_sends_the_target_every_period() -> None:
         assert seqs == sorted(set(seqs))
 
 
+def test_an_engagement_waiting_for_the_force_stream_is_deferred_not_refused() -> None:
+    """While the service brings robot/force up (force_warming) a new engagement waits, even
+    with compliance on (which refuses one without force for good): the master's next
+    command starts it once a sample is in. Without the flag the refusal stands."""
+    rig = Rig(DecisionConfig(compliance=True), scene=EMPTY)
+    for _ in range(3):
+        rig.step([rig.cmd()], force=False, force_warming=True)
+    assert rig.sup.mode is Mode.IDLE and rig.outputs == []
+    assert rig.sup.stats["deferred"] == 3 and "rejected" not in rig.kinds()
+    rig.step([rig.cmd()])  # the first sample is in
+    assert rig.sup.mode is Mode.FOLLOW and rig.sup.stats["engagements"] == 1
+    assert rig.outputs[0].active and np.allclose(rig.outputs[0].dp, 0.0)
+    cold = Rig(DecisionConfig(compliance=True), scene=EMPTY)
+    cold.step([cold.cmd()], force=False)
+    assert cold.sup.mode is Mode.IDLE and "rejected" in cold.kinds()
+    cold.step([cold.cmd()])
+    assert cold.sup.mode is Mode.IDLE  # blocked for good: engage again to move
+
+
 def test_a_100_hz_master_at_a_legal_speed_is_followed_without_a_limit() -> None:
     rig = Rig(scene=EMPTY)
     engaged(rig)

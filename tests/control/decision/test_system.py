@@ -387,34 +387,40 @@ def test_contact_with_the_table_stops_the_motion(make_cell: Callable[..., Cell])
     assert cell.call("status")["interventions"]["contact"] >= 1
 
 
-def test_robot_force_is_received_only_while_someone_could_move_the_arm(
+def test_robot_force_is_received_only_while_the_arm_may_move(
     make_cell: Callable[..., Cell],
 ) -> None:
     """Idle, the decision is not subscribed to robot/force (and, with nobody else, the
-    force service sends nothing); a master's token subscribes it, and it stays while the
-    master teleoperates; the token gone and the supervisor holding, it unsubscribes.
-    `status` still reports the force, asked of the sensor while unsubscribed."""
-    cell = make_cell()
+    force service sends nothing), a master's token alone changes nothing; an engagement
+    subscribes it (deferred until the first sample, never refused, even with compliance
+    on, which needs the force to engage), and it stays while the master teleoperates; the
+    supervisor holding, it unsubscribes. `status` still reports the force, asked of the
+    sensor while unsubscribed."""
+    cell = make_cell(compliance=True)
     dec = cell.decision
     assert not dec._force.watching
     assert wait_until(lambda: not cell.force._watched)
     st = cell.call("status")
     assert st["force"]["via"] == "sensor_read" and st["force"]["seq"] > 0
     m = cell.master("m1")
-    assert wait_until(lambda: dec._force.watching and cell.force._watched)
+    assert m.node.alive.wait("master/m1", 5.0)
     m.engage_new()
     assert wait_until(lambda: cell.call("status")["mode"] == "follow")
+    assert dec._force.watching and cell.force._watched
     st = cell.call("status")
     assert "via" not in st["force"] and st["force"]["age_ms"] < 1000.0
+    assert st["interventions"]["rejected"] == 0  # deferred, not refused
+    assert st["supervisor"]["stats"]["engagements"] == 1
+    assert st["supervisor"]["stats"]["deferred"] >= 1  # it waited for the stream
     m.disengage()
     assert wait_until(lambda: cell.call("status")["mode"] == "hold")
-    assert dec._force.watching  # the master is still there
-    m.close()
-    m.node.close()
-    assert wait_until(lambda: not dec._force.watching, 10.0)
+    assert wait_until(lambda: not dec._force.watching)
     assert wait_until(lambda: not cell.force._watched)
     unsent = cell.force.unsent
     assert wait_until(lambda: cell.force.unsent > unsent)
+    m.engage_new()  # again from the hold: subscribed again, engaged again
+    assert wait_until(lambda: cell.call("status")["mode"] == "follow")
+    assert cell.call("status")["supervisor"]["stats"]["engagements"] == 2
 
 
 def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) -> None:
