@@ -50,6 +50,8 @@ from services.control.force.sensors import (
 )
 from services.world.workcell.messages import WorkcellState, objects_of
 
+IDLE_PERIOD_MS = 10.0
+"""The simulated sensor's period while nobody uses the samples (`ForceCore.set_unused`)."""
 TOOL_CHANGE_TOL = 1e-6
 """m and rad: a flange→tool placement from robot/state that differs more is a new tool."""
 WORLD_MIN_M, WORLD_MAX_M = BOUNDS["position_m"].lo, BOUNDS["position_m"].hi
@@ -134,6 +136,7 @@ class ForceCore:
             clock=clock or MonotonicClock(spin_us=config.spin_us),
         )
         sensor.on_event = EventThrottle(self._sampler.post_event, config.event_interval_s)
+        self._unused = False
 
     @classmethod
     def from_config(
@@ -156,6 +159,25 @@ class ForceCore:
     @property
     def latest(self) -> ForceSample | None:
         return self._latest
+
+    def set_unused(self, unused: bool) -> None:
+        """Nobody uses the samples (nobody subscribes to robot/force): a sensor that may
+        idle (the simulated one: its data is computed, not streamed by a device) is sampled
+        every IDLE_PERIOD_MS instead, so status, `sensor_read` and the stale watch stay
+        current; used again, the next sample is taken at once. A real sensor is read at its
+        rate whatever (its device streams)."""
+        with self._ctl:
+            self._unused = unused
+            self._apply_idle()
+
+    def _apply_idle(self) -> None:
+        idle = self._unused and self._bias_req is None and getattr(self._sensor, "may_idle", False)
+        self._sampler.set_slow(IDLE_PERIOD_MS if idle else None)
+
+    @property
+    def idle(self) -> bool:
+        """Sampled at IDLE_PERIOD_MS (see `set_unused`)."""
+        return self._sampler.slow
 
     def close(self) -> None:
         """Stop sensing, end the threads, close the sensor. Idempotent."""
@@ -371,10 +393,14 @@ class ForceCore:
                 raise RpcError("not_ready", "sensing is stopped: call sensor_start first")
             req = _BiasRequest(self._config.bias_samples)
             self._bias_req = req
+            self._apply_idle()  # the bias is taken at the sensor's rate
             timeout_s = max(1.0, 20.0 * req.n * self._sampler.period_ms / 1e3)
-            if not req.done.wait(timeout_s):
+            try:
+                if not req.done.wait(timeout_s):
+                    raise RpcError("unreachable", f"no data from {self._sensor.name} to bias with")
+            finally:
                 self._bias_req = None
-                raise RpcError("unreachable", f"no data from {self._sensor.name} to bias with")
+                self._apply_idle()
         return self._bias_reply(req.n)
 
     def rpc_sensor_compliance(self, args: dict[str, Any]) -> dict[str, Any]:

@@ -215,6 +215,7 @@ class Sampler(Generic[S]):
         self._emit = on_event
         self._clock: SamplerClock = clock or MonotonicClock()
         self._period_ns = round(check_period_ms(period_ms) * 1e6)
+        self._slow_ns: int | None = None
         self._period_changed = False
         self._stale_after = stale_after_periods
         self._rate_window_ns = int(rate_window_s * 1e9)
@@ -309,6 +310,19 @@ class Sampler(Generic[S]):
         self._period_ns = round(check_period_ms(period_ms) * 1e6)
         self._period_changed = True
 
+    def set_slow(self, slow_ms: float | None) -> None:
+        """Sample every `slow_ms` (never faster than the period) while the samples go to
+        nobody and the sensor need not be read at its rate (a simulated one); None: the
+        period again, the next sample at once."""
+        slow = None if slow_ms is None else round(check_period_ms(slow_ms) * 1e6)
+        if slow != self._slow_ns:
+            self._slow_ns = slow
+            self._period_changed = True
+
+    @property
+    def slow(self) -> bool:
+        return self._slow_ns is not None and self._slow_ns > self._period_ns
+
     def set_priority(self, level: PriorityLevel) -> PriorityReport:
         """New SensorThreadPriority for the sampling thread; returns what was applied."""
         if level not in PRIORITY_LEVELS:
@@ -401,16 +415,17 @@ class Sampler(Generic[S]):
             sleep_until(next_ns, interrupted)
             if not self._want_run or self._closed:
                 return
+            slow = self._slow_ns
+            period_ns = self._period_ns if slow is None else max(self._period_ns, slow)
             if self._period_changed:
                 self._period_changed = False
-                next_ns = last_tick_ns + self._period_ns
+                next_ns = last_tick_ns + period_ns
                 if now_ns() < next_ns:
                     continue
             late = now_ns() - next_ns
             if late > self._late_max_ns:
                 self._late_max_ns = late
             last_tick_ns = next_ns
-            period_ns = self._period_ns
 
             try:
                 item = acquire()

@@ -9,9 +9,10 @@ the carried one's weight on the wrist.
 
 Nobody listening, nothing sent: while no one subscribes to `robot/force` (Zenoh's matching
 status, `bus.audience`) the sensor keeps sampling (status, bias and `sensor_read` stay
-current) but no sample is encoded or put, and the router forwards nothing. The first
-subscriber is seen within a round trip to the router; samples flow from then on, their
-`seq` counting the ones not sent (`sensor_status` adds `publishing` and `unsent`).
+current; the simulated sensor every 10 ms instead of every period, `ForceCore.set_unused`)
+but no sample is encoded or put, and the router forwards nothing. The first subscriber is
+seen within a round trip to the router; samples flow from then on at the full rate, their
+`seq` counting the ones not sent (`sensor_status` adds `publishing`, `unsent`, `idle`).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ class ForceService:
         self.unsent = 0
         self.audience = Audience(node.session, (keys.FORCE.key,), self._on_audience)
         self.core = ForceCore(open_force_sensor(config), config, self._publish, self._emit)
+        self.core.set_unused(not self._watched)
         node.subscribe(keys.STATE, self._on_state)
         if config.sensor == "sim":
             node.subscribe(WORKCELL_STATE, self._on_workcell)
@@ -86,15 +88,20 @@ class ForceService:
 
     def _on_audience(self, watched: bool) -> None:
         self._watched = watched
+        core = getattr(self, "core", None)  # the first call comes before the core exists
+        if core is not None:
+            core.set_unused(not watched)
         log.info("robot/force %s", "has subscribers: publishing" if watched else "unwatched")
 
     def _rpc_sensor_status(self, args: dict[str, Any]) -> dict[str, Any]:
-        """PROTOCOL's `sensor_status`, plus `publishing` (anyone subscribes to robot/force)
-        and `unsent` (samples taken while nobody did)."""
+        """PROTOCOL's `sensor_status`, plus `publishing` (anyone subscribes to robot/force),
+        `unsent` (samples taken while nobody did) and `idle` (the simulated sensor sampled
+        every IDLE_PERIOD_MS meanwhile)."""
         return {
             **self.core.rpc_sensor_status(args),
             "publishing": self._watched,
             "unsent": self.unsent,
+            "idle": self.core.idle,
         }
 
     def _emit(self, kind: str, message: str, data: dict[str, Any]) -> None:

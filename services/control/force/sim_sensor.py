@@ -113,6 +113,9 @@ class SimSensor:
     through it, at its corners and base centre.
     """
 
+    #: its data is computed, not streamed by a device: sampled slower while unused
+    may_idle = True
+
     def __init__(
         self,
         model: WristModel | None = None,

@@ -9,6 +9,7 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ from services.bus import codec
 from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import ForceSample
 from services.control.force.config import ForceConfig
-from services.control.force.core import ForceCore
+from services.control.force.core import ForceCore, _BiasRequest
 from services.control.force.fake_serial_sensor import FakeSerialSensor
 from services.control.force.sensors import SensorError
 from services.control.force.serial_sensor import SerialSensor
@@ -126,6 +127,31 @@ def test_sim_contact_with_the_table_in_the_tool_frame(
     core.update_robot_state(FREE, rot("x", 0.7) @ DOWN)
     assert wait_until(lambda: np.allclose(core.rpc_sensor_read({})["f"], 0.0, atol=1e-9))
     assert core.rpc_sensor_status({})["gravity_compensated"] is True
+
+
+def test_unused_the_sim_sensor_idles_but_a_bias_is_taken_at_full_rate(
+    sim: tuple[ForceCore, Published, Events],
+) -> None:
+    """Unused, the simulated sensor is sampled every IDLE_PERIOD_MS; a bias meanwhile
+    switches to the period for its samples, then back; used again, the period."""
+    core, _, _ = sim
+    core.update_robot_state((0.6, 0.3, TABLE_TOP_Z), DOWN)
+    core.rpc_sensor_start({})
+    core.set_unused(True)
+    assert core.idle
+    seen: list[bool] = []
+    real_add = _BiasRequest.add
+
+    def add(self: _BiasRequest, f: Any, c: Any) -> bool:
+        seen.append(core.idle)
+        return real_add(self, f, c)
+
+    with mock.patch.object(_BiasRequest, "add", add):
+        out = core.rpc_sensor_bias({})
+    assert out["samples"] == 16 and seen and not any(seen)  # every bias sample at full rate
+    assert core.idle  # and back to idling
+    core.set_unused(False)
+    assert not core.idle
 
 
 def test_bias_makes_the_current_reading_zero(sim: tuple[ForceCore, Published, Events]) -> None:

@@ -111,6 +111,36 @@ def test_period_change_takes_effect_from_the_last_tick(closing: list[Sampler[Any
     assert runs == [1 * MS, 5 * MS, MS // 2]
 
 
+def test_slow_sampling_while_unused_and_the_period_again_at_once(
+    closing: list[Sampler[Any]],
+) -> None:
+    """`set_slow(10)`: a tick every 10 ms, the configured period kept (and reported);
+    `set_slow(None)`: 1 ms steps again, the first one at once (not 10 ms later); a slow
+    period below the period changes nothing."""
+    s, script, _, _ = virtual_sampler(closing, period_ms=1.0)
+    s.start()
+    assert wait_until(lambda: len(script.ticks) >= 20)
+    s.set_slow(10.0)
+    assert s.slow and s.period_ms == 1.0 and s.stats().period_ms == 1.0
+    n = len(script.ticks)
+    assert wait_until(lambda: len(script.ticks) >= n + 20)
+    s.set_slow(None)
+    assert not s.slow
+    n = len(script.ticks)
+    assert wait_until(lambda: len(script.ticks) >= n + 20)
+    s.set_slow(0.5)  # faster than the period: the period rules
+    assert not s.slow
+    n = len(script.ticks)
+    assert wait_until(lambda: len(script.ticks) >= n + 20)
+    s.stop()
+    d = diffs(script.ticks)
+    runs = [d[0]] + [b for a, b in itertools.pairwise(d) if a != b]
+    # 1 ms, then 10 ms; back to 1 ms steps with the first one ≤ 1 ms after the last slow tick
+    assert runs[:2] == [1 * MS, 10 * MS]
+    assert all(x <= MS for x in runs[2:]) and runs[-1] == 1 * MS
+    assert s.stats().overruns == 0
+
+
 def test_overruns_count_missed_deadlines_and_do_not_burst(closing: list[Sampler[Any]]) -> None:
     s, script, _, _ = virtual_sampler(closing, period_ms=2.0)
     script.advance_ns = 5 * MS  # every read takes 2.5 periods

@@ -11,6 +11,7 @@ from services.bus import keys
 from services.bus.errors import RpcError
 from services.bus.messages import ForceSample, RobotState, vec
 from services.control.force.config import ForceConfig
+from services.control.force.core import IDLE_PERIOD_MS
 from services.control.force.service import ForceService
 from services.control.puma.kinematics import DEFAULT_eMt, Puma560, qn
 from tests.conftest import Net, wait_until
@@ -100,29 +101,36 @@ def test_nothing_is_sent_while_nobody_subscribes_and_a_subscriber_gets_it_at_onc
 ) -> None:
     """The sensor samples all along; robot/force is put only while someone subscribes
     (Zenoh's matching status), so an idle system neither sends nor routes 1 kHz of force.
-    A subscriber is fed at once, with `seq` counting what was not sent."""
+    A subscriber is fed at once, at the full rate, with `seq` counting what was not sent;
+    meanwhile the simulated sensor is sampled every IDLE_PERIOD_MS, not every period."""
     svc = ForceService(net.node("force"), ForceConfig())
     client = net.node("client")
     try:
         _publish_pose(client)
         assert wait_until(
-            lambda: client.call("force", "sensor_status", {}, timeout_s=5.0)["unsent"] >= 200
+            lambda: client.call("force", "sensor_status", {}, timeout_s=5.0)["unsent"] >= 50
         )
         st = client.call("force", "sensor_status", {}, timeout_s=5.0)
-        assert st["publishing"] is False and st["running"] is True
+        assert st["publishing"] is False and st["running"] is True and st["idle"] is True
+        assert st["period_ms"] == 1.0  # the configured period, kept for when it is used
         assert svc._pub.sent == 0
+        ticks = svc.core.sampler.stats().ticks
+        unsent = svc.unsent
+        assert wait_until(lambda: svc.unsent >= unsent + 20)
+        # about one sample per IDLE_PERIOD_MS, far from one per period
+        assert svc.core.sampler.stats().ticks - ticks < 20 * IDLE_PERIOD_MS / 2
         got: list[int] = []
         client.subscribe(keys.FORCE, lambda s: got.append(s.seq))
         assert wait_until(lambda: len(got) >= 100)
         st = client.call("force", "sensor_status", {}, timeout_s=5.0)
-        assert st["publishing"] is True
-        assert got[0] > 200  # the samples taken before were counted, not sent
+        assert st["publishing"] is True and st["idle"] is False
+        assert got[0] > 50  # the samples taken before were counted, not sent
         assert got == sorted(got)
         client.close()  # the only subscriber leaves
         assert wait_until(lambda: not svc._watched)
         sent = svc._pub.sent
         unsent = svc.unsent
-        assert wait_until(lambda: svc.unsent >= unsent + 200)
-        assert svc._pub.sent == sent
+        assert wait_until(lambda: svc.unsent >= unsent + 20)
+        assert svc._pub.sent == sent and svc.core.idle
     finally:
         svc.close()
