@@ -41,10 +41,11 @@ from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
 from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
 from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3
-from services.bus.node import Node, PendingCall
+from services.bus.node import Node
 from services.control.decision.config import STARTUP_ONLY, DecisionConfig
 from services.control.decision.notices import INTERVENTIONS, Notice
 from services.control.decision.passivity import SlaveTdpa
+from services.control.decision.peeks import Peek
 from services.control.decision.supervisor import Inputs, Mode, Supervisor
 from services.control.decision.taskrun import TaskRun
 from services.control.decision.tasks import TASK_NAMES, TaskPlan, plan_task
@@ -128,6 +129,15 @@ class DecisionService:
         self.passivity = SlaveTdpa(node, contact_n=config.max_force_n) if config.passivity else None
         self._op_engage: dict[str, int] = {}
         node.batches(CMD, self._on_commands)
+        # What `status` shows of the other services: kept, refreshed behind (peeks.py).
+        self._peeks = tuple(
+            Peek(node, service, method, STATUS_CALL_TIMEOUT_S)
+            for service, method in (
+                ("puma", "status"),
+                ("force", "sensor_status"),
+                ("force", "sensor_read"),
+            )
+        )
         self._state = node.latest(STATE)
         # robot/force only while the arm moves or may start to (`_watch_force`).
         self._force = node.latest(FORCE, watch=False)
@@ -444,15 +454,11 @@ class DecisionService:
         """The superset status: robot (robot/state and puma's `status`), sensor (robot/force
         and `sensor_status`), supervisor (mode, lease, task, settings), alive services and the
         intervention counters."""
-        puma = self._peek_start("puma", "status")
-        sensor = self._peek_start("force", "sensor_status")
         with self._cond:
             watching = self._force.watching
             snap = self.supervisor.snapshot()
             settings = self.config.settings()
             state, force = self._state.read(), self._force.read()
-        # Not subscribed to robot/force (idle): the sensor's newest sample, asked for.
-        read = None if watching else self._peek_start("force", "sensor_read")
         now = time.monotonic_ns()
         interventions = dict(snap["interventions"])
         interventions["rejected"] = interventions.get("rejected", 0) + self._cmd_rejections()
@@ -465,9 +471,10 @@ class DecisionService:
             "settings": settings,
             "interventions": interventions,
             "robot": _stamped(state, now),
-            "force": _stamped(force, now) if read is None else _read_sample(read),
-            "puma": _peek_result(puma),
-            "sensor": _peek_result(sensor),
+            # Not subscribed to robot/force (idle): the sensor's newest sample, asked for.
+            "force": _stamped(force, now) if watching else _read_sample(self._peeks[2].get()),
+            "puma": self._peeks[0].get(),
+            "sensor": self._peeks[1].get(),
             "alive": sorted(self.node.alive.names()),
             "loop": {
                 "rate_hz": self.config.rate_hz,
@@ -486,15 +493,6 @@ class DecisionService:
             for key, n in dict(self.node.rejected).items()
             if key == CMD.key or key.endswith("/" + CMD.key)
         )
-
-    def _peek_start(self, service: str, method: str) -> PendingCall | dict[str, Any]:
-        """Start a nested call of `status` (they run concurrently), or its error map."""
-        if not self.node.alive.is_alive(service):
-            return {"error": "unavailable", "message": f"the {service} service is not running"}
-        try:
-            return self.node.call_start(service, method, {}, STATUS_CALL_TIMEOUT_S)
-        except Unavailable as e:
-            return {"error": "unavailable", "message": str(e)}
 
     def rpc_supervisor(self, args: dict[str, Any]) -> dict[str, Any]:
         """No arguments: the supervisory settings and mode. With arguments: change those
@@ -665,21 +663,8 @@ def _floats3(v: object) -> list[float] | None:
     return None
 
 
-def _peek_result(call: PendingCall | dict[str, Any]) -> dict[str, Any]:
-    """The nested call's reply, or its error as a map (status never fails for it)."""
-    if isinstance(call, dict):
-        return call
-    try:
-        return call.result()
-    except RpcError as e:
-        return {"error": e.code, "message": e.message}
-    except Unavailable as e:
-        return {"error": "unavailable", "message": str(e)}
-
-
-def _read_sample(call: PendingCall | dict[str, Any]) -> dict[str, Any] | None:
+def _read_sample(got: dict[str, Any]) -> dict[str, Any] | None:
     """A `sensor_read` reply as status's `force` entry (age from its `t_ns`), or None."""
-    got = _peek_result(call)
     if "error" in got or not isinstance(got.get("t_ns"), int):
         return None
     return {**got, "age_ms": max(time.time_ns() - got["t_ns"], 0) / 1e6, "via": "sensor_read"}
