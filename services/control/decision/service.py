@@ -36,7 +36,7 @@ import numpy as np
 import zenoh
 
 from services.bus.bounds import each_out_of_bounds, norm_out_of_bounds, out_of_bounds, short
-from services.bus.codec import arg, jsonable
+from services.bus.codec import arg
 from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
 from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
@@ -676,9 +676,19 @@ def _stamped(
     if item is None:
         return None
     msg, rx_ns = item
-    out: dict[str, Any] = jsonable({f.name: getattr(msg, f.name) for f in fields(msg)})
+    # Decoded by the codec: finite numbers, flat tuples, no bytes (jsonable's cases).
+    names = _STATE_FIELDS if isinstance(msg, RobotState) else _FORCE_FIELDS
+    out: dict[str, Any] = {
+        name: list(v) if isinstance(v, tuple) else v
+        for name in names
+        for v in (getattr(msg, name),)
+    }
     out["age_ms"] = (now_ns - rx_ns) / 1e6
     return out
+
+
+_STATE_FIELDS = tuple(f.name for f in fields(RobotState))
+_FORCE_FIELDS = tuple(f.name for f in fields(ForceSample))
 
 
 def _outcome(run: TaskRun) -> dict[str, Any]:

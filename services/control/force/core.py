@@ -50,7 +50,7 @@ from services.control.force.sensors import (
 )
 from services.world.workcell.messages import WorkcellState, objects_of
 
-IDLE_PERIOD_MS = 10.0
+IDLE_PERIOD_MS = 20.0
 """The simulated sensor's period while nobody uses the samples (`ForceCore.set_unused`)."""
 TOOL_CHANGE_TOL = 1e-6
 """m and rad: a flange→tool placement from robot/state that differs more is a new tool."""

@@ -9,7 +9,7 @@ the carried one's weight on the wrist.
 
 Nobody listening, nothing sent: while no one subscribes to `robot/force` (Zenoh's matching
 status, `bus.audience`) the sensor keeps sampling (status, bias and `sensor_read` stay
-current; the simulated sensor every 10 ms instead of every period, `ForceCore.set_unused`)
+current; the simulated sensor every 20 ms instead of every period, `ForceCore.set_unused`)
 but no sample is encoded or put, and the router forwards nothing. The first subscriber is
 seen within a round trip to the router; samples flow from then on at the full rate, their
 `seq` counting the ones not sent (`sensor_status` adds `publishing`, `unsent`, `idle`).
@@ -66,6 +66,8 @@ class ForceService:
                 "sensor_read": core.rpc_sensor_read,
                 "set_tool": self._rpc_set_tool,
             },
+            # never block (counters and the newest sample): answered in Zenoh's callback
+            inline=("sensor_status", "sensor_read"),
         )
         if config.autostart:
             try:
