@@ -388,9 +388,12 @@ class Supervisor:
         self, cmd: OperatorCommand, rec: MasterRecord, inp: Inputs, state_ok: bool, force_ok: bool
     ) -> None:
         state = inp.state
-        if inp.force_warming and not force_ok:
+        if inp.force_warming:
+            # The force stream is on its way (a sample kept from before it was dropped may
+            # still look fresh, and go stale a tick later): the master's next command
+            # starts the engagement, with the stream flowing.
             self.stats["deferred"] += 1
-            return  # the force stream is on its way: the master's next command starts it
+            return
         why = None
         if not state_ok or state is None:
             why = "no fresh robot/state"

@@ -131,7 +131,9 @@ def test_an_engagement_waiting_for_the_force_stream_is_deferred_not_refused() ->
         rig.step([rig.cmd()], force=False, force_warming=True)
     assert rig.sup.mode is Mode.IDLE and rig.outputs == []
     assert rig.sup.stats["deferred"] == 3 and "rejected" not in rig.kinds()
-    rig.step([rig.cmd()])  # the first sample is in
+    rig.step([rig.cmd()], force_warming=True)  # a sample, but the stream not yet back
+    assert rig.sup.mode is Mode.IDLE and rig.sup.stats["deferred"] == 4
+    rig.step([rig.cmd()])  # the stream is back
     assert rig.sup.mode is Mode.FOLLOW and rig.sup.stats["engagements"] == 1
     assert rig.outputs[0].active and np.allclose(rig.outputs[0].dp, 0.0)
     cold = Rig(DecisionConfig(compliance=True), scene=EMPTY)

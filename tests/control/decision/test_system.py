@@ -418,9 +418,13 @@ def test_robot_force_is_received_only_while_the_arm_may_move(
     assert wait_until(lambda: not cell.force._watched)
     unsent = cell.force.unsent
     assert wait_until(lambda: cell.force.unsent > unsent)
+    deferred = cell.call("status")["supervisor"]["stats"]["deferred"]
     m.engage_new()  # again from the hold: subscribed again, engaged again
-    assert wait_until(lambda: cell.call("status")["mode"] == "follow")
-    assert cell.call("status")["supervisor"]["stats"]["engagements"] == 2
+    engaged = wait_until(lambda: cell.call("status")["supervisor"]["stats"]["engagements"] == 2)
+    st = cell.call("status")
+    assert engaged, (st["mode"], st["supervisor"]["hold_reason"], st["interventions"])
+    assert st["supervisor"]["stats"]["deferred"] > deferred
+    assert st["interventions"]["rejected"] == 0
 
 
 def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) -> None:

@@ -437,9 +437,15 @@ def test_a_pose_target_drives_the_tool_through_the_decision(make_cell: Callable[
         pub.put(payload, attachment=_attachment(seq))
     assert wait_until(lambda: cell.bridge.status()["targets_refused"] - before == len(bad))
     assert cell.bridge.status()["targets_accepted"] > 0
-    with cell.history.lock:
-        rejected = [e for e in cell.history.events if e.kind == "rejected" and e.source == "ros2"]
-    assert rejected and "tool_target" in rejected[0].message
+
+    def rejected_events() -> list[Any]:
+        with cell.history.lock:
+            return [e for e in cell.history.events if e.kind == "rejected" and e.source == "ros2"]
+
+    # the event leaves after the counter moved: wait for it, do not assume it is in
+    assert wait_until(lambda: bool(rejected_events()))
+    rejected = rejected_events()
+    assert "tool_target" in rejected[0].message
     assert not cell.bridge.status()["engaged"]
     time.sleep(0.3)  # let a wrongly accepted target show up as motion, if there were one
     assert np.linalg.norm(cell.history.tool_p() - rest) < 1e-4
