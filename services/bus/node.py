@@ -16,7 +16,6 @@ Rules it enforces so services do not have to remember them (ZENOH_NOTES.md):
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import threading
 import time
@@ -24,8 +23,7 @@ import traceback
 from collections.abc import Callable, Collection, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, field
-from typing import Any, Generic, TypeVar
+from typing import Any, TypeVar
 
 import zenoh
 
@@ -41,39 +39,22 @@ from services.bus.errors import (
     Unavailable,
 )
 from services.bus.events import EventLimiter
-from services.bus.keys import ALIVE_PREFIX, ENCODING, EVENTS, QoS, Topic, alive_key, rpc_key
+from services.bus.keys import ALIVE_PREFIX, EVENTS, Topic, alive_key, rpc_key
 from services.bus.messages import MAX_TEXT, Event, Message
+from services.bus.streams import (
+    ZENOH_ENCODING,
+    Latest,
+    Publisher,
+    Subscription,
+    newer,
+    payload_bytes,
+)
 
 log = logging.getLogger("telerobot.bus")
 
 M = TypeVar("M", bound=Message)
 Handler = Callable[[dict[str, Any]], dict[str, Any]]
 
-_ENCODING = zenoh.Encoding(ENCODING)
-_QOS: dict[QoS, dict[str, Any]] = {
-    QoS.CONTROL: {
-        "priority": zenoh.Priority.REAL_TIME,
-        "express": True,
-        # Block, as keys.QoS.CONTROL and PROTOCOL.md §3 say: with DROP a loaded 2-core host
-        # lost up to half of a 300-sample burst on loopback; only video may drop.
-        "congestion_control": zenoh.CongestionControl.BLOCK,
-    },
-    QoS.STATE: {
-        "priority": zenoh.Priority.INTERACTIVE_HIGH,
-        "express": False,
-        "congestion_control": zenoh.CongestionControl.DROP,
-    },
-    QoS.BULK: {
-        "priority": zenoh.Priority.DATA_LOW,
-        "express": False,
-        "congestion_control": zenoh.CongestionControl.DROP,
-    },
-    QoS.RELIABLE: {
-        "priority": zenoh.Priority.DATA,
-        "express": False,
-        "congestion_control": zenoh.CongestionControl.BLOCK,
-    },
-}
 REJECT_REPORT_INTERVAL_S = 1.0
 REJECT_EVENTS_PER_S = 5
 """Rejected-input events one node sends per second, over all keys."""
@@ -85,148 +66,6 @@ MAX_EVENT_DATA_BYTES = 16 * 1024
 CALL_RETRY_S = 0.02
 ZENOH_TIMEOUT = b"Timeout"
 """The error reply Zenoh itself gives a `get` whose queryable did not answer in time."""
-RESTART_GAP_NS = 250_000_000
-
-
-class Publisher(Generic[M]):
-    """A typed publisher: `put(msg)` validates, encodes and sends with the topic's QoS."""
-
-    def __init__(self, session: zenoh.Session, topic: Topic[M]) -> None:
-        self.topic = topic
-        self._pub = session.declare_publisher(topic.key, encoding=_ENCODING, **_QOS[topic.qos])
-        self.sent = 0
-
-    def put(self, msg: M) -> None:
-        self._pub.put(codec.encode(msg))
-        self.sent += 1
-
-    def put_bytes(self, payload: bytes) -> None:
-        """Send an already-encoded payload (replay, fuzzing)."""
-        self._pub.put(payload)
-        self.sent += 1
-
-    def undeclare(self) -> None:
-        self._pub.undeclare()
-
-
-def wait_latest(
-    cond: threading.Condition,
-    latest: Callable[[], M | None],
-    pred: Callable[[M], bool],
-    timeout_s: float,
-) -> M | None:
-    """Block until `latest()` is a message satisfying `pred`, or `timeout_s` has passed; the
-    message (or None). Whoever stores a new latest notifies `cond`."""
-    deadline = time.monotonic() + timeout_s
-    with cond:
-        while True:
-            m = latest()
-            if m is not None and pred(m):
-                return m
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return None
-            cond.wait(left)
-
-
-@dataclass
-class Subscription(Generic[M]):
-    """A typed subscription. `latest` holds the newest valid message (highest `seq`)."""
-
-    topic: Topic[M]
-    latest: M | None = None
-    received: int = 0
-    rejected: int = 0
-    last_error: str | None = None
-    _cond: threading.Condition = field(default_factory=threading.Condition)
-    _sub: Any = None
-
-    def get(self) -> M | None:
-        return self.latest
-
-    def wait_for(self, pred: Callable[[M], bool], timeout_s: float) -> M | None:
-        """Block until the newest message satisfies `pred` (or the deadline); returns it."""
-        return wait_latest(self._cond, lambda: self.latest, pred, timeout_s)
-
-    def wait_count(self, n: int, timeout_s: float) -> bool:
-        """Block until `received` ≥ n or the deadline."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while self.received < n:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self._cond.wait(left)
-            return True
-
-
-class Latest(Generic[M]):
-    """The newest message of a fast stream, kept by Zenoh and decoded only when read.
-
-    Zenoh holds the newest sample in a ring of one: no Python runs per sample (a Python
-    callback costs ~9 % of a core at 1 kHz), so a service that needs `robot/force` only
-    when it acts pays only then. `read()` returns the newest valid message and its arrival
-    time on the monotonic clock. A sample `read()` finds arrived after the previous read
-    (reading empties the ring) and was sent at its `t_ns`; its arrival is taken as the
-    later of the two, so a stream that flows is fresh as often as it is read, and an old
-    sample found after a long pause is as old as its `t_ns` says. Bad payloads are counted
-    and reported when read. Not thread-safe: one reader.
-
-    `watch(False)` drops the subscription (Zenoh receives nothing, the router forwards
-    nothing, a publisher following its matching status stops sending); `read()` then keeps
-    returning the last message, ageing. `watch(True)` subscribes again. Call it from the
-    reader's thread (or under the reader's lock).
-    """
-
-    def __init__(self, node: Node, topic: Topic[M], watch: bool = True) -> None:
-        self.topic = topic
-        self._node = node
-        self._sub: Any = None
-        if watch:
-            self.watch(True)
-        self._msg: M | None = None
-        self._rx_ns = 0
-        self._read_ns = 0
-        self.received = 0
-        self.rejected = 0
-
-    @property
-    def watching(self) -> bool:
-        return self._sub is not None
-
-    def watch(self, on: bool) -> None:
-        """Subscribe (on) or drop the subscription (off); no-op if already so."""
-        if on and self._sub is None:
-            self._sub = self._node.session.declare_subscriber(
-                self.topic.key, zenoh.handlers.RingChannel(1)
-            )
-        elif not on and self._sub is not None:
-            sub, self._sub = self._sub, None
-            with contextlib.suppress(zenoh.ZError):  # the session is closing
-                sub.undeclare()
-
-    def read(self) -> tuple[M, int] | None:
-        """(newest message, its arrival on time.monotonic_ns()) or None if none yet."""
-        sub = self._sub
-        try:
-            sample = sub.try_recv() if sub is not None else None
-        except zenoh.ZError:  # the session is closing
-            sample = None
-        now_mono = time.monotonic_ns()
-        previous, self._read_ns = self._read_ns, now_mono
-        if sample is not None:
-            now_wall = time.time_ns()
-            try:
-                msg = codec.decode(self.topic.type, _payload(sample.payload, self.topic.max_bytes))
-            except ProtocolError as e:
-                self.rejected += 1
-                self._node.report_rejected(str(sample.key_expr), str(e))
-            else:
-                self.received += 1
-                if _newer(msg, self._msg):
-                    age_ns = min(max(now_wall - int(getattr(msg, "t_ns", now_wall)), 0), 10**12)
-                    self._msg, self._rx_ns = msg, max(previous, now_mono - age_ns)
-        return None if self._msg is None else (self._msg, self._rx_ns)
 
 
 class AliveSet:
@@ -351,7 +190,7 @@ class Node:
         """Subscribe to a typed stream.
 
         Valid messages update `latest` (latest-wins topics keep the highest `seq`; see
-        `_newer`); every valid message is passed to `on_message`. Bad payloads are counted
+        `newer`); every valid message is passed to `on_message`. Bad payloads are counted
         and reported, never raised.
         `on_message` runs on Zenoh's thread: store or hand over, do not block.
         """
@@ -360,7 +199,7 @@ class Node:
 
         def callback(sample: zenoh.Sample) -> None:
             try:
-                msg = codec.decode(topic.type, _payload(sample.payload, topic.max_bytes))
+                msg = codec.decode(topic.type, payload_bytes(sample.payload, topic.max_bytes))
             except ProtocolError as e:
                 with sub._cond:
                     sub.rejected += 1
@@ -368,7 +207,7 @@ class Node:
                 self.report_rejected(str(sample.key_expr), str(e))
                 return
             with sub._cond:
-                if not topic.latest_wins or _newer(msg, sub.latest):
+                if not topic.latest_wins or newer(msg, sub.latest):
                     sub.latest = msg
                 sub.received += 1
                 sub._cond.notify_all()
@@ -404,7 +243,7 @@ class Node:
 
         def decode(sample: zenoh.Sample) -> M | None:
             try:
-                return codec.decode(topic.type, _payload(sample.payload, topic.max_bytes))
+                return codec.decode(topic.type, payload_bytes(sample.payload, topic.max_bytes))
             except ProtocolError as e:
                 self.report_rejected(str(sample.key_expr), str(e))
                 return None
@@ -540,19 +379,21 @@ class Node:
                 if act is not None:
                     act()  # before anything can fail: an e-stop latches whatever it carries
                 payload = query.payload
-                args = codec.unpack(_payload(payload, MAX_PAYLOAD_BYTES)) if payload else {}
+                args = codec.unpack(payload_bytes(payload, MAX_PAYLOAD_BYTES)) if payload else {}
                 if args is None:
                     args = {}
                 if not isinstance(args, dict):
                     raise ProtocolError("args", "expected a msgpack map of arguments")
                 result = handler(args)
-                query.reply(query.key_expr, codec.pack(result), encoding=_ENCODING)
+                query.reply(query.key_expr, codec.pack(result), encoding=ZENOH_ENCODING)
             except (ProtocolError, RpcError) as e:
                 code = e.code if isinstance(e, RpcError) else "bad_request"
                 msg = short(e.message if isinstance(e, RpcError) else str(e))
                 if code == "bad_request":
                     self.report_rejected(str(query.key_expr), msg)
-                query.reply_err(codec.pack({"error": code, "message": msg}), encoding=_ENCODING)
+                query.reply_err(
+                    codec.pack({"error": code, "message": msg}), encoding=ZENOH_ENCODING
+                )
             except Exception as e:  # any bug becomes an `internal` reply, never a dead service
                 log.exception("method %s/%s failed", service, short(method, 64))
                 self.event(
@@ -561,7 +402,7 @@ class Node:
                     {"method": short(method, 64), "traceback": traceback.format_exc(limit=8)},
                 )
                 query.reply_err(
-                    codec.pack({"error": "internal", "message": short(e)}), encoding=_ENCODING
+                    codec.pack({"error": "internal", "message": short(e)}), encoding=ZENOH_ENCODING
                 )
             finally:
                 query.drop()
@@ -619,7 +460,7 @@ class Node:
             raise Unavailable(f"service {service!r} is not alive (no alive/{service} token)")
         payload = codec.pack(dict(args or {}))
         key = rpc_key(service, method)
-        replies = self.session.get(key, payload=payload, encoding=_ENCODING, timeout=timeout_s)
+        replies = self.session.get(key, payload=payload, encoding=ZENOH_ENCODING, timeout=timeout_s)
         return PendingCall(self, service, key, payload, deadline, replies)
 
     def _call_retry(
@@ -636,7 +477,9 @@ class Node:
             time.sleep(min(CALL_RETRY_S, max(deadline - time.monotonic(), 0.0)))
             left = deadline - time.monotonic()
             replies = list(
-                self.session.get(key, payload=payload, encoding=_ENCODING, timeout=max(left, 0.05))
+                self.session.get(
+                    key, payload=payload, encoding=ZENOH_ENCODING, timeout=max(left, 0.05)
+                )
             )
             if replies:
                 return _reply_map(replies[0], key)
@@ -674,15 +517,6 @@ def _small(data: dict[str, Any]) -> bool:
         return False
 
 
-def _payload(payload: zenoh.ZBytes, max_bytes: int) -> bytes:
-    """The payload's bytes, or ProtocolError when it is larger than `max_bytes` (it is not
-    even copied out of Zenoh then)."""
-    n = len(payload)
-    if n > max_bytes:
-        raise ProtocolError("payload", f"{n} bytes is more than the {max_bytes} allowed")
-    return payload.to_bytes()
-
-
 def _reply_map(reply: zenoh.Reply, key: str) -> dict[str, Any]:
     if reply.ok is not None:
         data = codec.unpack(reply.ok.payload.to_bytes())
@@ -700,17 +534,6 @@ def _reply_map(reply: zenoh.Reply, key: str) -> dict[str, Any]:
     if raw == ZENOH_TIMEOUT:
         raise TimedOut(f"{key}: timed out with no reply; it may still be running")
     raise RpcError("internal", f"{key}: {short(raw.decode('utf-8', 'replace'))}")
-
-
-def _newer(msg: Message, newest: Message | None) -> bool:
-    """Latest-wins: a higher `seq` replaces; so does a lower one sent well after the newest,
-    which is a restarted publisher counting from 1 again, not a stale sample."""
-    if newest is None:
-        return True
-    seq, t_ns = getattr(msg, "seq", 0), getattr(msg, "t_ns", 0)
-    return bool(
-        seq > getattr(newest, "seq", 0) or t_ns - getattr(newest, "t_ns", 0) > RESTART_GAP_NS
-    )
 
 
 @contextmanager

@@ -35,8 +35,9 @@ from numpy.typing import ArrayLike, NDArray
 from services.bus import keys
 from services.bus.errors import RpcError, TelerobotError, Unavailable
 from services.bus.messages import Event, MasterState, Message, RobotState, mat3, vec
-from services.bus.node import Node, wait_latest
+from services.bus.node import Node
 from services.bus.rate import RateLoop
+from services.bus.streams import wait_latest
 from services.control.master.virtual import VirtualMaster
 from services.geometry import angle_between, exp_so3, rotation_angle, rxyz, rxyz_inv, slerp
 from services.world.workcell.messages import WORKCELL_STATE, ObjectView, WorkcellState, objects_of
