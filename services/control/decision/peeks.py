@@ -7,16 +7,19 @@ nested call: a service that is not alive is reported at once (`unavailable`, fro
 liveliness); a reply younger than `max_age_s` is returned as it is, with `age_ms`, and one
 older than `refresh_s` starts one refresh in the background for the next caller; with
 none, or one too old, the call is made and waited for, as before. The live parts of
-`status` (robot/state, robot/force, the supervisor) never come from here.
+`status` (robot/state, robot/force, the supervisor) never come from here; `stamped` and
+`read_sample` turn their newest samples into `status` entries.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from dataclasses import fields
 from typing import Any
 
 from services.bus.errors import RpcError, Unavailable
+from services.bus.messages import ForceSample, RobotState
 from services.bus.node import Node
 
 #: a kept reply older than this is refreshed in the background for the next caller
@@ -87,3 +90,31 @@ class Peek:
         finally:
             with self._lock:
                 self._refreshing = False
+
+
+def read_sample(got: dict[str, Any]) -> dict[str, Any] | None:
+    """A `sensor_read` reply as status's `force` entry (age from its `t_ns`), or None."""
+    if "error" in got or not isinstance(got.get("t_ns"), int):
+        return None
+    return {**got, "age_ms": max(time.time_ns() - got["t_ns"], 0) / 1e6, "via": "sensor_read"}
+
+
+def stamped(
+    item: tuple[RobotState, int] | tuple[ForceSample, int] | None, now_ns: int
+) -> dict[str, Any] | None:
+    if item is None:
+        return None
+    msg, rx_ns = item
+    # Decoded by the codec: finite numbers, flat tuples, no bytes (jsonable's cases).
+    names = _STATE_FIELDS if isinstance(msg, RobotState) else _FORCE_FIELDS
+    out: dict[str, Any] = {
+        name: list(v) if isinstance(v, tuple) else v
+        for name in names
+        for v in (getattr(msg, name),)
+    }
+    out["age_ms"] = (now_ns - rx_ns) / 1e6
+    return out
+
+
+_STATE_FIELDS = tuple(f.name for f in fields(RobotState))
+_FORCE_FIELDS = tuple(f.name for f in fields(ForceSample))

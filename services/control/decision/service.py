@@ -28,7 +28,6 @@ import threading
 import time
 import traceback
 from collections.abc import Callable, Mapping
-from dataclasses import fields
 from functools import partial
 from typing import Any
 
@@ -39,13 +38,14 @@ from services.bus.bounds import each_out_of_bounds, norm_out_of_bounds, out_of_b
 from services.bus.codec import arg
 from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
-from services.bus.keys import CMD, FORCE, PUMA_CMD, STATE
-from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3
+from services.bus.keys import CMD, PUMA_CMD, STATE
+from services.bus.messages import ForceSample, OperatorCommand, mat3
 from services.bus.node import Node
 from services.control.decision.config import STARTUP_ONLY, DecisionConfig
+from services.control.decision.forcefeed import FORCE_WAIT_S, ForceFeed
 from services.control.decision.notices import INTERVENTIONS, Notice
 from services.control.decision.passivity import SlaveTdpa
-from services.control.decision.peeks import Peek
+from services.control.decision.peeks import Peek, read_sample, stamped
 from services.control.decision.supervisor import Inputs, Mode, Supervisor
 from services.control.decision.taskrun import TaskRun
 from services.control.decision.tasks import TASK_NAMES, TaskPlan, plan_task
@@ -70,10 +70,6 @@ PUMA_METHODS: tuple[str, ...] = (
     "ik",
     "limits",
 )
-#: how long a task or an engagement started while idle waits for robot/force to flow, and
-#: how often a task looks
-FORCE_WAIT_S = 1.0
-FORCE_POLL_S = 0.002
 
 #: IForceSensor (PROTOCOL §4) forwarded to robot/force/rpc/…
 FORCE_METHODS: tuple[str, ...] = (
@@ -139,10 +135,8 @@ class DecisionService:
             )
         )
         self._state = node.latest(STATE)
-        # robot/force only while the arm moves or may start to (`_watch_force`).
-        self._force = node.latest(FORCE, watch=False)
-        self._force_pins = 0  # callers that need robot/force whatever the mode
-        self._warm_since_ns: int | None = None  # subscribed for an engagement, none yet
+        # robot/force only while the arm moves or may start to (forcefeed.py).
+        self._force = ForceFeed(node)
         node.alive.on_change(self._on_alive)
         node.serve(
             SERVICE,
@@ -164,53 +158,7 @@ class DecisionService:
             self._react(lost=(name,))
 
     def _watch_force(self) -> None:
-        """Subscribe to robot/force while teleoperation or a task runs, a forwarded motion
-        is watched, or an engagement waits for the stream; drop it otherwise, so an idle
-        system (masters alive but not engaged included) neither sends, forwards nor
-        receives 1 kHz of force for nobody (the force service follows its matching
-        status). Under the lock."""
-        sup = self.supervisor
-        need = (
-            self._warm_since_ns is not None
-            or self._force_pins > 0
-            or sup.mode in (Mode.FOLLOW, Mode.TASK)
-            or sup.watch is not None
-        )
-        if need != self._force.watching:
-            self._force.watch(need)
-
-    def _warm_force(self, commands: tuple[OperatorCommand, ...], now_ns: int) -> bool:
-        """Whether robot/force is being brought up for an engagement (Inputs.force_warming).
-
-        An active command while unsubscribed subscribes and starts the wait; the supervisor
-        then defers (never refuses) a new engagement until the first sample is in, at most
-        FORCE_WAIT_S (a master repeats its command at ≥ 50 Hz, so it starts a tick or two
-        later). After that the rules for a stale stream apply. Under the lock."""
-        if not self._force.watching and any(c.active for c in commands):
-            self._warm_since_ns = now_ns
-            self._force.watch(True)
-        if self._warm_since_ns is None:
-            return False
-        got = self._force.read()
-        if (got is not None and got[1] >= self._warm_since_ns) or (
-            now_ns - self._warm_since_ns > FORCE_WAIT_S * 1e9
-        ):
-            self._warm_since_ns = None
-            return False
-        return True
-
-    def _await_force(self, timeout_s: float) -> bool:
-        """Wait (under the lock, which the wait releases) until a robot/force sample no
-        older than `stale_ms` is in, polling Zenoh's ring every FORCE_POLL_S."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            got = self._force.read()
-            if got is not None and fresh(self.config.stale_ms, time.monotonic_ns(), got[1]):
-                return True
-            left = deadline - time.monotonic()
-            if left <= 0:
-                return False
-            self._cond.wait(min(left, FORCE_POLL_S))
+        self._force.update(self.supervisor)
 
     # --- ticks -----------------------------------------------------------------------------
     @property
@@ -222,7 +170,7 @@ class DecisionService:
     ) -> Inputs:
         """The tick's inputs (under the lock: the newest state and force are read here)."""
         now_ns = time.monotonic_ns()
-        warming = self._warm_force(commands, now_ns)
+        warming = self._force.warm(commands, now_ns)
         state, force = self._state.read(), self._force.read()
         return Inputs(
             now_ns=now_ns,
@@ -470,9 +418,9 @@ class DecisionService:
             "supervisor": snap,
             "settings": settings,
             "interventions": interventions,
-            "robot": _stamped(state, now),
+            "robot": stamped(state, now),
             # Not subscribed to robot/force (idle): the sensor's newest sample, asked for.
-            "force": _stamped(force, now) if watching else _read_sample(self._peeks[2].get()),
+            "force": stamped(force, now) if watching else read_sample(self._peeks[2].get()),
             "puma": self._peeks[0].get(),
             "sensor": self._peeks[1].get(),
             "alive": sorted(self.node.alive.names()),
@@ -582,13 +530,13 @@ class DecisionService:
             plan = plan_task(name, args, self.config)
             # A task senses contact from its first step: subscribe (if idle) and give the
             # stream up to FORCE_WAIT_S to arrive; without it the task refuses as before.
-            self._force_pins += 1
+            self._force.pins += 1
             try:
                 self._watch_force()
-                self._await_force(FORCE_WAIT_S)
+                self._force.wait_fresh(self._cond, self.config.stale_ms, FORCE_WAIT_S)
                 run = self.supervisor.start_task(plan, time.monotonic_ns())
             finally:
-                self._force_pins -= 1
+                self._force.pins -= 1
         self._react()  # the task's first step now; the timer takes the next ones
         if not plan.wait:
             return {"accepted": True, "task": name, "id": run.id}
@@ -661,34 +609,6 @@ def _floats3(v: object) -> list[float] | None:
     if isinstance(v, list | tuple) and len(v) == 3 and all(_number(x) for x in v):
         return [float(x) for x in v]
     return None
-
-
-def _read_sample(got: dict[str, Any]) -> dict[str, Any] | None:
-    """A `sensor_read` reply as status's `force` entry (age from its `t_ns`), or None."""
-    if "error" in got or not isinstance(got.get("t_ns"), int):
-        return None
-    return {**got, "age_ms": max(time.time_ns() - got["t_ns"], 0) / 1e6, "via": "sensor_read"}
-
-
-def _stamped(
-    item: tuple[RobotState, int] | tuple[ForceSample, int] | None, now_ns: int
-) -> dict[str, Any] | None:
-    if item is None:
-        return None
-    msg, rx_ns = item
-    # Decoded by the codec: finite numbers, flat tuples, no bytes (jsonable's cases).
-    names = _STATE_FIELDS if isinstance(msg, RobotState) else _FORCE_FIELDS
-    out: dict[str, Any] = {
-        name: list(v) if isinstance(v, tuple) else v
-        for name in names
-        for v in (getattr(msg, name),)
-    }
-    out["age_ms"] = (now_ns - rx_ns) / 1e6
-    return out
-
-
-_STATE_FIELDS = tuple(f.name for f in fields(RobotState))
-_FORCE_FIELDS = tuple(f.name for f in fields(ForceSample))
 
 
 def _outcome(run: TaskRun) -> dict[str, Any]:
