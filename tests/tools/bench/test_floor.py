@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from services.bus import codec, node
+from services.bus import codec, streams
 from services.bus.keys import FORCE, QoS
 from services.bus.messages import ForceSample
 from services.tools.bench import floor, stats
@@ -27,7 +27,7 @@ def test_the_floor_sends_exactly_the_bytes_codec_encodes() -> None:
 
 def test_the_floor_has_robot_force_qos() -> None:
     assert FORCE.qos is QoS.CONTROL is floor.FLOOR_TOPIC.qos
-    control = node._QOS[QoS.CONTROL]
+    control = streams._QOS[QoS.CONTROL]
     assert control["priority"] == floor.FLOOR_PRIORITY
     assert control["express"] is floor.FLOOR_EXPRESS
     assert control["congestion_control"] == floor.FLOOR_CONGESTION
