@@ -22,6 +22,8 @@ from services.control.decision.watchdogs import fresh
 
 FORCE_WAIT_S = 1.0
 """How long an engagement or a task started while idle waits for robot/force to flow."""
+WARM_KEEP_S = 2.0
+"""How long the subscription made for an engagement stays if that engagement never starts."""
 FORCE_POLL_S = 0.002
 """How often a task starting while idle looks for the first sample."""
 
@@ -41,17 +43,16 @@ class ForceFeed:
     def read(self) -> tuple[ForceSample, int] | None:
         return self.latest.read()
 
-    def update(self, sup: Supervisor) -> None:
+    def update(self, sup: Supervisor, now_ns: int) -> None:
         """Subscribe while teleoperation or a task runs, a forwarded motion is watched, a
-        caller pins it or an engagement waits for the stream; drop it otherwise, so an idle
-        system (masters alive but not engaged included) neither sends, forwards nor
-        receives 1 kHz of force for nobody."""
-        need = (
-            self._warm_since_ns is not None
-            or self.pins > 0
-            or sup.mode in (Mode.FOLLOW, Mode.TASK)
-            or sup.watch is not None
-        )
+        caller pins it or an engagement waits for it (for at most WARM_KEEP_S, or until it
+        starts); drop it otherwise, so an idle system (masters alive but not engaged
+        included) neither sends, forwards nor receives 1 kHz of force for nobody."""
+        engaged = sup.mode in (Mode.FOLLOW, Mode.TASK)
+        warm = self._warm_since_ns
+        if warm is not None and (engaged or now_ns - warm > WARM_KEEP_S * 1e9):
+            self._warm_since_ns = warm = None
+        need = warm is not None or self.pins > 0 or engaged or sup.watch is not None
         if need != self.latest.watching:
             self.latest.watch(need)
 
@@ -59,21 +60,21 @@ class ForceFeed:
         """Whether robot/force is being brought up for an engagement (Inputs.force_warming).
 
         An active command while unsubscribed subscribes and starts the wait; the supervisor
-        then defers (never refuses) a new engagement until the first sample is in, at most
-        FORCE_WAIT_S (a master repeats its command at ≥ 50 Hz, so it starts a tick or two
-        later). After that the rules for a stale stream apply."""
+        then defers (never refuses) a new engagement until a sample sent since is in, at
+        most FORCE_WAIT_S (a master repeats its command at ≥ 50 Hz, so it starts a tick or
+        two later); after that the rules for a stale stream apply. The subscription stays
+        until the engagement starts (or WARM_KEEP_S), whichever tick saw the stream back:
+        a timer tick between two commands must not drop it again."""
         if not self.latest.watching and any(c.active for c in commands):
             self._warm_since_ns = now_ns
             self.latest.watch(True)
-        if self._warm_since_ns is None:
+        warm = self._warm_since_ns
+        if warm is None:
             return False
         got = self.latest.read()
-        if (got is not None and got[1] >= self._warm_since_ns) or (
-            now_ns - self._warm_since_ns > FORCE_WAIT_S * 1e9
-        ):
-            self._warm_since_ns = None
-            return False
-        return True
+        if got is not None and got[1] >= warm:
+            return False  # the stream is back
+        return now_ns - warm <= FORCE_WAIT_S * 1e9
 
     def wait_fresh(self, cond: threading.Condition, stale_ms: float, timeout_s: float) -> bool:
         """Wait (holding `cond`, which the wait releases) until a sample no older than

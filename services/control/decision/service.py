@@ -158,7 +158,7 @@ class DecisionService:
             self._react(lost=(name,))
 
     def _watch_force(self) -> None:
-        self._force.update(self.supervisor)
+        self._force.update(self.supervisor, time.monotonic_ns())
 
     # --- ticks -----------------------------------------------------------------------------
     @property
