@@ -202,6 +202,8 @@ def test_while_a_decision_server_runs_only_it_may_start_motions(net, puma) -> No
     decision = net.node("decision")
     decision.announce()  # alive/decision: a supervisor is there now
     assert client.alive.wait("decision", 10.0)
+    # the puma's own view of the token counts, not the client's (they arrive apart)
+    assert puma.node.alive.wait("decision", 10.0)
     sent = puma.arm.setpoints_accepted
     with pytest.raises(RpcError) as err:
         client.call("puma", "move_relative", move, timeout_s=20.0)
