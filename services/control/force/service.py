@@ -47,9 +47,9 @@ class ForceService:
         # status, bias and `sensor_read` stay current), the samples are not encoded or put.
         self._watched = False
         self.unsent = 0
-        self.audience = Audience(node.session, (keys.FORCE.key,), self._on_audience)
         self.core = ForceCore(open_force_sensor(config), config, self._publish, self._emit)
-        self.core.set_unused(not self._watched)
+        # Before sensing starts (autostart, below): its first call says who listens now.
+        self.audience = Audience(node.session, (keys.FORCE.key,), self._on_audience)
         node.subscribe(keys.STATE, self._on_state)
         if config.sensor == "sim":
             node.subscribe(WORKCELL_STATE, self._on_workcell)
@@ -90,9 +90,7 @@ class ForceService:
 
     def _on_audience(self, watched: bool) -> None:
         self._watched = watched
-        core = getattr(self, "core", None)  # the first call comes before the core exists
-        if core is not None:
-            core.set_unused(not watched)
+        self.core.set_unused(not watched)
         log.info("robot/force %s", "has subscribers: publishing" if watched else "unwatched")
 
     def _rpc_sensor_status(self, args: dict[str, Any]) -> dict[str, Any]:
