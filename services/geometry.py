@@ -37,7 +37,6 @@ and ≫ the ~1e-16 rounding of one product so that the SVD runs rarely."""
 
 _SMALL_ANGLE_RAD = 1e-8
 _GIMBAL_EPS = 1e-9
-_I3 = np.eye(3)
 
 
 def _floats3(v: ArrayLike) -> tuple[float, float, float]:
@@ -106,6 +105,10 @@ def orthonormalize(R: ArrayLike) -> Mat3:
     err, det = rotation_defect(m.reshape(9).tolist())
     if err < ORTHONORMAL_TOL and det > 0.0:
         return m
+    return _nearest_rotation(m)
+
+
+def _nearest_rotation(m: Mat3) -> Mat3:
     u, _, vt = np.linalg.svd(m)
     d = np.sign(np.linalg.det(u @ vt)) or 1.0
     return np.asarray(u @ np.diag([1.0, 1.0, d]) @ vt, dtype=float)
@@ -128,45 +131,13 @@ def vee(m: ArrayLike) -> Vec3:
 
 def exp_so3(w: ArrayLike) -> Mat3:
     """The rotation by |w| rad about w/|w| (Rodrigues' formula, plain floats, exact)."""
-    x, y, z = _floats3(w)
-    angle = math.sqrt(x * x + y * y + z * z)
-    if angle < _SMALL_ANGLE_RAD:
-        a, b = 1.0, 0.5
-    else:
-        a, b = math.sin(angle) / angle, (1.0 - math.cos(angle)) / (angle * angle)
-    # I + a·[w]× + b·[w]×², with [w]×² = w wᵀ − |w|² I
-    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
-    return np.array(
-        [
-            [1.0 - b * (yy + zz), b * xy - a * z, b * xz + a * y],
-            [b * xy + a * z, 1.0 - b * (xx + zz), b * yz - a * x],
-            [b * xz - a * y, b * yz + a * x, 1.0 - b * (xx + yy)],
-        ]
-    )
+    return np.array(exp9(_floats3(w))).reshape(3, 3)
 
 
 def log_so3(R: ArrayLike) -> Vec3:
     """The rotation vector w (axis·angle, |w| ≤ π) with exp_so3(w) == R."""
-    r = np.asarray(R, dtype=float)
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = r.tolist()
-    vx, vy, vz = r21 - r12, r02 - r20, r10 - r01  # 2·sin θ·axis
-    sin_t = 0.5 * math.sqrt(vx * vx + vy * vy + vz * vz)
-    cos_t = 0.5 * (r00 + r11 + r22 - 1.0)
-    angle = math.atan2(sin_t, cos_t)
-    if angle < _GIMBAL_EPS:
-        return np.array([0.5 * vx, 0.5 * vy, 0.5 * vz])
-    if angle < 0.75 * math.pi:
-        k = angle / (2.0 * sin_t)
-        return np.array([k * vx, k * vy, k * vz])
-    # Near π the antisymmetric part vanishes: take the axis from the symmetric part,
-    # (R + Rᵀ)/2 = cos θ·I + (1 − cos θ)·a·aᵀ, and only its sign from the antisymmetric one.
-    aat = 0.5 * (r + r.T) - cos_t * _I3
-    j = int(np.argmax(np.diag(aat)))
-    axis = aat[:, j] / math.sqrt(max(float(aat[j, j]), 1e-300))
-    axis = axis / np.linalg.norm(axis)
-    if float(axis[0] * vx + axis[1] * vy + axis[2] * vz) < 0.0:
-        axis = -axis
-    return np.asarray(angle * axis, dtype=float)
+    r: list[float] = np.asarray(R, dtype=float).reshape(9).tolist()
+    return np.array(log9(r))
 
 
 def rotation_angle(R: ArrayLike) -> float:
@@ -328,6 +299,156 @@ def rxyz_inv_near(R: ArrayLike, near_rad: ArrayLike) -> Vec3:
         candidates = [_branch_from_ax(M, ax), _branch_from_ax(M, ax + math.pi)]
     unwrapped = [_unwrap_near(c, ref) for c in candidates]
     return min(unwrapped, key=lambda c: float(np.sum((c - ref) ** 2)))
+
+
+# --- plain floats: V3 and row-major M9 --------------------------------------------------
+# The per-command paths (the decision's supervised target) in tuples of floats: on a
+# 3-vector a numpy call costs more than the arithmetic. Same formulas as the numpy forms.
+
+V3 = tuple[float, float, float]
+M9 = tuple[float, float, float, float, float, float, float, float, float]
+"""A 3×3 matrix as 9 floats, row-major."""
+I9: M9 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+def v3(v: ArrayLike) -> V3:
+    """A V3 from any 3-vector (a 3-tuple is taken as it is)."""
+    if type(v) is tuple and len(v) == 3:
+        return cast(V3, v)
+    return _floats3(v)
+
+
+def m9(R: ArrayLike) -> M9:
+    """An M9 from a 3×3 matrix or 9 row-major numbers."""
+    if isinstance(R, np.ndarray):
+        a, b, c, d, e, f, g, h, i = R.reshape(9).tolist()
+    else:
+        a, b, c, d, e, f, g, h, i = cast("Sequence[float]", R)
+    return (
+        float(a),
+        float(b),
+        float(c),
+        float(d),
+        float(e),
+        float(f),
+        float(g),
+        float(h),
+        float(i),
+    )
+
+
+def as_mat3(r: M9) -> Mat3:
+    """The numpy 3×3 of an M9."""
+    return np.array(r).reshape(3, 3)
+
+
+def mul9(A: M9, B: M9) -> M9:
+    """A·B."""
+    a, b, c, d, e, f, g, h, i = A
+    j, k, l, m, n, o, p, q, r = B
+    return (
+        a * j + b * m + c * p, a * k + b * n + c * q, a * l + b * o + c * r,
+        d * j + e * m + f * p, d * k + e * n + f * q, d * l + e * o + f * r,
+        g * j + h * m + i * p, g * k + h * n + i * q, g * l + h * o + i * r,
+    )  # fmt: skip
+
+
+def tmul9(A: M9, B: M9) -> M9:
+    """Aᵀ·B."""
+    a, b, c, d, e, f, g, h, i = A
+    j, k, l, m, n, o, p, q, r = B
+    return (
+        a * j + d * m + g * p, a * k + d * n + g * q, a * l + d * o + g * r,
+        b * j + e * m + h * p, b * k + e * n + h * q, b * l + e * o + h * r,
+        c * j + f * m + i * p, c * k + f * n + i * q, c * l + f * o + i * r,
+    )  # fmt: skip
+
+
+def mv9(A: M9, v: V3) -> V3:
+    """A·v."""
+    a, b, c, d, e, f, g, h, i = A
+    x, y, z = v
+    return (a * x + b * y + c * z, d * x + e * y + f * z, g * x + h * y + i * z)
+
+
+def add3(u: V3, v: V3) -> V3:
+    return (u[0] + v[0], u[1] + v[1], u[2] + v[2])
+
+
+def sub3(u: V3, v: V3) -> V3:
+    return (u[0] - v[0], u[1] - v[1], u[2] - v[2])
+
+
+def scale3(k: float, v: V3) -> V3:
+    return (k * v[0], k * v[1], k * v[2])
+
+
+def dot3(u: V3, v: V3) -> float:
+    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
+
+
+def len3(v: V3) -> float:
+    """‖v‖ of a V3 (`norm3` for any array-like)."""
+    x, y, z = v
+    return math.sqrt(x * x + y * y + z * z)
+
+
+def finite9(r: Sequence[float]) -> bool:
+    return all(math.isfinite(x) for x in r)
+
+
+def ortho9(r: M9) -> M9:
+    """`orthonormalize` of an M9: r itself when it is a rotation to within ORTHONORMAL_TOL
+    (the arithmetic only), else the SVD."""
+    err, det = rotation_defect(r)
+    if err < ORTHONORMAL_TOL and det > 0.0:
+        return r
+    return m9(_nearest_rotation(as_mat3(r)))
+
+
+def exp9(w: V3) -> M9:
+    """`exp_so3` as an M9: I + a·[w]× + b·[w]×², [w]×² = w wᵀ − |w|² I (Rodrigues)."""
+    x, y, z = w
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle < _SMALL_ANGLE_RAD:
+        a, b = 1.0, 0.5
+    else:
+        a, b = math.sin(angle) / angle, (1.0 - math.cos(angle)) / (angle * angle)
+    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+    return (
+        1.0 - b * (yy + zz), b * xy - a * z, b * xz + a * y,
+        b * xy + a * z, 1.0 - b * (xx + zz), b * yz - a * x,
+        b * xz - a * y, b * yz + a * x, 1.0 - b * (xx + yy),
+    )  # fmt: skip
+
+
+def log9(r: Sequence[float]) -> V3:
+    """`log_so3` of 9 row-major floats: the rotation vector (axis·angle, |w| ≤ π)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
+    vx, vy, vz = r21 - r12, r02 - r20, r10 - r01  # 2·sin θ·axis
+    sin_t = 0.5 * math.sqrt(vx * vx + vy * vy + vz * vz)
+    cos_t = 0.5 * (r00 + r11 + r22 - 1.0)
+    angle = math.atan2(sin_t, cos_t)
+    if angle < _GIMBAL_EPS:
+        return (0.5 * vx, 0.5 * vy, 0.5 * vz)
+    if angle < 0.75 * math.pi:
+        k = angle / (2.0 * sin_t)
+        return (k * vx, k * vy, k * vz)
+    # Near π the antisymmetric part vanishes: take the axis from the symmetric part,
+    # (R + Rᵀ)/2 = cos θ·I + (1 − cos θ)·a·aᵀ, and only its sign from the antisymmetric one.
+    s01, s02, s12 = 0.5 * (r01 + r10), 0.5 * (r02 + r20), 0.5 * (r12 + r21)
+    cols = (
+        (r00 - cos_t, s01, s02),
+        (s01, r11 - cos_t, s12),
+        (s02, s12, r22 - cos_t),
+    )
+    j = max(range(3), key=lambda k: cols[k][k])  # the first largest, as np.argmax
+    col = cols[j]
+    axis = scale3(1.0 / math.sqrt(max(col[j], 1e-300)), col)
+    axis = scale3(1.0 / len3(axis), axis)
+    if dot3(axis, (vx, vy, vz)) < 0.0:
+        axis = scale3(-1.0, axis)
+    return scale3(angle, axis)
 
 
 # --- the tool target of an operator command (eqs. 2–3, PROTOCOL §2) -------------------

@@ -12,13 +12,19 @@ from hypothesis import strategies as st
 
 from services.bus import codec
 from services.geometry import (
+    I9,
     ORTHONORMAL_TOL,
     ROTATION_TOL,
     R_from_wxyz,
     angle_between,
     exp_so3,
     is_rotation,
+    log9,
     log_so3,
+    m9,
+    mul9,
+    mv9,
+    ortho9,
     orthonormalize,
     quat_of_rotation,
     quat_of_rx_rz,
@@ -35,6 +41,7 @@ from services.geometry import (
     rxyz_inv_near,
     skew,
     slerp,
+    tmul9,
     tool_target_point,
     tool_target_pose,
     vee,
@@ -335,3 +342,42 @@ def test_tool_target_point_is_the_point_of_the_pose() -> None:
         np.testing.assert_array_equal(tool_target_point(p0, R0, dp, frame), p)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="frame"):
         tool_target_point(p0, R0, dp, "wrist")  # type: ignore[arg-type]
+
+
+_unit = st.floats(-1.0, 1.0, allow_nan=False)
+
+
+@given(
+    st.lists(_unit, min_size=3, max_size=3),
+    st.lists(_unit, min_size=3, max_size=3),
+    st.lists(st.floats(-10.0, 10.0, allow_nan=False), min_size=3, max_size=3),
+)
+def test_plain_float_products_agree_with_numpy(
+    wa: list[float], wb: list[float], v: list[float]
+) -> None:
+    A, B = exp_so3(np.array(wa) * 3.0), exp_so3(np.array(wb) * 3.0)
+    assert np.allclose(np.reshape(mul9(m9(A), m9(B)), (3, 3)), A @ B, atol=1e-15)
+    assert np.allclose(np.reshape(tmul9(m9(A), m9(B)), (3, 3)), A.T @ B, atol=1e-15)
+    assert np.allclose(mv9(m9(A), (v[0], v[1], v[2])), A @ np.array(v), atol=1e-13)
+
+
+@given(st.lists(_unit, min_size=3, max_size=3), st.floats(0.0, math.pi))
+def test_plain_float_log_matches_the_array_log_at_every_angle(
+    axis: list[float], angle: float
+) -> None:
+    a = np.array(axis)
+    if np.linalg.norm(a) < 1e-3:
+        a = np.array([0.0, 0.0, 1.0])
+    R = rotation_about(a, angle)
+    assert np.allclose(log9(m9(R)), log_so3(R), atol=1e-12)
+    assert np.allclose(exp_so3(np.array(log9(m9(R)))), R, atol=1e-9)
+
+
+def test_plain_float_orthonormalize_keeps_a_rotation_and_repairs_drift() -> None:
+    R = m9(exp_so3((0.3, -0.2, 0.1)))
+    assert ortho9(R) is R  # nothing to repair: the same tuple
+    drifted = m9((R[0] * (1 + 1e-7), *R[1:]))
+    fixed = ortho9(drifted)
+    assert rotation_defect(fixed)[0] < ORTHONORMAL_TOL
+    assert np.allclose(np.reshape(fixed, (3, 3)), orthonormalize(np.reshape(drifted, (3, 3))))
+    assert ortho9(I9) == I9

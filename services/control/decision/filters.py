@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.geometry import norm3, orthonormalize
+from services.geometry import V3, len3, orthonormalize, v3
 
 Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
@@ -28,7 +28,11 @@ def engagement_command(p0: ArrayLike, R0: ArrayLike, p: ArrayLike, R: ArrayLike)
     return np.asarray(p, dtype=float) - np.asarray(p0, dtype=float), dR
 
 
-def without_motion_into(inc: ArrayLike, normal: ArrayLike) -> tuple[Vec, float]:
+# The per-command filters below work in plain floats (V3 tuples; numpy arrays are accepted):
+# the decision runs them on every operator command.
+
+
+def without_motion_into(inc: ArrayLike, normal: ArrayLike) -> tuple[V3, float]:
     """The contact filter: `inc` without its component into a contact.
 
     `normal` points out of the contact (along the force the environment applies to the tool,
@@ -36,68 +40,68 @@ def without_motion_into(inc: ArrayLike, normal: ArrayLike) -> tuple[Vec, float]:
     −normal is removed; motion along the surface or away from it is kept. Returns the
     filtered increment and the length removed (≥ 0).
     """
-    v = np.asarray(inc, dtype=float)
-    n = np.asarray(normal, dtype=float)
-    norm = norm3(n)
+    vx, vy, vz = v = v3(inc)
+    nx, ny, nz = v3(normal)
+    norm = len3((nx, ny, nz))
     if norm < _TINY:
-        return v.copy(), 0.0
-    n = n / norm
-    s = float(v @ n)
+        return v, 0.0
+    nx, ny, nz = nx / norm, ny / norm, nz / norm
+    s = vx * nx + vy * ny + vz * nz
     if s >= 0.0:
-        return v.copy(), 0.0
-    return v - s * n, -s
+        return v, 0.0
+    return (vx - s * nx, vy - s * ny, vz - s * nz), -s
 
 
-def deadband(v: ArrayLike, width: float) -> Vec:
+def deadband(v: ArrayLike, width: float) -> V3:
     """`v` shrunk by `width` along its direction (zero inside the band): the admittance
     ignores sensor noise and a small bias, and is continuous at the band's edge."""
-    a = np.asarray(v, dtype=float)
-    n = norm3(a)
+    x, y, z = v3(v)
+    n = len3((x, y, z))
     if n <= width or n < _TINY:
-        return np.zeros_like(a)
-    return a * ((n - width) / n)
+        return (0.0, 0.0, 0.0)
+    k = (n - width) / n
+    return (x * k, y * k, z * k)
 
 
-def admittance_step(wrench: ArrayLike, gain: float, width: float, dt_s: float) -> Vec:
+def admittance_step(wrench: ArrayLike, gain: float, width: float, dt_s: float) -> V3:
     """Active compliance (§2.1.4, the wrench used "as supervisory function"): the target
     yields along the measured force, Δx = gain · deadband(F, width) · dt.
 
     For translation: F = f_w (N, world), gain in m/(N·s), Δx in m (world). For rotation:
     F = c_t (N·m, tool), gain in rad/(N·m·s), Δx a rotation vector in the tool frame."""
-    return gain * dt_s * deadband(wrench, width)
+    x, y, z = deadband(wrench, width)
+    k = gain * dt_s
+    return (k * x, k * y, k * z)
 
 
-def clip_norm(v: ArrayLike, max_norm: float) -> tuple[Vec, bool]:
+def clip_norm(v: ArrayLike, max_norm: float) -> tuple[V3, bool]:
     """`v` scaled down to length `max_norm` if longer; and whether it was."""
-    a = np.asarray(v, dtype=float)
-    n = norm3(a)
+    x, y, z = a = v3(v)
+    n = len3(a)
     if n <= max_norm:
-        return a.copy(), False
-    return a * (max_norm / n), True
+        return a, False
+    k = max_norm / n
+    return (x * k, y * k, z * k), True
 
 
-def effective_box(lo: ArrayLike, hi: ArrayLike, p: ArrayLike) -> tuple[Vec, Vec]:
+def effective_box(lo: ArrayLike, hi: ArrayLike, p: ArrayLike) -> tuple[V3, V3]:
     """The workspace box grown, per axis, just enough to contain `p`.
 
     A target that starts outside the box (the arm was outside at engagement, or the box was
     just changed) may move towards it but never further out; once inside it stays inside.
     """
-    pp = np.asarray(p, dtype=float)
-    return np.minimum(np.asarray(lo, dtype=float), pp), np.maximum(np.asarray(hi, dtype=float), pp)
+    (lx, ly, lz), (hx, hy, hz), (x, y, z) = v3(lo), v3(hi), v3(p)
+    return (min(lx, x), min(ly, y), min(lz, z)), (max(hx, x), max(hy, y), max(hz, z))
 
 
-def clamp_box(p: ArrayLike, lo: ArrayLike, hi: ArrayLike) -> Vec:
+def clamp_box(p: ArrayLike, lo: ArrayLike, hi: ArrayLike) -> V3:
     """The point of the box [lo, hi] closest to `p` (the projection; it is non-expansive, so
     clamping a step that starts inside the box never lengthens it)."""
-    return np.clip(
-        np.asarray(p, dtype=float), np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
-    )
+    (x, y, z), (lx, ly, lz), (hx, hy, hz) = v3(p), v3(lo), v3(hi)
+    return (min(max(x, lx), hx), min(max(y, ly), hy), min(max(z, lz), hz))
 
 
 def in_box(p: ArrayLike, lo: ArrayLike, hi: ArrayLike, tol: float = 0.0) -> bool:
     """Whether `p` lies in [lo − tol, hi + tol] on every axis."""
-    a = np.asarray(p, dtype=float)
-    return bool(
-        np.all(a >= np.asarray(lo, dtype=float) - tol)
-        and np.all(a <= np.asarray(hi, dtype=float) + tol)
-    )
+    (x, y, z), (lx, ly, lz), (hx, hy, hz) = v3(p), v3(lo), v3(hi)
+    return lx - tol <= x <= hx + tol and ly - tol <= y <= hy + tol and lz - tol <= z <= hz + tol

@@ -118,8 +118,13 @@ class DecisionService:
         self.loop_errors = 0
         self.publish_errors = 0
         self.timer_ticks = 0
+        self.timer_wakes = 0
         self.timer_late = 0
         self.timer_late_max_ms = 0.0
+        self._planned_ns: int | None = None
+        """The deadline the timer sleeps to (None: it is awake, or waits for input)."""
+        self._task_waiters = 0
+        """Callers of `task` waiting for their task to end (every tick notifies them)."""
 
         self._pub = node.publisher(PUMA_CMD)
         self.passivity = SlaveTdpa(node, contact_n=config.max_force_n) if config.passivity else None
@@ -193,8 +198,17 @@ class DecisionService:
             if self._closed:
                 return
             notices = self._tick_locked(self._inputs(commands, lost))
-            self._cond.notify_all()
+            self._replan_locked()
         self._emit(notices)
+
+    def _replan_locked(self) -> None:
+        """Wake the timer only if the supervisor's next deadline moved before the one it
+        sleeps to (each command moves the watchdog's later: waking the timer for it on every
+        command would cost a thread switch per command)."""
+        wake = self.supervisor.next_wake_ns()
+        planned = self._planned_ns
+        if self._task_waiters or (wake is not None and (planned is None or wake < planned)):
+            self._cond.notify_all()
 
     def _tick_locked(self, inp: Inputs) -> tuple[Notice, ...]:
         """One supervisor tick under the lock; the command goes out before the lock is
@@ -261,7 +275,10 @@ class DecisionService:
                 now = time.monotonic_ns()
                 if wake is None or wake > now:
                     left_s = IDLE_WAIT_S if wake is None else min((wake - now) * 1e-9, IDLE_WAIT_S)
+                    self._planned_ns = wake
                     self._cond.wait(left_s)
+                    self._planned_ns = None
+                    self.timer_wakes += 1
                     continue
                 late_ms = (now - wake) * 1e-6
                 if late_ms > self.config.period_s * 1e3:
@@ -428,6 +445,7 @@ class DecisionService:
                 "rate_hz": self.config.rate_hz,
                 "ticks": snap["stats"]["ticks"],
                 "timer_ticks": self.timer_ticks,
+                "timer_wakes": self.timer_wakes,
                 "late": self.timer_late,
                 "late_max_ms": round(self.timer_late_max_ms, 3),
                 "errors": self.loop_errors,
@@ -544,7 +562,12 @@ class DecisionService:
 
     def _wait(self, run: TaskRun) -> dict[str, Any]:
         with self._cond:
-            if not self._cond.wait_for(lambda: run.done, self.config.wait_timeout_s):
+            self._task_waiters += 1
+            try:
+                done = self._cond.wait_for(lambda: run.done, self.config.wait_timeout_s)
+            finally:
+                self._task_waiters -= 1
+            if not done:
                 self.supervisor.cancel_task(time.monotonic_ns())
                 raise RpcError("internal", f"task {run.name!r} did not finish in time: cancelled")
         return _outcome(run)

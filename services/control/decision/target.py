@@ -7,7 +7,9 @@ through (a) contact, (b) active compliance, (c) tool speed, (d) workspace box; t
 sent `dp = p_sup − p0`, `dR = R0ᵀ·R_sup` in the world frame, so whatever a filter held back
 stays an offset of the target (off_p, off_R): it never turns into a jump.
 
-Pure: the supervisor passes the time and the sensed state in a `Sensed` each tick.
+Pure: the supervisor passes the time and the sensed state in a `Sensed` each tick. It runs on
+every operator command, so it computes in plain floats (`V3`, row-major `M9`: a numpy call
+on a 3-vector costs more than the arithmetic); the pose attributes read as numpy arrays.
 """
 
 from __future__ import annotations
@@ -15,20 +17,38 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
-from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3, vec
+from services.bus.messages import ForceSample, OperatorCommand, RobotState
 from services.control.decision.config import DecisionConfig
 from services.control.decision.filters import (
     admittance_step,
     clamp_box,
     clip_norm,
     effective_box,
-    engagement_command,
     without_motion_into,
 )
-from services.control.decision.notices import Notices, floats
-from services.geometry import exp_so3, log_so3, norm3, orthonormalize, tool_target_pose
+from services.control.decision.notices import Notices
+from services.geometry import (
+    I9,
+    M9,
+    V3,
+    add3,
+    as_mat3,
+    dot3,
+    exp9,
+    finite9,
+    len3,
+    log9,
+    m9,
+    mul9,
+    mv9,
+    ortho9,
+    scale3,
+    sub3,
+    tmul9,
+    v3,
+)
 
 Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
@@ -42,6 +62,7 @@ STEP_EPS_RAD = 1e-9
 HOLD_RESEND_NS = 50_000_000
 """A hold is re-sent this often (20 Hz): one lost packet must not matter, and the puma needs
 nothing more while nothing changes."""
+_ZERO: V3 = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,18 +81,19 @@ class SupervisedTarget:
     """The target of the current outgoing engagement and the outgoing counters.
 
     `seq_start` and `engage_start` seed the counters. `p0` is None until the first
-    engagement: before it there is nothing to command.
+    engagement: before it there is nothing to command. The poses (`p0`, `R0`, `p_sup`,
+    `R_sup`, `off_p`, `off_R`) read as fresh numpy arrays; `p_sup` and `R_sup` may be set.
     """
 
     def __init__(self, seq_start: int, engage_start: int, period_s: float) -> None:
         self.seq_out = seq_start
         self.engage_out = engage_start
-        self.p0: Vec | None = None
-        self.R0: Mat = np.eye(3)
-        self.p_sup: Vec = np.zeros(3)
-        self.R_sup: Mat = np.eye(3)
-        self.off_p: Vec = np.zeros(3)
-        self.off_R: Mat = np.eye(3)
+        self._p0: V3 | None = None
+        self._R0: M9 = I9
+        self._p: V3 = _ZERO
+        self._R: M9 = I9
+        self._off_p: V3 = _ZERO
+        self._off_R: M9 = I9
         self.grip: float | None = None
         self.dt_s = period_s
         self.lagging = False
@@ -79,6 +101,39 @@ class SupervisedTarget:
         self.last_adv_ns: int | None = None
         self.last_out_ns: int | None = None
         self.last_out_active = False
+
+    # --- the poses, as numpy for the rest of the decision -----------------------------------
+    @property
+    def p0(self) -> Vec | None:
+        return None if self._p0 is None else np.array(self._p0)
+
+    @property
+    def R0(self) -> Mat:
+        return as_mat3(self._R0)
+
+    @property
+    def p_sup(self) -> Vec:
+        return np.array(self._p)
+
+    @p_sup.setter
+    def p_sup(self, p: ArrayLike) -> None:
+        self._p = v3(p)
+
+    @property
+    def R_sup(self) -> Mat:
+        return as_mat3(self._R)
+
+    @R_sup.setter
+    def R_sup(self, R: ArrayLike) -> None:
+        self._R = m9(R)
+
+    @property
+    def off_p(self) -> Vec:
+        return np.array(self._off_p)
+
+    @property
+    def off_R(self) -> Mat:
+        return as_mat3(self._off_R)
 
     def start_tick(self, now_ns: int, cfg: DecisionConfig) -> None:
         """The time the target may move over this tick: since its last step, at most one
@@ -93,12 +148,10 @@ class SupervisedTarget:
     def begin(self, state: RobotState, now_ns: int, period_s: float) -> None:
         """Start a new engagement towards the puma, rebased on the current tool pose."""
         self.engage_out = max(self.engage_out, state.engage) + 1
-        self.p0 = np.array(state.tool_p, dtype=float)
-        self.R0 = orthonormalize(mat3(state.tool_R))
-        self.p_sup = self.p0.copy()
-        self.R_sup = self.R0.copy()
-        self.off_p = np.zeros(3)
-        self.off_R = np.eye(3)
+        self._p0 = self._p = v3(state.tool_p)
+        self._R0 = self._R = ortho9(m9(state.tool_R))
+        self._off_p = _ZERO
+        self._off_R = I9
         self.lagging = False
         # The engagement's first step may move one period's worth, as a tick always could.
         self.last_adv_ns = now_ns - int(period_s * 1e9)
@@ -120,23 +173,26 @@ class SupervisedTarget:
         """Move the target one step towards the operator's pose for `cmd` (PROTOCOL §2,
         from the engagement pose), keeping what the filters remove as the offset. False
         (nothing moved) if that pose is not finite."""
-        assert self.p0 is not None
-        p_des, R_des = tool_target_pose(self.p0, self.R0, cmd.dp, mat3(cmd.dR), cmd.frame)
-        g_p = p_des + self.off_p
-        g_R = R_des @ self.off_R
-        if not (np.isfinite(g_p).all() and np.isfinite(g_R).all()):
+        assert self._p0 is not None
+        # The operator's pose, eq. 2–3 (geometry.tool_target_pose): p0 + dp (world) or
+        # p0 + R0·dp (tool); R0·dR.
+        dp = v3(cmd.dp)
+        p_des = add3(self._p0, dp if cmd.frame == "world" else mv9(self._R0, dp))
+        R_des = mul9(self._R0, m9(cmd.dR))
+        g_p = add3(p_des, self._off_p)
+        g_R = mul9(R_des, self._off_R)
+        if not (finite9(g_p) and finite9(g_R)):
             return False
-        g_p, g_R = self.advance(g_p, g_R, sensed)
-        self.off_p = g_p - p_des
-        self.off_R = orthonormalize(R_des.T @ g_R)
+        g_p, g_R = self._advance(g_p, g_R, sensed)
+        self._off_p = sub3(g_p, p_des)
+        self._off_R = ortho9(tmul9(R_des, g_R))
         self.lagging = (
-            norm3(g_p - self.p_sup) > STEP_EPS_M
-            or norm3(log_so3(self.R_sup.T @ g_R)) > STEP_EPS_RAD
+            len3(sub3(g_p, self._p)) > STEP_EPS_M or len3(log9(tmul9(self._R, g_R))) > STEP_EPS_RAD
         )
         self.grip = cmd.grip
         return True
 
-    def advance(self, g_p: Vec, g_R: Mat, sensed: Sensed) -> tuple[Vec, Mat]:
+    def advance(self, g_p: ArrayLike, g_R: ArrayLike, sensed: Sensed) -> tuple[Vec, Mat]:
         """Move the supervised target one tick towards the goal (g_p, g_R) through the
         filters; return the goal with what the filters removed folded in (the new offset).
 
@@ -148,29 +204,34 @@ class SupervisedTarget:
         (d) workspace: goal and target are clamped to the box (grown to contain the current
             target, so a target outside may only come back).
         """
+        p, R = self._advance(v3(g_p), m9(g_R), sensed)
+        return np.array(p), as_mat3(R)
+
+    def _advance(self, g_p: V3, g_R: M9, sensed: Sensed) -> tuple[V3, M9]:
+        """`advance` in plain floats."""
         cfg, now, notices = sensed.cfg, sensed.now_ns, sensed.notices
         dt = self.dt_s
         self.last_adv_ns = now
-        lo, hi = effective_box(cfg.workspace_min, cfg.workspace_max, self.p_sup)
+        p_sup, R_sup = self._p, self._R
+        lo, hi = effective_box(cfg.workspace_min, cfg.workspace_max, p_sup)
         g1 = clamp_box(g_p, lo, hi)
-        clamped = norm3(g1 - g_p) > STEP_EPS_M
-        inc = g1 - self.p_sup
-        w = log_so3(self.R_sup.T @ g_R)
+        clamped = len3(sub3(g1, g_p)) > STEP_EPS_M
+        inc = sub3(g1, p_sup)
+        w = log9(tmul9(R_sup, g_R))
         state, force = sensed.state, sensed.force
         if force is not None and state is not None:
-            f_t = np.asarray(force.f, dtype=float)
-            c_t = np.asarray(force.c, dtype=float)
-            f_w = mat3(state.tool_R) @ f_t
-            f_n = norm3(f_w)
+            f_t, c_t = v3(force.f), v3(force.c)
+            f_w = mv9(m9(state.tool_R), f_t)
+            f_n = len3(f_w)
             if f_n > cfg.max_force_n:
                 inc, removed = without_motion_into(inc, f_w)
-                n = f_w / f_n
-                behind = float((np.asarray(state.tool_p) - self.p_sup) @ n)
-                ahead = float(inc @ n)
+                n = scale3(1.0 / f_n, f_w)
+                behind = dot3(sub3(v3(state.tool_p), p_sup), n)
+                ahead = dot3(inc, n)
                 if behind > ahead:
                     # The arm lags its target: pull the target back to the tool, so the arm
                     # stops where the force crossed the threshold instead of pressing on.
-                    inc = inc + (behind - ahead) * n
+                    inc = add3(inc, scale3(behind - ahead, n))
                     removed += behind - ahead
                 notices.edge(
                     now,
@@ -180,12 +241,12 @@ class SupervisedTarget:
                     f"contact force {f_n:.1f} N > {cfg.max_force_n:g} N: motion into it stopped",
                     {
                         "reason": "force",
-                        "f": floats(f_w),
+                        "f": list(f_w),
                         "force_n": f_n,
                         "tool_p": list(state.tool_p),
                     },
                 )
-            c_n = norm3(c_t)
+            c_n = len3(c_t)
             if c_n > cfg.max_torque_nm:
                 w, removed_r = without_motion_into(w, c_t)
                 notices.edge(
@@ -195,24 +256,29 @@ class SupervisedTarget:
                     "contact",
                     f"contact moment {c_n:.2f} N·m > {cfg.max_torque_nm:g} N·m: rotation into "
                     "it stopped",
-                    {"reason": "torque", "c": floats(c_t), "torque_nm": c_n},
+                    {"reason": "torque", "c": list(c_t), "torque_nm": c_n},
                 )
             if cfg.compliance:
-                inc = inc + admittance_step(
-                    f_w, cfg.admittance_m_per_n_s, cfg.admittance_deadband_n, dt
+                inc = add3(
+                    inc,
+                    admittance_step(f_w, cfg.admittance_m_per_n_s, cfg.admittance_deadband_n, dt),
                 )
-                w = w + admittance_step(
-                    c_t, cfg.admittance_rad_per_nm_s, cfg.admittance_deadband_nm, dt
+                w = add3(
+                    w,
+                    admittance_step(
+                        c_t, cfg.admittance_rad_per_nm_s, cfg.admittance_deadband_nm, dt
+                    ),
                 )
-        goal_p = self.p_sup + inc
-        goal_R = self.R_sup @ exp_so3(w)
+        goal_p = add3(p_sup, inc)
+        goal_R = mul9(R_sup, exp9(w))
         step, fast = clip_norm(inc, cfg.max_tool_speed_m_s * dt)
         wstep, spin = clip_norm(w, cfg.max_tool_rot_speed_rad_s * dt)
-        free = self.p_sup + step
+        free = add3(p_sup, step)
         p_new = clamp_box(free, lo, hi)
-        if norm3(p_new - free) > STEP_EPS_M:
+        pulled = sub3(p_new, free)
+        if len3(pulled) > STEP_EPS_M:
             clamped = True
-            goal_p = goal_p + (p_new - free)
+            goal_p = add3(goal_p, pulled)
         notices.edge(
             now,
             "workspace",
@@ -221,7 +287,7 @@ class SupervisedTarget:
             "workspace limit: target clamped to the box",
             {
                 "reason": "workspace",
-                "goal": floats(g_p),
+                "goal": list(g_p),
                 "min": list(cfg.workspace_min),
                 "max": list(cfg.workspace_max),
             },
@@ -238,16 +304,16 @@ class SupervisedTarget:
                 "max_tool_rot_speed_rad_s": cfg.max_tool_rot_speed_rad_s,
             },
         )
-        self.p_sup = p_new
-        self.R_sup = orthonormalize(self.R_sup @ exp_so3(wstep))
-        return goal_p, orthonormalize(goal_R)
+        self._p = p_new
+        self._R = ortho9(mul9(R_sup, exp9(wstep)))
+        return goal_p, ortho9(goal_R)
 
     def command(
         self, now_ns: int, wall_ns: int, active: bool, origin_t_ns: int | None = None
     ) -> OperatorCommand:
-        """The next command for robot/puma/cmd carrying the target (`t_ns` = wall_ns)."""
-        assert self.p0 is not None
-        dp, dR = engagement_command(self.p0, self.R0, self.p_sup, self.R_sup)
+        """The next command for robot/puma/cmd carrying the target (`t_ns` = wall_ns):
+        dp = p_sup − p0, dR = R0ᵀ·R_sup (filters.engagement_command, in plain floats)."""
+        assert self._p0 is not None
         self.seq_out += 1
         self.last_out_ns = now_ns
         self.last_out_active = active
@@ -258,8 +324,8 @@ class SupervisedTarget:
             engage=self.engage_out,
             active=active,
             frame="world",
-            dp=vec(dp),
-            dR=vec(dR),
+            dp=sub3(self._p, self._p0),
+            dR=ortho9(tmul9(self._R0, self._R)),
             grip=self.grip,
             origin_t_ns=origin_t_ns,
         )

@@ -330,6 +330,25 @@ def test_command_watchdog_holds_until_a_new_engagement(make_cell: Callable[..., 
     assert cell.call("status")["interventions"]["watchdog"] >= 1
 
 
+def test_commands_do_not_wake_the_timer_each(make_cell: Callable[..., Cell]) -> None:
+    """Following a 100 Hz master, each command is supervised on arrival; the timer wakes
+    only at the watchdog deadlines it slept to (each command moved them later)."""
+    cell = make_cell()
+    m = cell.master("m1")
+    m.engage_new(ramp((0.0, 0.02, 0.0), 0.1))
+    cell.robot(lambda s: abs(s.tool_p[1] - 0.02) < 5e-4, 5.0)
+    before = cell.call("status")["loop"]
+    n0 = cell.puma_cmds.count()
+    assert wait_until(lambda: cell.puma_cmds.count() >= n0 + 40, 5.0)
+    after = cell.call("status")["loop"]
+    ticks = after["ticks"] - before["ticks"]
+    wakes = after["timer_wakes"] - before["timer_wakes"]
+    assert ticks >= 40  # every command went through the supervisor
+    assert wakes <= ticks // 2, (wakes, ticks)
+    m.pause()
+    cell.events.wait(lambda e: e.kind == "watchdog" and e.source == "decision")
+
+
 def test_a_second_master_is_refused(make_cell: Callable[..., Cell]) -> None:
     cell = make_cell()
     m1, m2 = cell.master("m1"), cell.master("m2")
