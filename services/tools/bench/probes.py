@@ -189,6 +189,10 @@ class VideoProbe:
             return list(self.frames)
 
 
+CATCH_UP_S = 0.005
+"""How far behind its schedule the command driver catches up instead of skipping ticks."""
+
+
 class CommandDriver:
     """The bench as a master (`alive/master/<id>` is the node's token): streams
     OperatorCommands on `robot/cmd` whose `dp` encodes each command's index, so it can be
@@ -238,7 +242,9 @@ class CommandDriver:
         an operator would engage again.
         """
         run = CommandRun([], [])
-        loop = RateLoop(rate_hz)
+        # A tick woken late is sent at once (up to CATCH_UP_S behind) rather than skipped:
+        # the phase sends `rate_hz` on average, as a device's servo clock would.
+        loop = RateLoop(rate_hz, late_tolerance=max(1.0, CATCH_UP_S * rate_hz))
         end = time.monotonic() + duration_s
         k = k0 = 0
         while time.monotonic() < end:
