@@ -101,5 +101,7 @@ def arg_fraction(args: Mapping[str, Any], key: str) -> float:
 
 
 def too_long(v: Vec, max_norm: float) -> bool:
-    """‖v‖ > max_norm, without overflowing on absurd values."""
-    return bool(np.max(np.abs(v)) > max_norm) or float(np.linalg.norm(v)) > max_norm
+    """‖v‖ > max_norm, without overflowing on absurd values (plain floats: it checks every
+    streamed command)."""
+    x: list[float] = np.asarray(v, dtype=np.float64).reshape(-1).tolist()
+    return max(map(abs, x), default=0.0) > max_norm or math.hypot(*x) > max_norm

@@ -8,6 +8,10 @@ through `emit(kind, message, data)`. `PumaProxy` (proxy.py) adds the methods of 
 Frames: world R_w (the DH base frame), wrist R_e (the flange, DH frame 6, origin at the wrist
 centre), tool R_t (placed in R_e by `eMt`, set with `set_tool`). Units: m, rad, s.
 
+The per-tick and per-command state is plain floats (joint vectors: lists of 6; the tool pose:
+`safety.ToolPose`): at 1 kHz of commands a numpy call on six joints costs more than the
+arithmetic. Arrays appear only at the boundaries (the arm, planning, the methods' replies).
+
 Who calls what: `tick(dt_s)` is called by the service's fixed-rate loop and is the only
 place that talks to the arm's setpoint stream; `on_command` and the proxy's methods may be
 called from any thread (the bus's callbacks). One lock serialises them; motion planning (many
@@ -22,10 +26,11 @@ and `initialize`.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, Literal, Self
 
 import numpy as np
@@ -36,7 +41,13 @@ from services.bus.events import EventLimiter
 from services.control.puma.arguments import RelFrame, is_number, too_long
 from services.control.puma.arm import Arm, ArmError
 from services.control.puma.config import PumaConfig
-from services.control.puma.kinematics import DEFAULT_eMt, Puma560, Unreachable
+from services.control.puma.kinematics import (
+    DEFAULT_eMt,
+    Puma560,
+    Unreachable,
+    se3_floats,
+    tool_pose_floats,
+)
 from services.control.puma.mapping import TeleopInput, TeleopMapping
 from services.control.puma.motions import (
     GOAL_TOL_RAD,
@@ -47,7 +58,7 @@ from services.control.puma.motions import (
     Servo,
     servo_target,
 )
-from services.control.puma.safety import MotionLimits, safe_step
+from services.control.puma.safety import MotionLimits, ToolPose, safe_step
 from services.geometry import rotation_problem
 
 Vec = NDArray[np.float64]
@@ -86,13 +97,15 @@ class ProxyControl:
         self._estopped = False
         self._last_error: str | None = None
         self._eMt: pin.SE3 = pin.SE3(DEFAULT_eMt)
+        self._eMt_floats = se3_floats(self._eMt)
         self._tool_version = 0
         self._frame: RelFrame = "world"
         self._t_s = 0.0
-        self._q_cmd = np.zeros(6)
-        self._qd_cmd = np.zeros(6)
-        self._q_meas: Vec | None = None
-        self._pose_cmd: tuple[Vec, Vec] = self._tool_pose(self._q_cmd)
+        self._q_cmd: list[float] = [0.0] * 6
+        self._qd_cmd: list[float] = [0.0] * 6
+        self._q_meas: list[float] | None = None
+        self._pose_memo: tuple[list[float], ToolPose] | None = None
+        self._pose_cmd: ToolPose = self._tool_pose(self._q_cmd)
         self._gen: Generator | None = None
         self._motion: Motion | None = None
         self._motions: OrderedDict[int, Motion] = OrderedDict()
@@ -104,7 +117,7 @@ class ProxyControl:
         self._cmd_origin_t_ns: int | None = None
         self._setpoint_ns: int | None = None
         self._awaiting_setpoint = False
-        self._fk_cache: tuple[bytes, int, dict[str, Any]] | None = None
+        self._fk_cache: tuple[list[float], int, dict[str, Any]] | None = None
         self._limiter = EventLimiter(config.event_interval_s)  # on proxy time
         self.counters: dict[str, int] = {
             "ticks": 0,
@@ -131,7 +144,7 @@ class ProxyControl:
                 return True
             if self._status not in ("ready", "moving"):
                 return False
-            return self._gen is not None or bool(self._qd_cmd.any())
+            return self._gen is not None or any(self._qd_cmd)
 
     def __enter__(self) -> Self:
         return self
@@ -166,16 +179,16 @@ class ProxyControl:
         if st not in ("ready", "moving"):
             return
         try:
-            q_meas = self.arm.read_joints()
+            q_meas: list[float] = self.arm.read_joints().tolist()
         except ArmError as e:
             self._fail("internal", f"arm: {e}")
             return
         self._q_meas = q_meas
-        follow = float(np.max(np.abs(q_meas - self._q_cmd)))
+        follow = max(abs(a - b) for a, b in zip(q_meas, self._q_cmd, strict=True))
         if follow > self.config.max_following_error_rad:
             self._fail("internal", f"following error {follow:.3f} rad: the arm does not follow")
             return
-        if self._gen is None and not self._qd_cmd.any():
+        if self._gen is None and not any(self._qd_cmd):
             return  # at rest with nothing to do: the arm already holds this setpoint
         q_des = self._desired(dt_s)
         step = safe_step(
@@ -188,22 +201,25 @@ class ProxyControl:
             )
         self._q_cmd, self._qd_cmd = step.q, step.qd
         self._pose_cmd = (step.tool_p, step.tool_R)
-        self.arm.command(self._q_cmd)
+        self.arm.command(np.array(self._q_cmd))
         if self._awaiting_setpoint:
             self._awaiting_setpoint = False
             self._setpoint_ns = time.time_ns()
         self._update_motion(dt_s)
 
-    def _desired(self, dt_s: float) -> Vec:
+    def _desired(self, dt_s: float) -> list[float]:
         gen = self._gen
         if gen is None:
             return self._q_cmd
         if isinstance(gen, Planned):
-            return gen.next(dt_s)
+            q_des: list[float] = gen.next(dt_s).tolist()
+            return q_des
         if isinstance(gen, Brake):
-            t_stop = float(np.max(np.abs(self._qd_cmd) / self.limits.amax))
+            t_stop = max(
+                abs(v) / a for v, (_, _, _, a) in zip(self._qd_cmd, self.limits.joints, strict=True)
+            )
             k = max(0.0, 1.0 - dt_s / t_stop) if t_stop > 0.0 else 0.0
-            return self._q_cmd + self._qd_cmd * k * dt_s
+            return [q + v * k * dt_s for q, v in zip(self._q_cmd, self._qd_cmd, strict=True)]
         return servo_target(
             gen.goal, self._q_cmd, self._qd_cmd, self._pose_cmd, dt_s, self.limits, self._tool_pose
         )
@@ -212,25 +228,25 @@ class ProxyControl:
         gen = self._gen
         if gen is None:
             return
-        at_rest = not np.any(self._qd_cmd)
         if isinstance(gen, Brake):
-            if at_rest:
+            if not any(self._qd_cmd):
                 self._end_motion("stopped")
             return
         if isinstance(gen, Planned):
             if gen.finished:
-                if float(np.max(np.abs(gen.goal - self._q_cmd))) <= GOAL_TOL_RAD:
-                    self._q_cmd = gen.goal.copy()
+                goal: list[float] = gen.goal.tolist()
+                if _max_diff(goal, self._q_cmd) <= GOAL_TOL_RAD:
+                    self._q_cmd = goal
                     self._end_motion("completed")
                 else:
                     # The filter held the plan back somewhere: finish by chasing the goal.
-                    self._gen = Servo(gen.goal, self._t_s, 0.0)
+                    self._gen = Servo(goal, self._t_s, 0.0)
             return
-        e = float(np.max(np.abs(gen.goal - self._q_cmd)))
-        if e <= GOAL_TOL_RAD and float(np.max(np.abs(self._qd_cmd))) < 1e-6:
-            self._q_cmd = gen.goal.copy()
+        e = _max_diff(gen.goal, self._q_cmd)
+        if e <= GOAL_TOL_RAD and max(map(abs, self._qd_cmd)) < 1e-6:
+            self._q_cmd = list(gen.goal)
             if self._t_s - gen.last_goal_t_s >= gen.settle_s:
-                self._qd_cmd = np.zeros(6)
+                self._qd_cmd = [0.0] * 6
                 self._end_motion("completed")
 
     def _end_motion(self, reason: str) -> None:
@@ -251,8 +267,8 @@ class ProxyControl:
             {
                 "motion": motion.id if motion else None,
                 "reason": reason,
-                "q": [float(x) for x in self._q_cmd],
-                "tool_p": [float(x) for x in p],
+                "q": list(self._q_cmd),
+                "tool_p": list(p),
             },
         )
 
@@ -262,14 +278,14 @@ class ProxyControl:
         except ArmError as e:
             self._fail("internal", f"arm: {e}")
             return
-        self._q_meas = q.copy()
-        self._q_cmd = q.copy()
-        self._qd_cmd = np.zeros(6)
+        self._q_meas = q.tolist()
+        self._q_cmd = q.tolist()
+        self._qd_cmd = [0.0] * 6
         self._pose_cmd = self._tool_pose(self._q_cmd)
         self._mapping.rebase()
         self._set_status("ready")
         # The first setpoint is where the arm is: from here on it holds what it was sent.
-        self.arm.command(self._q_cmd)
+        self.arm.command(np.array(self._q_cmd))
         self._event("data", "arm calibrated", {"q": [float(x) for x in q]})
 
     # --- streamed commands ----------------------------------------------------------------
@@ -315,7 +331,7 @@ class ProxyControl:
         dp = np.asarray(cmd.dp, dtype=np.float64)
         dR = np.asarray(cmd.dR, dtype=np.float64)
         why: str | None = None
-        if dp.shape != (3,) or not np.all(np.isfinite(dp)):
+        if dp.shape != (3,) or not all(map(math.isfinite, dp.tolist())):
             why = "dp: not 3 finite numbers"
         elif too_long(dp, self.config.max_dp_m):
             why = f"dp: |dp| above {self.config.max_dp_m} m"
@@ -333,7 +349,9 @@ class ProxyControl:
             )
             return
         before = self._mapping.last_seq
-        target = self._mapping.apply(cmd, pin.SE3(self._pose_cmd[1], self._pose_cmd[0]))
+        p_cmd, R_cmd = self._pose_cmd
+        oMt_cmd = pin.SE3(np.array(R_cmd).reshape(3, 3), np.array(p_cmd))
+        target = self._mapping.apply(cmd, oMt_cmd)
         if self._mapping.last_seq == before:
             self.counters["commands_ignored"] += 1
             return  # stale: an older seq or engagement
@@ -364,7 +382,10 @@ class ProxyControl:
                 "near a singularity: motion slowed",
                 {"singularity": self._kin.singularity(sol.q)},
             )
-        goal = np.clip(sol.q, self.limits.q_lo, self.limits.q_hi)
+        goal = [
+            lo if x < lo else hi if x > hi else x
+            for x, (lo, hi, _, _) in zip(sol.q.tolist(), self.limits.joints, strict=True)
+        ]
         gen = self._gen
         if isinstance(gen, Servo) and self._motion is not None and self._motion.kind == "teleop":
             gen.goal = goal
@@ -391,9 +412,24 @@ class ProxyControl:
 
     # --- internals --------------------------------------------------------------------------
 
-    def _tool_pose(self, q: Vec) -> tuple[Vec, Vec]:
-        oMt = self._kin.fk_tool(q, self._eMt)
-        return np.array(oMt.translation), np.array(oMt.rotation)
+    def _tool_pose(self, q: list[float]) -> ToolPose:
+        """The tool pose at joints q. The last one is kept: a tick that holds or settles
+        asks again for the pose of the setpoint it already has (twice)."""
+        memo = self._pose_memo
+        if memo is not None and memo[0] == q:
+            return memo[1]
+        pose = tool_pose_floats(q, self._eMt_floats)
+        self._pose_memo = (list(q), pose)
+        return pose
+
+    def _set_tool(self, eMt: pin.SE3) -> None:
+        """Place the tool in the flange frame; the caller holds the lock and is not moving."""
+        self._eMt = eMt
+        self._eMt_floats = se3_floats(eMt)
+        self._pose_memo = None
+        self._tool_version += 1
+        self._pose_cmd = self._tool_pose(self._q_cmd)
+        self._mapping.rebase()
 
     def _start(self, motion: Motion, gen: Generator) -> None:
         self._motions[motion.id] = motion
@@ -416,7 +452,7 @@ class ProxyControl:
             self._motion.finish(reason, self._q_cmd)
         self._motion = None
         self._gen = None
-        self._qd_cmd = np.zeros(6)
+        self._qd_cmd = [0.0] * 6
         self._mapping.rebase()
 
     def _fail(self, code: str, why: str) -> None:
@@ -452,6 +488,10 @@ class ProxyControl:
         self._event(kind, message, data)
 
     def _flush(self) -> None:
+        if not self._events:
+            # Nothing queued (most ticks and commands): whoever queues an event flushes it
+            # after releasing the lock, so an event appended meanwhile is not lost.
+            return
         with self._emit_lock:
             while True:
                 with self._lock:
@@ -459,3 +499,8 @@ class ProxyControl:
                         return
                     kind, message, data = self._events.pop(0)
                 self._emit(kind, message, data)
+
+
+def _max_diff(a: Sequence[float], b: Sequence[float]) -> float:
+    """max |a − b| over the joints."""
+    return max(abs(x - y) for x, y in zip(a, b, strict=True))

@@ -158,7 +158,7 @@ class FakeController:
     def q(self) -> Q:
         """The joint angles of the simulated arm (rad)."""
         with self._lock:
-            return self._servo.q.copy()
+            return self._servo.q
 
     @property
     def max_setpoint_jump_rad(self) -> float:
@@ -358,7 +358,7 @@ class FakeController:
             self._fault(f"q{int(outside[0]) + 1} setpoint outside limits")
             self._reply(["ERR", "LIMIT", self.fault_text])
             return
-        measured = self._servo.q.copy()
+        measured = self._servo.q
         jump = float(np.max(np.abs(sp - measured)))
         if jump > self.max_setpoint_step_rad:
             self._fault(f"setpoint jump {jump:.3f} rad")
@@ -369,13 +369,13 @@ class FakeController:
         self._last_sp_t = time.monotonic()
         self._last_seq = seq
         self.setpoints.append(SetpointRecord(seq, tuple(sp.tolist()), tuple(measured.tolist())))
-        self._reply(["JS", str(seq), *format_joints(self._servo.q)])
+        self._reply(["JS", str(seq), *format_joints(self._servo.q_rad)])
 
     def _on_rj(self, args: list[str]) -> None:
         if not self.calibrated:
             self._reply(["ERR", "STATE", "not calibrated"])
             return
-        self._reply(["JS", str(self._last_seq), *format_joints(self._servo.q)])
+        self._reply(["JS", str(self._last_seq), *format_joints(self._servo.q_rad)])
 
     def _on_hold(self, args: list[str]) -> None:
         self._streaming = False

@@ -322,6 +322,65 @@ def _flange_floats(q: Sequence[float]) -> tuple[list[float], list[float]]:
     return rot, [c1 * v + s1 * D3_M, s1 * v - c1 * D3_M, D1_M + y]
 
 
+PoseFloats = tuple[list[float], list[float]]
+"""(p, R) of a frame: position (3 floats, m) and rotation (9 floats, row-major)."""
+
+
+def se3_floats(M: pin.SE3) -> PoseFloats:
+    """(p, R row-major) of an SE3, as plain floats."""
+    (a, b, c, x), (d, e, f, y), (g, h, i, z), _ = M.homogeneous.tolist()
+    return [x, y, z], [a, b, c, d, e, f, g, h, i]
+
+
+def flange_pose_floats(q: Sequence[float]) -> PoseFloats:
+    """oMe at joints q (6 floats, rad) as (p, R): `Puma560.fk_flange` in plain floats for
+    the control loop (no checks: q must be 6 finite floats)."""
+    rot, p = _flange_floats(q)
+    return p, rot
+
+
+def compose_floats(
+    aMb: tuple[Sequence[float], Sequence[float]], bMc: tuple[Sequence[float], Sequence[float]]
+) -> PoseFloats:
+    """aMc = aMb·bMc on (p, R) floats: p = p_ab + R_ab·p_bc, R = R_ab·R_bc."""
+    (x, y, z), (r00, r01, r02, r10, r11, r12, r20, r21, r22) = aMb
+    (tx, ty, tz), (t00, t01, t02, t10, t11, t12, t20, t21, t22) = bMc
+    p = [
+        x + (r00 * tx + r01 * ty + r02 * tz),
+        y + (r10 * tx + r11 * ty + r12 * tz),
+        z + (r20 * tx + r21 * ty + r22 * tz),
+    ]
+    rot = [
+        r00 * t00 + r01 * t10 + r02 * t20,
+        r00 * t01 + r01 * t11 + r02 * t21,
+        r00 * t02 + r01 * t12 + r02 * t22,
+        r10 * t00 + r11 * t10 + r12 * t20,
+        r10 * t01 + r11 * t11 + r12 * t21,
+        r10 * t02 + r11 * t12 + r12 * t22,
+        r20 * t00 + r21 * t10 + r22 * t20,
+        r20 * t01 + r21 * t11 + r22 * t21,
+        r20 * t02 + r21 * t12 + r22 * t22,
+    ]
+    return p, rot
+
+
+def tool_pose_floats(
+    q: Sequence[float], eMt: tuple[Sequence[float], Sequence[float]]
+) -> PoseFloats:
+    """oMt = oMe·eMt at joints q (6 floats, rad) as (p, R), eMt as (p, R) (`se3_floats`):
+    `Puma560.fk_tool` in plain floats for the control loop (no checks: q must be finite)."""
+    return compose_floats(flange_pose_floats(q), eMt)
+
+
+def manipulability_floats(q: Sequence[float]) -> float:
+    """`Puma560.manipulability` of 6 floats (no checks)."""
+    _, q2, q3, _, q5, _ = q
+    q23 = q2 + q3
+    v = A2_M * math.cos(q2) + A3_M * math.cos(q23) - D4_M * math.sin(q23)
+    elbow = D4_M * math.cos(q3) + A3_M * math.sin(q3)
+    return abs(A2_M * elbow * v * math.sin(q5))
+
+
 def _ik_floats(
     r: Sequence[float], wx: float, wy: float, wz: float, ref: Sequence[float]
 ) -> list[tuple[list[float], str, bool]]:
@@ -515,11 +574,7 @@ class Puma560:
         at the wrist centre times the wrist's), exact where the determinant of J Jᵀ loses
         digits near a singularity.
         """
-        _, q2, q3, _, q5, _ = self._floats(q)
-        q23 = q2 + q3
-        v = A2_M * math.cos(q2) + A3_M * math.cos(q23) - D4_M * math.sin(q23)
-        elbow = D4_M * math.cos(q3) + A3_M * math.sin(q3)
-        return abs(A2_M * elbow * v * math.sin(q5))
+        return manipulability_floats(self._floats(q))
 
     def within_limits(self, q: ArrayLike, tol: float = 0.0) -> bool:
         """Every joint in [lo − tol, hi + tol] as given (no 2π shifting), rad."""

@@ -9,6 +9,7 @@ tool placement eMt. Frames: world R_w; tool R_t; `dR` is a rotation in the tool 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,9 +41,11 @@ class TeleopInput:
     def __post_init__(self) -> None:
         dp = np.asarray(self.dp, dtype=np.float64)
         dR = np.asarray(self.dR, dtype=np.float64)
-        if dp.shape != (3,) or not np.all(np.isfinite(dp)):
+        # Checked on plain floats: one per command at up to 1 kHz, and a numpy reduction on
+        # 3 or 9 values costs more than the checks.
+        if dp.shape != (3,) or not all(map(math.isfinite, dp.tolist())):
             raise ValueError(f"dp must be 3 finite floats, got {self.dp!r}")
-        if dR.shape != (3, 3) or not np.all(np.isfinite(dR)):
+        if dR.shape != (3, 3) or not all(map(math.isfinite, dR.reshape(9).tolist())):
             raise ValueError(f"dR must be a finite 3x3 matrix, got {self.dR!r}")
         if self.frame not in ("world", "tool"):
             raise ValueError(f"frame must be 'world' or 'tool', got {self.frame!r}")
@@ -90,17 +93,16 @@ class TeleopMapping:
         self.last_seq = cmd.seq
         if not cmd.active:
             return None
-        p_now = np.array(oMt_now.translation, dtype=np.float64)
-        R_now = np.array(oMt_now.rotation, dtype=np.float64)
         if cmd.engage != self.engage:
-            self._p0, self._R0 = p_now, R_now
+            self._p0 = np.array(oMt_now.translation, dtype=np.float64)
+            self._R0 = np.array(oMt_now.rotation, dtype=np.float64)
         elif self._p0 is None or self._R0 is None:
             # Re-based inside an engagement: dp/dR hold the operator's whole motion since the
             # engagement started, so the reference is chosen to map this command onto the
             # current pose (p0 = p_now − offset, R0 = R_now·dRᵀ) rather than jump by it.
-            self._R0 = R_now @ cmd.dR.T
+            self._R0 = np.array(oMt_now.rotation, dtype=np.float64) @ cmd.dR.T
             offset = cmd.dp if cmd.frame == "world" else self._R0 @ cmd.dp
-            self._p0 = p_now - offset
+            self._p0 = np.array(oMt_now.translation, dtype=np.float64) - offset
         self.engage = cmd.engage
         p, R = tool_target_pose(self._p0, self._R0, cmd.dp, cmd.dR, cmd.frame)
         return pin.SE3(R, p)

@@ -8,16 +8,15 @@ decelerates to rest. The safety filter then checks what they ask for. Units: rad
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from services.control.puma.planning import PLAN_SPEED_MARGIN
-from services.control.puma.safety import MotionLimits, ToolPoseFn
+from services.control.puma.safety import MotionLimits, ToolPose, ToolPoseFn, tool_motion
 from services.control.puma.trajectory import Trapezoid, discrete_brake_speed
-from services.geometry import angle_between
 
 Vec = NDArray[np.float64]
 
@@ -56,7 +55,7 @@ class Motion:
         self._done.wait(timeout_s)
         return self.result()
 
-    def finish(self, reason: str, q: Vec) -> None:
+    def finish(self, reason: str, q: Iterable[float]) -> None:
         if self._done.is_set():
             return
         self._result = {
@@ -96,10 +95,10 @@ class Planned:
 
 
 class Servo:
-    """Chases a goal (rad) as fast as the joint limits allow, slowing so the tool stays
-    below its speed limits; used for streamed commands and to finish a planned motion."""
+    """Chases a goal (6 floats, rad) as fast as the joint limits allow, slowing so the tool
+    stays below its speed limits; used for streamed commands and to finish a planned motion."""
 
-    def __init__(self, goal: Vec, t_s: float, settle_s: float) -> None:
+    def __init__(self, goal: list[float], t_s: float, settle_s: float) -> None:
         self.goal = goal
         self.last_goal_t_s = t_s
         self.settle_s = settle_s
@@ -113,41 +112,61 @@ Generator = Planned | Servo | Brake
 
 
 def servo_target(
-    goal: Vec,
-    q: Vec,
-    qd: Vec,
-    pose_now: tuple[Vec, Vec],
+    goal: Sequence[float],
+    q: Sequence[float],
+    qd: Sequence[float],
+    pose_now: ToolPose,
     dt_s: float,
     lim: MotionLimits,
     tool_pose: ToolPoseFn,
-) -> Vec:
+) -> list[float]:
     """The next setpoint chasing `goal`: per joint as fast as its speed allows while it can
     still stop at the goal, within the acceleration box around the present velocity, and
-    with the tool kept under 90 % of its speeds (so `safe_step` has nothing to cut)."""
-    e = goal - q
-    v_des = np.sign(e) * np.minimum(lim.vmax, discrete_brake_speed(e, lim.amax, dt_s))
-    p0, R0 = pose_now
+    with the tool kept under 90 % of its speeds (so `safe_step` has nothing to cut).
+
+    Joint vectors are 6 plain floats (rad, rad/s) and the pose is a `safety.ToolPose`: this
+    runs every tick of a streamed motion."""
+    v_des: list[float] = []
+    v_lo: list[float] = []
+    v_hi: list[float] = []
+    for g, qj, qdj, (_, _, vmax, amax) in zip(goal, q, qd, lim.joints, strict=True):
+        e = g - qj
+        speed = min(vmax, discrete_brake_speed(e, amax, dt_s))
+        v_des.append(speed if e > 0.0 else -speed if e < 0.0 else 0.0)  # sign(e)·speed
+        dv = amax * dt_s
+        v_lo.append(qdj - dv)
+        v_hi.append(qdj + dv)
     max_dp = PLAN_SPEED_MARGIN * lim.tool_speed_m_s * dt_s
     max_dth = PLAN_SPEED_MARGIN * lim.tool_rot_speed_rad_s * dt_s
 
-    def over(v: Vec) -> float:
-        p1, R1 = tool_pose(q + v * dt_s)
-        return max(float(np.linalg.norm(p1 - p0)) / max_dp, angle_between(R0, R1) / max_dth)
+    def step(v: Sequence[float]) -> list[float]:
+        return [qj + vj * dt_s for qj, vj in zip(q, v, strict=True)]
+
+    def over(v: Sequence[float]) -> float:
+        return tool_motion(pose_now, tool_pose(step(v)), max_dp, max_dth)
+
+    def boxed(k: float) -> list[float]:
+        """k·v_des within the acceleration box."""
+        out = []
+        for vj, lo, hi in zip(v_des, v_lo, v_hi, strict=True):
+            x = k * vj
+            out.append(lo if x < lo else hi if x > hi else x)
+        return out
 
     k = over(v_des)
     if k > 1.0:
-        v_des = v_des / k
-    dv = lim.amax * dt_s
-    v = np.clip(v_des, qd - dv, qd + dv)
-    if over(v) > 1.0:
+        v_des = [vj / k for vj in v_des]
+    v = boxed(1.0)
+    # When neither the scaling nor the box changed v_des, `over` has measured it already.
+    if (k > 1.0 or v != v_des) and over(v) > 1.0:
         # The acceleration box bent the step into a faster tool motion: ask for less until
         # it fits (λ = 0 is the hardest braking the box allows).
         lo, hi = 0.0, 1.0
         for _ in range(12):
             mid = 0.5 * (lo + hi)
-            if over(np.clip(mid * v_des, qd - dv, qd + dv)) <= 1.0:
+            if over(boxed(mid)) <= 1.0:
                 lo = mid
             else:
                 hi = mid
-        v = np.clip(lo * v_des, qd - dv, qd + dv)
-    return np.asarray(q + v * dt_s, dtype=np.float64)
+        v = boxed(lo)
+    return step(v)

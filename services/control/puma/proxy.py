@@ -50,7 +50,12 @@ from services.control.puma.arguments import (
 )
 from services.control.puma.arm import ArmError
 from services.control.puma.control import ProxyControl
-from services.control.puma.kinematics import Puma560
+from services.control.puma.kinematics import (
+    Puma560,
+    compose_floats,
+    flange_pose_floats,
+    manipulability_floats,
+)
 from services.control.puma.motions import Brake, Motion, Planned
 from services.control.puma.planning import Plan, PlanFn, plan_joint, plan_pose
 
@@ -133,10 +138,7 @@ class PumaProxy(ProxyControl):
         with self._lock:
             if self._status == "moving":
                 raise RpcError("busy", "cannot change the tool while moving")
-            self._eMt = pin.SE3(R, p)
-            self._tool_version += 1
-            self._pose_cmd = self._tool_pose(self._q_cmd)
-            self._mapping.rebase()
+            self._set_tool(pin.SE3(R, p))
             return self._tool_dict()
 
     def rpc_set_frame(self, args: Mapping[str, Any]) -> dict[str, Any]:
@@ -245,7 +247,7 @@ class PumaProxy(ProxyControl):
         R = arg_rotation(args, "R")
         with self._lock:
             eMt = pin.SE3(self._eMt)
-            q_ref = self._q_cmd.copy()
+            q_ref = np.array(self._q_cmd)
         with self._plan_lock:
             sols = self._plan_kin.ik(pin.SE3(R, p), eMt, q_ref=q_ref)
         return {
@@ -319,21 +321,20 @@ class PumaProxy(ProxyControl):
         """Joints, tool and flange poses and manipulability of the measured joints; computed
         again only when the joints or the tool changed (an arm at rest costs nothing)."""
         q = self._q_meas if self._q_meas is not None else self._q_cmd
-        key = q.tobytes()
         cache = self._fk_cache
-        if cache is not None and cache[0] == key and cache[1] == self._tool_version:
+        if cache is not None and cache[0] == q and cache[1] == self._tool_version:
             return cache[2]
-        oMe = self._kin.fk_flange(q)
-        oMt = oMe * self._eMt
+        oMe = flange_pose_floats(q)
+        tool_p, tool_R = compose_floats(oMe, self._eMt_floats)
         poses: dict[str, Any] = {
-            "q": _floats(q),
-            "tool_p": _floats(oMt.translation),
-            "tool_R": _floats(oMt.rotation.reshape(-1)),
-            "flange_p": _floats(oMe.translation),
-            "flange_R": _floats(oMe.rotation.reshape(-1)),
-            "manipulability": self._kin.manipulability(q),
+            "q": list(q),
+            "tool_p": tool_p,
+            "tool_R": tool_R,
+            "flange_p": oMe[0],
+            "flange_R": oMe[1],
+            "manipulability": manipulability_floats(q),
         }
-        self._fk_cache = (key, self._tool_version, poses)
+        self._fk_cache = (list(q), self._tool_version, poses)
         return poses
 
     def _tool_dict(self) -> dict[str, Any]:
@@ -362,19 +363,19 @@ class PumaProxy(ProxyControl):
     def _move(self, kind: str, plan: PlanFn) -> dict[str, Any]:
         with self._lock:
             self._check_can_move()
-            q0 = self._q_cmd.copy()
+            q0 = np.array(self._q_cmd)
             eMt = pin.SE3(self._eMt)
             tool_version = self._tool_version
         with self._plan_lock:
             path, law, goal, how = plan(self._plan_kin, q0, eMt)
         with self._lock:
             self._check_can_move()
-            if not np.array_equal(q0, self._q_cmd) or self._tool_version != tool_version:
+            if q0.tolist() != self._q_cmd or self._tool_version != tool_version:
                 raise RpcError("busy", "the robot moved while the motion was planned")
             # Right after a motion the setpoint may still carry its last step's velocity
             # (≤ amax·dt): start with one tick of hold so the acceleration stays in bounds.
             motion = Motion(self._new_id(), kind)
-            self._start(motion, Planned(path, law, goal, hold_first=bool(np.any(self._qd_cmd))))
+            self._start(motion, Planned(path, law, goal, hold_first=any(self._qd_cmd)))
         self._flush()
         return {
             "accepted": True,

@@ -5,25 +5,38 @@ leaves the joint limits, no joint exceeds its speed limit, no joint its accelera
 (unless that is the only way to honour the other limits), and the tool point moves at most
 `tool_speed_m_s` and the tool frame turns at most `tool_rot_speed_rad_s` between two ticks.
 Units: rad, m, s.
+
+It runs every tick on six joints, where a numpy call costs more than the arithmetic: joint
+vectors are sequences of 6 plain floats, joint 1 first, and a tool pose is (p, R), 3 floats
+(m) and 9 floats (row-major), as `kinematics.tool_pose_floats` gives them.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 
-from services.geometry import angle_between
-
 Vec = NDArray[np.float64]
+ToolPose = tuple[Sequence[float], Sequence[float]]
+"""(p, R) of the tool in the world: position (3 floats, m), rotation (9 floats, row-major)."""
+ToolPoseFn = Callable[[list[float]], ToolPose]
+"""The tool pose at a joint vector (6 floats, rad)."""
+
+_TWO_SQRT2 = 2.0 * math.sqrt(2.0)
 
 
 @dataclass(frozen=True, slots=True)
 class MotionLimits:
     """What `safe_step` enforces: joint limits (rad), speeds (rad/s), accelerations (rad/s²),
-    tool point speed (m/s) and tool frame angular speed (rad/s)."""
+    tool point speed (m/s) and tool frame angular speed (rad/s).
+
+    `joints` holds the four joint tables as one tuple per joint (q_lo, q_hi, vmax, amax) of
+    plain floats, for the per-tick arithmetic.
+    """
 
     q_lo: Vec
     q_hi: Vec
@@ -31,36 +44,50 @@ class MotionLimits:
     amax: Vec
     tool_speed_m_s: float
     tool_rot_speed_rad_s: float
+    joints: tuple[tuple[float, float, float, float], ...] = field(
+        init=False, repr=False, compare=False
+    )
+
+    def __post_init__(self) -> None:
+        tables = (self.q_lo, self.q_hi, self.vmax, self.amax)
+        rows = zip(
+            *(np.asarray(t, dtype=np.float64).reshape(6).tolist() for t in tables), strict=True
+        )
+        object.__setattr__(self, "joints", tuple(rows))
 
 
 @dataclass(frozen=True, slots=True)
 class SafeStep:
-    """One filtered setpoint: joints (rad), velocity (rad/s), the tool pose there, and which
-    limits acted (`joint_limit`, `joint_speed`, `joint_accel`, `tool_speed`)."""
+    """One filtered setpoint: joints (rad), velocity (rad/s), the tool pose there (p, R as
+    in `ToolPose`), and which limits acted (`joint_limit`, `joint_speed`, `joint_accel`,
+    `tool_speed`)."""
 
-    q: Vec
-    qd: Vec
-    tool_p: Vec
-    tool_R: Vec
+    q: list[float]
+    qd: list[float]
+    tool_p: Sequence[float]
+    tool_R: Sequence[float]
     limited: frozenset[str]
 
 
-ToolPoseFn = Callable[[Vec], tuple[Vec, Vec]]
+def tool_motion(pose0: ToolPose, pose1: ToolPose, max_dp_m: float, max_dth_rad: float) -> float:
+    """How far the tool moves from `pose0` to `pose1` as a share of what is allowed: the
+    larger of |p1 − p0| / max_dp_m and angle(R0ᵀR1) / max_dth_rad (≤ 1: within both).
 
-
-def _cut(a: Vec, b: Vec, tol: float) -> bool:
-    """Whether a limit changed b into a by more than rounding (q + v·dt is not exact)."""
-    return bool(np.any(np.abs(a - b) > tol * (1.0 + np.abs(b))))
+    The angle is `geometry.angle_between` in plain floats: ‖R0 − R1‖_F = 2√2·sin(θ/2),
+    accurate for small angles."""
+    (p0, R0), (p1, R1) = pose0, pose1
+    angle = 2.0 * math.asin(min(1.0, math.dist(R0, R1) / _TWO_SQRT2))
+    return max(math.dist(p0, p1) / max_dp_m, angle / max_dth_rad)
 
 
 def safe_step(
-    q: Vec,
-    qd: Vec,
-    q_des: Vec,
+    q: Sequence[float],
+    qd: Sequence[float],
+    q_des: Sequence[float],
     dt_s: float,
     lim: MotionLimits,
     tool_pose: ToolPoseFn,
-    pose_now: tuple[Vec, Vec],
+    pose_now: ToolPose,
 ) -> SafeStep:
     """The next setpoint towards `q_des` that honours `lim`, from setpoint `q` moving at `qd`.
 
@@ -72,32 +99,38 @@ def safe_step(
     speeds always hold; the acceleration limit gives way only to them.
     """
     limited: set[str] = set()
-    target = np.clip(q_des, lim.q_lo, lim.q_hi)
-    if _cut(target, q_des, 1e-12):
-        limited.add("joint_limit")
-    v = (target - q) / dt_s
-    v_c = np.clip(v, -lim.vmax, lim.vmax)
-    if _cut(v_c, v, 1e-9):
-        limited.add("joint_speed")
-    dv = lim.amax * dt_s
-    v_a = np.clip(v_c, qd - dv, qd + dv)
-    if _cut(v_a, v_c, 1e-9):
-        limited.add("joint_accel")
-    v_a = np.clip(v_a, -lim.vmax, lim.vmax)
-    q_next = np.clip(q + v_a * dt_s, lim.q_lo, lim.q_hi)
-    p0, R0 = pose_now
+    q_next: list[float] = []
+    for qj, qdj, dj, (lo, hi, vmax, amax) in zip(q, qd, q_des, lim.joints, strict=True):
+        # A limit "acts" when it changes a value by more than rounding (q + v·dt is not exact).
+        target = lo if dj < lo else hi if dj > hi else dj
+        if abs(target - dj) > 1e-12 * (1.0 + abs(dj)):
+            limited.add("joint_limit")
+        v = (target - qj) / dt_s
+        v_c = -vmax if v < -vmax else vmax if v > vmax else v
+        if abs(v_c - v) > 1e-9 * (1.0 + abs(v)):
+            limited.add("joint_speed")
+        dv = amax * dt_s
+        v_lo, v_hi = qdj - dv, qdj + dv
+        v_a = v_lo if v_c < v_lo else v_hi if v_c > v_hi else v_c
+        if abs(v_a - v_c) > 1e-9 * (1.0 + abs(v_c)):
+            limited.add("joint_accel")
+        v_a = -vmax if v_a < -vmax else vmax if v_a > vmax else v_a
+        x = qj + v_a * dt_s
+        q_next.append(lo if x < lo else hi if x > hi else x)
     max_dp = lim.tool_speed_m_s * dt_s
     max_dth = lim.tool_rot_speed_rad_s * dt_s
-    p1, R1 = tool_pose(q_next)
+    pose = tool_pose(q_next)
     for _ in range(8):
-        over = max(float(np.linalg.norm(p1 - p0)) / max_dp, angle_between(R0, R1) / max_dth)
+        over = tool_motion(pose_now, pose, max_dp, max_dth)
         if over <= 1.0:
             break
         limited.add("tool_speed")
-        q_next = q + (q_next - q) * (0.98 / over)
-        p1, R1 = tool_pose(q_next)
+        k = 0.98 / over
+        q_next = [a + (b - a) * k for a, b in zip(q, q_next, strict=True)]
+        pose = tool_pose(q_next)
     else:
         # The step cannot be made slow enough (it never happens for steps this small, as the
         # tool pose is smooth in q): holding is always within every limit.
-        q_next, p1, R1 = q.copy(), p0, R0
-    return SafeStep(q_next, (q_next - q) / dt_s, p1, R1, frozenset(limited))
+        q_next, pose = list(q), pose_now
+    qd_next = [(b - a) / dt_s for a, b in zip(q, q_next, strict=True)]
+    return SafeStep(q_next, qd_next, pose[0], pose[1], frozenset(limited))

@@ -12,6 +12,7 @@ backends behave alike under the contract test.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Sequence
@@ -40,6 +41,20 @@ ARRIVED_RAD = 1e-9
 slow (rad/s), are at the setpoint and at rest (far below any encoder's resolution)."""
 IDLE_WAIT_S = 1.0
 
+Joints = tuple[float, ...]
+"""Six joint values (rad or rad/s), joint 1 first."""
+_REST: Joints = (0.0,) * 6
+
+
+def _joints(value: Sequence[float] | Q) -> Joints:
+    """Six joint values as a tuple of floats (ValueError unless 6)."""
+    if isinstance(value, np.ndarray):
+        return tuple(np.asarray(value, dtype=np.float64).reshape(6).tolist())
+    out = tuple(map(float, value))
+    if len(out) != 6:
+        raise ValueError(f"expected 6 joint values, got {len(out)}")
+    return out
+
 
 class JointFollower:
     """The joint servo of the simulated controller: rad, rad/s, s.
@@ -48,6 +63,10 @@ class JointFollower:
     each joint can still stop at the setpoint at its maximum deceleration (`√(2·a·|e|)`),
     then limited to ±`vmax` and to a change of at most `amax·dt` from the previous velocity.
     The joints never leave [q_lo, q_hi]. Not thread safe: the owner locks.
+
+    The state is plain floats: it steps at 1 kHz, and on six joints a numpy call costs more
+    than the arithmetic. `q`, `v` and `setpoint` give (fresh) arrays and take any 6 floats;
+    `q_rad` is the joints as a tuple, for an owner that copies them every step.
     """
 
     def __init__(
@@ -59,55 +78,125 @@ class JointFollower:
         q_hi: Sequence[float] = Q_HI_RAD,
         kp_1_s: float = 50.0,
     ) -> None:
-        self.q = as_joint_vector(q).copy()
-        self.v = np.zeros(6)
-        self.setpoint = self.q.copy()
+        self._q: Joints = _joints(as_joint_vector(q))
+        self._v: Joints = _REST
+        self._sp: Joints = self._q
         self.vmax = as_joint_vector(vmax, "vmax")
         self.amax = as_joint_vector(amax, "amax")
         self.q_lo = as_joint_vector(q_lo, "q_lo")
         self.q_hi = as_joint_vector(q_hi, "q_hi")
         self.kp_1_s = float(kp_1_s)
+        # Per joint (vmax, amax, q_lo, q_hi), as floats for the step.
+        self._limits = tuple(
+            zip(
+                self.vmax.tolist(),
+                self.amax.tolist(),
+                self.q_lo.tolist(),
+                self.q_hi.tolist(),
+                strict=True,
+            )
+        )
+
+    @property
+    def q(self) -> Q:
+        """The joints (rad)."""
+        return np.array(self._q)
+
+    @q.setter
+    def q(self, value: Sequence[float] | Q) -> None:
+        self._q = _joints(value)
+
+    @property
+    def q_rad(self) -> Joints:
+        """The joints (rad) as a tuple: no copy needed, it never changes in place."""
+        return self._q
+
+    @property
+    def v(self) -> Q:
+        """The joint velocities (rad/s)."""
+        return np.array(self._v)
+
+    @v.setter
+    def v(self, value: Sequence[float] | Q) -> None:
+        self._v = _joints(value)
+
+    @property
+    def setpoint(self) -> Q:
+        """The joint setpoint the servo tracks (rad)."""
+        return np.array(self._sp)
+
+    @setpoint.setter
+    def setpoint(self, value: Sequence[float] | Q) -> None:
+        self._sp = _joints(value)
+
+    def stop_joint(self, j: int) -> None:
+        """Zero the velocity of joint `j` (0…5): it is blocked."""
+        v = list(self._v)
+        v[j] = 0.0
+        self._v = tuple(v)
 
     def hold(self) -> None:
         """Stop at maximum deceleration and stay there (a controlled stop)."""
-        stop_dist = self.v * np.abs(self.v) / (2.0 * self.amax)
-        self.setpoint = np.clip(self.q + stop_dist, self.q_lo, self.q_hi)
+        sp = []
+        for q, v, (_, a, lo, hi) in zip(self._q, self._v, self._limits, strict=True):
+            x = q + v * abs(v) / (2.0 * a)
+            sp.append(lo if x < lo else hi if x > hi else x)
+        self._sp = tuple(sp)
 
     def halt(self) -> None:
         """Stop dead (brakes): velocity zero, setpoint where the joints are."""
-        self.v = np.zeros(6)
-        self.setpoint = self.q.copy()
+        self._v = _REST
+        self._sp = self._q
 
     def desired_velocity(self) -> Q:
         """The velocity the servo asks for this step, before the acceleration limit (rad/s)."""
-        e = self.setpoint - self.q
-        v_fb = np.sign(e) * np.minimum(
-            self.kp_1_s * np.abs(e), np.sqrt(2.0 * self.amax * np.abs(e))
-        )
-        return np.clip(v_fb, -self.vmax, self.vmax)
+        return np.array(self._desired())
+
+    def _desired(self) -> list[float]:
+        kp = self.kp_1_s
+        out = []
+        for q, sp, (vmax, a, _, _) in zip(self._q, self._sp, self._limits, strict=True):
+            e = sp - q
+            ae = abs(e)
+            # sign(e)·min(kp·|e|, √(2·a·|e|)), then within ±vmax
+            v = min(kp * ae, math.sqrt(2.0 * a * ae))
+            v = v if e > 0.0 else -v if e < 0.0 else 0.0
+            out.append(-vmax if v < -vmax else vmax if v > vmax else v)
+        return out
 
     def step(self, dt_s: float) -> None:
         """Advance by `dt_s` (≤ a few ms for fidelity)."""
-        v_des = self.desired_velocity()
-        dv = self.amax * dt_s
-        self.v = np.clip(v_des, self.v - dv, self.v + dv)
-        q_next = self.q + self.v * dt_s
-        at_stop = (q_next < self.q_lo) | (q_next > self.q_hi)
-        self.q = np.clip(q_next, self.q_lo, self.q_hi)
-        self.v[at_stop] = 0.0
-        if (
-            np.abs(self.setpoint - self.q).max() <= ARRIVED_RAD
-            and np.abs(self.v).max() <= ARRIVED_RAD
+        q_new: list[float] = []
+        v_new: list[float] = []
+        arrived = True
+        for v_des, q, v, sp, (_, a, lo, hi) in zip(
+            self._desired(), self._q, self._v, self._sp, self._limits, strict=True
         ):
-            self.q = self.setpoint.copy()
-            self.v[:] = 0.0
+            dv = a * dt_s
+            v_lo, v_hi = v - dv, v + dv
+            v = v_lo if v_des < v_lo else v_hi if v_des > v_hi else v_des
+            q = q + v * dt_s
+            if q < lo:
+                q, v = lo, 0.0
+            elif q > hi:
+                q, v = hi, 0.0
+            q_new.append(q)
+            v_new.append(v)
+            if arrived and not (abs(sp - q) <= ARRIVED_RAD and abs(v) <= ARRIVED_RAD):
+                arrived = False
+        if arrived:
+            self._q, self._v = self._sp, _REST
+        else:
+            self._q, self._v = tuple(q_new), tuple(v_new)
 
     def at_rest(self) -> bool:
         """Exactly at the setpoint with zero velocity: stepping changes nothing."""
-        return not self.v.any() and np.array_equal(self.q, self.setpoint)
+        return not any(self._v) and self._q == self._sp
 
     def is_settled(self, tol_rad: float = 1e-4) -> bool:
-        return bool(np.all(np.abs(self.setpoint - self.q) <= tol_rad) and np.all(self.v == 0.0))
+        return all(abs(sp - q) <= tol_rad for sp, q in zip(self._sp, self._q, strict=True)) and (
+            not any(self._v)
+        )
 
 
 class SimArm(ArmBase):
@@ -143,11 +232,15 @@ class SimArm(ArmBase):
         self._servo = JointFollower(
             q_init, max_joint_speed_rad_s, max_joint_accel_rad_s2, q_lo, q_hi
         )
-        if np.any(self._servo.q < self._servo.q_lo) or np.any(self._servo.q > self._servo.q_hi):
+        self._lo: Joints = tuple(self._servo.q_lo.tolist())
+        self._hi: Joints = tuple(self._servo.q_hi.tolist())
+        q0 = self._servo.q_rad
+        if any(q < lo or q > hi for q, lo, hi in zip(q0, self._lo, self._hi, strict=True)):
             raise ValueError("q_init is outside the joint limits")
-        # The actual joints differ from the servo's model only when a joint stalls.
-        self._q_actual = self._servo.q.copy()
-        self._q_read = self._servo.q.copy()
+        # The actual joints differ from the servo's model only when a joint stalls. Joint
+        # tuples never change in place: they are shared, not copied.
+        self._q_actual: Joints = q0
+        self._q_read: Joints = q0
         self._calibration_s = float(calibration_s)
         self._cal_left_s = 0.0
         self._calibrated = False
@@ -194,23 +287,24 @@ class SimArm(ArmBase):
             if not self._calibrated:
                 raise ArmError("joint angles unknown: the arm was never calibrated")
             if self._link_up:
-                self._q_read = self._q_actual.copy()
-            return self._q_read.copy()
+                self._q_read = self._q_actual
+            return np.array(self._q_read)
 
     def command(self, q_setpoint: Q) -> None:
         with self._lock:
-            sp = self._accept_setpoint(q_setpoint)
-            if sp is None:
+            accepted = self._accept_setpoint(q_setpoint)
+            if accepted is None:
                 return
-            outside = np.flatnonzero((sp < self._servo.q_lo) | (sp > self._servo.q_hi))
-            if outside.size:
-                j = int(outside[0])
-                self._fail_locked(f"setpoint q{j + 1}={sp[j]:.4f} rad outside the joint limits")
-                return
-            jump = np.abs(sp - self._q_actual)
-            if np.any(jump > self._max_step_rad):
-                j = int(np.argmax(jump))
-                self._fail_locked(f"setpoint jump of {jump[j]:.3f} rad on q{j + 1} refused")
+            sp = _joints(accepted)
+            for j, (x, lo, hi) in enumerate(zip(sp, self._lo, self._hi, strict=True)):
+                if x < lo or x > hi:
+                    self._fail_locked(f"setpoint q{j + 1}={x:.4f} rad outside the joint limits")
+                    return
+            jump = [abs(x - q) for x, q in zip(sp, self._q_actual, strict=True)]
+            worst = max(jump)
+            if worst > self._max_step_rad:
+                j = jump.index(worst)
+                self._fail_locked(f"setpoint jump of {worst:.3f} rad on q{j + 1} refused")
                 return
             self._servo.setpoint = sp
             self.setpoints_accepted += 1
@@ -224,7 +318,7 @@ class SimArm(ArmBase):
     def estop(self) -> None:
         with self._lock:
             self._servo.halt()
-            self._q_actual = self._servo.q.copy()
+            self._q_actual = self._servo.q_rad
             self._status = "error"
             self._last_error = "emergency stop"
         self._kick.set()
@@ -252,13 +346,13 @@ class SimArm(ArmBase):
     def q_true(self) -> Q:
         """The actual joint angles (rad), whatever the link: for tests."""
         with self._lock:
-            return self._q_actual.copy()
+            return np.array(self._q_actual)
 
     @property
     def qd_true(self) -> Q:
         """The actual joint velocities (rad/s): for tests."""
         with self._lock:
-            v = self._servo.v.copy()
+            v = self._servo.v
             if self._stalled_joint is not None:
                 v[self._stalled_joint] = 0.0
             return v
@@ -289,7 +383,7 @@ class SimArm(ArmBase):
         if not dt_s > 0.0:
             raise ValueError("dt_s must be > 0")
         with self._lock:
-            n = max(1, int(np.ceil(dt_s / SERVO_DT_S - 1e-9)))
+            n = max(1, math.ceil(dt_s / SERVO_DT_S - 1e-9))
             h = dt_s / n
             for _ in range(n):
                 self._substep(h)
@@ -302,13 +396,14 @@ class SimArm(ArmBase):
                 self._finish_calibration()
         self._servo.step(h)
         j = self._stalled_joint
+        q_servo = self._servo.q_rad
         if j is None:
-            self._q_actual = self._servo.q.copy()
+            self._q_actual = q_servo
             return
-        q = self._servo.q.copy()
+        q = list(q_servo)
         q[j] = self._q_actual[j]
-        self._q_actual = q
-        if abs(self._servo.q[j] - self._q_actual[j]) > self._stall_threshold_rad:
+        self._q_actual = tuple(q)
+        if abs(q_servo[j] - q[j]) > self._stall_threshold_rad:
             self._fail_locked(
                 f"joint {j + 1} stalled: following error above {self._stall_threshold_rad} rad"
             )
@@ -316,13 +411,13 @@ class SimArm(ArmBase):
     def _finish_calibration(self) -> None:
         self._calibrated = True
         self._status = "ready"
-        self._q_read = self._q_actual.copy()
+        self._q_read = self._q_actual
 
     def _fail_locked(self, why: str) -> None:
         """Error: the servo holds where the joints really are and takes no setpoint."""
-        self._servo.q = self._q_actual.copy()
+        self._servo.q = self._q_actual
         if self._stalled_joint is not None:
-            self._servo.v[self._stalled_joint] = 0.0
+            self._servo.stop_joint(self._stalled_joint)
         self._servo.hold()
         if self._status != "error":
             self._last_error = why

@@ -89,9 +89,10 @@ class SampledPath:
         return np.asarray(d1max, dtype=np.float64), np.asarray(d2max, dtype=np.float64)
 
 
-def discrete_brake_speed(e_rad: Vec, amax: Vec, dt_s: float) -> Vec:
-    """The largest speed (rad/s, ≥ 0) from which each joint stops within |e| when slowing by
-    amax·dt per step of dt: v = a·dt·(√(¼ + 2|e|/(a·dt²)) − ½), capped at |e|/dt."""
-    ae = np.abs(e_rad)
-    v = amax * dt_s * (np.sqrt(0.25 + 2.0 * ae / (amax * dt_s * dt_s)) - 0.5)
-    return np.asarray(np.minimum(v, ae / dt_s), dtype=np.float64)
+def discrete_brake_speed(e_rad: float, amax: float, dt_s: float) -> float:
+    """The largest speed (rad/s, ≥ 0) from which a joint stops within |e| when slowing by
+    amax·dt per step of dt: v = a·dt·(√(¼ + 2|e|/(a·dt²)) − ½), capped at |e|/dt. Plain
+    floats: it runs for every joint every tick."""
+    ae = abs(e_rad)
+    v = amax * dt_s * (math.sqrt(0.25 + 2.0 * ae / (amax * dt_s * dt_s)) - 0.5)
+    return min(v, ae / dt_s)

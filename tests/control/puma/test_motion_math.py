@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.control.puma.config import PumaConfig
-from services.control.puma.kinematics import DEFAULT_eMt, Puma560
+from services.control.puma.kinematics import DEFAULT_eMt, Puma560, se3_floats
 from services.control.puma.safety import MotionLimits, safe_step
 from services.control.puma.trajectory import SampledPath, Trapezoid, discrete_brake_speed
 from services.geometry import angle_between
@@ -26,9 +28,9 @@ LIM = MotionLimits(
 DT_S = 1.0 / CFG.control_rate_hz
 
 
-def tool_pose(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    oMt = KIN.fk_tool(q, DEFAULT_eMt)
-    return np.array(oMt.translation), np.array(oMt.rotation)
+def tool_pose(q: Sequence[float]) -> tuple[list[float], list[float]]:
+    """(p, R row-major), as the proxy's loop measures it (`safety.ToolPose`)."""
+    return se3_floats(KIN.fk_tool(q, DEFAULT_eMt))
 
 
 @settings(max_examples=200, deadline=None)
@@ -72,7 +74,7 @@ def test_sampled_path_passes_through_its_samples_and_bounds_its_derivatives() ->
 @settings(max_examples=200, deadline=None)
 @given(st.floats(1e-6, 3.0), st.floats(0.5, 20.0), st.sampled_from([1e-3, 2e-3, 4e-3]))
 def test_discrete_brake_speed_stops_within_the_distance(e: float, a: float, dt: float) -> None:
-    v = float(discrete_brake_speed(np.array([e]), np.array([a]), dt)[0])
+    v = discrete_brake_speed(e, a, dt)
     assert 0.0 <= v <= e / dt * (1 + 1e-12)
     travelled = 0.0
     while v > 0.0:
@@ -99,29 +101,33 @@ def test_safe_step_never_leaves_the_limits(
     qd = np.array(speed) * LIM.vmax
     qd = np.where((q <= LIM.q_lo) | (q >= LIM.q_hi), 0.0, qd)
     pose = tool_pose(q)
-    step = safe_step(q, qd, np.array(target), DT_S, LIM, tool_pose, pose)
-    assert np.all(step.q >= LIM.q_lo) and np.all(step.q <= LIM.q_hi)
-    assert np.all(np.abs(step.qd) <= LIM.vmax * (1 + 1e-9))
-    np.testing.assert_allclose(step.qd, (step.q - q) / DT_S)
-    p1, R1 = tool_pose(step.q)
-    np.testing.assert_allclose(step.tool_p, p1, atol=1e-12)
-    np.testing.assert_allclose(step.tool_R, R1, atol=1e-12)
-    assert np.linalg.norm(p1 - pose[0]) <= LIM.tool_speed_m_s * DT_S * (1 + 1e-9)
-    assert angle_between(pose[1], R1) <= LIM.tool_rot_speed_rad_s * DT_S * (1 + 1e-9)
-    inside = np.all(step.q > LIM.q_lo) and np.all(step.q < LIM.q_hi)
+    step = safe_step(q.tolist(), qd.tolist(), target, DT_S, LIM, tool_pose, pose)
+    q1, qd1 = np.array(step.q), np.array(step.qd)
+    assert np.all(q1 >= LIM.q_lo) and np.all(q1 <= LIM.q_hi)
+    assert np.all(np.abs(qd1) <= LIM.vmax * (1 + 1e-9))
+    np.testing.assert_allclose(qd1, (q1 - q) / DT_S)
+    oMt0, oMt1 = KIN.fk_tool(q), KIN.fk_tool(q1)
+    np.testing.assert_allclose(step.tool_p, oMt1.translation, atol=1e-12)
+    np.testing.assert_allclose(np.reshape(step.tool_R, (3, 3)), oMt1.rotation, atol=1e-12)
+    dp = np.linalg.norm(oMt1.translation - oMt0.translation)
+    assert dp <= LIM.tool_speed_m_s * DT_S * (1 + 1e-9)
+    dth = angle_between(oMt0.rotation, oMt1.rotation)
+    assert dth <= LIM.tool_rot_speed_rad_s * DT_S * (1 + 1e-9)
+    inside = np.all(q1 > LIM.q_lo) and np.all(q1 < LIM.q_hi)
     if "tool_speed" not in step.limited and inside:
-        assert np.all(np.abs(step.qd - qd) <= LIM.amax * DT_S * (1 + 1e-9))
+        assert np.all(np.abs(qd1 - qd) <= LIM.amax * DT_S * (1 + 1e-9))
     assert step.limited <= {"joint_limit", "joint_speed", "joint_accel", "tool_speed"}
 
 
 def test_safe_step_reports_what_acted() -> None:
     q = np.array([0.3, 0.8, -2.5, 0.1, 0.6, 0.2])
     pose = tool_pose(q)
-    near = safe_step(q, np.zeros(6), q + 1e-6, DT_S, LIM, tool_pose, pose)
+    rest = [0.0] * 6
+    near = safe_step(q.tolist(), rest, (q + 1e-6).tolist(), DT_S, LIM, tool_pose, pose)
     assert near.limited == frozenset()
     np.testing.assert_allclose(near.q, q + 1e-6)
-    far = safe_step(q, np.zeros(6), q + 1.0, DT_S, LIM, tool_pose, pose)
+    far = safe_step(q.tolist(), rest, (q + 1.0).tolist(), DT_S, LIM, tool_pose, pose)
     assert {"joint_speed", "joint_accel"} <= far.limited
     np.testing.assert_allclose(far.qd, LIM.amax * DT_S)  # from rest: one step of acceleration
-    out = safe_step(q, np.zeros(6), LIM.q_hi + 1.0, DT_S, LIM, tool_pose, pose)
+    out = safe_step(q.tolist(), rest, (LIM.q_hi + 1.0).tolist(), DT_S, LIM, tool_pose, pose)
     assert "joint_limit" in out.limited
