@@ -346,6 +346,7 @@ class Node:
         methods: Mapping[str, Handler],
         inline: Collection[str] = (),
         first: Mapping[str, Callable[[], None]] | None = None,
+        inline_when: Mapping[str, Callable[[], bool]] | None = None,
     ) -> None:
         """Serve `robot/<service>/rpc/<method>` for each handler.
 
@@ -354,12 +355,15 @@ class Node:
         callback, which saves the hand-over to a worker (the floor of a call). Every other
         handler runs on a worker thread, so a `"wait": true` motion or a nested call can
         block until done. `first[method]`, if given, runs before the arguments are read or
-        checked (an e-stop latches whatever its call carries). Arguments above
+        checked (an e-stop latches whatever its call carries). `inline_when[method]` says,
+        per call, whether this call would not block (a handler that answers from what it
+        keeps and waits only when that is missing): inline then, else on a worker. Arguments above
         MAX_PAYLOAD_BYTES are refused unread. `ProtocolError` → `bad_request`, `RpcError` →
         its code, anything else → `internal` (and an event); a reply's message is short.
         """
         table = dict(methods)
-        unknown = (set(inline) | set(first or {})) - set(table)
+        when = dict(inline_when or {})
+        unknown = (set(inline) | set(first or {}) | set(when)) - set(table)
         if unknown:
             raise ValueError(f"inline or first-action methods not served: {sorted(unknown)}")
         direct = frozenset(inline)
@@ -413,6 +417,10 @@ class Node:
                 method = method.split("/", 1)[0]
             if method in direct or method not in table:
                 run(query, method)  # never blocks; an unknown method is answered at once
+                return
+            ready = when.get(method)
+            if ready is not None and ready():
+                run(query, method)  # this call will not wait
                 return
             try:
                 self._rpc_pool.submit(run, query, method)

@@ -348,6 +348,27 @@ def test_inline_methods_run_in_the_callback_the_others_on_the_pool(net: Net) -> 
     assert info.value.code == "bad_request" and "fly" in info.value.message
 
 
+def test_a_method_runs_inline_when_its_predicate_says_it_will_not_wait(net: Net) -> None:
+    client, service = net.node("console"), net.node("arm")
+    threads: list[str] = []
+    kept = threading.Event()
+
+    def status(args: dict[str, Any]) -> dict[str, Any]:
+        threads.append(threading.current_thread().name)
+        return {"kept": kept.is_set()}
+
+    with pytest.raises(ValueError, match="not served"):
+        service.serve("arm", {"status": status}, inline_when={"nope": kept.is_set})
+    service.serve("arm", {"status": status}, inline_when={"status": kept.is_set})
+    service.announce()
+    assert client.call("arm", "status") == {"kept": False}
+    kept.set()
+    assert client.call("arm", "status") == {"kept": True}
+    assert len(threads) == 2
+    assert threads[0].startswith("arm-rpc")  # it might wait: on the pool
+    assert not threads[1].startswith("arm-rpc")  # it will not: in Zenoh's callback
+
+
 def test_calls_started_together_run_concurrently(net: Net) -> None:
     client, service = net.node("console"), net.node("pair")
     first_in = threading.Event()

@@ -148,6 +148,7 @@ class DecisionService:
             self._methods(),
             inline=("supervisor", "reset"),
             first={"estop": self._latch_estop, "stop": self._hold_first},
+            inline_when={"status": self._status_ready},
         )
         self._thread = threading.Thread(target=self._timer, name="decision-timer", daemon=True)
         self._thread.start()
@@ -414,6 +415,11 @@ class DecisionService:
         else:
             return None
         return [float(x) for x in np.asarray(state.tool_p) + R_f @ np.asarray(dp)]
+
+    def _status_ready(self) -> bool:
+        """`status` would not wait for a nested call (every peek it reads is kept)."""
+        puma, sensor, read = self._peeks
+        return puma.ready() and sensor.ready() and (self._force.watching or read.ready())
 
     def rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
         """The superset status: robot (robot/state and puma's `status`), sensor (robot/force

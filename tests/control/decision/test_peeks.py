@@ -80,3 +80,15 @@ def test_errors_are_maps_and_nothing_is_kept() -> None:
     assert p.get() == {"error": "unavailable", "message": "no reply in 1 s"}
     node.fail = None
     assert p.get() == {"n": 1, "age_ms": 0.0}
+
+
+def test_ready_says_whether_get_would_wait() -> None:
+    node = FakeNode()
+    p = peek(node, refresh_s=3600.0, max_age_s=3600.0)
+    assert not p.ready()  # nothing kept: get() would call and wait
+    p.get()
+    assert p.ready()  # kept and young
+    p.max_age_s = 0.0
+    assert wait_until(lambda: not p.ready())  # too old: get() would wait again
+    node.up = False
+    assert p.ready()  # not alive: answered at once
