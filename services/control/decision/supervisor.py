@@ -44,21 +44,18 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-import numpy as np
-
 from services.bus.bounds import norm_out_of_bounds
 from services.bus.errors import ErrorCode, RpcError
 from services.bus.messages import ForceSample, OperatorCommand, RobotState
 from services.control.decision.config import DecisionConfig
 from services.control.decision.masters import MasterRecord, Masters
-from services.control.decision.notices import Notice, Notices, floats
+from services.control.decision.notices import Notice, Notices
 from services.control.decision.target import MOVING_STATUSES, Sensed, SupervisedTarget
 from services.control.decision.taskrun import TaskRun, Tasks, run_tick
 from services.control.decision.tasks import TaskPlan
 from services.control.decision.watch import WATCH_PERIOD_NS, Watch, WatchStop, watch_step
 from services.control.decision.watchdogs import follow_deadline_ns, follow_problem, fresh
 from services.control.passivity.slave import DEADBAND_N
-from services.geometry import log_so3
 
 
 class Mode(Enum):
@@ -665,9 +662,9 @@ class Supervisor:
             "seq_out": target.seq_out,
             "hold_reason": self.hold_reason,
             "estop": self.mode is Mode.ESTOP,
-            "target_p": floats(target.p_sup) if target.p0 is not None else None,
-            "offset_p": floats(target.off_p),
-            "offset_rot_rad": float(np.linalg.norm(log_so3(target.off_R))),
+            "target_p": target.p_sup.tolist() if target.p0 is not None else None,
+            "offset_p": target.off_p.tolist(),
+            "offset_rot_rad": target.offset_rot_rad,
             "task": self.tasks.current.summary() if self.tasks.current is not None else None,
             "last_task": self.tasks.last.summary() if self.tasks.last is not None else None,
             "interventions": dict(self.notices.counters),

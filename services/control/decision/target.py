@@ -135,6 +135,11 @@ class SupervisedTarget:
     def off_R(self) -> Mat:
         return as_mat3(self._off_R)
 
+    @property
+    def offset_rot_rad(self) -> float:
+        """The angle (rad) of the rotation the filters hold back."""
+        return len3(log9(self._off_R))
+
     def start_tick(self, now_ns: int, cfg: DecisionConfig) -> None:
         """The time the target may move over this tick: since its last step, at most one
         watchdog period (a longer gap is a hold anyway)."""
