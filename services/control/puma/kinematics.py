@@ -14,7 +14,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, cast
 
 import numpy as np
 import pinocchio as pin
@@ -22,6 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from services.bus.errors import TelerobotError
 from services.control.puma.arm import Q_HI_RAD, Q_LO_RAD, QN_RAD
+from services.geometry import M9, V3, mul9, mv9
 
 Vec = NDArray[np.float64]
 
@@ -343,25 +344,10 @@ def compose_floats(
     aMb: tuple[Sequence[float], Sequence[float]], bMc: tuple[Sequence[float], Sequence[float]]
 ) -> PoseFloats:
     """aMc = aMb·bMc on (p, R) floats: p = p_ab + R_ab·p_bc, R = R_ab·R_bc."""
-    (x, y, z), (r00, r01, r02, r10, r11, r12, r20, r21, r22) = aMb
-    (tx, ty, tz), (t00, t01, t02, t10, t11, t12, t20, t21, t22) = bMc
-    p = [
-        x + (r00 * tx + r01 * ty + r02 * tz),
-        y + (r10 * tx + r11 * ty + r12 * tz),
-        z + (r20 * tx + r21 * ty + r22 * tz),
-    ]
-    rot = [
-        r00 * t00 + r01 * t10 + r02 * t20,
-        r00 * t01 + r01 * t11 + r02 * t21,
-        r00 * t02 + r01 * t12 + r02 * t22,
-        r10 * t00 + r11 * t10 + r12 * t20,
-        r10 * t01 + r11 * t11 + r12 * t21,
-        r10 * t02 + r11 * t12 + r12 * t22,
-        r20 * t00 + r21 * t10 + r22 * t20,
-        r20 * t01 + r21 * t11 + r22 * t21,
-        r20 * t02 + r21 * t12 + r22 * t22,
-    ]
-    return p, rot
+    (p_ab, R_ab), (p_bc, R_bc) = aMb, bMc
+    r_ab = cast(M9, R_ab)  # 9 floats, row-major: geometry's products read them as they are
+    x, y, z = mv9(r_ab, cast(V3, p_bc))
+    return [p_ab[0] + x, p_ab[1] + y, p_ab[2] + z], list(mul9(r_ab, cast(M9, R_bc)))
 
 
 def tool_pose_floats(

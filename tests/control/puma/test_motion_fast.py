@@ -24,10 +24,8 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 
 from services.control.puma.arm import ARM_MAX_JOINT_ACCEL_RAD_S2, ARM_MAX_JOINT_SPEED_RAD_S
-from services.control.puma.config import PumaConfig
 from services.control.puma.kinematics import (
     DEFAULT_eMt,
-    Puma560,
     compose_floats,
     flange_pose_floats,
     manipulability_floats,
@@ -36,21 +34,12 @@ from services.control.puma.kinematics import (
 )
 from services.control.puma.motions import servo_target
 from services.control.puma.planning import PLAN_SPEED_MARGIN
-from services.control.puma.safety import MotionLimits, safe_step
+from services.control.puma.safety import safe_step
 from services.control.puma.sim_arm import ARRIVED_RAD, JointFollower
 from services.control.puma.trajectory import discrete_brake_speed
+from tests.control.puma.test_motion_math import KIN, LIM
 
 Vec = NDArray[np.float64]
-KIN = Puma560()
-CFG = PumaConfig()
-LIM = MotionLimits(
-    q_lo=KIN.q_lo.copy(),
-    q_hi=KIN.q_hi.copy(),
-    vmax=np.array(CFG.max_joint_speed_rad_s),
-    amax=np.array(CFG.max_joint_accel_rad_s2),
-    tool_speed_m_s=CFG.max_tool_speed_m_s,
-    tool_rot_speed_rad_s=CFG.max_tool_rot_speed_rad_s,
-)
 EDGE = 1e-9
 """A tool-motion ratio this close to 1 is a decision rounding may take either way."""
 
