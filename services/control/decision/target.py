@@ -182,6 +182,8 @@ class SupervisedTarget:
         # The operator's pose, eq. 2–3 (geometry.tool_target_pose): p0 + dp (world) or
         # p0 + R0·dp (tool); R0·dR.
         dp = v3(cmd.dp)
+        if cmd.frame not in ("world", "tool"):
+            raise ValueError(f"frame must be 'world' or 'tool', got {cmd.frame!r}")
         p_des = add3(self._p0, dp if cmd.frame == "world" else mv9(self._R0, dp))
         R_des = mul9(self._R0, m9(cmd.dR))
         g_p = add3(p_des, self._off_p)
