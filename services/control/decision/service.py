@@ -23,7 +23,6 @@ briefly; a task's caller waits on its condition.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 import traceback
@@ -31,15 +30,14 @@ from collections.abc import Callable, Mapping
 from functools import partial
 from typing import Any
 
-import numpy as np
 import zenoh
 
-from services.bus.bounds import each_out_of_bounds, norm_out_of_bounds, out_of_bounds, short
+from services.bus.bounds import out_of_bounds, short
 from services.bus.codec import arg
 from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
 from services.bus.keys import CMD, PUMA_CMD, STATE
-from services.bus.messages import ForceSample, OperatorCommand, mat3
+from services.bus.messages import ForceSample, OperatorCommand, RobotState
 from services.bus.node import Node
 from services.control.decision.config import STARTUP_ONLY, DecisionConfig
 from services.control.decision.forcefeed import FORCE_WAIT_S, ForceFeed
@@ -49,7 +47,7 @@ from services.control.decision.peeks import Peek, read_sample, stamped
 from services.control.decision.supervisor import Inputs, Mode, Supervisor
 from services.control.decision.taskrun import TaskRun
 from services.control.decision.tasks import TASK_NAMES, TaskPlan, plan_task
-from services.control.decision.watch import target_problem
+from services.control.decision.watch import forwarded_target, target_problem
 from services.control.decision.watchdogs import fresh
 
 log = logging.getLogger("telerobot.decision")
@@ -367,54 +365,26 @@ class DecisionService:
 
     def _check_target(self, method: str, args: Mapping[str, Any]) -> None:
         """Refuse (`limit`) a forwarded motion whose target tool point lies outside the
-        workspace box. Arguments the puma would refuse anyway are left to it."""
-        p: list[float] | None = None
-        if method == "move_pose":
-            p = _floats3(args.get("p"))
-            if p is not None and each_out_of_bounds("p", p, "position_m"):
-                p = None  # absurd, not merely outside the box: the puma says `bad_request`
-        elif method == "move_relative":
-            p = self._relative_target(args)
-        elif method == "move_joints":
-            q = args.get("q")
-            if (
-                isinstance(q, list)
-                and len(q) == 6
-                and all(_number(x) for x in q)
-                and each_out_of_bounds("q", [float(x) for x in q], "joint_rad") is None
-            ):
-                try:
-                    p = _floats3(self._forward("puma", "fk", {"q": q}).get("tool_p"))
-                except RpcError:
-                    p = None  # the puma will refuse the call for the same reason
+        workspace box (watch.forwarded_target; what the puma would refuse is left to it)."""
+
+        def newest_state() -> RobotState | None:
+            with self._cond:
+                read = self._state.read()
+            return None if read is None else read[0]
+
+        def ask_puma(puma_method: str, puma_args: dict[str, Any]) -> dict[str, Any] | None:
+            try:
+                return self._forward("puma", puma_method, puma_args)
+            except RpcError:
+                return None  # the puma will refuse the call for the same reason
+
+        p = forwarded_target(method, args, newest_state, ask_puma)
         if p is None:
             return
         with self._cond:
             why = target_problem(self.config, method, p)
         if why is not None:
             raise RpcError("limit", why)
-
-    def _relative_target(self, args: Mapping[str, Any]) -> list[float] | None:
-        """`move_relative`'s target tool point: p + R_f·dp (R_f of its frame; PROTOCOL §4
-        and the puma's `set_frame` default), from the newest robot/state."""
-        dp = _floats3(args.get("dp"))
-        with self._cond:
-            read = self._state.read()
-        if dp is None or read is None or norm_out_of_bounds("dp", dp, "displacement_m"):
-            return None
-        state = read[0]
-        frame = args.get("frame")
-        if frame is None:
-            frame = self._forward("puma", "status", {}).get("frame", "world")
-        if frame == "world":
-            R_f = np.eye(3)
-        elif frame == "wrist":
-            R_f = mat3(state.flange_R)
-        elif frame == "tool":
-            R_f = mat3(state.tool_R)
-        else:
-            return None
-        return [float(x) for x in np.asarray(state.tool_p) + R_f @ np.asarray(dp)]
 
     def _status_ready(self) -> bool:
         """`status` would not wait for a nested call (every peek it reads is kept)."""
@@ -627,17 +597,6 @@ class DecisionService:
             self.node.call("puma", "stop", {}, self.config.rpc_timeout_s)
         except (RpcError, Unavailable) as e:
             log.info("puma stop at close: %s", e)
-
-
-def _number(x: object) -> bool:
-    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _floats3(v: object) -> list[float] | None:
-    """3 finite numbers as floats, or None (the puma answers for malformed arguments)."""
-    if isinstance(v, list | tuple) and len(v) == 3 and all(_number(x) for x in v):
-        return [float(x) for x in v]
-    return None
 
 
 def _outcome(run: TaskRun) -> dict[str, Any]:

@@ -1,18 +1,22 @@
 """Forwarded motions (`move_*`, `home`): the puma plans and executes them, the decision
 server watches them and has them stopped at a contact or at the workspace's edge.
 
-Pure: `watch_step` judges one tick's robot state and force; the supervisor counts and
-reports what it returns and asks the service to call the puma's `stop`.
+`forwarded_target` tells where a forwarded motion goes (the service refuses one outside
+the workspace box). Pure: `watch_step` judges one tick's robot state and force; the
+supervisor counts and reports what it returns and asks the service to call the puma's
+`stop`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from services.bus.bounds import each_out_of_bounds, norm_out_of_bounds
 from services.bus.messages import ForceSample, RobotState, mat3
 from services.control.decision.config import DecisionConfig
 from services.control.decision.filters import in_box
@@ -55,6 +59,63 @@ def target_problem(cfg: DecisionConfig, method: str, p: Sequence[float]) -> str 
         f"{method}: target {[round(float(x), 4) for x in p]} m is outside the workspace "
         f"{list(cfg.workspace_min)} … {list(cfg.workspace_max)}"
     )
+
+
+def forwarded_target(
+    method: str,
+    args: Mapping[str, Any],
+    newest_state: Callable[[], RobotState | None],
+    ask_puma: Callable[[str, dict[str, Any]], dict[str, Any] | None],
+) -> list[float] | None:
+    """The tool point (m, world) a forwarded motion goes to, or None when it cannot be told
+    or the puma will refuse the call anyway (absurd or malformed arguments: `bad_request`
+    is the puma's to give). `move_pose`: its `p`; `move_relative`: p + R_f·dp from the
+    newest robot/state (R_f of its frame, PROTOCOL §4, the puma's `set_frame` default when
+    absent); `move_joints`: the puma's `fk` of `q`. `ask_puma(method, args)` is None on an
+    error reply."""
+    if method == "move_pose":
+        p = _floats3(args.get("p"))
+        if p is not None and each_out_of_bounds("p", p, "position_m"):
+            return None  # absurd, not merely outside the box
+        return p
+    if method == "move_relative":
+        dp = _floats3(args.get("dp"))
+        state = newest_state()
+        if dp is None or state is None or norm_out_of_bounds("dp", dp, "displacement_m"):
+            return None
+        frame = args.get("frame")
+        if frame is None:
+            frame = (ask_puma("status", {}) or {}).get("frame", "world")
+        if frame == "world":
+            R_f = np.eye(3)
+        elif frame == "wrist":
+            R_f = mat3(state.flange_R)
+        elif frame == "tool":
+            R_f = mat3(state.tool_R)
+        else:
+            return None
+        return [float(x) for x in np.asarray(state.tool_p) + R_f @ np.asarray(dp)]
+    if method == "move_joints":
+        q = args.get("q")
+        if (
+            isinstance(q, list)
+            and len(q) == 6
+            and all(_number(x) for x in q)
+            and each_out_of_bounds("q", [float(x) for x in q], "joint_rad") is None
+        ):
+            return _floats3((ask_puma("fk", {"q": q}) or {}).get("tool_p"))
+    return None
+
+
+def _number(x: object) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _floats3(v: object) -> list[float] | None:
+    """3 finite numbers as floats, or None."""
+    if isinstance(v, list | tuple) and len(v) == 3 and all(_number(x) for x in v):
+        return [float(x) for x in v]
+    return None
 
 
 def watch_step(

@@ -4,6 +4,8 @@ per-master records (masters.py), the forwarded-motion watch (watch.py)."""
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from hypothesis import given, settings
@@ -18,7 +20,13 @@ from services.control.decision.notices import (
     NOTICES_PER_S,
     Notices,
 )
-from services.control.decision.watch import WATCH_START_NS, Watch, WatchStop, watch_step
+from services.control.decision.watch import (
+    WATCH_START_NS,
+    Watch,
+    WatchStop,
+    forwarded_target,
+    watch_step,
+)
 from tests.control.decision.rig import Rig
 
 MS = 1_000_000
@@ -157,3 +165,48 @@ def test_a_watch_ends_with_the_motion_and_stops_it_at_a_contact_or_the_box() -> 
     stop = watch_step(Watch("home", 0), cfg, 1, state("moving", out), None)
     assert isinstance(stop, WatchStop) and stop.kind == "limit"
     assert stop.data["reason"] == "workspace"
+
+
+Ask = Callable[[str, dict[str, Any]], dict[str, Any] | None]
+
+
+def test_a_forwarded_motion_s_target_point_by_method_and_frame() -> None:
+    st_ = state("ready")  # tool at (0.6, 0, 0.6), tool and flange z down: diag(−1, 1, −1)
+    asked: list[tuple[str, dict[str, object]]] = []
+
+    def puma(reply: dict[str, object] | None) -> Ask:
+        def ask(method: str, args: dict[str, object]) -> dict[str, object] | None:
+            asked.append((method, args))
+            return reply
+
+        return ask
+
+    def target(
+        method: str, args: dict[str, object], reply: dict[str, object] | None = None
+    ) -> list[float] | None:
+        return forwarded_target(method, args, lambda: st_, puma(reply))
+
+    assert target("move_pose", {"p": [0.5, 0.1, 0.4]}) == [0.5, 0.1, 0.4]
+    assert target("move_pose", {"p": [1e9, 0.0, 0.0]}) is None  # absurd: the puma refuses it
+    assert target("move_pose", {"p": "here"}) is None
+    dp = [0.01, 0.02, 0.03]
+    assert np.allclose(target("move_relative", {"dp": dp, "frame": "world"}), [0.61, 0.02, 0.63])
+    assert np.allclose(target("move_relative", {"dp": dp, "frame": "tool"}), [0.59, 0.02, 0.57])
+    assert np.allclose(target("move_relative", {"dp": dp, "frame": "wrist"}), [0.59, 0.02, 0.57])
+    assert asked == []
+    # no frame: the puma's own (`set_frame`), asked; world if it cannot say
+    assert np.allclose(target("move_relative", {"dp": dp}, {"frame": "tool"}), [0.59, 0.02, 0.57])
+    assert np.allclose(target("move_relative", {"dp": dp}, None), [0.61, 0.02, 0.63])
+    assert [m for m, _ in asked] == ["status", "status"]
+    assert target("move_relative", {"dp": dp, "frame": "elsewhere"}) is None
+    assert (
+        forwarded_target("move_relative", {"dp": dp, "frame": "world"}, lambda: None, puma(None))
+        is None
+    )
+    asked.clear()
+    q = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
+    assert target("move_joints", {"q": q}, {"tool_p": [0.1, 0.2, 0.3]}) == [0.1, 0.2, 0.3]
+    assert target("move_joints", {"q": q}, None) is None  # the puma refused fk
+    assert target("move_joints", {"q": q[:5]}) is None
+    assert asked == [("fk", {"q": q}), ("fk", {"q": q})]
+    assert target("home", {}) is None
