@@ -346,7 +346,7 @@ class Node:
         methods: Mapping[str, Handler],
         inline: Collection[str] = (),
         first: Mapping[str, Callable[[], None]] | None = None,
-        inline_when: Mapping[str, Callable[[], bool]] | None = None,
+        inline_try: Mapping[str, Callable[[dict[str, Any]], dict[str, Any] | None]] | None = None,
     ) -> None:
         """Serve `robot/<service>/rpc/<method>` for each handler.
 
@@ -355,24 +355,29 @@ class Node:
         callback, which saves the hand-over to a worker (the floor of a call). Every other
         handler runs on a worker thread, so a `"wait": true` motion or a nested call can
         block until done. `first[method]`, if given, runs before the arguments are read or
-        checked (an e-stop latches whatever its call carries). `inline_when[method]` says,
-        per call, whether this call would not block (a handler that answers from what it
-        keeps and waits only when that is missing): inline then, else on a worker. Arguments above
-        MAX_PAYLOAD_BYTES are refused unread. `ProtocolError` → `bad_request`, `RpcError` →
-        its code, anything else → `internal` (and an event); a reply's message is short.
+        checked (an e-stop latches whatever its call carries). `inline_try[method]`, for a
+        method that usually answers from what it keeps: tried first in Zenoh's callback; it
+        never blocks, and returns None when it would have to wait, and then `methods[method]`
+        answers on a worker. Arguments above MAX_PAYLOAD_BYTES are refused unread.
+        `ProtocolError` → `bad_request`, `RpcError` → its code, anything else → `internal`
+        (and an event); a reply's message is short.
         """
         table = dict(methods)
-        when = dict(inline_when or {})
-        unknown = (set(inline) | set(first or {}) | set(when)) - set(table)
+        tries = dict(inline_try or {})
+        unknown = (set(inline) | set(first or {}) | set(tries)) - set(table)
         if unknown:
             raise ValueError(f"inline or first-action methods not served: {sorted(unknown)}")
+        if set(tries) & set(first or {}):
+            raise ValueError("a method with a first action cannot have an inline try")
         direct = frozenset(inline)
         before = dict(first or {})
         prefix = rpc_key(service, "")
 
-        def run(query: zenoh.Query, method: str) -> None:
+        def run(query: zenoh.Query, method: str, attempt: bool = False) -> bool:
+            """Answer `query`; False (nothing sent) when the inline try would wait."""
+            answered = True
             try:
-                handler = table.get(method)
+                handler = tries[method] if attempt else table.get(method)
                 if handler is None:
                     raise RpcError(
                         "bad_request",
@@ -389,6 +394,9 @@ class Node:
                 if not isinstance(args, dict):
                     raise ProtocolError("args", "expected a msgpack map of arguments")
                 result = handler(args)
+                if result is None:  # only an inline try: the worker answers
+                    answered = False
+                    return False
                 query.reply(query.key_expr, codec.pack(result), encoding=ZENOH_ENCODING)
             except (ProtocolError, RpcError) as e:
                 code = e.code if isinstance(e, RpcError) else "bad_request"
@@ -409,7 +417,9 @@ class Node:
                     codec.pack({"error": "internal", "message": short(e)}), encoding=ZENOH_ENCODING
                 )
             finally:
-                query.drop()
+                if answered:
+                    query.drop()
+            return True
 
         def callback(query: zenoh.Query) -> None:
             method = str(query.key_expr)[len(prefix) :]
@@ -418,10 +428,8 @@ class Node:
             if method in direct or method not in table:
                 run(query, method)  # never blocks; an unknown method is answered at once
                 return
-            ready = when.get(method)
-            if ready is not None and ready():
-                run(query, method)  # this call will not wait
-                return
+            if method in tries and run(query, method, attempt=True):
+                return  # answered from what the service keeps
             try:
                 self._rpc_pool.submit(run, query, method)
             except RuntimeError:  # pool shut down: the node is closing

@@ -348,25 +348,37 @@ def test_inline_methods_run_in_the_callback_the_others_on_the_pool(net: Net) -> 
     assert info.value.code == "bad_request" and "fly" in info.value.message
 
 
-def test_a_method_runs_inline_when_its_predicate_says_it_will_not_wait(net: Net) -> None:
+def test_an_inline_try_answers_in_the_callback_or_hands_the_call_to_a_worker(net: Net) -> None:
     client, service = net.node("console"), net.node("arm")
-    threads: list[str] = []
+    threads: list[tuple[str, str]] = []
     kept = threading.Event()
 
     def status(args: dict[str, Any]) -> dict[str, Any]:
-        threads.append(threading.current_thread().name)
-        return {"kept": kept.is_set()}
+        threads.append(("status", threading.current_thread().name))
+        return {"kept": False}
+
+    def status_kept(args: dict[str, Any]) -> dict[str, Any] | None:
+        threads.append(("try", threading.current_thread().name))
+        return {"kept": True} if kept.is_set() else None
 
     with pytest.raises(ValueError, match="not served"):
-        service.serve("arm", {"status": status}, inline_when={"nope": kept.is_set})
-    service.serve("arm", {"status": status}, inline_when={"status": kept.is_set})
+        service.serve("arm", {"status": status}, inline_try={"nope": status_kept})
+    with pytest.raises(ValueError, match="first action"):
+        service.serve(
+            "arm",
+            {"status": status},
+            first={"status": kept.set},
+            inline_try={"status": status_kept},
+        )
+    service.serve("arm", {"status": status}, inline_try={"status": status_kept})
     service.announce()
-    assert client.call("arm", "status") == {"kept": False}
+    assert client.call("arm", "status") == {"kept": False}  # the try would wait: the worker
     kept.set()
-    assert client.call("arm", "status") == {"kept": True}
-    assert len(threads) == 2
-    assert threads[0].startswith("arm-rpc")  # it might wait: on the pool
-    assert not threads[1].startswith("arm-rpc")  # it will not: in Zenoh's callback
+    assert client.call("arm", "status") == {"kept": True}  # answered by the try
+    assert [name for name, _ in threads] == ["try", "status", "try"]
+    assert not threads[0][1].startswith("arm-rpc")  # tried in Zenoh's callback …
+    assert threads[1][1].startswith("arm-rpc")  # … then answered on the pool
+    assert not threads[2][1].startswith("arm-rpc")
 
 
 def test_calls_started_together_run_concurrently(net: Net) -> None:

@@ -6,8 +6,8 @@ inside every call (4–7 ms against a 1 ms floor). A `Peek` keeps the last reply
 nested call: a service that is not alive is reported at once (`unavailable`, from
 liveliness); a reply younger than `max_age_s` is returned as it is, with `age_ms`, and one
 older than `refresh_s` starts one refresh in the background for the next caller; with
-none, or one too old, the call is made and waited for, as before. `ready()` tells which:
-the decision answers `status` in Zenoh's callback when no peek would wait. The live parts of
+none, or one too old, the call is made and waited for, as before — or, with `wait=False`
+(the decision's `status` tried in Zenoh's callback), not made: None. The live parts of
 `status` (robot/state, robot/force, the supervisor) never come from here; `stamped` and
 `read_sample` turn their newest samples into `status` entries.
 """
@@ -53,8 +53,9 @@ class Peek:
         self._refreshing = False
         self.calls = 0
 
-    def get(self) -> dict[str, Any]:
-        """The reply (with `age_ms` when kept), or an error map: status never fails for it."""
+    def get(self, wait: bool = True) -> dict[str, Any] | None:
+        """The reply (with `age_ms` when kept), or an error map: status never fails for it.
+        None if the call would have to be made and `wait` is False."""
         if not self.node.alive.is_alive(self.service):
             with self._lock:
                 self._reply = None
@@ -67,19 +68,11 @@ class Peek:
             if kick:
                 self._refreshing = True
         if stale:
-            return self._call()
+            return self._call() if wait else None
         if kick:
             threading.Thread(target=self._refresh, name="decision-peek", daemon=True).start()
         assert reply is not None
         return {**reply, "age_ms": round(age * 1e3, 3)}
-
-    def ready(self) -> bool:
-        """`get()` would answer without waiting: the service is not alive, or a reply at
-        most `max_age_s` old is kept."""
-        if not self.node.alive.is_alive(self.service):
-            return True
-        with self._lock:
-            return self._reply is not None and time.monotonic() - self._at <= self.max_age_s
 
     def _call(self) -> dict[str, Any]:
         self.calls += 1

@@ -146,7 +146,7 @@ class DecisionService:
             self._methods(),
             inline=("supervisor", "reset"),
             first={"estop": self._latch_estop, "stop": self._hold_first},
-            inline_when={"status": self._status_ready},
+            inline_try={"status": self._status_kept},
         )
         self._thread = threading.Thread(target=self._timer, name="decision-timer", daemon=True)
         self._thread.start()
@@ -386,20 +386,32 @@ class DecisionService:
         if why is not None:
             raise RpcError("limit", why)
 
-    def _status_ready(self) -> bool:
-        """`status` would not wait for a nested call (every peek it reads is kept)."""
-        puma, sensor, read = self._peeks
-        return puma.ready() and sensor.ready() and (self._force.watching or read.ready())
-
     def rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
         """The superset status: robot (robot/state and puma's `status`), sensor (robot/force
         and `sensor_status`), supervisor (mode, lease, task, settings), alive services and the
         intervention counters."""
+        out = self._status(wait=True)
+        assert out is not None  # waiting, every peek answers
+        return out
+
+    def _status_kept(self, args: dict[str, Any]) -> dict[str, Any] | None:
+        """`status` from the kept replies only (in Zenoh's callback), or None if one of them
+        would have to be asked for (then `rpc_status` answers on a worker)."""
+        return self._status(wait=False)
+
+    def _status(self, wait: bool) -> dict[str, Any] | None:
+        puma, sensor = self._peeks[0].get(wait), self._peeks[1].get(wait)
+        if puma is None or sensor is None:
+            return None
         with self._cond:
             watching = self._force.watching
             snap = self.supervisor.snapshot()
             settings = self.config.settings()
             state, force = self._state.read(), self._force.read()
+        # Not subscribed to robot/force (idle): the sensor's newest sample, asked for.
+        read = None if watching else self._peeks[2].get(wait)
+        if not watching and read is None:
+            return None
         now = time.monotonic_ns()
         interventions = dict(snap["interventions"])
         interventions["rejected"] = interventions.get("rejected", 0) + self._cmd_rejections()
@@ -412,10 +424,9 @@ class DecisionService:
             "settings": settings,
             "interventions": interventions,
             "robot": stamped(state, now),
-            # Not subscribed to robot/force (idle): the sensor's newest sample, asked for.
-            "force": stamped(force, now) if watching else read_sample(self._peeks[2].get()),
-            "puma": self._peeks[0].get(),
-            "sensor": self._peeks[1].get(),
+            "force": stamped(force, now) if read is None else read_sample(read),
+            "puma": puma,
+            "sensor": sensor,
             "alive": sorted(self.node.alive.names()),
             "loop": {
                 "rate_hz": self.config.rate_hz,

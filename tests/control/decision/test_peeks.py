@@ -82,13 +82,17 @@ def test_errors_are_maps_and_nothing_is_kept() -> None:
     assert p.get() == {"n": 1, "age_ms": 0.0}
 
 
-def test_ready_says_whether_get_would_wait() -> None:
+def test_without_waiting_a_peek_answers_only_from_what_it_keeps() -> None:
     node = FakeNode()
     p = peek(node, refresh_s=3600.0, max_age_s=3600.0)
-    assert not p.ready()  # nothing kept: get() would call and wait
-    p.get()
-    assert p.ready()  # kept and young
+    assert p.get(wait=False) is None and node.n == 0  # nothing kept: not asked
+    assert p.get() == {"n": 1, "age_ms": 0.0}
+    assert p.get(wait=False)["n"] == 1  # type: ignore[index]  # kept and young
     p.max_age_s = 0.0
-    assert wait_until(lambda: not p.ready())  # too old: get() would wait again
+    assert wait_until(lambda: p.get(wait=False) is None)  # too old: it would ask again
+    assert node.n == 1
     node.up = False
-    assert p.ready()  # not alive: answered at once
+    assert p.get(wait=False) == {
+        "error": "unavailable",
+        "message": "the puma service is not running",
+    }
