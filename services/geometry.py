@@ -37,6 +37,7 @@ and ≫ the ~1e-16 rounding of one product so that the SVD runs rarely."""
 
 _SMALL_ANGLE_RAD = 1e-8
 _GIMBAL_EPS = 1e-9
+_TWO_SQRT2 = 2.0 * math.sqrt(2.0)
 
 
 def _floats3(v: ArrayLike) -> tuple[float, float, float]:
@@ -150,8 +151,7 @@ def rotation_angle(R: ArrayLike) -> float:
 def angle_between(R_a: ArrayLike, R_b: ArrayLike) -> float:
     """The angle (rad) of R_aᵀ·R_b, the rotation taking frame a to frame b, accurate for
     small angles: ‖R_a − R_b‖_F = 2√2·sin(θ/2)."""
-    d = float(np.linalg.norm(np.asarray(R_a, dtype=float) - np.asarray(R_b, dtype=float)))
-    return 2.0 * math.asin(min(1.0, d / (2.0 * math.sqrt(2.0))))
+    return angle9(m9(R_a), m9(R_b))
 
 
 def slerp(R0: ArrayLike, R1: ArrayLike, u: float) -> Mat3:
@@ -404,6 +404,12 @@ def ortho9(r: M9) -> M9:
     if err < ORTHONORMAL_TOL and det > 0.0:
         return r
     return m9(_nearest_rotation(as_mat3(r)))
+
+
+def angle9(R_a: Sequence[float], R_b: Sequence[float]) -> float:
+    """`angle_between` of two rotations as 9 row-major floats: the chord formula
+    ‖R_a − R_b‖_F = 2√2·sin(θ/2)."""
+    return 2.0 * math.asin(min(1.0, math.dist(R_a, R_b) / _TWO_SQRT2))
 
 
 def exp9(w: V3) -> M9:

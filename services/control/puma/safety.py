@@ -20,13 +20,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from services.geometry import angle9
+
 Vec = NDArray[np.float64]
 ToolPose = tuple[Sequence[float], Sequence[float]]
 """(p, R) of the tool in the world: position (3 floats, m), rotation (9 floats, row-major)."""
 ToolPoseFn = Callable[[list[float]], ToolPose]
 """The tool pose at a joint vector (6 floats, rad)."""
-
-_TWO_SQRT2 = 2.0 * math.sqrt(2.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,11 +73,10 @@ def tool_motion(pose0: ToolPose, pose1: ToolPose, max_dp_m: float, max_dth_rad: 
     """How far the tool moves from `pose0` to `pose1` as a share of what is allowed: the
     larger of |p1 − p0| / max_dp_m and angle(R0ᵀR1) / max_dth_rad (≤ 1: within both).
 
-    The angle is `geometry.angle_between` in plain floats: ‖R0 − R1‖_F = 2√2·sin(θ/2),
-    accurate for small angles."""
+    The angle is `geometry.angle9` (the chord formula of `angle_between`), accurate for
+    small angles."""
     (p0, R0), (p1, R1) = pose0, pose1
-    angle = 2.0 * math.asin(min(1.0, math.dist(R0, R1) / _TWO_SQRT2))
-    return max(math.dist(p0, p1) / max_dp_m, angle / max_dth_rad)
+    return max(math.dist(p0, p1) / max_dp_m, angle9(R0, R1) / max_dth_rad)
 
 
 def safe_step(
