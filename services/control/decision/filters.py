@@ -9,23 +9,18 @@ ForceSample gives them at the tool point in the tool frame, so the world force i
 
 from __future__ import annotations
 
-import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
-from services.geometry import V3, len3, orthonormalize, v3
-
-Vec = NDArray[np.float64]
-Mat = NDArray[np.float64]
+from services.geometry import M9, V3, len3, m9, ortho9, sub3, tmul9, v3
 
 _TINY = 1e-12
 
 
-def engagement_command(p0: ArrayLike, R0: ArrayLike, p: ArrayLike, R: ArrayLike) -> tuple[Vec, Mat]:
+def engagement_command(p0: ArrayLike, R0: ArrayLike, p: ArrayLike, R: ArrayLike) -> tuple[V3, M9]:
     """The world-frame (dp, dR) that makes a §2 slave with engagement pose (p0, R0) go to
-    the tool pose (p, R): the inverse of `tool_target_pose`, dp = p − p0, dR = R0ᵀ·R."""
-    R0 = np.asarray(R0, dtype=float)
-    dR = orthonormalize(R0.T @ np.asarray(R, dtype=float))
-    return np.asarray(p, dtype=float) - np.asarray(p0, dtype=float), dR
+    the tool pose (p, R): the inverse of `tool_target_pose`, dp = p − p0, dR = R0ᵀ·R (a
+    rotation: re-projected if rounding drifted it)."""
+    return sub3(v3(p), v3(p0)), ortho9(tmul9(m9(R0), m9(R)))
 
 
 # The per-command filters below work in plain floats (V3 tuples; numpy arrays are accepted):

@@ -26,6 +26,7 @@ from services.control.decision.filters import (
     clamp_box,
     clip_norm,
     effective_box,
+    engagement_command,
     without_motion_into,
 )
 from services.control.decision.notices import Notices
@@ -319,8 +320,9 @@ class SupervisedTarget:
         self, now_ns: int, wall_ns: int, active: bool, origin_t_ns: int | None = None
     ) -> OperatorCommand:
         """The next command for robot/puma/cmd carrying the target (`t_ns` = wall_ns):
-        dp = p_sup − p0, dR = R0ᵀ·R_sup (filters.engagement_command, in plain floats)."""
+        dp = p_sup − p0, dR = R0ᵀ·R_sup (filters.engagement_command)."""
         assert self._p0 is not None
+        dp, dR = engagement_command(self._p0, self._R0, self._p, self._R)
         self.seq_out += 1
         self.last_out_ns = now_ns
         self.last_out_active = active
@@ -331,8 +333,8 @@ class SupervisedTarget:
             engage=self.engage_out,
             active=active,
             frame="world",
-            dp=sub3(self._p, self._p0),
-            dR=ortho9(tmul9(self._R0, self._R)),
+            dp=dp,
+            dR=dR,
             grip=self.grip,
             origin_t_ns=origin_t_ns,
         )

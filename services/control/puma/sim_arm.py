@@ -148,11 +148,8 @@ class JointFollower:
         self._v = _REST
         self._sp = self._q
 
-    def desired_velocity(self) -> Q:
-        """The velocity the servo asks for this step, before the acceleration limit (rad/s)."""
-        return np.array(self._desired())
-
     def _desired(self) -> list[float]:
+        """The velocity the servo asks for this step, before the acceleration limit (rad/s)."""
         kp = self.kp_1_s
         out = []
         for q, sp, (vmax, a, _, _) in zip(self._q, self._sp, self._limits, strict=True):
@@ -192,11 +189,6 @@ class JointFollower:
     def at_rest(self) -> bool:
         """Exactly at the setpoint with zero velocity: stepping changes nothing."""
         return not any(self._v) and self._q == self._sp
-
-    def is_settled(self, tol_rad: float = 1e-4) -> bool:
-        return all(abs(sp - q) <= tol_rad for sp, q in zip(self._sp, self._q, strict=True)) and (
-            not any(self._v)
-        )
 
 
 class SimArm(ArmBase):
