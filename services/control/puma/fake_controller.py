@@ -115,6 +115,7 @@ class FakeController:
         self._garble_replies = 0
         self._drop_reply_bytes = 0
         self._garble_rx_lines = 0
+        self._garble_rx_kind: bytes | None = None
         self._pulled: str | None = None
         self.drop_per_byte = 0.0
         self.garble_per_byte = 0.0
@@ -178,10 +179,13 @@ class FakeController:
         with self._lock:
             self._drop_reply_bytes += n
 
-    def garble_next_rx(self, n: int = 1) -> None:
-        """Corrupt the next `n` received lines (noise on the host's transmit wire)."""
+    def garble_next_rx(self, n: int = 1, kind: str | None = None) -> None:
+        """Corrupt one body byte in each of the next `n` received lines (noise on the host's
+        transmit wire; the checksum then fails), or only in lines of `kind` ("SP") when given:
+        the host's link also sends joint reads, and a test of a corrupted setpoint must hit one."""
         with self._lock:
             self._garble_rx_lines += n
+            self._garble_rx_kind = None if kind is None else b"$" + kind.encode("ascii") + b","
 
     def set_noise(self, drop_per_byte: float = 0.0, garble_per_byte: float = 0.0) -> None:
         """Random line noise on every reply byte from now on (seeded: reproducible)."""
@@ -299,9 +303,13 @@ class FakeController:
 
     def _handle(self, raw: bytes) -> None:
         self.lines_rx += 1
-        if self._garble_rx_lines > 0 and len(raw) > 4:
+        if (
+            self._garble_rx_lines > 0
+            and len(raw) > 4
+            and (self._garble_rx_kind is None or raw.startswith(self._garble_rx_kind))
+        ):
             self._garble_rx_lines -= 1
-            raw = _flip(raw, len(raw) // 2)
+            raw = _flip_body(raw)
         try:
             fields = decode_line(raw)
         except LineError as e:
@@ -419,7 +427,7 @@ class FakeController:
         data = bytearray(encode_line(fields))
         if self._garble_replies > 0:
             self._garble_replies -= 1
-            data = bytearray(_flip(bytes(data), len(data) // 2))
+            data = bytearray(_flip_body(bytes(data)))
         if self._drop_reply_bytes > 0:
             mid = len(data) // 2
             del data[mid : mid + self._drop_reply_bytes]
@@ -445,8 +453,12 @@ class FakeController:
         return out
 
 
-def _flip(raw: bytes, i: int) -> bytes:
-    """`raw` with the byte at `i` changed to another printable character."""
+def _flip_body(raw: bytes) -> bytes:
+    """`raw` with the middle byte of its body (between `$` and `*`) changed to another
+    printable character, so the line keeps its frame and only its checksum fails."""
+    star = raw.rfind(b"*")
+    end = star if star > 1 else len(raw)
+    i = (1 + end) // 2
     b = raw[i]
     new = ord("#") if b != ord("#") else ord("%")
     return raw[:i] + bytes([new]) + raw[i + 1 :]

@@ -237,7 +237,7 @@ def test_link_fault_gives_error_hold_and_recovery_without_jump(
 
 def test_corrupted_setpoint_is_never_executed(fake: FakeController, arm: SerialArm) -> None:
     q0 = make_ready(arm)
-    fake.garble_next_rx()
+    fake.garble_next_rx(kind="SP")
     arm.command(q0 + 0.01)
     assert wait_until(lambda: arm.status == "error", what="error")
     assert fake.errors_sent["CHK"] == 1
