@@ -1,37 +1,72 @@
-"""A link you can make bad, for real: two network namespaces joined by a veth pair, with
-`tc netem` delay, jitter, loss and rate on both ends.
+"""A link you can make bad, for real: network namespaces whose traffic crosses an emulated
+link with delay, jitter, loss and rate, built from the kernel's `tc netem` where it has one
+and from the userspace delay line (`delayline.py`) where it has not.
 
-    operator 10.203.0.2 ─veth (netem both ways)─ 10.203.0.1 robot
+With netem, two namespaces joined by a veth pair, shaped on both ends:
 
-The addresses exist only inside the two namespaces, which have no other interface but their
-loopback: nothing reaches any other network. The round trip is split evenly: each end delays
-what it sends by `round_trip_ms / 2` ± jitter. Run processes inside with `in_ns`. Needs root
-and iproute2 (`ip`, `tc` with the netem qdisc); `unavailable()` says why not otherwise.
+    operator 10.203.0.2/24 ─veth (netem both ways)─ 10.203.0.1/24 robot
+
+Without it, a third namespace in the middle forwards between two /31 point-to-point veths
+(RFC 3021), every packet through a TUN device that the delay line process reads and writes:
+
+    operator 10.203.0.2/31 ─veth─ 10.203.0.3/31 line 10.203.0.0/31 ─veth─ 10.203.0.1/31 robot
+                                         │ tl0 (TUN) ⇄ delayline │
+
+In the line namespace a policy rule sends what arrives on either veth to a table whose only
+route is `dev tl0`; what the delay line writes back arrives from tl0 and takes the main
+table, which routes each /31 to its veth (ip_forward on, rp_filter off). The operator and the
+robot each route the other's /31 via the line's address. The addresses are the same for
+callers either way (`ROBOT_IP`, `OPERATOR_IP`) and exist only inside the namespaces, which
+have no other interface but their loopback: nothing reaches any other network. The round trip
+is split evenly: each direction is delayed `round_trip_ms / 2` ± jitter. The delay line keeps
+each direction in order where netem with jitter would reorder (see delayline.py).
+
+Run processes inside with `in_ns`. Needs root and iproute2, and either the netem qdisc or
+/dev/net/tun; `unavailable()` says why not otherwise.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import json
 import os
+import select
 import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Literal
 
 ROBOT_IP = "10.203.0.1"
 OPERATOR_IP = "10.203.0.2"
+LINE_ROBOT_SIDE_IP = "10.203.0.0"
+"""The line namespace's address toward the robot (delay line only; /31 with ROBOT_IP)."""
+LINE_OPERATOR_SIDE_IP = "10.203.0.3"
+"""The line namespace's address toward the operator (delay line only; /31 with OPERATOR_IP)."""
+ROBOT_NET = "10.203.0.0/31"
+OPERATOR_NET = "10.203.0.2/31"
+TUN_DEV = "tl0"
+TUN_TABLE = "100"
+"""The line namespace's routing table for what arrives on a veth: everything to tl0."""
+START_TIMEOUT_S = 20.0
+STOP_TIMEOUT_S = 5.0
+
+Emulator = Literal["netem", "delayline"]
 
 
 @dataclass(frozen=True, slots=True)
 class LinkShape:
     """round_trip_ms (0 … 10000), jitter as a fraction of the one-way delay (0 … 1), loss
-    per direction (0 … 1, excluded), rate_mbit (0: unlimited)."""
+    per direction (0 … 1, excluded), rate_mbit (0: unlimited); seed draws the delay line's
+    loss and jitter (netem draws its own)."""
 
     round_trip_ms: float = 0.0
     jitter: float = 0.0
     loss: float = 0.0
     rate_mbit: float = 0.0
+    seed: int = 0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.round_trip_ms <= 10_000.0:
@@ -55,25 +90,78 @@ class LinkShape:
             args += ["rate", f"{self.rate_mbit:g}mbit"]
         return args
 
+    def delayline_args(self) -> list[str]:
+        """The delay line's arguments (each applies to each direction)."""
+        return [
+            f"--delay-ms={self.round_trip_ms / 2.0!r}",
+            f"--jitter={self.jitter!r}",
+            f"--loss={self.loss!r}",
+            f"--rate-mbit={self.rate_mbit!r}",
+            f"--seed={self.seed}",
+        ]
+
+
+class DelayLineProcess:
+    """The delay line running in the line namespace; `start` (re)starts it with a shape.
+    `runs` keeps the counts each run printed when it stopped, oldest first."""
+
+    def __init__(self, ns: str) -> None:
+        self.ns = ns
+        self.runs: list[dict[str, int]] = []
+        self._proc: subprocess.Popen[str] | None = None
+
+    def start(self, how: LinkShape) -> None:
+        """Stop the running delay line (if any) and start one with `how`; returns when it
+        has said `ready`. Raises RuntimeError with its output when it does not."""
+        self.stop()
+        module = "services.tools.bench.delayline"
+        options = [f"--dev={TUN_DEV}", f"--robot-net={ROBOT_NET}", *how.delayline_args()]
+        argv = in_ns(self.ns, sys.executable, "-m", module, *options)
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self._proc = proc
+        assert proc.stdout is not None
+        ready, _, _ = select.select([proc.stdout], [], [], START_TIMEOUT_S)
+        if not ready or proc.stdout.readline().strip() != "ready":
+            self.stop()
+            raise RuntimeError(f"the delay line did not start: {self.runs.pop()}")
+
+    def stop(self) -> None:
+        """SIGTERM, SIGKILL after STOP_TIMEOUT_S; its counts appended to `runs` (or, when it
+        printed none, {"error": …} with the end of its stderr)."""
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        proc.terminate()
+        try:
+            _, err = proc.communicate(timeout=STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, err = proc.communicate()
+        lines = err.strip().splitlines()
+        try:
+            counts = json.loads(lines[-1]) if lines else None
+        except json.JSONDecodeError:
+            counts = None
+        if not isinstance(counts, dict):
+            counts = {"error": f"exit {proc.returncode}: {err.strip()[-500:]}"}
+        self.runs.append(counts)
+
 
 @dataclass(frozen=True, slots=True)
 class Link:
+    """The namespaces of one link. With the delay line, `line` is the namespace in the
+    middle and `delayline` its process; with netem both are empty."""
+
     operator: str
     robot: str
     operator_if: str
     robot_if: str
+    emulator: Emulator = "netem"
+    line: str = ""
+    delayline: DelayLineProcess | None = field(default=None, compare=False)
 
-
-def unavailable() -> str | None:
-    """Why namespaces with netem cannot be made here, or None."""
-    if not sys.platform.startswith("linux"):
-        return "network namespaces are Linux only"
-    if os.geteuid() != 0:
-        return "needs root to create network namespaces"
-    for tool in ("ip", "tc"):
-        if shutil.which(tool) is None:
-            return f"no `{tool}` (apt-get install iproute2)"
-    return None
+    def namespaces(self) -> tuple[str, ...]:
+        return tuple(ns for ns in (self.operator, self.line, self.robot) if ns)
 
 
 def _run(*argv: str, check: bool = True) -> subprocess.CompletedProcess[str]:
@@ -83,36 +171,135 @@ def _run(*argv: str, check: bool = True) -> subprocess.CompletedProcess[str]:
     return done
 
 
+@functools.cache
+def netem_refusal() -> str | None:
+    """Why this kernel cannot shape with netem, or None: tried once per process on the
+    loopback of a namespace made for the purpose (and deleted)."""
+    if shutil.which("tc") is None:
+        return "no `tc` (apt-get install iproute2)"
+    ns = f"tdpa-probe-{os.getpid()}"
+    try:
+        _run("ip", "netns", "add", ns)
+        tried = _run("ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", "lo", "root",
+                     "netem", "delay", "1ms", check=False)  # fmt: skip
+        if tried.returncode != 0:
+            return f"tc netem refused: {tried.stderr.strip()[:200]}"
+        return None
+    except (RuntimeError, OSError, subprocess.SubprocessError) as e:
+        return f"cannot try netem: {e}"
+    finally:
+        _run("ip", "netns", "delete", ns, check=False)
+
+
+def tun_refusal() -> str | None:
+    """Why the delay line cannot open a TUN device here, or None."""
+    try:
+        fd = os.open("/dev/net/tun", os.O_RDWR | os.O_CLOEXEC)
+    except OSError as e:
+        return f"no usable /dev/net/tun ({e.strerror}; modprobe tun)"
+    os.close(fd)
+    return None
+
+
+def unavailable() -> str | None:
+    """Why no link can be made here (neither netem nor the delay line), or None."""
+    if not sys.platform.startswith("linux"):
+        return "network namespaces are Linux only"
+    if os.geteuid() != 0:
+        return "needs root to create network namespaces"
+    if shutil.which("ip") is None:
+        return "no `ip` (apt-get install iproute2; `make system-deps`)"
+    tun = tun_refusal()
+    if tun is None:
+        return None
+    netem = netem_refusal()
+    if netem is None:
+        return None
+    return f"neither netem ({netem}) nor the delay line ({tun})"
+
+
 def shape(link: Link, how: LinkShape) -> None:
-    """Set (or change) the netem qdisc on both ends."""
+    """Set (or change) the shape: the netem qdisc on both ends, or the delay line restarted
+    with it (what it held is lost, as on a link that went down for a moment)."""
+    if link.delayline is not None:
+        link.delayline.start(how)
+        return
     for ns, ifname in ((link.operator, link.operator_if), (link.robot, link.robot_if)):
         _run("ip", "netns", "exec", ns, "tc", "qdisc", "replace", "dev", ifname, "root",
              "netem", *how.netem_args())  # fmt: skip
 
 
+def _build_netem(link: Link) -> None:
+    _run("ip", "link", "add", link.operator_if, "netns", link.operator, "type", "veth",
+         "peer", link.robot_if, "netns", link.robot)  # fmt: skip
+    for ns, ifname, ip in (
+        (link.operator, link.operator_if, OPERATOR_IP),
+        (link.robot, link.robot_if, ROBOT_IP),
+    ):
+        _run("ip", "-n", ns, "addr", "add", f"{ip}/24", "dev", ifname)
+        _run("ip", "-n", ns, "link", "set", ifname, "up")
+
+
+def _build_delayline(link: Link, line_op_if: str, line_robot_if: str) -> None:
+    _run("ip", "link", "add", link.operator_if, "netns", link.operator, "type", "veth",
+         "peer", line_op_if, "netns", link.line)  # fmt: skip
+    _run("ip", "link", "add", link.robot_if, "netns", link.robot, "type", "veth",
+         "peer", line_robot_if, "netns", link.line)  # fmt: skip
+    for ns, ifname, ip in (
+        (link.operator, link.operator_if, OPERATOR_IP),
+        (link.line, line_op_if, LINE_OPERATOR_SIDE_IP),
+        (link.line, line_robot_if, LINE_ROBOT_SIDE_IP),
+        (link.robot, link.robot_if, ROBOT_IP),
+    ):
+        _run("ip", "-n", ns, "addr", "add", f"{ip}/31", "dev", ifname)
+        _run("ip", "-n", ns, "link", "set", ifname, "up")
+    _run("ip", "-n", link.operator, "route", "add", ROBOT_NET, "via", LINE_OPERATOR_SIDE_IP)
+    _run("ip", "-n", link.robot, "route", "add", OPERATOR_NET, "via", LINE_ROBOT_SIDE_IP)
+    # A persistent TUN, so the routes through it survive a restart of the delay line.
+    _run("ip", "-n", link.line, "tuntap", "add", "dev", TUN_DEV, "mode", "tun")
+    _run("ip", "-n", link.line, "link", "set", TUN_DEV, "txqueuelen", "10000", "up")
+    conf = "net.ipv4.conf"
+    _run("ip", "netns", "exec", link.line, "sysctl", "-q", "-w", "net.ipv4.ip_forward=1",
+         "net.ipv6.conf.all.disable_ipv6=1", "net.ipv6.conf.default.disable_ipv6=1",
+         *(f"{conf}.{i}.{key}=0"
+           for i in ("all", "default", "lo", line_op_if, line_robot_if, TUN_DEV)
+           for key in ("rp_filter", "send_redirects")))  # fmt: skip
+    _run("ip", "-n", link.line, "route", "add", "default", "dev", TUN_DEV, "table", TUN_TABLE)
+    for ifname in (line_op_if, line_robot_if):
+        _run("ip", "-n", link.line, "rule", "add", "iif", ifname, "lookup", TUN_TABLE)
+
+
 @contextlib.contextmanager
-def netem_link(how: LinkShape, tag: str | None = None) -> Iterator[Link]:
-    """The two namespaces, joined and shaped, for the duration of the block; always removed
-    (deleting a namespace deletes its veth end and the peer). Raises RuntimeError with the
-    command's message when a step is refused."""
+def netem_link(
+    how: LinkShape, tag: str | None = None, emulator: Emulator | None = None
+) -> Iterator[Link]:
+    """The namespaces, joined and shaped, for the duration of the block; always removed (the
+    delay line stopped first; deleting a namespace deletes its veth ends and TUN). netem when
+    the kernel has it, the delay line otherwise, or the `emulator` asked for. Raises
+    RuntimeError with the command's message when a step is refused."""
     tag = tag or str(os.getpid() % 100000)
-    link = Link(f"tdpa-{tag}-operator", f"tdpa-{tag}-robot", f"tdo{tag}", f"tdr{tag}")
+    names = (f"tdpa-{tag}-operator", f"tdpa-{tag}-robot", f"tdo{tag}", f"tdr{tag}")
+    if emulator is None:
+        emulator = "netem" if netem_refusal() is None else "delayline"
+    if emulator == "netem":
+        link = Link(*names)
+    else:
+        line = f"tdpa-{tag}-line"
+        link = Link(*names, emulator="delayline", line=line, delayline=DelayLineProcess(line))
     try:
-        _run("ip", "netns", "add", link.operator)
-        _run("ip", "netns", "add", link.robot)
-        _run("ip", "link", "add", link.operator_if, "netns", link.operator, "type", "veth",
-             "peer", link.robot_if, "netns", link.robot)  # fmt: skip
-        for ns, ifname, ip in (
-            (link.operator, link.operator_if, OPERATOR_IP),
-            (link.robot, link.robot_if, ROBOT_IP),
-        ):
-            _run("ip", "-n", ns, "addr", "add", f"{ip}/24", "dev", ifname)
-            _run("ip", "-n", ns, "link", "set", ifname, "up")
+        for ns in link.namespaces():
+            _run("ip", "netns", "add", ns)
             _run("ip", "-n", ns, "link", "set", "lo", "up")
+        if link.delayline is None:
+            _build_netem(link)
+        else:
+            _build_delayline(link, f"tlo{tag}", f"tlr{tag}")
         shape(link, how)
         yield link
     finally:
-        for ns in (link.operator, link.robot):
+        if link.delayline is not None:
+            link.delayline.stop()
+        for ns in link.namespaces():
             _run("ip", "netns", "delete", ns, check=False)
 
 

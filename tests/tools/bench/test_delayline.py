@@ -1,10 +1,21 @@
-"""The userspace delay line's schedule and queue (pure), driven with made-up arrival times."""
+"""The userspace delay line: its schedule and queue (pure), and, as root, the link it makes.
+
+The unit tests drive `Schedule` and `DelayLine` with made-up arrival times. The system tests
+build the three-namespace link of `netem_link(..., emulator="delayline")` and measure it from
+inside the namespaces with a small UDP echo and a TCP transfer; the delay they check is the
+link's own, the thing under test.
+"""
 
 from __future__ import annotations
 
+import hashlib
 import itertools
+import json
 import math
+import random
 import statistics
+import subprocess
+import sys
 
 import pytest
 
@@ -16,6 +27,16 @@ from services.tools.bench.delayline import (
     Schedule,
     classifier,
 )
+from services.tools.bench.netem import (
+    ROBOT_IP,
+    LinkShape,
+    in_ns,
+    netem_link,
+    shape,
+    tun_refusal,
+    unavailable,
+)
+from tests.conftest import free_port
 
 MS = 1_000_000
 
@@ -169,3 +190,166 @@ def test_shapes_outside_their_bounds_are_refused() -> None:
     for bad in ({"delay_ms": -1.0}, {"delay_ms": 5_001.0}, {"jitter": 1.5}, {"loss": 1.0}):
         with pytest.raises(ValueError):
             DirectionShape(**bad)
+
+
+def test_a_link_shape_gives_the_delay_line_half_its_round_trip() -> None:
+    args = LinkShape(round_trip_ms=100.0, jitter=0.1, loss=0.01, rate_mbit=5.0, seed=3)
+    assert args.delayline_args() == [
+        "--delay-ms=50.0",
+        "--jitter=0.1",
+        "--loss=0.01",
+        "--rate-mbit=5.0",
+        "--seed=3",
+    ]
+
+
+# ---- the link, for real (root) ----------------------------------------------------------
+
+ECHO = r"""
+import socket, sys
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+s.bind((sys.argv[1], int(sys.argv[2])))
+print("ready", flush=True)
+while True:
+    data, peer = s.recvfrom(2048)
+    s.sendto(data, peer)
+"""
+
+PING = r"""
+import json, socket, sys, time
+host, port, n, gap_s = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4])
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+s.settimeout(5.0)
+rtts = []
+for k in range(n):
+    t = time.monotonic_ns()
+    s.sendto(b"%d" % k, (host, port))
+    while s.recv(2048) != b"%d" % k:
+        pass
+    rtts.append((time.monotonic_ns() - t) / 1e6)
+    time.sleep(gap_s)
+print(json.dumps(rtts), flush=True)
+"""
+
+SINK = r"""
+import hashlib, socket, sys
+srv = socket.create_server((sys.argv[1], int(sys.argv[2])))
+print("ready", flush=True)
+conn, _ = srv.accept()
+h, n = hashlib.sha256(), 0
+while chunk := conn.recv(65536):
+    h.update(chunk)
+    n += len(chunk)
+print(n, h.hexdigest(), flush=True)
+"""
+
+SEND = r"""
+import random, socket, sys
+data = random.Random(int(sys.argv[3])).randbytes(int(sys.argv[4]))
+with socket.create_connection((sys.argv[1], int(sys.argv[2])), timeout=30) as s:
+    s.sendall(data)
+"""
+
+
+def _skip_reason() -> str | None:
+    return unavailable() or tun_refusal()
+
+
+def _ready(proc: subprocess.Popen[str]) -> None:
+    assert proc.stdout is not None
+    assert proc.stdout.readline().strip() == "ready", proc.args
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    proc.terminate()
+    proc.communicate(timeout=10)
+
+
+def _ping(ns: str, port: int, n: int) -> list[float]:
+    done = subprocess.run(
+        in_ns(ns, sys.executable, "-c", PING, ROBOT_IP, str(port), str(n), "0.05"),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    rtts: list[float] = json.loads(done.stdout)
+    return rtts
+
+
+@pytest.mark.system
+@pytest.mark.timeout(120)
+def test_the_delay_line_delays_a_round_trip_by_its_shape() -> None:
+    reason = _skip_reason()
+    if reason:
+        pytest.skip(reason)
+    port = free_port()
+    with netem_link(LinkShape(round_trip_ms=100.0), emulator="delayline") as link:
+        assert link.emulator == "delayline" and link.delayline is not None
+        echo = subprocess.Popen(
+            in_ns(link.robot, sys.executable, "-c", ECHO, ROBOT_IP, str(port)),
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            _ready(echo)
+            slow = _ping(link.operator, port, 20)
+            shape(link, LinkShape(round_trip_ms=0.0))
+            fast = _ping(link.operator, port, 20)
+        finally:
+            _stop(echo)
+        runs = link.delayline.runs
+    assert len(slow) == 20 and len(fast) == 20
+    assert min(slow) >= 95.0, slow
+    assert 100.0 <= statistics.median(slow) <= 130.0, slow
+    assert statistics.median(fast) < 5.0, fast
+    # every datagram of each run went through the line, both ways, and nothing else did
+    assert [r["forwarded"] for r in runs] == [40, 40], runs
+    assert all(r["dropped_loss"] == r["dropped_queue"] == r["not_ipv4"] == 0 for r in runs)
+
+
+@pytest.mark.system
+@pytest.mark.timeout(120)
+def test_tcp_through_a_lossy_delay_line_arrives_intact() -> None:
+    reason = _skip_reason()
+    if reason:
+        pytest.skip(reason)
+    port, size, seed = free_port(), 1_000_000, 11
+    how = LinkShape(round_trip_ms=20.0, jitter=0.1, loss=0.01, seed=seed)
+    with netem_link(how, emulator="delayline") as link:
+        assert link.delayline is not None
+        sink = subprocess.Popen(
+            in_ns(link.robot, sys.executable, "-c", SINK, ROBOT_IP, str(port)),
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            _ready(sink)
+            sent = subprocess.run(
+                in_ns(
+                    link.operator,
+                    sys.executable,
+                    "-c",
+                    SEND,
+                    ROBOT_IP,
+                    str(port),
+                    str(seed),
+                    str(size),
+                ),
+                capture_output=True,
+                text=True,
+                timeout=90,
+                check=False,
+            )
+            assert sent.returncode == 0, sent.stderr[-2000:]
+            got, _ = sink.communicate(timeout=60)
+        finally:
+            if sink.poll() is None:
+                _stop(sink)
+        link.delayline.stop()
+        counts = link.delayline.runs[-1]
+    want = hashlib.sha256(random.Random(seed).randbytes(size)).hexdigest()
+    assert got.split() == [str(size), want]
+    assert counts["dropped_loss"] >= 1, counts  # the loss was there and TCP recovered
+    assert counts["dropped_queue"] == 0 and counts["write_errors"] == 0, counts
