@@ -1,4 +1,7 @@
-"""The energy exchange over a real bad link: two network namespaces, a veth pair, `tc netem`.
+"""The energy exchange over a real bad link: network namespaces whose traffic is delayed,
+jittered and dropped by the kernel's `tc netem` where it has one, else by the userspace delay
+line (services/tools/bench/delayline.py, in a namespace between the two; it keeps each
+direction in order where netem would reorder under jitter).
 
 The robot side (in its namespace) echoes every `robot/passivity/master` it receives as a
 `robot/passivity/slave` carrying the same `e_in` and `t_ns`; the operator side (in the other)
@@ -6,7 +9,7 @@ publishes a growing `e_in` at 200 Hz and measures, on its own clock, how late ea
 comes back. With 100 ms round trip, 10 % jitter and 1 % loss each way, the echoes must come
 back no sooner than the link allows, and the energy the master receives must never go back
 (latest-wins keeps the newest), as `RemoteEnergy` assumes. Skipped with the reason where the
-namespaces cannot be made (not root, no iproute2, refused).
+namespaces cannot be made (not root, no iproute2, neither netem nor /dev/net/tun, refused).
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ endpoint, run_s = sys.argv[1], float(sys.argv[2])
 with Node("robot", NodeConfig(mode="peer", listen=(endpoint,))) as node:
     pub = node.publisher(keys.PASSIVITY_SLAVE)
     node.subscribe(keys.PASSIVITY_MASTER, lambda m: pub.put(replace(m, side="slave")))
+    node.announce()
     print("ready", flush=True)
     time.sleep(run_s)
 """
@@ -100,7 +104,7 @@ def test_energy_exchange_over_a_netem_link() -> None:
             )
         finally:
             robot.terminate()
-            robot.wait(timeout=10)
+            robot.communicate(timeout=10)
         assert done.returncode == 0, done.stderr[-2000:]
         out = json.loads(done.stdout.strip().splitlines()[-1])
     finally:
