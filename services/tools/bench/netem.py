@@ -35,6 +35,7 @@ import select
 import shutil
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Literal
@@ -52,6 +53,8 @@ TUN_TABLE = "100"
 """The line namespace's routing table for what arrives on a veth: everything to tl0."""
 START_TIMEOUT_S = 20.0
 STOP_TIMEOUT_S = 5.0
+CARRIER_TIMEOUT_S = 10.0
+CARRIER_POLL_S = 0.02
 
 Emulator = Literal["netem", "delayline"]
 
@@ -229,6 +232,19 @@ def shape(link: Link, how: LinkShape) -> None:
              "netem", *how.netem_args())  # fmt: skip
 
 
+def _wait_carrier(ns: str, ifname: str) -> None:
+    """Until the kernel reports the veth end up with a carrier: a new veth may stay
+    NO-CARRIER for up to a second (link watch), and drops what it is given meanwhile."""
+    deadline = time.monotonic() + CARRIER_TIMEOUT_S
+    while True:
+        shown = _run("ip", "-n", ns, "-o", "link", "show", "dev", ifname).stdout
+        if "NO-CARRIER" not in shown and " state UP " in shown:
+            return
+        if time.monotonic() >= deadline:
+            raise RuntimeError(f"{ifname} in {ns} not up after {CARRIER_TIMEOUT_S:g} s: {shown}")
+        time.sleep(CARRIER_POLL_S)
+
+
 def _build_netem(link: Link) -> None:
     _run("ip", "link", "add", link.operator_if, "netns", link.operator, "type", "veth",
          "peer", link.robot_if, "netns", link.robot)  # fmt: skip
@@ -258,12 +274,17 @@ def _build_delayline(link: Link, line_op_if: str, line_robot_if: str) -> None:
     # A persistent TUN, so the routes through it survive a restart of the delay line.
     _run("ip", "-n", link.line, "tuntap", "add", "dev", TUN_DEV, "mode", "tun")
     _run("ip", "-n", link.line, "link", "set", TUN_DEV, "txqueuelen", "10000", "up")
-    conf = "net.ipv4.conf"
-    _run("ip", "netns", "exec", link.line, "sysctl", "-q", "-w", "net.ipv4.ip_forward=1",
-         "net.ipv6.conf.all.disable_ipv6=1", "net.ipv6.conf.default.disable_ipv6=1",
-         *(f"{conf}.{i}.{key}=0"
-           for i in ("all", "default", "lo", line_op_if, line_robot_if, TUN_DEV)
-           for key in ("rp_filter", "send_redirects")))  # fmt: skip
+    # Written through /proc/sys (a namespace's own inside `ip netns exec`): no procps needed.
+    settings = {
+        "net/ipv4/ip_forward": 1,
+        "net/ipv6/conf/all/disable_ipv6": 1,
+        "net/ipv6/conf/default/disable_ipv6": 1,
+    }
+    for ifname in ("all", "default", "lo", line_op_if, line_robot_if, TUN_DEV):
+        settings[f"net/ipv4/conf/{ifname}/rp_filter"] = 0
+        settings[f"net/ipv4/conf/{ifname}/send_redirects"] = 0
+    script = "".join(f"echo {v} > /proc/sys/{k} && " for k, v in settings.items()) + "true"
+    _run("ip", "netns", "exec", link.line, "sh", "-c", script)
     _run("ip", "-n", link.line, "route", "add", "default", "dev", TUN_DEV, "table", TUN_TABLE)
     for ifname in (line_op_if, line_robot_if):
         _run("ip", "-n", link.line, "rule", "add", "iif", ifname, "lookup", TUN_TABLE)
@@ -292,9 +313,14 @@ def netem_link(
             _run("ip", "-n", ns, "link", "set", "lo", "up")
         if link.delayline is None:
             _build_netem(link)
+            veths = [(link.operator, link.operator_if), (link.robot, link.robot_if)]
         else:
             _build_delayline(link, f"tlo{tag}", f"tlr{tag}")
+            veths = [(link.operator, link.operator_if), (link.line, f"tlo{tag}"),
+                     (link.line, f"tlr{tag}"), (link.robot, link.robot_if)]  # fmt: skip
         shape(link, how)
+        for ns, ifname in veths:
+            _wait_carrier(ns, ifname)
         yield link
     finally:
         if link.delayline is not None:
