@@ -110,7 +110,7 @@ class DelayLineProcess:
 
     def __init__(self, ns: str) -> None:
         self.ns = ns
-        self.runs: list[dict[str, int]] = []
+        self.runs: list[dict[str, int | str]] = []
         self._proc: subprocess.Popen[str] | None = None
 
     def start(self, how: LinkShape) -> None:
