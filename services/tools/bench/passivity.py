@@ -9,8 +9,10 @@ one JSON (keys `passivity_<delay_ms>_<on|off>_<measure>`), one plot per delay (c
 over time, off and on). "on" is both ports with the master's energy-bounding force limiter
 (`--no-master-limit`: the damper alone). docs/passivity.md.
 
-The link here is the simulation's own (seeded, deterministic, no processes); the netns +
-netem link of `services.tools.bench.netem` is for system tests of the real services.
+The link here is the simulation's own (seeded, deterministic, no processes). `--link` runs
+the same task through the real services over a real bad link instead (network namespaces,
+`services.tools.bench.netem`; needs root; about 20 s per run): `services.tools.bench.
+passivity_link`, its own JSON with the same keys and one plot per delay.
 """
 
 from __future__ import annotations
@@ -78,6 +80,11 @@ def run(
     return doc, results
 
 
+def _num(x: float | None, width: int, digits: int) -> str:
+    """A figure of the table; `–` where nothing was measured (null)."""
+    return f"{'–':>{width}}" if x is None else f"{x:>{width}.{digits}f}"
+
+
 def table(doc: dict[str, Any]) -> str:
     """The results as a fixed-width table, one row per delay and TDPA setting."""
     head = (
@@ -89,9 +96,11 @@ def table(doc: dict[str, Any]) -> str:
         for on in ("off", "on"):
             k = f"passivity_{delay}_{on}_"
             lines.append(
-                f"{delay:>7} {on:>4} {doc[k + 'peak_force_n']:>8.1f} "
-                f"{doc[k + 'steady_force_n']:>9.2f} {doc[k + 'oscillation_rms_n']:>10.2f} "
-                f"{doc[k + 'penetration_mm']:>7.1f} {doc[k + 'energy_generated_j']:>8.3f} "
+                f"{delay:>7} {on:>4} {_num(doc[k + 'peak_force_n'], 8, 1)} "
+                f"{_num(doc[k + 'steady_force_n'], 9, 2)} "
+                f"{_num(doc[k + 'oscillation_rms_n'], 10, 2)} "
+                f"{_num(doc[k + 'penetration_mm'], 7, 1)} "
+                f"{_num(doc[k + 'energy_generated_j'], 8, 3)} "
                 f"{'yes' if doc[k + 'stable'] else 'NO':>6}"
             )
     return "\n".join(lines)
@@ -137,7 +146,14 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="TDPA on without the master's force limiter (the damper alone)",
     )
-    p.add_argument("--json", default="artifacts/bench_passivity.json", metavar="FILE")
+    p.add_argument(
+        "--link",
+        action="store_true",
+        help="the real services over a real bad link (network namespaces; root)",
+    )
+    p.add_argument(
+        "--json", default=None, metavar="FILE", help="default artifacts/bench_passivity[_link].json"
+    )
     p.add_argument("--plots", default="artifacts", metavar="DIR", help="'' for none")
     args = p.parse_args(argv)
     try:
@@ -148,14 +164,26 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--delays-ms must be within 0 … 10000")
     if not (0.0 <= args.jitter <= 1.0 and 0.0 <= args.loss < 1.0):
         p.error("--jitter must be within 0 … 1 and --loss within 0 … 1 (excluded)")
-    doc, results = run(
-        delays, args.jitter, args.loss, args.dofs, args.seed, not args.no_master_limit
-    )
-    path = Path(args.json)
+    if args.link:
+        from services.tools.bench import passivity_link
+
+        reason = passivity_link.unavailable()
+        if reason:
+            print(f"telerobot bench passivity --link: {reason}", file=sys.stderr)
+            return 2
+        print(f"the real services over a bad link, {len(delays) * 2} runs:")
+        doc, runs = passivity_link.run_matrix(delays, args.jitter, args.loss)
+        path = Path(args.json or "artifacts/bench_passivity_link.json")
+        drawn = passivity_link.plots(runs, Path(args.plots)) if args.plots else []
+    else:
+        doc, results = run(
+            delays, args.jitter, args.loss, args.dofs, args.seed, not args.no_master_limit
+        )
+        path = Path(args.json or "artifacts/bench_passivity.json")
+        drawn = plots(results, Path(args.plots)) if args.plots else []
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=2) + "\n")
     print(table(doc))
-    drawn = plots(results, Path(args.plots)) if args.plots else []
     print(f"\nJSON: {path}" + (f"  plots: {', '.join(str(x) for x in drawn)}" if drawn else ""))
     return 0
 

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import socket
 import time
 from collections.abc import Callable
 from dataclasses import asdict, replace
@@ -23,6 +22,7 @@ from dataclasses import asdict, replace
 from services.bus.config import NodeConfig
 from services.bus.errors import RpcError, Unavailable
 from services.bus.node import Node
+from services.bus.peers import Peers
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
@@ -204,39 +204,11 @@ def run_task(task: int, station: Station, timeout_s: float = READY_TIMEOUT_S) ->
     )
 
 
-class PrivateNetwork:
-    """A Zenoh network of this process's nodes only: the first node listens on a free
-    loopback port, the others connect to it (multicast scouting stays off)."""
-
-    def __init__(self) -> None:
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-            sock.bind(("127.0.0.1", 0))
-            port = int(sock.getsockname()[1])
-        self.endpoint = f"tcp/127.0.0.1:{port}"
-        self.nodes: list[Node] = []
-
-    def node(self, name: str, instance: str | None = None) -> Node:
-        first = not self.nodes
-        cfg = NodeConfig(
-            mode="peer",
-            listen=(self.endpoint,) if first else (),
-            connect=() if first else (self.endpoint,),
-        )
-        n = Node(name, cfg, instance=instance)
-        self.nodes.append(n)
-        return n
-
-    def close(self) -> None:
-        for n in reversed(self.nodes):
-            n.close()
-        self.nodes.clear()
-
-
 def run_headless(
     task: int, operator: OperatorConfig | None = None, abort: Abort | None = None
 ) -> TaskReport:
     """Task `task` on a private in-process network: SimCell (light settings) + Station."""
-    net = PrivateNetwork()
+    net = Peers()
     cell: SimCell | None = None
     station: Station | None = None
     try:

@@ -1,0 +1,454 @@
+"""`telerobot bench passivity --link`: the contact task through the real services over a real
+bad link, TDPA off and on.
+
+The robot side (puma with the simulated arm, force with the simulated wrist at 500 Hz in the
+simulated workcell, decision, a recording console) runs in one network namespace, the master
+station with the simulated haptic operator (`device = "haptic_sim"`, 100 Hz) in another,
+each a process of its own, Zenoh peers over TCP across `services.tools.bench.netem`'s link
+(the kernel's netem, or the userspace delay line). The operator presses the tool onto the
+table top (20 kN/m) for 8 N, holds, releases. Per run the same measures as the simulated
+bench (`services.tools.bench.passivity`), keys `passivity_<delay_ms>_<on|off>_<measure>`
+in their own JSON, and one plot per delay. docs/passivity.md, "The whole loop over the link".
+
+    python -m services.tools.bench.passivity_link robot ENDPOINT PASSIVITY WATCHDOG_MS
+    python -m services.tools.bench.passivity_link operator ENDPOINT PASSIVITY RATE_HZ
+
+are the two sides (`run_over_link` starts them): the robot side listens on ENDPOINT, puts
+the arm `START_GAP_M` above the table and prints `ready`, then reads `start T_NS` (when the
+operator began) and `stop` on its standard input and prints the run as one JSON line; the
+operator side connects, prints `start T_NS`, runs the press–hold–release and prints its
+port's figures as one JSON line.
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import math
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.bus import keys
+from services.bus.config import NodeConfig
+from services.bus.messages import Event, ForceSample, PassivityState, RobotState
+from services.bus.node import Node
+from services.bus.peers import Peers
+from services.control.decision.config import DecisionConfig
+from services.control.decision.service import DecisionService
+from services.control.force.config import ForceConfig
+from services.control.force.service import ForceService
+from services.control.master.config import MasterConfig
+from services.control.master.haptic_sim import SimHapticMaster
+from services.control.master.service import MasterService
+from services.control.puma.config import HOME_Q_RAD, PumaConfig
+from services.control.puma.service import PumaService
+from services.control.puma.sim_arm import SimArm
+from services.tools.bench.netem import ROBOT_IP, LinkShape, in_ns, netem_link, unavailable
+from services.tools.bench.procs import free_port
+from services.world.workcell.scene import TABLE
+
+APPROACH_S, HOLD_S, RELEASE_S = 2.0, 4.0, 1.0
+DEPTH_M = 0.1
+START_GAP_M = 0.04
+SETTLE_S = 1.0
+"""The hold is measured from this long after the approach ends to the release."""
+CONTACT_N = 1.0
+"""The touch: the first wrist force at or above this (the slave port's dead band)."""
+LEASE_MS = 2000
+"""The longest link lease the contract allows (PROTOCOL.md §5). The default 1 s does not
+outlast a TCP retransmission at 700 ms round trip: the master's liveliness token lapses and
+the decision holds (measured)."""
+MODULE = "services.tools.bench.passivity_link"
+
+
+def watchdog_ms(rtt_ms: float) -> float:
+    """The decision's watchdogs over a lossy link. A lost TCP segment stalls the stream for
+    a retransmission timeout (Linux: the smoothed round trip + 4 × its variation, at least
+    200 ms) plus the one-way delay: a watchdog shorter than that holds the arm at every
+    loss (at 700 ms with a 1 s watchdog, measured: the first loss lost the master)."""
+    return 1000.0 + 2.0 * rtt_ms
+
+
+def wait_until(pred: Callable[[], bool], timeout_s: float, poll_s: float = 0.005) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not pred():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(poll_s)
+    return True
+
+
+@dataclass
+class Trace:
+    """What the console saw, in arrival order (guarded by `lock`)."""
+
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    forces: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, world f_z up)
+    force_norms: list[float] = field(default_factory=list)
+    states: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, tool z)
+    slave: list[PassivityState] = field(default_factory=list)
+    master: list[PassivityState] = field(default_factory=list)
+    puma_cmds: int = 0
+    events: list[str] = field(default_factory=list)
+    _R: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+    def on_state(self, s: RobotState) -> None:
+        with self.lock:
+            self._R = np.asarray(s.tool_R).reshape(3, 3)
+            self.states.append((s.t_ns, float(s.tool_p[2])))
+
+    def on_force(self, f: ForceSample) -> None:
+        with self.lock:
+            fw = self._R @ np.asarray(f.f, dtype=float)
+            self.forces.append((f.t_ns, float(fw[2])))
+            self.force_norms.append(float(np.linalg.norm(fw)))
+
+    def on_passivity(self, m: PassivityState) -> None:
+        with self.lock:
+            (self.slave if m.side == "slave" else self.master).append(m)
+
+    def on_event(self, e: Event) -> None:
+        with self.lock:
+            self.events.append(f"{e.source}/{e.kind}: {e.message[:80]}")
+
+    def on_cmd(self, _: object) -> None:
+        with self.lock:
+            self.puma_cmds += 1
+
+    def force_between(self, t0_ns: int, t1_ns: int) -> list[float]:
+        with self.lock:
+            ts = [t for t, _ in self.forces]
+            i, j = bisect.bisect_left(ts, t0_ns), bisect.bisect_left(ts, t1_ns)
+            return [f for _, f in self.forces[i:j]]
+
+    def z_between(self, t0_ns: int, t1_ns: int) -> list[float]:
+        with self.lock:
+            return [z for t, z in self.states if t0_ns <= t < t1_ns]
+
+    def touch(self) -> tuple[int, float] | None:
+        """(t_ns, tool z) of the first force at or above CONTACT_N, or None."""
+        with self.lock:
+            t = next((t for t, f in self.forces if abs(f) >= CONTACT_N), None)
+            if t is None or not self.states:
+                return None
+            i = min(bisect.bisect_left([s for s, _ in self.states], t), len(self.states) - 1)
+            return t, self.states[i][1]
+
+
+def build_robot(
+    node: Callable[..., Node],
+    passivity: bool = True,
+    start_gap_m: float = START_GAP_M,
+    **decision: float,
+) -> tuple[DecisionService, Trace, list[Callable[[], None]]]:
+    """puma (SimArm), force (sim wrist, 500 Hz), decision (`passivity` and `decision`
+    settings) and a recording console, each on a node from `node(name)`; the arm moved
+    through the decision server to `start_gap_m` above the table. Returns the decision, the
+    trace and the closers (in start order)."""
+    puma = PumaService(
+        node("puma"), PumaConfig(sim_calibration_s=0.05), arm=SimArm(HOME_Q_RAD, calibration_s=0.05)
+    )
+    force = ForceService(node("force"), ForceConfig(seed=7, period_ms=2.0))
+    dec = DecisionService(node("decision"), DecisionConfig(passivity=passivity, **decision))  # type: ignore[arg-type]
+    closers: list[Callable[[], None]] = [puma.close, force.close, dec.close]
+    console = node("console")
+    trace = Trace()
+    console.subscribe(keys.STATE, trace.on_state)
+    console.subscribe(keys.FORCE, trace.on_force)
+    console.subscribe(keys.PASSIVITY_SLAVE, trace.on_passivity)
+    console.subscribe(keys.PASSIVITY_MASTER, trace.on_passivity)
+    console.subscribe(keys.PUMA_CMD, trace.on_cmd)
+    console.subscribe(keys.EVENTS, trace.on_event)
+    state = console.latest(keys.STATE)
+    console.call("decision", "connect", {}, 5.0)
+    console.call("decision", "initialize", {}, 5.0)
+
+    def status() -> str:
+        got = state.read()
+        return "" if got is None else got[0].status
+
+    if not wait_until(lambda: status() == "ready", 10.0):
+        raise RuntimeError(f"the arm did not become ready (status {status()!r})")
+    got = state.read()
+    assert got is not None
+    p = list(got[0].tool_p)
+    p[2] = TABLE.top_z + start_gap_m
+    console.call("decision", "move_pose", {"p": p, "R": list(got[0].tool_R), "wait": True}, 30.0)
+    return dec, trace, closers
+
+
+def metrics(
+    trace: Trace, t_start_ns: int, hold_from_s: float, hold_to_s: float
+) -> dict[str, float]:
+    """Peak |f| over the run; steady f and oscillation RMS over [hold_from, hold_to) after
+    the master started; tool z range there (mm above the table top); penetration (mm below
+    the tool's height at the touch, over the whole run); final energies of both ports."""
+    t0 = t_start_ns
+    window = trace.force_between(t0 + int(hold_from_s * 1e9), t0 + int(hold_to_s * 1e9))
+    steady = sum(window) / len(window) if window else 0.0
+    rms = math.sqrt(sum((f - steady) ** 2 for f in window) / len(window)) if window else 0.0
+    zs = trace.z_between(t0 + int(hold_from_s * 1e9), t0 + int(hold_to_s * 1e9))
+    touch = trace.touch()
+    with trace.lock:
+        slave = trace.slave[-1] if trace.slave else None
+        master = trace.master[-1] if trace.master else None
+        peak = max(trace.force_norms, default=0.0)
+        z_all = [z for t, z in trace.states if touch is not None and t >= touch[0]]
+    top = TABLE.top_z
+    out = {
+        "peak_n": peak,
+        "steady_n": steady,
+        "rms_n": rms,
+        "z_min_mm": 1e3 * (min(zs, default=math.nan) - top),
+        "z_max_mm": 1e3 * (max(zs, default=math.nan) - top),
+        "penetration_mm": (
+            1e3 * max(touch[1] - min(z_all, default=touch[1]), 0.0) if touch else math.nan
+        ),
+    }
+    for name, m in (("slave", slave), ("master", master)):
+        out[f"{name}_in_j"] = m.e_in if m else math.nan
+        out[f"{name}_out_j"] = m.e_out if m else math.nan
+        out[f"{name}_dissipated_j"] = m.dissipated_j if m else math.nan
+        out[f"{name}_active"] = float(m.active_steps) if m else math.nan
+    return out
+
+
+def robot(endpoint: str, passivity: bool, watchdog: float) -> None:
+    peers = Peers(endpoint, NodeConfig(lease_ms=LEASE_MS))
+    closers: list[Callable[[], None]] = []
+    try:
+        dec, trace, closers = build_robot(
+            peers.node, passivity=passivity, watchdog_ms=watchdog, state_stale_ms=watchdog
+        )
+        print("ready", flush=True)
+        start = sys.stdin.readline().split()
+        if not start or start[0] != "start":
+            raise SystemExit(f"expected `start T_NS`, got {start[:2]!r}")
+        t0 = int(start[1])
+        stop = sys.stdin.readline().split()
+        if not stop or stop[0] != "stop":
+            raise SystemExit(f"expected `stop`, got {stop[:1]!r}")
+        m = metrics(trace, t0, APPROACH_S + SETTLE_S, APPROACH_S + HOLD_S)
+        tdpa = dec.passivity
+        if tdpa is not None:
+            m["slave_recovered_j"] = tdpa.pc.recovered_j
+            m["slave_clipped_j"] = tdpa.pc.clipped_j
+        with trace.lock:
+            m["puma_cmds"] = float(trace.puma_cmds)
+            events = list(trace.events)
+            series = [((t - t0) / 1e9, f) for t, f in trace.forces if t >= t0]
+        doc = {"metrics": m, "events": events[-20:], "force": series[::2]}
+        print(json.dumps(doc), flush=True)
+    finally:
+        for c in reversed(closers):
+            c()
+        peers.close()
+
+
+def operator(endpoint: str, passivity: bool, rate_hz: float) -> None:
+    cfg = NodeConfig(mode="peer", connect=(endpoint,), lease_ms=LEASE_MS)
+    node = Node("master", cfg, instance="op")
+    try:
+        if not node.alive.wait("decision", 30.0):
+            raise SystemExit(f"no decision server over the link (alive: {node.alive.names()})")
+        mcfg = MasterConfig(
+            master_id="op", device="haptic_sim", passivity=passivity, rate_hz=rate_hz
+        )
+        device = SimHapticMaster(
+            depth_m=DEPTH_M, approach_s=APPROACH_S, hold_s=HOLD_S, release_s=RELEASE_S
+        )
+        t0 = time.time_ns()
+        station = MasterService(node, mcfg, device=device)
+        print(f"start {t0}", flush=True)
+        try:
+            end = t0 + int((APPROACH_S + HOLD_S + RELEASE_S + 0.5) * 1e9)
+            wait_until(lambda: time.time_ns() >= end, APPROACH_S + HOLD_S + RELEASE_S + 5.0)
+            out: dict[str, float] = {"master_ticks": float(station.ticks)}
+            tdpa = station.passivity
+            if tdpa is not None:
+                out |= {
+                    "master_in_j": tdpa.pc.observer.e_in,
+                    "master_out_j": tdpa.pc.observer.e_out,
+                    "slave_in_seen_j": tdpa.pc.remote.e_in,
+                }
+            print(json.dumps(out), flush=True)
+        finally:
+            station.close()
+    finally:
+        node.close()
+
+
+def run_over_link(
+    rtt_ms: float,
+    passivity: bool,
+    jitter: float = 0.1,
+    loss: float = 0.01,
+    rate_hz: float = 100.0,
+) -> dict[str, Any]:
+    """One press–hold–release over a fresh link: the robot side's metrics, the operator's
+    own figures (keys `op_…`), the link's emulator, the last events and the force series
+    ((s since the operator started, world f_z)). Raises RuntimeError when the link cannot
+    be made (`unavailable()` says why beforehand) or a side fails."""
+    endpoint = f"tcp/{ROBOT_IP}:{free_port()}"
+    flag = "1" if passivity else "0"
+    wd = str(watchdog_ms(rtt_ms))
+    with netem_link(LinkShape(round_trip_ms=rtt_ms, jitter=jitter, loss=loss)) as link:
+        with subprocess.Popen(
+            in_ns(link.robot, sys.executable, "-m", MODULE, "robot", endpoint, flag, wd),
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        ) as robot_side:
+            try:
+                assert robot_side.stdout is not None
+                ready = robot_side.stdout.readline().strip()
+                if ready != "ready":
+                    raise RuntimeError(f"robot side did not start: {ready[:200]!r}")
+                op = subprocess.run(
+                    in_ns(
+                        link.operator,
+                        sys.executable,
+                        "-m",
+                        MODULE,
+                        "operator",
+                        endpoint,
+                        flag,
+                        str(rate_hz),
+                    ),
+                    capture_output=True,
+                    text=True,
+                    timeout=90,
+                    check=False,
+                )
+                if op.returncode != 0:
+                    raise RuntimeError(f"operator side failed: {op.stderr[-1500:]}")
+                lines = op.stdout.strip().splitlines()
+                start = next(x for x in lines if x.startswith("start "))
+                op_figures = json.loads(lines[-1])
+                got, err = robot_side.communicate(f"{start}\nstop\n", timeout=60)
+                if robot_side.returncode != 0:
+                    raise RuntimeError(f"robot side failed: {err[-1500:]}")
+                out = json.loads(got.strip().splitlines()[-1])
+            finally:
+                if robot_side.poll() is None:
+                    robot_side.kill()
+        emulator = link.emulator
+    m: dict[str, Any] = dict(out["metrics"])
+    m |= {f"op_{k}": v for k, v in op_figures.items()}
+    m |= {"rtt_ms": rtt_ms, "passivity": passivity, "rate_hz": rate_hz}
+    m |= {"load1": os.getloadavg()[0], "emulator": emulator}
+    m["events"] = out["events"]
+    m["force"] = out["force"]
+    return m
+
+
+def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
+    """The simulated bench's measures (`passivity.MEASURES`) from one run over the link.
+    energy_generated_j: the channel's output beyond its input at the end, counting what the
+    workcell gave back to repay an impact as input (0 with TDPA off: nothing observed)."""
+    steady, rms = float(m["steady_n"]), float(m["rms_n"])
+    nan = math.nan
+    if m["passivity"]:
+        out_j = m["master_out_j"] + m["slave_out_j"]
+        in_j = m["master_in_j"] + m["slave_in_j"] + m.get("slave_recovered_j", 0.0)
+        generated = max(out_j - in_j, 0.0)
+    else:
+        generated = nan
+    return {
+        "peak_force_n": float(m["peak_n"]),
+        "steady_force_n": steady,
+        "oscillation_rms_n": rms,
+        "penetration_mm": float(m["penetration_mm"]),
+        "energy_generated_j": generated,
+        "master_dissipated_j": float(m.get("master_dissipated_j", nan)),
+        "slave_dissipated_j": float(m.get("slave_dissipated_j", nan)),
+        "stable": steady > 1.0 and rms < 0.1 * steady,
+    }
+
+
+def run_matrix(
+    delays_ms: tuple[int, ...], jitter: float, loss: float, say: Callable[[str], None] = print
+) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
+    """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
+    simulated bench's keys, the runs)."""
+    doc: dict[str, Any] = {
+        "settings": {
+            "delays_ms": list(delays_ms),
+            "jitter": jitter,
+            "loss": loss,
+            "link": "real services over network namespaces",
+        },
+    }
+    runs: dict[tuple[int, bool], dict[str, Any]] = {}
+    for delay in delays_ms:
+        for on in (False, True):
+            say(f"  {delay} ms, TDPA {'on' if on else 'off'} …")
+            m = run_over_link(float(delay), on, jitter, loss)
+            runs[(delay, on)] = m
+            doc["settings"]["emulator"] = m["emulator"]
+            for name, value in bench_measures(m).items():
+                key = f"passivity_{delay}_{'on' if on else 'off'}_{name}"
+                if isinstance(value, bool):
+                    doc[key] = value
+                else:  # not measured (TDPA off: no energies) is null, not NaN
+                    doc[key] = None if math.isnan(value) else round(float(value), 6)
+    doc["load1_end"] = round(os.getloadavg()[0], 2)
+    return doc, runs
+
+
+def plots(runs: dict[tuple[int, bool], dict[str, Any]], out_dir: Path) -> list[Path]:
+    """One PNG per delay: the wrist force (world z, up) against time, TDPA off and on."""
+    from services.tools.record.plots import Series, panel, save_png
+
+    paths = []
+    for delay in sorted({d for d, _ in runs}):
+        series = []
+        for on in (False, True):
+            pts = runs[(delay, on)]["force"]
+            t = np.asarray([p[0] for p in pts], dtype=float)
+            f = np.clip(np.asarray([p[1] for p in pts], dtype=float), 0.0, 120.0)
+            series.append(Series.of(f"TDPA {'on' if on else 'off'}", t, f))
+        img = panel(
+            series,
+            f"wrist force over the link, {delay} ms round trip (real services)",
+            "time since the operator started (s)",
+            "force (N)",
+            size=(900, 320),
+        )
+        paths.append(save_png(out_dir / f"passivity_link_{delay}ms.png", img))
+    return paths
+
+
+def main(argv: list[str]) -> None:
+    role, endpoint, passivity = argv[0], argv[1], argv[2] == "1"
+    if role == "robot":
+        robot(endpoint, passivity, float(argv[3]))
+    elif role == "operator":
+        operator(endpoint, passivity, float(argv[3]))
+    else:
+        raise SystemExit(f"unknown role {role!r}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
+
+
+__all__ = [
+    "bench_measures",
+    "build_robot",
+    "metrics",
+    "plots",
+    "run_matrix",
+    "run_over_link",
+    "unavailable",
+]

@@ -1,0 +1,95 @@
+"""`telerobot bench passivity --link`'s document: the simulated bench's keys and table from
+runs over the link (the runs themselves are faked here; tests/control/passivity/
+test_link_loop.py runs one for real)."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import pytest
+
+from services.tools.bench import passivity, passivity_link
+
+
+def fake_run(rtt_ms: float, on: bool, *_: object) -> dict[str, Any]:
+    m: dict[str, Any] = {
+        "peak_n": 90.0 + rtt_ms / 100,
+        "steady_n": 8.0,
+        "rms_n": 0.4 if on else 4.0,
+        "penetration_mm": 2.5,
+        "rtt_ms": rtt_ms,
+        "passivity": on,
+        "emulator": "delayline",
+        "force": [[0.0, 0.0], [0.1, 1.0]],
+        "events": [],
+    }
+    nan = math.nan
+    m |= {
+        "master_in_j": 0.1 if on else nan,
+        "master_out_j": 0.05 if on else nan,
+        "slave_in_j": 0.05 if on else nan,
+        "slave_out_j": 0.35 if on else nan,
+        "slave_recovered_j": 0.25,
+        "master_dissipated_j": 0.01 if on else nan,
+        "slave_dissipated_j": 0.02 if on else nan,
+    }
+    return m
+
+
+def test_measures_count_what_the_workcell_gave_back_as_input() -> None:
+    got = passivity_link.bench_measures(fake_run(200.0, True))
+    # out 0.05 + 0.35 against in 0.1 + 0.05 + 0.25 given back: nothing generated
+    assert got["energy_generated_j"] == pytest.approx(0.0, abs=1e-12)
+    assert got["stable"] is True  # RMS 5 % of the steady force
+    m = fake_run(200.0, True) | {"slave_out_j": 0.45}
+    assert passivity_link.bench_measures(m)["energy_generated_j"] == pytest.approx(0.1)
+    off = passivity_link.bench_measures(fake_run(200.0, False))
+    assert math.isnan(off["energy_generated_j"]) and off["stable"] is False  # RMS 50 %
+
+
+def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(passivity_link, "run_over_link", fake_run)
+    said: list[str] = []
+    doc, runs = passivity_link.run_matrix((0, 700), 0.1, 0.01, said.append)
+    assert sorted(runs) == [(0, False), (0, True), (700, False), (700, True)]
+    assert len(said) == 4
+    for delay in (0, 700):
+        for on in ("off", "on"):
+            for name in passivity.MEASURES:
+                assert f"passivity_{delay}_{on}_{name}" in doc
+    assert doc["passivity_700_on_peak_force_n"] == pytest.approx(97.0)
+    assert doc["passivity_700_off_energy_generated_j"] is None  # not observed: null, not NaN
+    assert doc["settings"]["emulator"] == "delayline"
+    json.loads(json.dumps(doc, allow_nan=False))  # strict JSON
+    text = passivity.table(doc)
+    assert len(text.splitlines()) == 2 + 4
+    assert "–" in text.splitlines()[2]  # the off row's energy
+
+
+def test_link_run_says_why_not_where_the_link_cannot_be_made(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(passivity_link, "unavailable", lambda: "needs root")
+    out = tmp_path / "link.json"
+    assert passivity.main(["--link", "--json", str(out), "--plots", ""]) == 2
+    assert "needs root" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_link_run_writes_its_own_document_and_plots(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(passivity_link, "unavailable", lambda: None)
+    monkeypatch.setattr(passivity_link, "run_over_link", fake_run)
+    out = tmp_path / "link.json"
+    argv = ["--link", "--delays-ms", "0,200", "--json", str(out), "--plots", str(tmp_path)]
+    assert passivity.main(argv) == 0
+    doc = json.loads(out.read_text())
+    assert doc["passivity_200_on_steady_force_n"] == pytest.approx(8.0)
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == [
+        "passivity_link_0ms.png",
+        "passivity_link_200ms.png",
+    ]
+    assert "RTT ms" in capsys.readouterr().out
