@@ -68,6 +68,8 @@ LEASE_MS = 2000
 outlast a TCP retransmission at 700 ms round trip: the master's liveliness token lapses and
 the decision holds (measured)."""
 MODULE = "services.tools.bench.passivity_link"
+QUIET_S = 0.5
+"""The robot side measures once the master's figures have not arrived for this long."""
 
 
 def watchdog_ms(rtt_ms: float) -> float:
@@ -99,6 +101,7 @@ class Trace:
     master: list[PassivityState] = field(default_factory=list)
     puma_cmds: int = 0
     events: list[str] = field(default_factory=list)
+    master_rx_s: float = 0.0
     _R: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def on_state(self, s: RobotState) -> None:
@@ -115,6 +118,13 @@ class Trace:
     def on_passivity(self, m: PassivityState) -> None:
         with self.lock:
             (self.slave if m.side == "slave" else self.master).append(m)
+            if m.side == "master":
+                self.master_rx_s = time.monotonic()
+
+    def master_quiet_s(self) -> float:
+        """Seconds since the master's last passivity figures arrived (inf: none yet)."""
+        with self.lock:
+            return time.monotonic() - self.master_rx_s if self.master_rx_s else math.inf
 
     def on_event(self, e: Event) -> None:
         with self.lock:
@@ -237,6 +247,9 @@ def robot(endpoint: str, passivity: bool, watchdog: float) -> None:
         stop = sys.stdin.readline().split()
         if not stop or stop[0] != "stop":
             raise SystemExit(f"expected `stop`, got {stop[:1]!r}")
+        # The operator has ended; its last figures may still be on the link (one-way delay,
+        # a retransmission): measure once they have stopped coming.
+        wait_until(lambda: trace.master_quiet_s() > QUIET_S, watchdog / 1e3 + 2.0)
         m = metrics(trace, t0, APPROACH_S + SETTLE_S, APPROACH_S + HOLD_S)
         tdpa = dec.passivity
         if tdpa is not None:
