@@ -259,7 +259,8 @@ def robot(endpoint: str, passivity: bool, watchdog: float) -> None:
             m["puma_cmds"] = float(trace.puma_cmds)
             events = list(trace.events)
             series = [((t - t0) / 1e9, f) for t, f in trace.forces if t >= t0]
-        doc = {"metrics": m, "events": events[-20:], "force": series[::2]}
+            zs = [((t - t0) / 1e9, z - TABLE.top_z) for t, z in trace.states if t >= t0]
+        doc = {"metrics": m, "events": events[-20:], "force": series[::2], "z": zs[::2]}
         print(json.dumps(doc), flush=True)
     finally:
         for c in reversed(closers):
@@ -362,6 +363,7 @@ def run_over_link(
     m |= {"load1": os.getloadavg()[0], "emulator": emulator}
     m["events"] = out["events"]
     m["force"] = out["force"]
+    m["z"] = out["z"]
     return m
 
 
