@@ -40,6 +40,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
+from services.tools.bench.delayline import DirectionShape
+
 ROBOT_IP = "10.203.0.1"
 OPERATOR_IP = "10.203.0.2"
 LINE_ROBOT_SIDE_IP = "10.203.0.0"
@@ -74,12 +76,8 @@ class LinkShape:
     def __post_init__(self) -> None:
         if not 0.0 <= self.round_trip_ms <= 10_000.0:
             raise ValueError("round_trip_ms must be within 0 … 10000")
-        if not 0.0 <= self.jitter <= 1.0:
-            raise ValueError("jitter must be within 0 … 1")
-        if not 0.0 <= self.loss < 1.0:
-            raise ValueError("loss must be within 0 … 1 (excluded)")
-        if not 0.0 <= self.rate_mbit <= 100_000.0:
-            raise ValueError("rate_mbit must be within 0 … 100000")
+        # Each direction's shape checks the rest (the same bounds for netem and the line).
+        DirectionShape(self.round_trip_ms / 2.0, self.jitter, self.loss, self.rate_mbit)
 
     def netem_args(self) -> list[str]:
         """The `tc qdisc … netem` arguments of one direction."""

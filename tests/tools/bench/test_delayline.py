@@ -353,3 +353,26 @@ def test_tcp_through_a_lossy_delay_line_arrives_intact() -> None:
     assert got.split() == [str(size), want]
     assert counts["dropped_loss"] >= 1, counts  # the loss was there and TCP recovered
     assert counts["dropped_queue"] == 0 and counts["write_errors"] == 0, counts
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "named"),
+    [
+        ({"round_trip_ms": -1.0}, "round_trip_ms"),
+        ({"round_trip_ms": 20_000.0}, "round_trip_ms"),
+        ({"jitter": 1.5}, "jitter"),
+        ({"loss": 1.0}, "loss"),
+        ({"rate_mbit": -1.0}, "rate_mbit"),
+        ({"jitter": float("nan")}, "jitter"),
+    ],
+)
+def test_link_shape_refuses_absurd_values_by_name(kwargs: dict[str, float], named: str) -> None:
+    with pytest.raises(ValueError, match=named):
+        LinkShape(**kwargs)  # type: ignore[arg-type]
+
+
+def test_link_shape_netem_arguments() -> None:
+    how = LinkShape(round_trip_ms=200.0, jitter=0.1, loss=0.01, rate_mbit=10.0)
+    # each end delays what it sends by half the round trip, jitter 10 % of that
+    expected = "delay 100.000ms 10.000ms distribution normal loss 1.0000% rate 10mbit"
+    assert how.netem_args() == expected.split()
