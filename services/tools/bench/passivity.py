@@ -152,6 +152,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the real services over a real bad link (network namespaces; root)",
     )
     p.add_argument(
+        "--transport",
+        choices=["tcp", "udp"],
+        default="tcp",
+        help="--link: Zenoh peers over TCP, or the operator as a client of a router over UDP",
+    )
+    p.add_argument(
         "--json", default=None, metavar="FILE", help="default artifacts/bench_passivity[_link].json"
     )
     p.add_argument("--plots", default="artifacts", metavar="DIR", help="'' for none")
@@ -172,7 +178,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"telerobot bench passivity --link: {reason}", file=sys.stderr)
             return 2
         print(f"the real services over a bad link, {len(delays) * 2} runs:")
-        doc, runs = passivity_link.run_matrix(delays, args.jitter, args.loss)
+        doc, runs = passivity_link.run_matrix(
+            delays, args.jitter, args.loss, transport=args.transport
+        )
         path = Path(args.json or "artifacts/bench_passivity_link.json")
         drawn = passivity_link.plots(runs, Path(args.plots)) if args.plots else []
     else:

@@ -232,8 +232,39 @@ def metrics(
     return out
 
 
+class RouterSide:
+    """Over UDP: a router listens on the link's `endpoint` (and on loopback), the robot's
+    services are its clients on loopback, so the operator's one session to the robot host
+    is the UDP one (peers would also open direct TCP sessions to each other's listeners)."""
+
+    def __init__(self, endpoint: str) -> None:
+        from services.bus.router import open_router
+
+        self.local = f"tcp/127.0.0.1:{free_port()}"
+        self.router = open_router(
+            NodeConfig(mode="router", listen=(endpoint, self.local), lease_ms=LEASE_MS)
+        )
+        self.nodes: list[Node] = []
+
+    def node(self, name: str, instance: str | None = None) -> Node:
+        cfg = NodeConfig(mode="client", connect=(self.local,), lease_ms=LEASE_MS)
+        n = Node(name, cfg, instance=instance)
+        self.nodes.append(n)
+        return n
+
+    def close(self) -> None:
+        for n in reversed(self.nodes):
+            n.close()
+        self.nodes.clear()
+        self.router.close()
+
+
 def robot(endpoint: str, passivity: bool, watchdog: float) -> None:
-    peers = Peers(endpoint, NodeConfig(lease_ms=LEASE_MS))
+    peers: Peers | RouterSide = (
+        RouterSide(endpoint)
+        if endpoint.startswith("udp/")
+        else Peers(endpoint, NodeConfig(lease_ms=LEASE_MS))
+    )
     closers: list[Callable[[], None]] = []
     try:
         dec, trace, closers = build_robot(
@@ -269,7 +300,8 @@ def robot(endpoint: str, passivity: bool, watchdog: float) -> None:
 
 
 def operator(endpoint: str, passivity: bool, rate_hz: float) -> None:
-    cfg = NodeConfig(mode="peer", connect=(endpoint,), lease_ms=LEASE_MS)
+    udp = endpoint.startswith("udp/")  # a client of the robot host's router, see RouterSide
+    cfg = NodeConfig(mode="client" if udp else "peer", connect=(endpoint,), lease_ms=LEASE_MS)
     node = Node("master", cfg, instance="op")
     try:
         if not node.alive.wait("decision", 30.0):
@@ -307,12 +339,13 @@ def run_over_link(
     jitter: float = 0.1,
     loss: float = 0.01,
     rate_hz: float = 100.0,
+    transport: str = "tcp",
 ) -> dict[str, Any]:
     """One press–hold–release over a fresh link: the robot side's metrics, the operator's
     own figures (keys `op_…`), the link's emulator, the last events and the force series
     ((s since the operator started, world f_z)). Raises RuntimeError when the link cannot
     be made (`unavailable()` says why beforehand) or a side fails."""
-    endpoint = f"tcp/{ROBOT_IP}:{free_port()}"
+    endpoint = f"{transport}/{ROBOT_IP}:{free_port()}"
     flag = "1" if passivity else "0"
     wd = str(watchdog_ms(rtt_ms))
     with netem_link(LinkShape(round_trip_ms=rtt_ms, jitter=jitter, loss=loss)) as link:
@@ -392,7 +425,11 @@ def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
 
 
 def run_matrix(
-    delays_ms: tuple[int, ...], jitter: float, loss: float, say: Callable[[str], None] = print
+    delays_ms: tuple[int, ...],
+    jitter: float,
+    loss: float,
+    say: Callable[[str], None] = print,
+    transport: str = "tcp",
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
     """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
     simulated bench's keys, the runs)."""
@@ -402,13 +439,14 @@ def run_matrix(
             "jitter": jitter,
             "loss": loss,
             "link": "real services over network namespaces",
+            "transport": transport,
         },
     }
     runs: dict[tuple[int, bool], dict[str, Any]] = {}
     for delay in delays_ms:
         for on in (False, True):
             say(f"  {delay} ms, TDPA {'on' if on else 'off'} …")
-            m = run_over_link(float(delay), on, jitter, loss)
+            m = run_over_link(float(delay), on, jitter, loss, transport=transport)
             runs[(delay, on)] = m
             doc["settings"]["emulator"] = m["emulator"]
             for name, value in bench_measures(m).items():

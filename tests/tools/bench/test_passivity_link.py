@@ -13,7 +13,7 @@ import pytest
 from services.tools.bench import passivity, passivity_link
 
 
-def fake_run(rtt_ms: float, on: bool, *_: object) -> dict[str, Any]:
+def fake_run(rtt_ms: float, on: bool, *_: object, **__: object) -> dict[str, Any]:
     m: dict[str, Any] = {
         "peak_n": 90.0 + rtt_ms / 100,
         "steady_n": 8.0,
