@@ -393,7 +393,7 @@ def run_over_link(
     m: dict[str, Any] = dict(out["metrics"])
     m |= {f"op_{k}": v for k, v in op_figures.items()}
     m |= {"rtt_ms": rtt_ms, "passivity": passivity, "rate_hz": rate_hz}
-    m |= {"load1": os.getloadavg()[0], "emulator": emulator}
+    m |= {"load1": os.getloadavg()[0], "emulator": emulator, "transport": transport}
     m["events"] = out["events"]
     m["force"] = out["force"]
     m["z"] = out["z"]
@@ -473,7 +473,8 @@ def plots(runs: dict[tuple[int, bool], dict[str, Any]], out_dir: Path) -> list[P
             series.append(Series.of(f"TDPA {'on' if on else 'off'}", t, f))
         img = panel(
             series,
-            f"wrist force over the link, {delay} ms round trip (real services)",
+            f"wrist force over the link, {delay} ms round trip "
+            f"(real services, {runs[(delay, True)].get('transport', 'tcp').upper()})",
             "time since the operator started (s)",
             "force (N)",
             size=(900, 320),

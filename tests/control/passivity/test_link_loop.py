@@ -1,10 +1,10 @@
 """The whole bilateral loop through the real services over a bad link: the robot side (puma,
 force, decision with `passivity` on) in one network namespace, the master station with the
 simulated haptic operator in another, joined by the link of services/tools/bench/netem.py
-(kernel netem where it exists, the userspace delay line otherwise) with 200 ms round trip,
-10 % jitter and 1 % loss (`services.tools.bench.passivity_link`, which `telerobot bench
-passivity --link` runs at every delay). The operator presses the tool onto the table,
-holds, releases.
+(kernel netem where it exists, the userspace delay line otherwise): 200 ms round trip over
+TCP, 10 % jitter and 1 % loss (`services.tools.bench.passivity_link`,
+which `telerobot bench passivity --link` runs at every delay). The operator presses the
+tool onto the table, holds, releases.
 
 What TDPA guarantees is checked, not how calm the contact is (docs/passivity.md, "The whole
 loop over the link"): the master port gives the hand no more energy than the slave sent, and
@@ -26,12 +26,12 @@ from services.tools.bench import passivity_link as pl
 pytestmark = [pytest.mark.system, pytest.mark.timeout(180)]
 
 
-def over_link(rtt_ms: float, passivity: bool) -> dict[str, Any]:
+def over_link(rtt_ms: float, passivity: bool, transport: str = "tcp") -> dict[str, Any]:
     reason = pl.unavailable()
     if reason:
         pytest.skip(reason)
     try:
-        return pl.run_over_link(rtt_ms, passivity)
+        return pl.run_over_link(rtt_ms, passivity, transport=transport)
     except RuntimeError as e:
         if "Operation not permitted" in str(e) or "Permission denied" in str(e):
             pytest.skip(f"network namespace setup refused: {e}")
@@ -39,10 +39,13 @@ def over_link(rtt_ms: float, passivity: bool) -> dict[str, Any]:
 
 
 def test_whole_loop_over_a_bad_link_stays_passive() -> None:
+    """200 ms with Zenoh peers over TCP. (700 ms over UDP keeps these too, but lost the
+    master's liveliness once in 13 runs, which holds the arm: docs/passivity.md.)"""
     m = over_link(200.0, passivity=True)
-    # The run measured something: the operator brought the tool onto the table.
-    assert m["z_min_mm"] < 10.0 and m["steady_n"] > 1.0, m
-    assert m["penetration_mm"] > 0.0 and len(m["force"]) > 1000
+    # The run measured something: the operator brought the tool onto the table. (Whether it
+    # then rests there is not TDPA's promise: after the impact the slave may stay off it.)
+    assert m["peak_n"] >= pl.CONTACT_N and m["penetration_mm"] > 0.0, m
+    assert len(m["force"]) > 1000
     # Master port: the hand got no more than the slave sent (plus the reserve and one late
     # tick's misprediction), by the master's own count and by the slave's.
     allowance = RESERVE_J + 0.01 + TOLERANCE_J

@@ -52,7 +52,7 @@ def test_measures_count_what_the_workcell_gave_back_as_input() -> None:
 def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(passivity_link, "run_over_link", fake_run)
     said: list[str] = []
-    doc, runs = passivity_link.run_matrix((0, 700), 0.1, 0.01, said.append)
+    doc, runs = passivity_link.run_matrix((0, 700), 0.1, 0.01, said.append, transport="udp")
     assert sorted(runs) == [(0, False), (0, True), (700, False), (700, True)]
     assert len(said) == 4
     for delay in (0, 700):
@@ -62,6 +62,7 @@ def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.Monkey
     assert doc["passivity_700_on_peak_force_n"] == pytest.approx(97.0)
     assert doc["passivity_700_off_energy_generated_j"] is None  # not observed: null, not NaN
     assert doc["settings"]["emulator"] == "delayline"
+    assert doc["settings"]["transport"] == "udp"
     json.loads(json.dumps(doc, allow_nan=False))  # strict JSON
     text = passivity.table(doc)
     assert len(text.splitlines()) == 2 + 4
