@@ -187,6 +187,18 @@ class FakeController:
             self._garble_rx_lines += n
             self._garble_rx_kind = None if kind is None else b"$" + kind.encode("ascii") + b","
 
+    def clear_faults(self) -> None:
+        """The line is clean again: no noise, and one-shot faults not yet fired are dropped
+        (a fault meant for a stream that ended for another reason must not hit the next
+        session's handshake)."""
+        with self._lock:
+            self._garble_replies = 0
+            self._drop_reply_bytes = 0
+            self._garble_rx_lines = 0
+            self._garble_rx_kind = None
+            self.drop_per_byte = 0.0
+            self.garble_per_byte = 0.0
+
     def set_noise(self, drop_per_byte: float = 0.0, garble_per_byte: float = 0.0) -> None:
         """Random line noise on every reply byte from now on (seeded: reproducible)."""
         with self._lock:
