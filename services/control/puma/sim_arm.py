@@ -182,7 +182,16 @@ class JointFollower:
             if arrived and not (abs(sp - q) <= ARRIVED_RAD and abs(v) <= ARRIVED_RAD):
                 arrived = False
         if arrived:
-            self._q, self._v = self._sp, _REST
+            # At the setpoint, but never past a limit: a setpoint less than ARRIVED_RAD
+            # outside one is where the joint stops (and then the setpoint, so it rests).
+            rest = _joints(
+                [
+                    lo if x < lo else hi if x > hi else x
+                    for x, (_, _, lo, hi) in zip(self._sp, self._limits, strict=True)
+                ]
+            )
+            self._sp = rest
+            self._q, self._v = rest, _REST
         else:
             self._q, self._v = tuple(q_new), tuple(v_new)
 

@@ -134,7 +134,8 @@ def ref_servo_target(
 
 
 class RefFollower:
-    """JointFollower as it was, on numpy arrays."""
+    """JointFollower as it was, on numpy arrays (with the arrival kept inside the limits,
+    fixed in both: hypothesis found a setpoint 8e-11 rad below q_lo snapped to)."""
 
     def __init__(self, q: Vec, vmax: Vec, amax: Vec, kp_1_s: float = 50.0) -> None:
         self.q, self.v, self.setpoint = q.copy(), np.zeros(6), q.copy()
@@ -161,6 +162,7 @@ class RefFollower:
             np.abs(self.setpoint - self.q).max() <= ARRIVED_RAD
             and np.abs(self.v).max() <= ARRIVED_RAD
         ):
+            self.setpoint = np.clip(self.setpoint, self.q_lo, self.q_hi)  # never past a limit
             self.q = self.setpoint.copy()
             self.v[:] = 0.0
 
@@ -310,3 +312,16 @@ def test_joint_follower_is_the_numpy_servo(
     assert close(got_trace, want_trace)
     assert got.at_rest() == ref.at_rest()
     assert np.all(got.q >= KIN.q_lo) and np.all(got.q <= KIN.q_hi)
+
+
+def test_arrival_just_past_a_limit_stops_at_the_limit_and_rests() -> None:
+    """Found by hypothesis: a setpoint 8e-11 rad below q_lo was snapped to on arrival."""
+    vmax, amax = np.array(ARM_MAX_JOINT_SPEED_RAD_S), np.array(ARM_MAX_JOINT_ACCEL_RAD_S2)
+    got = JointFollower(KIN.q_lo.copy(), vmax, amax)
+    sp = KIN.q_lo.copy()
+    sp[5] -= 7.641020038017319e-11
+    got.setpoint = sp
+    got.step(1e-3)
+    assert np.all(got.q >= KIN.q_lo)
+    assert got.at_rest()
+    np.testing.assert_array_equal(got.q, KIN.q_lo)
