@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, settings
 
 from services.bus.config import NodeConfig
-from services.bus.node import Node
+from services.bus.peers import Peers
 
 # Hypothesis's timing checks (a 200 ms deadline per example, "input generation is slow")
 # measure the machine, not the property: on two shared cores, with a second pytest worker,
@@ -84,29 +84,14 @@ def wait_until(
     return Waited(True, what or _describe(pred), timeout_s, time.monotonic() - start)
 
 
-class Net:
-    """A private Zenoh network for one test: the first node listens, the rest connect to it."""
+class Net(Peers):
+    """A private Zenoh network for one test: the first node listens on a free loopback port,
+    the rest connect to it; `ns` prefixes every key."""
 
     def __init__(self, ns: str = "") -> None:
         self.port = free_port()
-        self.endpoint = f"tcp/127.0.0.1:{self.port}"
         self.ns = ns
-        self.nodes: list[Node] = []
-
-    def config(self, listen: bool = False) -> NodeConfig:
-        if listen:
-            return NodeConfig(mode="peer", listen=(self.endpoint,), ns=self.ns)
-        return NodeConfig(mode="peer", connect=(self.endpoint,), ns=self.ns)
-
-    def node(self, name: str, instance: str | None = None) -> Node:
-        n = Node(name, self.config(listen=not self.nodes), instance=instance)
-        self.nodes.append(n)
-        return n
-
-    def close(self) -> None:
-        for n in reversed(self.nodes):
-            n.close()
-        self.nodes.clear()
+        super().__init__(f"tcp/127.0.0.1:{self.port}", NodeConfig(ns=ns))
 
 
 @pytest.fixture

@@ -1,4 +1,5 @@
-"""A Zenoh network of one process's nodes: the first node listens, the others connect to it.
+"""A Zenoh network of one process's nodes: the first node listens, the others connect to it
+(`Peers`), or all are clients of one router (`Clients`).
 
 For in-process systems (the headless tasks, the link bench's robot side) that want their
 services on separate nodes, as in deployment, without a router: `Peers().node("puma")`.
@@ -32,15 +33,17 @@ class Peers:
         self._base = config or NodeConfig()
         self.nodes: list[Node] = []
 
-    def node(self, name: str, instance: str | None = None) -> Node:
-        first = not self.nodes
-        cfg = replace(
+    def config(self, listen: bool = False) -> NodeConfig:
+        """A node's settings: listening on the endpoint, or connecting to it."""
+        return replace(
             self._base,
             mode="peer",
-            listen=(self.endpoint,) if first else (),
-            connect=() if first else (self.endpoint,),
+            listen=(self.endpoint,) if listen else (),
+            connect=() if listen else (self.endpoint,),
         )
-        n = Node(name, cfg, instance=instance)
+
+    def node(self, name: str, instance: str | None = None) -> Node:
+        n = Node(name, self.config(listen=not self.nodes), instance=instance)
         self.nodes.append(n)
         return n
 
@@ -48,3 +51,10 @@ class Peers:
         for n in reversed(self.nodes):
             n.close()
         self.nodes.clear()
+
+
+class Clients(Peers):
+    """Every node a client of the router at `endpoint` (none listens)."""
+
+    def config(self, listen: bool = False) -> NodeConfig:
+        return replace(self._base, mode="client", listen=(), connect=(self.endpoint,))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -106,28 +107,42 @@ def table(doc: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def plots(results: dict[tuple[int, bool], LoopResult], out_dir: Path) -> list[Path]:
-    """One PNG per delay: contact force against time, TDPA off and on (OpenCV)."""
+def off_on_plot(
+    curves: Mapping[bool, tuple[Sequence[float], Sequence[float]]],
+    title: str,
+    x_label: str,
+    clip_n: float,
+    path: Path,
+) -> Path:
+    """One PNG: force (N, clipped to 0 … clip_n) against time, TDPA off and on (OpenCV);
+    `curves[on]` = (t, f)."""
     import numpy as np
 
     from services.tools.record.plots import Series, panel, save_png
 
-    paths = []
-    for delay in sorted({d for d, _ in results}):
-        series = []
-        for on in (False, True):
-            res = results[(delay, on)]
-            f = np.clip(np.asarray(res.f_contact), 0.0, 50.0)  # the off runs reach hundreds
-            series.append(Series.of(f"TDPA {'on' if on else 'off'}", np.asarray(res.t), f))
-        img = panel(
-            series,
-            f"contact force, {delay} ms round trip (clipped at 50 N)",
-            "time (s)",
-            "force (N)",
-            size=(900, 320),
+    series = [
+        Series.of(
+            f"TDPA {'on' if on else 'off'}",
+            np.asarray(curves[on][0], dtype=float),
+            np.clip(np.asarray(curves[on][1], dtype=float), 0.0, clip_n),
         )
-        paths.append(save_png(out_dir / f"passivity_{delay}ms.png", img))
-    return paths
+        for on in (False, True)
+    ]
+    return save_png(path, panel(series, title, x_label, "force (N)", size=(900, 320)))
+
+
+def plots(results: dict[tuple[int, bool], LoopResult], out_dir: Path) -> list[Path]:
+    """One PNG per delay: contact force against time, TDPA off and on."""
+    return [
+        off_on_plot(
+            {on: (results[(delay, on)].t, results[(delay, on)].f_contact) for on in (False, True)},
+            f"contact force, {delay} ms round trip (clipped at 50 N)",  # off reaches hundreds
+            "time (s)",
+            50.0,
+            out_dir / f"passivity_{delay}ms.png",
+        )
+        for delay in sorted({d for d, _ in results})
+    ]
 
 
 def main(argv: list[str] | None = None) -> int:

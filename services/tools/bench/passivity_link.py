@@ -41,7 +41,7 @@ from services.bus import keys
 from services.bus.config import NodeConfig
 from services.bus.messages import Event, ForceSample, PassivityState, RobotState
 from services.bus.node import Node
-from services.bus.peers import Peers
+from services.bus.peers import Clients, Peers
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
@@ -232,7 +232,7 @@ def metrics(
     return out
 
 
-class RouterSide:
+class RouterSide(Clients):
     """Over UDP: a router listens on the link's `endpoint` (and on loopback), the robot's
     services are its clients on loopback, so the operator's one session to the robot host
     is the UDP one (peers would also open direct TCP sessions to each other's listeners)."""
@@ -240,22 +240,14 @@ class RouterSide:
     def __init__(self, endpoint: str) -> None:
         from services.bus.router import open_router
 
-        self.local = f"tcp/127.0.0.1:{free_port()}"
+        local = f"tcp/127.0.0.1:{free_port()}"
         self.router = open_router(
-            NodeConfig(mode="router", listen=(endpoint, self.local), lease_ms=LEASE_MS)
+            NodeConfig(mode="router", listen=(endpoint, local), lease_ms=LEASE_MS)
         )
-        self.nodes: list[Node] = []
-
-    def node(self, name: str, instance: str | None = None) -> Node:
-        cfg = NodeConfig(mode="client", connect=(self.local,), lease_ms=LEASE_MS)
-        n = Node(name, cfg, instance=instance)
-        self.nodes.append(n)
-        return n
+        super().__init__(local, NodeConfig(lease_ms=LEASE_MS))
 
     def close(self) -> None:
-        for n in reversed(self.nodes):
-            n.close()
-        self.nodes.clear()
+        super().close()
         self.router.close()
 
 
@@ -461,25 +453,24 @@ def run_matrix(
 
 def plots(runs: dict[tuple[int, bool], dict[str, Any]], out_dir: Path) -> list[Path]:
     """One PNG per delay: the wrist force (world z, up) against time, TDPA off and on."""
-    from services.tools.record.plots import Series, panel, save_png
+    from services.tools.bench.passivity import off_on_plot
 
     paths = []
     for delay in sorted({d for d, _ in runs}):
-        series = []
+        curves = {}
         for on in (False, True):
             pts = runs[(delay, on)]["force"]
-            t = np.asarray([p[0] for p in pts], dtype=float)
-            f = np.clip(np.asarray([p[1] for p in pts], dtype=float), 0.0, 120.0)
-            series.append(Series.of(f"TDPA {'on' if on else 'off'}", t, f))
-        img = panel(
-            series,
-            f"wrist force over the link, {delay} ms round trip "
-            f"(real services, {runs[(delay, True)].get('transport', 'tcp').upper()})",
-            "time since the operator started (s)",
-            "force (N)",
-            size=(900, 320),
+            curves[on] = ([p[0] for p in pts], [p[1] for p in pts])
+        transport = str(runs[(delay, True)].get("transport", "tcp")).upper()
+        paths.append(
+            off_on_plot(
+                curves,
+                f"wrist force over the link, {delay} ms round trip (real services, {transport})",
+                "time since the operator started (s)",
+                120.0,
+                out_dir / f"passivity_link_{delay}ms.png",
+            )
         )
-        paths.append(save_png(out_dir / f"passivity_link_{delay}ms.png", img))
     return paths
 
 
