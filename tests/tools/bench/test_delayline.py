@@ -301,9 +301,11 @@ def test_the_delay_line_delays_a_round_trip_by_its_shape() -> None:
             _stop(echo)
         runs = link.delayline.runs
     assert len(slow) == 20 and len(fast) == 20
+    # Never sooner than the shape (the property); the upper bounds only catch a delay applied
+    # twice or a reshape not taken, with room for a loaded machine.
     assert min(slow) >= 95.0, slow
-    assert 100.0 <= statistics.median(slow) <= 130.0, slow
-    assert statistics.median(fast) < 5.0, fast
+    assert statistics.median(slow) < 2 * 100.0, slow
+    assert statistics.median(fast) < min(slow) / 2, fast
     # every datagram of each run went through the line, both ways, and nothing else did
     assert [r["forwarded"] for r in runs] == [40, 40], runs
     assert all(r["dropped_loss"] == r["dropped_queue"] == r["not_ipv4"] == 0 for r in runs)
