@@ -84,7 +84,8 @@ def _ref_value(name: str, tp: Any, v: Any) -> Any:
         out = tuple(_ref_number(f"{name}[{i}]", x) for i, x in enumerate(v))
         if any(isinstance(m, Rotation) for m in meta):
             R = np.array(out).reshape(3, 3)
-            with np.errstate(over="ignore", invalid="ignore"):
+            # numpy warns on subnormal entries too (det divides): the verdict is all we read
+            with np.errstate(all="ignore"):
                 err = np.linalg.norm(R.T @ R - np.eye(3))
                 det = np.linalg.det(R)
             if not err <= 1e-6 or det < 0:
@@ -430,3 +431,20 @@ def test_ints_beyond_every_float_or_string_are_rejected_cleanly() -> None:
     with pytest.raises(ProtocolError) as info:
         codec.from_fields(OperatorCommand, {**VALID[OperatorCommand], "frame": [10**5000]})
     assert info.value.field == "frame"
+
+
+def test_a_subnormal_rotation_is_refused_by_both() -> None:
+    """Found by hypothesis: numpy's det warned on subnormal entries in the reference."""
+    from services.bus.messages import RobotState
+
+    tiny = 5e-324
+    fields = {
+        "seq": 1, "t_ns": 10, "status": "ready", "q": [0.0, 1.0, -1.0, 0.0, 0.5, 0.0],
+        "tool_p": [0.5, 0.0, 0.8], "tool_R": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        "flange_p": [0.5, 0.0, 1.0],
+        "flange_R": [-0.0, -tiny, 0.0, tiny, -0.0, 0.0, 0.0, 0.0, tiny],
+        "engage": 1, "cmd_seq": 0,
+    }  # fmt: skip
+    want = ("rejected", "flange_R")
+    assert verdict(ref_from_fields, RobotState, fields) == want
+    assert verdict(codec.from_fields, RobotState, fields) == want
