@@ -40,6 +40,7 @@ _POSITIVE = (
     "guarded_speed_m_s",
     "guarded_max_force_n",
     "guarded_max_distance_m",
+    "approach_speed_m_s",
     "arrive_tol_m",
     "event_interval_s",
 )
@@ -50,6 +51,7 @@ _NON_NEGATIVE = (
     "admittance_deadband_nm",
     "tool_tip_radius_m",
     "grip_time_s",
+    "approach_zone_m",
 )
 
 
@@ -69,6 +71,8 @@ _KINDS: dict[str, str] = {
     "workspace_max": "position_m",
     "max_tool_speed_m_s": "speed_m_s",
     "max_tool_rot_speed_rad_s": "rot_speed_rad_s",
+    "approach_zone_m": "distance_m",
+    "approach_speed_m_s": "speed_m_s",
     "rpc_timeout_s": "timeout_s",
     "wait_timeout_s": "timeout_s",
     "task_speed_m_s": "speed_m_s",
@@ -105,6 +109,10 @@ class DecisionConfig:
         its floor is the table top, so the tool point never enters the table.
       max_tool_speed_m_s, max_tool_rot_speed_rad_s: the supervised target never moves
         faster (per tick: speed / rate_hz).
+      approach_zone_m, approach_speed_m_s: within approach_zone_m of a face of the
+        workspace box, the target moves towards that face at most at approach_speed_m_s
+        (guarded approach: the floor is the table top, so a tool that touches it arrives
+        slowly and the impact stays small). 0 (the default): off.
 
     Methods and tasks:
       rpc_timeout_s: timeout of a forwarded call; wait_timeout_s: of one with "wait": true.
@@ -135,6 +143,8 @@ class DecisionConfig:
     workspace_max: Vec3T = (0.95, 0.5, 1.2)
     max_tool_speed_m_s: float = 0.25
     max_tool_rot_speed_rad_s: float = 1.0
+    approach_zone_m: float = 0.0
+    approach_speed_m_s: float = 0.02
     rpc_timeout_s: float = 2.0
     wait_timeout_s: float = 60.0
     task_speed_m_s: float = 0.05
@@ -166,6 +176,8 @@ class DecisionConfig:
             raise _err("guarded_speed_m_s", "must not exceed max_tool_speed_m_s")
         if self.task_speed_m_s > self.max_tool_speed_m_s:
             raise _err("task_speed_m_s", "must not exceed max_tool_speed_m_s")
+        if self.approach_speed_m_s > self.max_tool_speed_m_s:
+            raise _err("approach_speed_m_s", "must not exceed max_tool_speed_m_s")
 
     @property
     def period_s(self) -> float:

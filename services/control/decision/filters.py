@@ -89,6 +89,28 @@ def effective_box(lo: ArrayLike, hi: ArrayLike, p: ArrayLike) -> tuple[V3, V3]:
     return (min(lx, x), min(ly, y), min(lz, z)), (max(hx, x), max(hy, y), max(hz, z))
 
 
+def slow_near_box(
+    p: V3, step: V3, lo: V3, hi: V3, zone_m: float, max_step_m: float
+) -> tuple[V3, bool]:
+    """`step` from `p` with its motion towards each face of the box [lo, hi] limited to
+    `max_step_m` inside the `zone_m` next to that face (free up to the zone's edge); whether
+    it was limited. Motion away from a face, or along it, is not touched; per axis, so the
+    limit holds for each face whatever the direction of the step."""
+    out = list(step)
+    slowed = False
+    for i in range(3):
+        s = out[i]
+        if s < 0.0:
+            room = max(p[i] - lo[i] - zone_m, 0.0) + max_step_m
+            if -s > room:
+                out[i], slowed = -room, True
+        elif s > 0.0:
+            room = max(hi[i] - p[i] - zone_m, 0.0) + max_step_m
+            if s > room:
+                out[i], slowed = room, True
+    return (out[0], out[1], out[2]), slowed
+
+
 def clamp_box(p: ArrayLike, lo: ArrayLike, hi: ArrayLike) -> V3:
     """The point of the box [lo, hi] closest to `p` (the projection; it is non-expansive, so
     clamping a step that starts inside the box never lengthens it)."""

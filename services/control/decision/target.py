@@ -27,6 +27,7 @@ from services.control.decision.filters import (
     clip_norm,
     effective_box,
     engagement_command,
+    slow_near_box,
     without_motion_into,
 )
 from services.control.decision.notices import Notices
@@ -60,6 +61,11 @@ MOVING_STATUSES = ("ready", "moving")
 """The robot statuses in which an engagement (teleoperation or a task) may start."""
 STEP_EPS_M = 1e-9
 STEP_EPS_RAD = 1e-9
+MAX_SPAN_S = 0.1
+"""The longest time one step of the target may cover (the rate limit's Δt). A master
+as slow as 10 Hz is followed at full speed; after a longer silence (a stream stalled by a
+lost TCP segment over a WAN, where the watchdogs are set to seconds) the target does not
+leap by the whole silence's worth of speed: it moves on at the limit speed, on the timer."""
 HOLD_RESEND_NS = 50_000_000
 """A hold is re-sent this often (20 Hz): one lost packet must not matter, and the puma needs
 nothing more while nothing changes."""
@@ -142,13 +148,13 @@ class SupervisedTarget:
         return len3(log9(self._off_R))
 
     def start_tick(self, now_ns: int, cfg: DecisionConfig) -> None:
-        """The time the target may move over this tick: since its last step, at most one
-        watchdog period (a longer gap is a hold anyway)."""
+        """The time the target may move over this tick: since its last step, at most
+        MAX_SPAN_S or one watchdog period, whichever is shorter."""
         last = self.last_adv_ns
         self.dt_s = (
             cfg.period_s
             if last is None
-            else min(max((now_ns - last) * 1e-9, 0.0), cfg.watchdog_ms * 1e-3)
+            else min(max((now_ns - last) * 1e-9, 0.0), cfg.watchdog_ms * 1e-3, MAX_SPAN_S)
         )
 
     def begin(self, state: RobotState, now_ns: int, period_s: float) -> None:
@@ -209,6 +215,8 @@ class SupervisedTarget:
         (b) compliance: the goal yields along the force (admittance);
         (c) speed: the step is at most max_tool_speed · dt, dt the time since the last
             step (rotation likewise): a rate limit over time, whatever the input rate;
+            within approach_zone_m of a face of the box, at most approach_speed · dt
+            towards it;
         (d) workspace: goal and target are clamped to the box (grown to contain the current
             target, so a target outside may only come back).
         """
@@ -281,6 +289,11 @@ class SupervisedTarget:
         goal_R = mul9(R_sup, exp9(w))
         step, fast = clip_norm(inc, cfg.max_tool_speed_m_s * dt)
         wstep, spin = clip_norm(w, cfg.max_tool_rot_speed_rad_s * dt)
+        near = False
+        if cfg.approach_zone_m > 0.0:
+            step, near = slow_near_box(
+                p_sup, step, lo, hi, cfg.approach_zone_m, cfg.approach_speed_m_s * dt
+            )
         free = add3(p_sup, step)
         p_new = clamp_box(free, lo, hi)
         pulled = sub3(p_new, free)
@@ -310,6 +323,18 @@ class SupervisedTarget:
                 "reason": "speed",
                 "max_tool_speed_m_s": cfg.max_tool_speed_m_s,
                 "max_tool_rot_speed_rad_s": cfg.max_tool_rot_speed_rad_s,
+            },
+        )
+        notices.edge(
+            now,
+            "approach",
+            near,
+            "limit",
+            "approach zone: target slowed near the workspace boundary",
+            {
+                "reason": "approach",
+                "approach_zone_m": cfg.approach_zone_m,
+                "approach_speed_m_s": cfg.approach_speed_m_s,
             },
         )
         self._p = p_new

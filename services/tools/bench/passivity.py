@@ -173,6 +173,14 @@ def main(argv: list[str] | None = None) -> int:
         help="--link: Zenoh peers over TCP, or the operator as a client of a router over UDP",
     )
     p.add_argument(
+        "--approach-zone",
+        type=float,
+        default=None,
+        metavar="M",
+        help="--link: the decision's approach_zone_m (default 0.02: 2 cm/s within 2 cm of "
+        "the table; 0: off)",
+    )
+    p.add_argument(
         "--json", default=None, metavar="FILE", help="default artifacts/bench_passivity[_link].json"
     )
     p.add_argument("--plots", default="artifacts", metavar="DIR", help="'' for none")
@@ -185,16 +193,19 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--delays-ms must be within 0 … 10000")
     if not (0.0 <= args.jitter <= 1.0 and 0.0 <= args.loss < 1.0):
         p.error("--jitter must be within 0 … 1 and --loss within 0 … 1 (excluded)")
+    if args.approach_zone is not None and not (args.link and 0.0 <= args.approach_zone <= 0.2):
+        p.error("--approach-zone needs --link and a value within 0 … 0.2 m")
     if args.link:
         from services.tools.bench import passivity_link
 
+        zone = passivity_link.APPROACH_ZONE_M if args.approach_zone is None else args.approach_zone
         reason = passivity_link.unavailable()
         if reason:
             print(f"telerobot bench passivity --link: {reason}", file=sys.stderr)
             return 2
         print(f"the real services over a bad link, {len(delays) * 2} runs:")
         doc, runs = passivity_link.run_matrix(
-            delays, args.jitter, args.loss, transport=args.transport
+            delays, args.jitter, args.loss, transport=args.transport, approach_zone_m=zone
         )
         path = Path(args.json or "artifacts/bench_passivity_link.json")
         drawn = passivity_link.plots(runs, Path(args.plots)) if args.plots else []

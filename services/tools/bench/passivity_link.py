@@ -68,6 +68,12 @@ LEASE_MS = 2000
 outlast a TCP retransmission at 700 ms round trip: the master's liveliness token lapses and
 the decision holds (measured)."""
 MODULE = "services.tools.bench.passivity_link"
+APPROACH_ZONE_M = 0.02
+"""The decision's guarded approach (`approach_zone_m`) in the link bench: within 2 cm of
+the table top the tool goes down at `approach_speed_m_s` (2 cm/s) at most. Without it the
+operator's 7–8 cm/s approach reaches the table at that speed and the arm's braking lets
+the tool run 2–3 mm into the 20 kN/m top: a 60–100 N impact that overdraws the slave port
+before any energy came from the master (docs/passivity.md). `--approach-zone 0`: off."""
 QUIET_S = 0.5
 """The robot side measures once the master's figures have not arrived for this long."""
 
@@ -251,7 +257,7 @@ class RouterSide(Clients):
         self.router.close()
 
 
-def robot(endpoint: str, passivity: bool, watchdog: float) -> None:
+def robot(endpoint: str, passivity: bool, watchdog: float, zone_m: float) -> None:
     peers: Peers | RouterSide = (
         RouterSide(endpoint)
         if endpoint.startswith("udp/")
@@ -260,7 +266,11 @@ def robot(endpoint: str, passivity: bool, watchdog: float) -> None:
     closers: list[Callable[[], None]] = []
     try:
         dec, trace, closers = build_robot(
-            peers.node, passivity=passivity, watchdog_ms=watchdog, state_stale_ms=watchdog
+            peers.node,
+            passivity=passivity,
+            watchdog_ms=watchdog,
+            state_stale_ms=watchdog,
+            approach_zone_m=zone_m,
         )
         print("ready", flush=True)
         start = sys.stdin.readline().split()
@@ -332,6 +342,7 @@ def run_over_link(
     loss: float = 0.01,
     rate_hz: float = 100.0,
     transport: str = "tcp",
+    approach_zone_m: float = APPROACH_ZONE_M,
 ) -> dict[str, Any]:
     """One press–hold–release over a fresh link: the robot side's metrics, the operator's
     own figures (keys `op_…`), the link's emulator, the last events and the force series
@@ -342,7 +353,17 @@ def run_over_link(
     wd = str(watchdog_ms(rtt_ms))
     with netem_link(LinkShape(round_trip_ms=rtt_ms, jitter=jitter, loss=loss)) as link:
         with subprocess.Popen(
-            in_ns(link.robot, sys.executable, "-m", MODULE, "robot", endpoint, flag, wd),
+            in_ns(
+                link.robot,
+                sys.executable,
+                "-m",
+                MODULE,
+                "robot",
+                endpoint,
+                flag,
+                wd,
+                str(approach_zone_m),
+            ),
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -386,6 +407,7 @@ def run_over_link(
     m |= {f"op_{k}": v for k, v in op_figures.items()}
     m |= {"rtt_ms": rtt_ms, "passivity": passivity, "rate_hz": rate_hz}
     m |= {"load1": os.getloadavg()[0], "emulator": emulator, "transport": transport}
+    m["approach_zone_m"] = approach_zone_m
     m["events"] = out["events"]
     m["force"] = out["force"]
     m["z"] = out["z"]
@@ -422,6 +444,7 @@ def run_matrix(
     loss: float,
     say: Callable[[str], None] = print,
     transport: str = "tcp",
+    approach_zone_m: float = APPROACH_ZONE_M,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
     """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
     simulated bench's keys, the runs)."""
@@ -432,13 +455,16 @@ def run_matrix(
             "loss": loss,
             "link": "real services over network namespaces",
             "transport": transport,
+            "approach_zone_m": approach_zone_m,
         },
     }
     runs: dict[tuple[int, bool], dict[str, Any]] = {}
     for delay in delays_ms:
         for on in (False, True):
             say(f"  {delay} ms, TDPA {'on' if on else 'off'} …")
-            m = run_over_link(float(delay), on, jitter, loss, transport=transport)
+            m = run_over_link(
+                float(delay), on, jitter, loss, transport=transport, approach_zone_m=approach_zone_m
+            )
             runs[(delay, on)] = m
             doc["settings"]["emulator"] = m["emulator"]
             for name, value in bench_measures(m).items():
@@ -477,7 +503,7 @@ def plots(runs: dict[tuple[int, bool], dict[str, Any]], out_dir: Path) -> list[P
 def main(argv: list[str]) -> None:
     role, endpoint, passivity = argv[0], argv[1], argv[2] == "1"
     if role == "robot":
-        robot(endpoint, passivity, float(argv[3]))
+        robot(endpoint, passivity, float(argv[3]), float(argv[4]))
     elif role == "operator":
         operator(endpoint, passivity, float(argv[3]))
     else:

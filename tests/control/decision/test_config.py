@@ -40,6 +40,10 @@ def test_defaults_keep_the_tool_out_of_the_table() -> None:
         ({"workspace_min": [0.25, "a", 0.4]}, "decision.workspace_min[1]"),
         ({"max_force_n": 1e9}, "decision.max_force_n"),
         ({"guarded_speed_m_s": 0.5}, "decision.guarded_speed_m_s"),
+        ({"approach_zone_m": -0.01}, "decision.approach_zone_m"),
+        ({"approach_zone_m": 5.0}, "decision.approach_zone_m"),
+        ({"approach_speed_m_s": 0.0}, "decision.approach_speed_m_s"),
+        ({"approach_speed_m_s": 0.3}, "decision.approach_speed_m_s"),
     ],
 )
 def test_bad_values_name_their_key(changes: dict[str, object], key: str) -> None:

@@ -12,6 +12,7 @@ from services.control.decision.filters import (
     deadband,
     effective_box,
     engagement_command,
+    slow_near_box,
     without_motion_into,
 )
 from services.geometry import exp_so3, tool_target_pose
@@ -61,3 +62,28 @@ def test_box_clamp_and_the_grown_box() -> None:
     assert hi2[0] == pytest.approx(1.1) and lo2[0] == pytest.approx(0.25)
     assert np.allclose(clamp_box((1.3, 0.0, 0.6), lo2, hi2), [1.1, 0.0, 0.6])
     assert np.allclose(clamp_box((1.0, 0.0, 0.6), lo2, hi2), [1.0, 0.0, 0.6])
+
+
+def test_slow_near_box_limits_only_motion_towards_a_near_face() -> None:
+    lo, hi = (0.0, 0.0, 0.4), (1.0, 1.0, 1.0)
+    zone, v = 0.02, 0.0001  # 2 cm zone, 0.1 mm per tick
+    # 5 cm above the floor, 1 mm down: outside the zone all the way, untouched
+    assert slow_near_box((0.5, 0.5, 0.45), (0.0, 0.0, -0.001), lo, hi, zone, v) == (
+        (0.0, 0.0, -0.001),
+        False,
+    )
+    # 2.05 cm above the floor, 1 mm down: free to the zone's edge (0.5 mm), then 0.1 mm
+    step, slowed = slow_near_box((0.5, 0.5, 0.4205), (0.0, 0.0, -0.001), lo, hi, zone, v)
+    assert slowed and step[2] == pytest.approx(-0.0006)
+    # inside the zone: 0.1 mm down at most; sideways and upwards untouched
+    step, slowed = slow_near_box((0.5, 0.5, 0.41), (0.002, -0.003, -0.001), lo, hi, zone, v)
+    assert slowed and step == pytest.approx((0.002, -0.003, -0.0001))
+    assert slow_near_box((0.5, 0.5, 0.41), (0.0, 0.0, 0.001), lo, hi, zone, v) == (
+        (0.0, 0.0, 0.001),
+        False,
+    )
+    # every face: towards x max from 1 cm inside it
+    step, slowed = slow_near_box((0.99, 0.5, 0.6), (0.001, 0.0, 0.0), lo, hi, zone, v)
+    assert slowed and step == pytest.approx((0.0001, 0.0, 0.0))
+    # a slow step inside the zone passes unchanged
+    assert slow_near_box((0.5, 0.5, 0.41), (0.0, 0.0, -0.00005), lo, hi, zone, v)[1] is False

@@ -24,6 +24,7 @@ from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import OperatorCommand
 from services.control.decision.config import DecisionConfig
 from services.control.decision.filters import in_box
+from services.control.decision.target import MAX_SPAN_S
 from services.control.decision.tasks import guarded_move_plan
 from services.geometry import angle_between, exp_so3
 from tests.control.decision.rig import Rig
@@ -129,11 +130,26 @@ class Checker:
         # The limit is a rate over time: since the target last moved, capped at one watchdog
         # period (longer is a hold), at least one period (an engagement's first step).
         span_s = min(max(rig.now_ns - self.t_moved, PERIOD_NS), CFG.watchdog_ms * 1e6) * 1e-9
+        span_s = min(span_s, MAX_SPAN_S)
         assert step <= CFG.max_tool_speed_m_s * span_s + 1e-12, f"target jumped {step} m"
         assert turn <= CFG.max_tool_rot_speed_rad_s * span_s + 1e-9
         assert in_box(sup.target.p_sup, LO, HI, tol=1e-12), (
             f"target {sup.target.p_sup} left the box"
         )
+        cfg = rig.config
+        if cfg.approach_zone_m > 0.0:
+            # towards a face, inside its zone: at most the approach speed over the span
+            slow = cfg.approach_speed_m_s * span_s + 1e-12
+            for i in range(3):
+                a, b = float(self.p[i]), float(sup.target.p_sup[i])
+                if b < a:
+                    assert a - b <= max(a - LO[i] - cfg.approach_zone_m, 0.0) + slow, (
+                        f"axis {i}: {a - b} m towards the min face inside the approach zone"
+                    )
+                elif b > a:
+                    assert b - a <= max(HI[i] - a - cfg.approach_zone_m, 0.0) + slow, (
+                        f"axis {i}: {b - a} m towards the max face inside the approach zone"
+                    )
         if step > 0.0 or turn > 0.0:
             self.t_moved = rig.now_ns
         self.p, self.R = sup.target.p_sup.copy(), sup.target.R_sup.copy()
@@ -170,12 +186,18 @@ class Checker:
 @given(
     p=start,
     compliance=st.booleans(),
+    zone=st.sampled_from([0.0, 0.0, 0.02, 0.3]),
     events=st.lists(st.tuples(event, interval), min_size=8, max_size=50),
 )
 def test_random_streams_never_leave_the_box_nor_exceed_the_speed_limits(
-    p: tuple[float, float, float], compliance: bool, events: list[tuple[tuple[str, Any], int]]
+    p: tuple[float, float, float],
+    compliance: bool,
+    zone: float,
+    events: list[tuple[tuple[str, Any], int]],
 ) -> None:
-    rig = Rig(DecisionConfig(compliance=compliance), p=p)
+    """... nor, with an approach zone (0.3 m: the whole box is near a face), move towards a
+    face faster than the approach speed inside its zone."""
+    rig = Rig(DecisionConfig(compliance=compliance, approach_zone_m=zone), p=p)
     check = Checker(rig)
     seqs: dict[str, int] = {}
     for (kind, value), dt_ns in events:

@@ -11,7 +11,7 @@ from services.bus.codec import to_fields
 from services.bus.errors import RpcError
 from services.control.decision.config import DecisionConfig
 from services.control.decision.supervisor import Mode
-from services.control.decision.target import HOLD_RESEND_NS
+from services.control.decision.target import HOLD_RESEND_NS, MAX_SPAN_S
 from services.control.decision.tasks import TaskPlan, guarded_move_plan
 from services.control.decision.watch import target_problem
 from services.control.passivity.slave import DEADBAND_N
@@ -185,6 +185,71 @@ def test_speed_limit_spreads_a_jump_and_catches_up() -> None:
     )  # delayed, not dropped
     speed = [n for n in rig.notices_of("limit") if n.data["reason"] == "speed"]
     assert len(speed) == 1 and rig.sup.notices.counters["limit"] == 1
+
+
+def test_the_approach_zone_slows_motion_towards_the_floor_and_only_that() -> None:
+    """Within approach_zone_m of the box's floor (the table top) the target goes down at
+    approach_speed at most; above it, and sideways or up inside it, at the full limit. The
+    goal is reached late, not dropped, and the intervention is reported once."""
+    cfg = DecisionConfig(approach_zone_m=0.02, approach_speed_m_s=0.01)
+    floor = cfg.workspace_min[2]
+    rig = Rig(cfg, p=(0.6, 0.0, floor + 0.05), scene=EMPTY)
+    engaged(rig)
+    start = rig.p.copy()
+    zs = [float(rig.sup.target.p_sup[2])]
+    for _ in range(2000):  # 4 s of ticks towards 4.5 cm down (0.5 cm above the floor)
+        rig.step([rig.cmd(dp=(0.0, 0.0, -0.045))])
+        zs.append(float(rig.sup.target.p_sup[2]))
+    down = -np.diff(zs)
+    fast = V_STEP + 1e-12
+    slow = 0.01 * 0.002 + 1e-12
+    above = [d for z0, d in zip(zs, down, strict=False) if z0 - floor > 0.02 + V_STEP]
+    inside = [d for z0, d in zip(zs, down, strict=False) if z0 - floor <= 0.02]
+    assert max(above) == pytest.approx(V_STEP)  # above the zone: the speed limit alone
+    assert inside and max(inside) <= slow and max(down) <= fast
+    assert zs[-1] == pytest.approx(floor + 0.005, abs=1e-9)  # delayed, not dropped
+    approach = [n for n in rig.notices_of("limit") if n.data["reason"] == "approach"]
+    assert len(approach) == 1 and approach[0].data["approach_speed_m_s"] == 0.01
+    # inside the zone: sideways at the full speed limit, then up at the full speed limit
+    x0 = float(rig.sup.target.p_sup[0])
+    rig.step([rig.cmd(dp=(0.02, 0.0, -0.045))])
+    assert float(rig.sup.target.p_sup[0]) - x0 == pytest.approx(V_STEP)
+    z0 = float(rig.sup.target.p_sup[2])
+    rig.step([rig.cmd(dp=(V_STEP, 0.0, -0.025))])
+    assert float(rig.sup.target.p_sup[2]) - z0 == pytest.approx(V_STEP)
+    assert float(rig.sup.target.p_sup[0]) == pytest.approx(start[0] + V_STEP)
+
+
+def test_after_a_long_silence_the_target_moves_on_at_the_speed_limit_not_in_a_leap() -> None:
+    """A stream stalled for 1 s (TCP over a WAN, watchdogs widened to 2.4 s): the next
+    command's step covers at most MAX_SPAN_S of speed; the rest follows on the timer."""
+    cfg = DecisionConfig(watchdog_ms=2400.0, state_stale_ms=2400.0)
+    rig = Rig(cfg, scene=EMPTY)
+    engaged(rig)
+    start = rig.p.copy()
+    rig.step([rig.cmd(dp=(0.0, 0.0, 0.0))])
+    rig.run(500)  # 1 s of silence: no command
+    rig.step([rig.cmd(dp=(0.1, 0.0, 0.0))])  # 10 cm further, after the silence
+    x = float(rig.sup.target.p_sup[0]) - start[0]
+    assert x == pytest.approx(cfg.max_tool_speed_m_s * MAX_SPAN_S)  # 2.5 cm, not 10
+    xs = [x]
+    for _ in range(300):
+        rig.step()
+        xs.append(float(rig.sup.target.p_sup[0]) - start[0])
+    assert max(np.diff(xs)) <= V_STEP + 1e-12 and xs[-1] == pytest.approx(0.1)
+
+
+def test_without_an_approach_zone_the_floor_is_reached_at_the_speed_limit() -> None:
+    floor = CFG.workspace_min[2]
+    rig = Rig(p=(0.6, 0.0, floor + 0.05), scene=EMPTY)
+    engaged(rig)
+    zs = [float(rig.sup.target.p_sup[2])]
+    for _ in range(200):
+        rig.step([rig.cmd(dp=(0.0, 0.0, -0.045))])
+        zs.append(float(rig.sup.target.p_sup[2]))
+    assert -min(np.diff(zs)) == pytest.approx(V_STEP)
+    assert zs[-1] == pytest.approx(floor + 0.005, abs=1e-9)
+    assert not [n for n in rig.notices_of("limit") if n.data["reason"] == "approach"]
 
 
 def test_rotation_speed_limit() -> None:

@@ -94,3 +94,32 @@ def test_link_run_writes_its_own_document_and_plots(
         "passivity_link_200ms.png",
     ]
     assert "RTT ms" in capsys.readouterr().out
+
+
+def test_the_approach_zone_reaches_every_run_and_the_document(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Any
+) -> None:
+    monkeypatch.setattr(passivity_link, "unavailable", lambda: None)
+    zones: list[object] = []
+
+    def run(rtt_ms: float, on: bool, *a: object, **kw: object) -> dict[str, Any]:
+        zones.append(kw.get("approach_zone_m"))
+        return fake_run(rtt_ms, on)
+
+    monkeypatch.setattr(passivity_link, "run_over_link", run)
+    out = tmp_path / "link.json"
+    base = ["--link", "--delays-ms", "50", "--json", str(out), "--plots", ""]
+    assert passivity.main(base) == 0
+    assert zones == [passivity_link.APPROACH_ZONE_M] * 2
+    assert json.loads(out.read_text())["settings"]["approach_zone_m"] == 0.02
+    zones.clear()
+    assert passivity.main([*base, "--approach-zone", "0"]) == 0
+    assert zones == [0.0, 0.0]
+    assert json.loads(out.read_text())["settings"]["approach_zone_m"] == 0.0
+
+
+@pytest.mark.parametrize("argv", [["--approach-zone", "0.02"], ["--link", "--approach-zone", "-1"]])
+def test_a_bad_approach_zone_is_refused(argv: list[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        passivity.main(argv)
+    assert e.value.code == 2
