@@ -473,6 +473,19 @@ def run_matrix(
                     doc[key] = value
                 else:  # not measured (TDPA off: no energies) is null, not NaN
                     doc[key] = None if math.isnan(value) else round(float(value), 6)
+    # What happened in each run, for when a figure needs explaining: the last events the
+    # console saw (interventions, holds, the puma's motions) and the slave port's figures.
+    doc["runs"] = {
+        f"{delay}_{'on' if on else 'off'}": {
+            "events": list(m.get("events", []))[-20:],
+            "puma_cmds": m.get("puma_cmds"),
+            "slave_recovered_j": m.get("slave_recovered_j"),
+            "master_out_j": m.get("op_master_out_j"),
+            "master_in_j": m.get("op_master_in_j"),
+            "load1": m.get("load1"),
+        }
+        for (delay, on), m in runs.items()
+    }
     doc["load1_end"] = round(os.getloadavg()[0], 2)
     return doc, runs
 

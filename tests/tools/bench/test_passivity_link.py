@@ -23,7 +23,7 @@ def fake_run(rtt_ms: float, on: bool, *_: object, **__: object) -> dict[str, Any
         "passivity": on,
         "emulator": "delayline",
         "force": [[0.0, 0.0], [0.1, 1.0]],
-        "events": [],
+        "events": ["decision/limit: x"],
     }
     nan = math.nan
     m |= {
@@ -63,6 +63,8 @@ def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.Monkey
     assert doc["passivity_700_off_energy_generated_j"] is None  # not observed: null, not NaN
     assert doc["settings"]["emulator"] == "delayline"
     assert doc["settings"]["transport"] == "udp"
+    assert sorted(doc["runs"]) == ["0_off", "0_on", "700_off", "700_on"]
+    assert doc["runs"]["700_on"]["events"] == ["decision/limit: x"]
     json.loads(json.dumps(doc, allow_nan=False))  # strict JSON
     text = passivity.table(doc)
     assert len(text.splitlines()) == 2 + 4
