@@ -31,6 +31,10 @@ SETTLE_S = 2.0
 """A task move may take this much longer than distance / speed before it fails."""
 BLOCKED_SHARE = 0.01
 """A guarded move is blocked when a step moves less than this share of what it asked."""
+FORCE_GAP_S = 0.5
+"""A guarded move holds its target while the wrist force is stale (a sample late under
+load, the stream just subscribed) and fails `not_ready` when it stays stale this long: it
+never moves without a fresh force, and a hiccup of the stream does not abort it."""
 
 
 @dataclass(slots=True, eq=False)
@@ -58,6 +62,8 @@ class TaskRun:
     """The tool orientation the task keeps (world ← tool)."""
     f0_w: Vec | None = None
     """The wrist force (N, world) when the running step started."""
+    stale_since_ns: int | None = None
+    """Since when a guarded move has had no fresh wrist force (None: it has one)."""
     grip: float | None = None
 
     @property
@@ -89,6 +95,7 @@ class TaskRun:
         self.step_start_ns = now_ns
         self.start_p = p.copy()
         self.f0_w = None
+        self.stale_since_ns = None
 
     def next_step(self, now_ns: int, p: Vec) -> None:
         self.step_index += 1
@@ -267,7 +274,17 @@ def _guarded(
     state = sensed.state
     assert state is not None
     if f_w is None or run.f0_w is None:
-        return _fail("not_ready", "guarded move needs a fresh force stream")
+        # No fresh force this tick: hold the target (never move blind), give up only when
+        # the stream stays stale for FORCE_GAP_S.
+        if run.stale_since_ns is None:
+            run.stale_since_ns = sensed.now_ns
+        if sensed.now_ns - run.stale_since_ns > FORCE_GAP_S * 1e9:
+            return _fail(
+                "not_ready", f"guarded move needs a fresh force stream (none for {FORCE_GAP_S:g} s)"
+            )
+        target.advance(target.p_sup, run.R_keep, sensed)
+        return None
+    run.stale_since_ns = None
     d = np.asarray(step.direction, dtype=float)
     tool_p = np.asarray(state.tool_p, dtype=float)
     df = f_w - run.f0_w

@@ -10,7 +10,7 @@ import pytest
 from services.bus.errors import ProtocolError, RpcError
 from services.control.decision.config import DecisionConfig
 from services.control.decision.supervisor import Mode
-from services.control.decision.taskrun import TaskRun
+from services.control.decision.taskrun import FORCE_GAP_S, TaskRun
 from services.control.decision.tasks import (
     Grip,
     GuardedMove,
@@ -19,7 +19,7 @@ from services.control.decision.tasks import (
     pick_place_plan,
 )
 from services.world.workcell.scene import TABLE, Scene
-from tests.control.decision.rig import Rig
+from tests.control.decision.rig import TICK_NS, Rig
 
 CFG = DecisionConfig()
 TOP = TABLE.top_z
@@ -96,13 +96,37 @@ def test_guarded_move_without_contact_stops_at_its_distance() -> None:
 
 
 def test_guarded_move_needs_the_force_stream() -> None:
+    """Without a fresh force it holds still, and fails not_ready after FORCE_GAP_S."""
     rig = Rig(p=(0.6, 0.0, 0.6))
+    start = rig.p.copy()
     run = rig.sup.start_task(guarded_move_plan({"direction": [0, 0, -1]}, CFG), rig.now_ns)
-    for _ in range(40):
+    t0 = rig.now_ns
+    while not run.done and rig.now_ns - t0 < 2 * FORCE_GAP_S * 1e9:
         rig.step(force=False)
-        if run.done:
-            break
+        assert rig.p == pytest.approx(start, abs=1e-12)  # never moved blind
     assert run.error is not None and run.error[0] == "not_ready"
+    assert FORCE_GAP_S * 1e9 < rig.now_ns - t0 <= FORCE_GAP_S * 1e9 + 2 * TICK_NS
+
+
+def test_a_guarded_move_pauses_through_a_gap_in_the_force_stream_and_goes_on() -> None:
+    rig = Rig(p=(0.6, 0.0, TOP + 0.03))
+    run = rig.sup.start_task(guarded_move_plan({"direction": [0, 0, -1]}, CFG), rig.now_ns)
+    for _ in range(100):
+        rig.step()
+    z = float(rig.p[2])
+    assert z < TOP + 0.03  # on its way down
+    gap = []
+    for _ in range(60):  # 120 ms without a force sample (stale after 50 ms)
+        rig.step(force=False)
+        gap.append(float(rig.p[2]))
+    assert gap[0] < z and not run.done
+    held = gap[-30:]  # the last 60 ms of the gap: stale, so held
+    assert max(held) - min(held) < 1e-12
+    assert gap[0] > held[0]  # it moved while the last sample was still fresh
+    run_until_done(rig, run)
+    assert run.error is None and run.result is not None
+    assert run.result["stopped"] == "contact"
+    assert run.result["contact_p"][2] == pytest.approx(TOP, abs=0.002)
 
 
 def test_pick_and_place_runs_its_steps_with_the_gripper() -> None:
