@@ -325,18 +325,19 @@ class SupervisedTarget:
                 "max_tool_rot_speed_rad_s": cfg.max_tool_rot_speed_rad_s,
             },
         )
-        notices.edge(
-            now,
-            "approach",
-            near,
-            "limit",
-            "approach zone: target slowed near the workspace boundary",
-            {
-                "reason": "approach",
-                "approach_zone_m": cfg.approach_zone_m,
-                "approach_speed_m_s": cfg.approach_speed_m_s,
-            },
-        )
+        if near:  # (no event data built per tick while nothing happens)
+            notices.edge(
+                now,
+                "approach",
+                True,
+                "limit",
+                "approach zone: target slowed near the workspace boundary",
+                {
+                    "reason": "approach",
+                    "approach_zone_m": cfg.approach_zone_m,
+                    "approach_speed_m_s": cfg.approach_speed_m_s,
+                },
+            )
         self._p = p_new
         self._R = ortho9(mul9(R_sup, exp9(wstep)))
         return goal_p, ortho9(goal_R)
