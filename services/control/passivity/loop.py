@@ -234,11 +234,27 @@ def _saturate(f: Sequence[float], max_n: float) -> list[float]:
     return [x * max_n / norm for x in f]
 
 
+def trend_n_s(points: Sequence[tuple[float, float]]) -> float:
+    """The least-squares slope (N/s) of (t_s, f_n) points: how fast the contact force
+    climbs or sinks over a window (a creep, which the RMS about the mean also counts); 0
+    for fewer than two distinct times."""
+    n = len(points)
+    if n < 2:
+        return 0.0
+    mt = math.fsum(t for t, _ in points) / n
+    mf = math.fsum(f for _, f in points) / n
+    stt = math.fsum((t - mt) ** 2 for t, _ in points)
+    if stt <= 0.0:
+        return 0.0
+    return math.fsum((t - mt) * (f - mf) for t, f in points) / stt
+
+
 def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float | bool]:
     """The bench's measures of one run.
 
     peak_force_n: largest contact force; steady_force_n / oscillation_rms_n: mean and RMS
-    about the mean of the contact force over the hold after `settle_s`; penetration_mm: the
+    about the mean of the contact force over the hold after `settle_s`; creep_n_s: its
+    least-squares slope over that window (`trend_n_s`); penetration_mm: the
     largest; energy_generated_j: how far the channel's observed output ever exceeded its
     input (> 0 means energy was created); stable: no divergence and oscillation RMS below
     10 % of the steady force.
@@ -246,7 +262,8 @@ def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float |
     spec = res.spec
     lo = spec.approach_s + settle_s
     hi = spec.approach_s + spec.hold_s
-    window = [f for t, f in zip(res.t, res.f_contact, strict=True) if lo <= t < hi]
+    points = [(t, f) for t, f in zip(res.t, res.f_contact, strict=True) if lo <= t < hi]
+    window = [f for _, f in points]
     steady = sum(window) / len(window) if window else 0.0
     rms = math.sqrt(sum((f - steady) ** 2 for f in window) / len(window)) if window else 0.0
     generated = 0.0
@@ -259,6 +276,7 @@ def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float |
         "peak_force_n": max(res.f_contact, default=0.0),
         "steady_force_n": steady,
         "oscillation_rms_n": rms,
+        "creep_n_s": trend_n_s(points),
         "penetration_mm": 1e3 * max(res.penetration, default=0.0),
         "energy_generated_j": generated,
         "master_dissipated_j": res.master_dissipated_j,

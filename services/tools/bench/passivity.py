@@ -3,7 +3,8 @@
 The simulated operator presses the tool onto a stiff surface, holds and releases
 (`services.control.passivity.loop`), at round-trip delays 0, 50, 200 and 700 ms with 10 % jitter and
 1 % loss by default. Per run: peak and steady contact force, oscillation (RMS of the force
-about its mean after settling), penetration, the energy balance (the most the channel's
+about its mean after settling), creep (the force's least-squares slope over the same window,
+N/s: a climb the RMS also counts), penetration, the energy balance (the most the channel's
 observed output ever exceeded its input) and what each controller dissipated. One table,
 one JSON (keys `passivity_<delay_ms>_<on|off>_<measure>`), one plot per delay (contact force
 over time, off and on). "on" is both ports with the master's energy-bounding force limiter
@@ -32,6 +33,7 @@ MEASURES = (
     "peak_force_n",
     "steady_force_n",
     "oscillation_rms_n",
+    "creep_n_s",
     "penetration_mm",
     "energy_generated_j",
     "master_dissipated_j",
@@ -90,7 +92,7 @@ def table(doc: dict[str, Any]) -> str:
     """The results as a fixed-width table, one row per delay and TDPA setting."""
     head = (
         f"{'RTT ms':>7} {'TDPA':>4} {'peak N':>8} {'steady N':>9} {'osc RMS N':>10} "
-        f"{'pen mm':>7} {'gen. J':>8} {'stable':>6}"
+        f"{'creep N/s':>9} {'pen mm':>7} {'gen. J':>8} {'stable':>6}"
     )
     lines = [head, "-" * len(head)]
     for delay in doc["settings"]["delays_ms"]:
@@ -100,6 +102,7 @@ def table(doc: dict[str, Any]) -> str:
                 f"{delay:>7} {on:>4} {_num(doc[k + 'peak_force_n'], 8, 1)} "
                 f"{_num(doc[k + 'steady_force_n'], 9, 2)} "
                 f"{_num(doc[k + 'oscillation_rms_n'], 10, 2)} "
+                f"{_num(doc.get(k + 'creep_n_s'), 9, 2)} "
                 f"{_num(doc[k + 'penetration_mm'], 7, 1)} "
                 f"{_num(doc[k + 'energy_generated_j'], 8, 3)} "
                 f"{'yes' if doc[k + 'stable'] else 'NO':>6}"

@@ -49,6 +49,7 @@ from services.control.force.service import ForceService
 from services.control.master.config import MasterConfig
 from services.control.master.haptic_sim import SimHapticMaster
 from services.control.master.service import MasterService
+from services.control.passivity.loop import trend_n_s
 from services.control.puma.config import HOME_Q_RAD, PumaConfig
 from services.control.puma.service import PumaService
 from services.control.puma.sim_arm import SimArm
@@ -205,11 +206,15 @@ def build_robot(
 def metrics(
     trace: Trace, t_start_ns: int, hold_from_s: float, hold_to_s: float
 ) -> dict[str, float]:
-    """Peak |f| over the run; steady f and oscillation RMS over [hold_from, hold_to) after
-    the master started; tool z range there (mm above the table top); penetration (mm below
-    the tool's height at the touch, over the whole run); final energies of both ports."""
+    """Peak |f| over the run; steady f, oscillation RMS and creep (N/s, `trend_n_s`) over
+    [hold_from, hold_to) after the master started; tool z range there (mm above the table
+    top); penetration (mm below the tool's height at the touch, over the whole run); final
+    energies of both ports."""
     t0 = t_start_ns
-    window = trace.force_between(t0 + int(hold_from_s * 1e9), t0 + int(hold_to_s * 1e9))
+    lo_ns, hi_ns = t0 + int(hold_from_s * 1e9), t0 + int(hold_to_s * 1e9)
+    window = trace.force_between(lo_ns, hi_ns)
+    with trace.lock:
+        points = [((t - t0) / 1e9, f) for t, f in trace.forces if lo_ns <= t < hi_ns]
     steady = sum(window) / len(window) if window else 0.0
     rms = math.sqrt(sum((f - steady) ** 2 for f in window) / len(window)) if window else 0.0
     zs = trace.z_between(t0 + int(hold_from_s * 1e9), t0 + int(hold_to_s * 1e9))
@@ -224,6 +229,7 @@ def metrics(
         "peak_n": peak,
         "steady_n": steady,
         "rms_n": rms,
+        "creep_n_s": trend_n_s(points),
         "z_min_mm": 1e3 * (min(zs, default=math.nan) - top),
         "z_max_mm": 1e3 * (max(zs, default=math.nan) - top),
         "penetration_mm": (
@@ -430,6 +436,7 @@ def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
         "peak_force_n": float(m["peak_n"]),
         "steady_force_n": steady,
         "oscillation_rms_n": rms,
+        "creep_n_s": float(m.get("creep_n_s", nan)),
         "penetration_mm": float(m["penetration_mm"]),
         "energy_generated_j": generated,
         "master_dissipated_j": float(m.get("master_dissipated_j", nan)),

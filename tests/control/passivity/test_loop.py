@@ -17,6 +17,7 @@ from services.control.passivity.loop import (
     LoopSpec,
     contact_metrics,
     simulate,
+    trend_n_s,
 )
 
 THREE_DOF = {"dofs": 3, "target_m": (0.02, 0.0, 0.08), "wall": Wall(normal=(0.0, 0.0, 1.0))}
@@ -133,3 +134,11 @@ def test_with_the_master_limiter_700ms_settles_and_the_master_port_balances() ->
     without = simulate(LoopSpec(round_trip_s=0.7, jitter=0.1, loss=0.01, tdpa=True, limit=False))
     assert not contact_metrics(without)["stable"]  # the damper alone: still hunting
     assert _overdrafts(without)[1] > 10 * master
+
+
+def test_trend_is_the_least_squares_slope() -> None:
+    ramp = [(0.1 * i, 5.0 + 2.0 * 0.1 * i) for i in range(30)]  # 2 N/s
+    assert trend_n_s(ramp) == pytest.approx(2.0)
+    wobble = [(0.01 * i, 8.0 + (1.0 if i % 2 else -1.0)) for i in range(200)]
+    assert abs(trend_n_s(wobble)) < 0.1  # an oscillation has no trend
+    assert trend_n_s([]) == 0.0 and trend_n_s([(1.0, 3.0), (1.0, 4.0)]) == 0.0

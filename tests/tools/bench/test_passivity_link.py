@@ -18,6 +18,7 @@ def fake_run(rtt_ms: float, on: bool, *_: object, **__: object) -> dict[str, Any
         "peak_n": 90.0 + rtt_ms / 100,
         "steady_n": 8.0,
         "rms_n": 0.4 if on else 4.0,
+        "creep_n_s": 0.5 if on else 3.0,
         "penetration_mm": 2.5,
         "rtt_ms": rtt_ms,
         "passivity": on,
@@ -60,6 +61,7 @@ def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.Monkey
             for name in passivity.MEASURES:
                 assert f"passivity_{delay}_{on}_{name}" in doc
     assert doc["passivity_700_on_peak_force_n"] == pytest.approx(97.0)
+    assert doc["passivity_700_off_creep_n_s"] == pytest.approx(3.0)
     assert doc["passivity_700_off_energy_generated_j"] is None  # not observed: null, not NaN
     assert doc["settings"]["emulator"] == "delayline"
     assert doc["settings"]["transport"] == "udp"
