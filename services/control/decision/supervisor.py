@@ -137,12 +137,15 @@ class Supervisor:
             "published": 0,
             "holds": 0,
             "tasks": 0,
+            "force_gap_ticks": 0,
         }
         self.tasks = Tasks()
         self._now_ns = 0
         self.hold_reason: str | None = None
         self._fresh = False
         self._contact = False
+        self._force_flowing = False  # a fresh wrist force seen in this engagement
+        self._force_lost_ns: int | None = None  # the force service's token went then
         self._state_rx_ns = 0
         self._force_rx_ns = 0
         self.watch: Watch | None = None
@@ -172,6 +175,11 @@ class Supervisor:
         state_ok = inp.state is not None and fresh(cfg.state_stale_ms, inp.now_ns, inp.state_rx_ns)
         force_ok = inp.force is not None and fresh(cfg.stale_ms, inp.now_ns, inp.force_rx_ns)
         self._contact = cfg.passivity and force_ok and _touching(inp.force)
+        if force_ok:
+            lost = self._force_lost_ns
+            if lost is None or inp.force_rx_ns > lost:  # a sample sent since it came back
+                self._force_lost_ns = None
+                self._force_flowing = True
         for name in inp.lost:
             self._on_lost(name)
         for cmd in inp.commands:
@@ -284,15 +292,18 @@ class Supervisor:
                 "the puma service is gone: holding",
                 task_error="unavailable",
             )
-        elif name == "force" and (
-            (self._cfg.compliance and self.mode is Mode.FOLLOW) or self._streaming()
-        ):
-            self._hold(
-                "watchdog",
-                "force_lost",
-                "the force service is gone: holding",
-                task_error="unavailable",
-            )
+        elif name == "force":
+            # Gone: no stream to wait for; without compliance teleoperation goes on
+            # unsupervised, as with no sensor at all (the lost token is an event).
+            self._force_flowing = False
+            self._force_lost_ns = self._now_ns
+            if (self._cfg.compliance and self.mode is Mode.FOLLOW) or self._streaming():
+                self._hold(
+                    "watchdog",
+                    "force_lost",
+                    "the force service is gone: holding",
+                    task_error="unavailable",
+                )
 
     def _refuse(self, kind: str, cmd: OperatorCommand, rec: MasterRecord, why: str) -> None:
         """An active command that may not move the arm: its engagement is blocked for good."""
@@ -422,6 +433,7 @@ class Supervisor:
         """Start a new engagement towards the puma, rebased on the current tool pose."""
         self.target.begin(state, self._now_ns, self._cfg.period_s)
         self.notices.clear_edges()
+        self._force_flowing = False
         self.stats["engagements"] += 1
 
     def _release_lease(self, why: str) -> None:
@@ -479,6 +491,21 @@ class Supervisor:
         if why is not None:
             self._hold("watchdog", *why)
         if self.mode is not Mode.FOLLOW or self._cmd is None or self.target.p0 is None:
+            return None
+        if self._force_flowing and not force_ok:
+            # The wrist force that flowed in this engagement stopped (a link stalled, the
+            # host is loaded): the contact filter cannot see, so the target waits where it
+            # is until a fresh sample is in (compliance on holds instead, above).
+            self.stats["force_gap_ticks"] += 1
+            self.target.last_adv_ns = self._now_ns  # the wait is not motion to catch up
+            self.notices.edge(
+                self._now_ns,
+                "force_gap",
+                True,
+                "limit",
+                f"no force sample for {cfg.stale_ms:g} ms: the target waits for the force",
+                {"reason": "force_gap", "stale_ms": cfg.stale_ms},
+            )
             return None
         if not (self._fresh or self.target.lagging or cfg.compliance or self._contact):
             return None  # nothing new: the puma already has this target

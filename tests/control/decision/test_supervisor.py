@@ -239,6 +239,50 @@ def test_after_a_long_silence_the_target_moves_on_at_the_speed_limit_not_in_a_le
     assert max(np.diff(xs)) <= V_STEP + 1e-12 and xs[-1] == pytest.approx(0.1)
 
 
+def test_a_force_stream_that_stops_makes_the_target_wait_then_go_on() -> None:
+    """The wrist force flowed in this engagement and stops (a stalled link: the contact
+    filter cannot see): the target waits where it is, once reported; it goes on when
+    samples are back, at the speed limit, no leap."""
+    rig = Rig(scene=EMPTY)
+    engaged(rig)
+    goal = (0.05, 0.0, 0.0)
+    rig.run(20, lambda i: [rig.cmd(dp=goal)])
+    xs = [float(rig.sup.target.p_sup[0])]
+    for _ in range(60):  # 120 ms without a sample: stale after 50 ms
+        rig.step([rig.cmd(dp=goal)], force=False)
+        xs.append(float(rig.sup.target.p_sup[0]))
+    steps = np.diff(xs)
+    stale_from = int(CFG.stale_ms * 1e6 / TICK_NS) + 1
+    assert all(d == pytest.approx(V_STEP) for d in steps[: stale_from - 1])  # still fresh
+    assert not np.any(steps[stale_from:])  # waited
+    (ev,) = [n for n in rig.notices_of("limit") if n.data["reason"] == "force_gap"]
+    assert ev.data["stale_ms"] == CFG.stale_ms and rig.sup.mode is Mode.FOLLOW
+    assert rig.sup.stats["force_gap_ticks"] >= 60 - stale_from
+    for _ in range(10):
+        rig.step([rig.cmd(dp=goal)])
+        xs.append(float(rig.sup.target.p_sup[0]))
+    assert max(np.diff(xs[-11:])) <= V_STEP + 1e-12 and xs[-1] > xs[-11]
+
+
+def test_with_no_force_sensor_or_a_lost_one_teleoperation_is_not_paused() -> None:
+    """No wrist force ever (a deployment without a sensor), or the force service gone
+    (its token lost): nothing to wait for, the target follows (compliance off)."""
+    rig = Rig(scene=EMPTY)
+    for _ in range(3):
+        rig.step([rig.cmd()], force=False)
+    assert rig.sup.mode is Mode.FOLLOW
+    x0 = float(rig.sup.target.p_sup[0])
+    rig.run(40, lambda i: [rig.cmd(dp=(0.01, 0.0, 0.0))], force=False)
+    assert float(rig.sup.target.p_sup[0]) - x0 == pytest.approx(0.01)
+    lost = Rig(scene=EMPTY)
+    engaged(lost)
+    lost.step([lost.cmd()], force=False, lost=("force",))
+    x0 = float(lost.sup.target.p_sup[0])
+    lost.run(40, lambda i: [lost.cmd(dp=(0.01, 0.0, 0.0))], force=False)
+    assert float(lost.sup.target.p_sup[0]) - x0 == pytest.approx(0.01)
+    assert not [n for n in lost.notices_of("limit") if n.data["reason"] == "force_gap"]
+
+
 def test_without_an_approach_zone_the_floor_is_reached_at_the_speed_limit() -> None:
     floor = CFG.workspace_min[2]
     rig = Rig(p=(0.6, 0.0, floor + 0.05), scene=EMPTY)
