@@ -497,7 +497,7 @@ class Supervisor:
             # host is loaded): the contact filter cannot see, so the target waits where it
             # is until a fresh sample is in (compliance on holds instead, above).
             self.stats["force_gap_ticks"] += 1
-            self.target.last_adv_ns = self._now_ns  # the wait is not motion to catch up
+            self.target.wait(self._now_ns)
             self.notices.edge(
                 self._now_ns,
                 "force_gap",

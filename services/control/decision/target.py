@@ -157,6 +157,10 @@ class SupervisedTarget:
             else min(max((now_ns - last) * 1e-9, 0.0), cfg.watchdog_ms * 1e-3, MAX_SPAN_S)
         )
 
+    def wait(self, now_ns: int) -> None:
+        """The target stays put this tick: the time is not motion to catch up later."""
+        self.last_adv_ns = now_ns
+
     def begin(self, state: RobotState, now_ns: int, period_s: float) -> None:
         """Start a new engagement towards the puma, rebased on the current tool pose."""
         self.engage_out = max(self.engage_out, state.engage) + 1

@@ -141,11 +141,12 @@ class Trace:
         with self.lock:
             self.puma_cmds += 1
 
-    def force_between(self, t0_ns: int, t1_ns: int) -> list[float]:
+    def force_between(self, t0_ns: int, t1_ns: int) -> list[tuple[int, float]]:
+        """(t_ns, world f_z) of the forces received in [t0_ns, t1_ns)."""
         with self.lock:
             ts = [t for t, _ in self.forces]
             i, j = bisect.bisect_left(ts, t0_ns), bisect.bisect_left(ts, t1_ns)
-            return [f for _, f in self.forces[i:j]]
+            return self.forces[i:j]
 
     def z_between(self, t0_ns: int, t1_ns: int) -> list[float]:
         with self.lock:
@@ -212,12 +213,11 @@ def metrics(
     energies of both ports."""
     t0 = t_start_ns
     lo_ns, hi_ns = t0 + int(hold_from_s * 1e9), t0 + int(hold_to_s * 1e9)
-    window = trace.force_between(lo_ns, hi_ns)
-    with trace.lock:
-        points = [((t - t0) / 1e9, f) for t, f in trace.forces if lo_ns <= t < hi_ns]
+    points = [((t - t0) / 1e9, f) for t, f in trace.force_between(lo_ns, hi_ns)]
+    window = [f for _, f in points]
     steady = sum(window) / len(window) if window else 0.0
     rms = math.sqrt(sum((f - steady) ** 2 for f in window) / len(window)) if window else 0.0
-    zs = trace.z_between(t0 + int(hold_from_s * 1e9), t0 + int(hold_to_s * 1e9))
+    zs = trace.z_between(lo_ns, hi_ns)
     touch = trace.touch()
     with trace.lock:
         slave = trace.slave[-1] if trace.slave else None
@@ -298,8 +298,7 @@ def robot(endpoint: str, passivity: bool, watchdog: float, zone_m: float) -> Non
             m["puma_cmds"] = float(trace.puma_cmds)
             events = list(trace.events)
             series = [((t - t0) / 1e9, f) for t, f in trace.forces if t >= t0]
-            zs = [((t - t0) / 1e9, z - TABLE.top_z) for t, z in trace.states if t >= t0]
-        doc = {"metrics": m, "events": events[-20:], "force": series[::2], "z": zs[::2]}
+        doc = {"metrics": m, "events": events[-20:], "force": series[::2]}
         print(json.dumps(doc), flush=True)
     finally:
         for c in reversed(closers):
@@ -416,7 +415,6 @@ def run_over_link(
     m["approach_zone_m"] = approach_zone_m
     m["events"] = out["events"]
     m["force"] = out["force"]
-    m["z"] = out["z"]
     return m
 
 
