@@ -53,6 +53,14 @@ class NodeConfig:
     most `max_hz` times a second; Zenoh drops the rest as they arrive (its ingress
     `downsampling`), before any Python runs. For a slow consumer of a fast stream (a plot
     of the 1 kHz force); never for commands or events, every one of which matters.
+
+    `loopback`: the network interfaces that never leave this machine. The control class
+    (commands, force, passivity energies: REAL_TIME, block on congestion, every one of them
+    latest-wins) keeps blocking on links over these and drops on congestion on every other
+    link this node sends on (`control_qos_rules`): a stalled TCP link to a remote operator
+    would otherwise block the publisher's `put`, and with it the robot host's own readers
+    (measured: 160–480 ms, docs/deploy.md "A stalled link never blinds the robot host").
+    Empty: no overwrite, the control class blocks everywhere.
     """
 
     mode: Mode = "peer"
@@ -65,6 +73,7 @@ class NodeConfig:
     admin_space: bool = False
     shared_memory: bool = False
     downsampling: tuple[tuple[str, float], ...] = ()
+    loopback: tuple[str, ...] = ("lo", "lo0")
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -84,6 +93,9 @@ class NodeConfig:
                 raise ConfigError("zenoh.downsampling", f"bad key {key!r}")
             if not 0.0 < max_hz < float("inf"):
                 raise ConfigError("zenoh.downsampling", f"{key}: max_hz must be > 0, got {max_hz}")
+        for name in self.loopback:
+            if not name or len(name) > 15 or not name.isprintable() or "/" in name:
+                raise ConfigError("zenoh.loopback", f"bad interface name {name[:20]!r}")
 
     def to_zenoh(self) -> zenoh.Config:
         """The zenoh.Config for this node."""
@@ -111,7 +123,40 @@ class NodeConfig:
             rules = [{"key_expr": prefix + k, "freq": hz} for k, hz in self.downsampling]
             flow = {"flows": ["ingress"], "messages": ["put"], "rules": rules}
             cfg.insert_json5("downsampling", json.dumps([flow]))
+        if self.loopback:
+            # Ours first: a deployment's own rules (its zenoh_config) apply after them; a file
+            # that carries ours already (deploy/router/*.json5, for zenohd) keeps its own.
+            own = json.loads(cfg.get_json("qos/network") or "[]")
+            ids = {r.get("id") for r in own}
+            ours = [r for r in control_qos_rules(self.loopback) if r["id"] not in ids]
+            cfg.insert_json5("qos/network", json.dumps(ours + own))
         return cfg
+
+
+def control_qos_rules(loopback: Sequence[str]) -> list[dict[str, Any]]:
+    """Zenoh `qos/network` rules: the control class drops on congestion when it leaves
+    this machine, and blocks, as it is published, on links over `loopback` interfaces.
+
+    Zenoh applies the rules in order to each message a link sends: the first turns every
+    REAL_TIME blocking put into a dropping one, the second turns it back on a link whose
+    every interface is a loopback one. deploy/router/*.json5 carry the same two rules.
+    """
+    base = {"messages": ["put"], "flows": ["egress"]}
+    return [
+        {
+            "id": "control-drops-off-host",
+            **base,
+            "qos": {"priority": "real_time", "congestion_control": "block"},
+            "overwrite": {"congestion_control": "drop"},
+        },
+        {
+            "id": "control-blocks-on-loopback",
+            **base,
+            "interfaces": list(loopback),
+            "qos": {"priority": "real_time", "congestion_control": "drop"},
+            "overwrite": {"congestion_control": "block"},
+        },
+    ]
 
 
 def add_node_args(parser: argparse.ArgumentParser) -> None:

@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 import zenoh
 
-from services.bus.config import NodeConfig, load_deploy, section
+from services.bus.config import NodeConfig, control_qos_rules, load_deploy, section
 from services.bus.router import router_config
 from services.control.decision.config import DecisionConfig
 from services.control.force.config import ForceConfig
@@ -51,7 +51,7 @@ def zconfig(path: Path) -> dict[str, Any]:
     cfg = zenoh.Config.from_file(str(path))
     return {
         key: json.loads(cfg.get_json(key))
-        for key in ("mode", "listen", "connect", "transport", "access_control", "scouting")
+        for key in ("mode", "listen", "connect", "transport", "access_control", "scouting", "qos")
     }
 
 
@@ -137,6 +137,17 @@ def test_the_operator_exchanges_passivity_energies_and_watchers_see_both(path: P
         assert "robot/passivity/*" in granted(who, "ingress", "declare_subscriber")
     assert "robot/passivity/*" in granted(observer, "egress", "put")
     assert "robot/passivity/master" not in granted(observer, "ingress", "put")
+
+
+@pytest.mark.parametrize("path", ROUTER_FILES, ids=lambda p: p.name)
+def test_router_files_drop_the_control_class_off_host_as_the_nodes_do(path: Path) -> None:
+    """zenohd reads these files without our NodeConfig: they carry its two rules themselves,
+    and `telerobot router --zenoh-config` on them adds no second copy."""
+    ours = zenoh.Config()
+    ours.insert_json5("qos/network", json.dumps(control_qos_rules(["lo"])))
+    assert zconfig(path)["qos"]["network"] == json.loads(ours.get_json("qos/network"))
+    cfg = NodeConfig(mode="router", zenoh_config=str(path), loopback=("lo",)).to_zenoh()
+    assert json.loads(cfg.get_json("qos/network")) == zconfig(path)["qos"]["network"]
 
 
 def test_mtls_variant_differs_only_in_tls_and_the_operator_subject() -> None:

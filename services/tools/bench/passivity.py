@@ -184,6 +184,14 @@ def main(argv: list[str] | None = None) -> int:
         "the table; 0: off)",
     )
     p.add_argument(
+        "--rate-mbit",
+        type=float,
+        default=0.0,
+        metavar="MBIT",
+        help="--link: the link's bandwidth each way (0: unlimited; 0.5 is less than the "
+        "streams need, so Zenoh's queues fill)",
+    )
+    p.add_argument(
         "--json", default=None, metavar="FILE", help="default artifacts/bench_passivity[_link].json"
     )
     p.add_argument("--plots", default="artifacts", metavar="DIR", help="'' for none")
@@ -198,6 +206,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--jitter must be within 0 … 1 and --loss within 0 … 1 (excluded)")
     if args.approach_zone is not None and not (args.link and 0.0 <= args.approach_zone <= 0.2):
         p.error("--approach-zone needs --link and a value within 0 … 0.2 m")
+    if args.rate_mbit and not (args.link and 0.05 <= args.rate_mbit <= 10_000.0):
+        p.error("--rate-mbit needs --link and a value within 0.05 … 10000")
     if args.link:
         from services.tools.bench import passivity_link
 
@@ -208,7 +218,12 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         print(f"the real services over a bad link, {len(delays) * 2} runs:")
         doc, runs = passivity_link.run_matrix(
-            delays, args.jitter, args.loss, transport=args.transport, approach_zone_m=zone
+            delays,
+            args.jitter,
+            args.loss,
+            transport=args.transport,
+            approach_zone_m=zone,
+            rate_mbit=args.rate_mbit,
         )
         path = Path(args.json or "artifacts/bench_passivity_link.json")
         drawn = passivity_link.plots(runs, Path(args.plots)) if args.plots else []

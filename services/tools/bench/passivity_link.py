@@ -348,15 +348,18 @@ def run_over_link(
     rate_hz: float = 100.0,
     transport: str = "tcp",
     approach_zone_m: float = APPROACH_ZONE_M,
+    rate_mbit: float = 0.0,
 ) -> dict[str, Any]:
-    """One press–hold–release over a fresh link: the robot side's metrics, the operator's
+    """One press–hold–release over a fresh link (`rate_mbit` > 0: its bandwidth each way,
+    a link the streams can saturate): the robot side's metrics, the operator's
     own figures (keys `op_…`), the link's emulator, the last events and the force series
     ((s since the operator started, world f_z)). Raises RuntimeError when the link cannot
     be made (`unavailable()` says why beforehand) or a side fails."""
     endpoint = f"{transport}/{ROBOT_IP}:{free_port()}"
     flag = "1" if passivity else "0"
     wd = str(watchdog_ms(rtt_ms))
-    with netem_link(LinkShape(round_trip_ms=rtt_ms, jitter=jitter, loss=loss)) as link:
+    shape = LinkShape(round_trip_ms=rtt_ms, jitter=jitter, loss=loss, rate_mbit=rate_mbit)
+    with netem_link(shape) as link:
         with subprocess.Popen(
             in_ns(
                 link.robot,
@@ -412,7 +415,7 @@ def run_over_link(
     m |= {f"op_{k}": v for k, v in op_figures.items()}
     m |= {"rtt_ms": rtt_ms, "passivity": passivity, "rate_hz": rate_hz}
     m |= {"load1": os.getloadavg()[0], "emulator": emulator, "transport": transport}
-    m["approach_zone_m"] = approach_zone_m
+    m["approach_zone_m"], m["rate_mbit"] = approach_zone_m, rate_mbit
     m["events"] = out["events"]
     m["force"] = out["force"]
     return m
@@ -450,6 +453,7 @@ def run_matrix(
     say: Callable[[str], None] = print,
     transport: str = "tcp",
     approach_zone_m: float = APPROACH_ZONE_M,
+    rate_mbit: float = 0.0,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
     """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
     simulated bench's keys, the runs)."""
@@ -461,6 +465,7 @@ def run_matrix(
             "link": "real services over network namespaces",
             "transport": transport,
             "approach_zone_m": approach_zone_m,
+            "rate_mbit": rate_mbit,
         },
     }
     runs: dict[tuple[int, bool], dict[str, Any]] = {}
@@ -468,7 +473,13 @@ def run_matrix(
         for on in (False, True):
             say(f"  {delay} ms, TDPA {'on' if on else 'off'} …")
             m = run_over_link(
-                float(delay), on, jitter, loss, transport=transport, approach_zone_m=approach_zone_m
+                float(delay),
+                on,
+                jitter,
+                loss,
+                transport=transport,
+                approach_zone_m=approach_zone_m,
+                rate_mbit=rate_mbit,
             )
             runs[(delay, on)] = m
             doc["settings"]["emulator"] = m["emulator"]

@@ -100,30 +100,58 @@ def test_link_run_writes_its_own_document_and_plots(
     assert "RTT ms" in capsys.readouterr().out
 
 
-def test_the_approach_zone_reaches_every_run_and_the_document(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Any
-) -> None:
+def _runs_told(monkeypatch: pytest.MonkeyPatch, keyword: str) -> list[object]:
+    """What each (faked) run over the link is given as `keyword`, in order."""
     monkeypatch.setattr(passivity_link, "unavailable", lambda: None)
-    zones: list[object] = []
+    told: list[object] = []
 
     def run(rtt_ms: float, on: bool, *a: object, **kw: object) -> dict[str, Any]:
-        zones.append(kw.get("approach_zone_m"))
+        told.append(kw.get(keyword))
         return fake_run(rtt_ms, on)
 
     monkeypatch.setattr(passivity_link, "run_over_link", run)
+    return told
+
+
+@pytest.mark.parametrize(
+    ("flag", "keyword", "value", "default"),
+    [
+        ("--approach-zone", "approach_zone_m", 0.0, passivity_link.APPROACH_ZONE_M),
+        ("--rate-mbit", "rate_mbit", 0.5, 0.0),
+    ],
+)
+def test_a_link_setting_reaches_every_run_and_the_document(
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Any,
+    flag: str,
+    keyword: str,
+    value: float,
+    default: float,
+) -> None:
+    told = _runs_told(monkeypatch, keyword)
     out = tmp_path / "link.json"
     base = ["--link", "--delays-ms", "50", "--json", str(out), "--plots", ""]
     assert passivity.main(base) == 0
-    assert zones == [passivity_link.APPROACH_ZONE_M] * 2
-    assert json.loads(out.read_text())["settings"]["approach_zone_m"] == 0.02
-    zones.clear()
-    assert passivity.main([*base, "--approach-zone", "0"]) == 0
-    assert zones == [0.0, 0.0]
-    assert json.loads(out.read_text())["settings"]["approach_zone_m"] == 0.0
+    assert told == [default, default]
+    assert json.loads(out.read_text())["settings"][keyword] == default
+    told.clear()
+    assert passivity.main([*base, flag, str(value)]) == 0
+    assert told == [value, value]
+    assert json.loads(out.read_text())["settings"][keyword] == value
 
 
 @pytest.mark.parametrize("argv", [["--approach-zone", "0.02"], ["--link", "--approach-zone", "-1"]])
 def test_a_bad_approach_zone_is_refused(argv: list[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        passivity.main(argv)
+    assert e.value.code == 2
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["--rate-mbit", "1"], ["--link", "--rate-mbit", "0.01"], ["--link", "--rate-mbit", "-2"]],
+)
+def test_a_bad_link_rate_is_refused(argv: list[str]) -> None:
     with pytest.raises(SystemExit) as e:
         passivity.main(argv)
     assert e.value.code == 2
