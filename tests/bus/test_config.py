@@ -181,6 +181,9 @@ def test_lease_of_2000_ms_is_the_limit() -> None:
         ({"ns": "cell2/"}, "zenoh.ns"),
         ({"ns": "cell*"}, "zenoh.ns"),
         ({"zenoh_config": "/nonexistent/router.json5"}, "zenoh.zenoh_config"),
+        ({"loopback": ("",)}, "zenoh.loopback"),
+        ({"loopback": ("x" * 40,)}, "zenoh.loopback"),
+        ({"loopback": ("lo/0",)}, "zenoh.loopback"),
     ],
 )
 def test_node_config_refuses_bad_values(kwargs: dict[str, object], key: str) -> None:
