@@ -12,7 +12,7 @@ import pytest
 
 from services.bus import keys
 from services.bus.errors import TelerobotError
-from services.bus.messages import RobotState
+from services.bus.messages import Event, RobotState
 from services.bus.node import Node, Subscription
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
@@ -38,6 +38,19 @@ class Cell:
     master: MasterService
     state: Subscription[RobotState]
     op: Node
+    events: list[Event]
+
+    def story(self) -> str:
+        """The last events and the master's and the decision's status, for a failure."""
+        told = "; ".join(f"{e.source}/{e.kind}: {e.message[:80]}" for e in list(self.events)[-12:])
+        m = self.master._status()
+        seen = {k: m.get(k) for k in ("device_ok", "engaged", "engage", "ticks", "reopens")}
+        try:
+            d = self.op.call("decision", "status", {}, timeout_s=5.0)
+            said = {k: d.get(k) for k in ("mode", "lease", "masters", "streams")}
+        except TelerobotError as e:
+            said = {"error": str(e)}
+        return f"events: {told}; master: {seen}; decision: {said}"
 
     def tool_p(self) -> np.ndarray:
         latest = self.state.latest
@@ -65,12 +78,14 @@ def cell(net: Net) -> Iterator[Cell]:
             services.append(DecisionService(net.node("decision"), decision))
             op = net.node("operator")
             state = op.subscribe(keys.STATE)
+            events: list[Event] = []
+            op.subscribe(keys.EVENTS, events.append)
             op.call("decision", "connect", {}, timeout_s=10.0)
             op.call("decision", "initialize", {"wait": True}, timeout_s=20.0)
             assert state.wait_for(lambda s: s.status == "ready", 20.0) is not None
             master = haply_master(net, fake)
             services.append(master)
-            yield Cell(fake, master, state, op)
+            yield Cell(fake, master, state, op, events)
         finally:
             for svc in reversed(services):
                 svc.close()  # type: ignore[attr-defined]
@@ -89,8 +104,12 @@ def settled(cell: Cell, target: np.ndarray) -> Waited:
 
 
 def test_the_tool_follows_a_and_holds_through_a_dropped_connection(cell: Cell) -> None:
+    # The master engages on a press it saw happen: a dead-man already held when its first
+    # frames arrive must be released first (teleop.py). So press once it has read frames
+    # with `a` released; on a loaded machine its WebSocket can come up after the fixture.
+    assert wait_until(lambda: cell.fake.messages >= 3, 10.0), "the master reads no frames"
     cell.fake.set_pose(a=True)
-    assert wait_until(cell.following, 10.0), "the decision server never followed the haply"
+    assert wait_until(cell.following, 10.0), f"the decision never followed: {cell.story()}"
     p0 = cell.tool_p()
 
     # 4 cm to the operator's right at 4 cm/s: 2 cm along the world's +y at the tool.
