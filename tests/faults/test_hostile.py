@@ -29,7 +29,7 @@ from tests.conftest import wait_until
 from tests.faults.observe import Observer, record
 from tests.faults.procs import LOOPBACK_LISTEN, Cell
 
-pytestmark = [pytest.mark.faults, pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.faults, pytest.mark.alone, pytest.mark.timeout(300)]
 
 START_TIMEOUT_S = 60.0
 CALL_TIMEOUT_S = 5.0

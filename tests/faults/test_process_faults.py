@@ -38,7 +38,7 @@ from tests.faults.observe import (
 from tests.faults.procs import Proc
 from tests.faults.rogue import MARK
 
-pytestmark = [pytest.mark.faults, pytest.mark.timeout(180)]
+pytestmark = [pytest.mark.faults, pytest.mark.alone, pytest.mark.timeout(180)]
 
 PUMA = PumaConfig()
 MAX_TOOL_SPEED_M_S = PUMA.max_tool_speed_m_s

@@ -34,7 +34,7 @@ from services.control.puma.sim_arm import SimArm
 from services.world.workcell.scene import TABLE
 from tests.conftest import Net, wait_until
 
-pytestmark = pytest.mark.system
+pytestmark = [pytest.mark.system, pytest.mark.alone]
 
 HOME_P = np.array([0.55, 0.0, 0.65])
 TOP = TABLE.top_z

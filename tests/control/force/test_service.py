@@ -16,7 +16,7 @@ from services.control.puma.kinematics import DEFAULT_eMt, Puma560, qn
 from tests.conftest import Net, wait_until
 
 # A 1 kHz stream over Zenoh, checked for gaps: run alone in `make pytest`'s second pass.
-pytestmark = pytest.mark.system
+pytestmark = [pytest.mark.system, pytest.mark.alone]
 
 
 def _publish_pose(node) -> None:  # type: ignore[no-untyped-def]

@@ -25,7 +25,7 @@ from services.control.puma.service import PumaService
 from tests.conftest import Net, Waited, wait_until
 from tests.control.master.test_haply_service import ALIGN, HOME, SCALE_T, haply_master
 
-pytestmark = pytest.mark.system
+pytestmark = [pytest.mark.system, pytest.mark.alone]
 
 
 TOL_M = 1e-3
