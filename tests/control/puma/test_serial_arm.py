@@ -131,7 +131,10 @@ def fake() -> Iterator[FakeController]:
 
 @pytest.fixture
 def arm(fake: FakeController) -> Iterator[SerialArm]:
-    a = SerialArm(fake.url, cycle_ms=4.0, timeout_s=0.1)
+    # 0.3 s per reply: the faults below are found in that much more, and on two loaded
+    # cores the fake's thread can stall past 0.1 s between CAL and READY (an `error`
+    # before `ready`, once in a full run).
+    a = SerialArm(fake.url, cycle_ms=4.0, timeout_s=0.3)
     try:
         yield a
     finally:
@@ -141,7 +144,8 @@ def arm(fake: FakeController) -> Iterator[SerialArm]:
 def make_ready(arm: SerialArm) -> np.ndarray:
     arm.connect()
     arm.initialize()
-    assert wait_until(lambda: arm.status == "ready", what="ready")
+    ready = wait_until(lambda: arm.status == "ready", what="ready")
+    assert ready, (ready, arm.status, arm._last_error)
     return arm.read_joints()
 
 
