@@ -69,8 +69,10 @@ def test_mirror_over_the_bus(net: Any) -> None:
 
     state_pub.put(ready_state(1, (0.5, 0.0, 0.6)))
     assert mirror.state.wait_for(lambda s: s.seq == 1, 5.0) is not None
-    cmd_pub.put(_cmd(10, 7, (0.0, 0.1, 0.0)))
-    assert wait_until(lambda: mirror.target() is not None)
+    # robot/puma/cmd was subscribed to just now: until the publisher's session has heard of
+    # it, a put reaches nobody (the same command again is harmless: latest-wins by seq).
+    cmd = _cmd(10, 7, (0.0, 0.1, 0.0))
+    assert wait_until(lambda: cmd_pub.put(cmd) or mirror.target() is not None, poll_s=0.05)
     target = mirror.target()
     assert target is not None
     p, R, active = target
