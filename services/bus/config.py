@@ -59,7 +59,8 @@ class NodeConfig:
     latest-wins) keeps blocking on links over these and drops on congestion on every other
     link this node sends on (`control_qos_rules`): a stalled TCP link to a remote operator
     would otherwise block the publisher's `put`, and with it the robot host's own readers
-    (measured: 160–480 ms, docs/deploy.md "A stalled link never blinds the robot host").
+    (measured over a 700 ms link: 116–554 ms, 2–3 times a run; docs/deploy.md "A stalled
+    link never blinds the robot host").
     Empty: no overwrite, the control class blocks everywhere.
     """
 
@@ -139,7 +140,10 @@ def control_qos_rules(loopback: Sequence[str]) -> list[dict[str, Any]]:
 
     Zenoh applies the rules in order to each message a link sends: the first turns every
     REAL_TIME blocking put into a dropping one, the second turns it back on a link whose
-    every interface is a loopback one. deploy/router/*.json5 carry the same two rules.
+    every interface is a loopback one. The second cannot tell a put the first changed from
+    one published REAL_TIME and dropping: on loopback that would block too (we publish
+    none; REAL_TIME is the control class only, `streams._QOS`). deploy/router/*.json5 carry
+    the same two rules.
     """
     base = {"messages": ["put"], "flows": ["egress"]}
     return [
