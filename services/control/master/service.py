@@ -41,6 +41,7 @@ log = logging.getLogger("telerobot.master")
 
 STATE_RATE_HZ = 50.0
 FORCE_STALE_S = 0.1
+"""No wrist force *received* for this long (s): nothing is displayed (the stream stopped)."""
 REOPEN_FIRST_S = 0.25
 REOPEN_MAX_S = 2.0
 """A lost device is reopened after 0.25 s, then 0.5, 1, 2, 2 … s until it answers."""
@@ -209,8 +210,12 @@ class MasterService:
         f_read, s_read = self._force.read(), self._robot.read()
         sample = f_read[0] if f_read is not None else None
         state = s_read[0] if s_read is not None else None
+        # Stale by *arrival* on this host's monotonic clock, not by the sample's `t_ns`: that
+        # is the robot host's clock, and over a link of 200 ms round trip every sample is
+        # 100 ms old on arrival (the display stayed zero: no force feedback at all beyond
+        # ~150 ms). The link's delay is TDPA's business; a stream that stops is this one's.
         stale = (
-            sample is None or state is None or time.time_ns() - sample.t_ns > FORCE_STALE_S * 1e9
+            f_read is None or state is None or time.monotonic_ns() - f_read[1] > FORCE_STALE_S * 1e9
         )
         measured = (
             None
