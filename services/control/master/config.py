@@ -35,6 +35,8 @@ _MAX_NAME = 128
 HAPLY_BUTTONS = len(BUTTONS)
 """The VerseGrip's buttons a, b, c are bits 0, 1, 2."""
 MAX_RAMP_S = 10.0
+MIN_STALE_MS, MAX_STALE_MS = 10.0, 5000.0
+"""How long a wrist force may be held without a new one: from a few samples to a lease."""
 _POSITIVE_KEYS = (
     "max_force_n",
     "haply_max_force_n",
@@ -99,6 +101,10 @@ class MasterConfig:
         than assumed is accelerated more by a force step than predicted).
     force_ramp_s: the displayed wrench ramps from zero to full over this time after each
         engagement (0 = at once); it is zero whenever the master is not engaged.
+    force_stale_ms: no wrist force *received* for this long and nothing is displayed (the
+        last one is held until then: a lost packet or a TCP retransmission is bridged, a
+        stream that stopped is not). Counted on this host's clock, never from the sample's
+        robot-host stamp. 100 ms suits a LAN; over a lossy TCP link of long delay, longer.
     haply_url: `haply`: the Inverse Service's WebSocket, `ws://HOST:PORT`.
     haply_max_force_n: `haply`: the largest force ever sent to the Inverse3 (N).
     """
@@ -126,6 +132,7 @@ class MasterConfig:
     baudrate: int = 115200
     max_joint_torque_nm: float = 1.0
     force_ramp_s: float = 0.5
+    force_stale_ms: float = 100.0
     haply_url: str = DEFAULT_URL
     haply_max_force_n: float = 3.0
     passivity: bool = False
@@ -178,6 +185,8 @@ class MasterConfig:
             )
         if not 0.0 <= _number("force_ramp_s", self.force_ramp_s) <= MAX_RAMP_S:
             raise _err("force_ramp_s", f"must be within 0 … {MAX_RAMP_S:g} s")
+        if not MIN_STALE_MS <= _number("force_stale_ms", self.force_stale_ms) <= MAX_STALE_MS:
+            raise _err("force_stale_ms", f"must be within {MIN_STALE_MS:g} … {MAX_STALE_MS:g} ms")
         self._check_url()
         if self.engage_on_start is None:
             object.__setattr__(

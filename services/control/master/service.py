@@ -40,8 +40,6 @@ from services.control.master.teleop import Teleop
 log = logging.getLogger("telerobot.master")
 
 STATE_RATE_HZ = 50.0
-FORCE_STALE_S = 0.1
-"""No wrist force *received* for this long (s): nothing is displayed (the stream stopped)."""
 REOPEN_FIRST_S = 0.25
 REOPEN_MAX_S = 2.0
 """A lost device is reopened after 0.25 s, then 0.5, 1, 2, 2 … s until it answers."""
@@ -215,7 +213,9 @@ class MasterService:
         # 100 ms old on arrival (the display stayed zero: no force feedback at all beyond
         # ~150 ms). The link's delay is TDPA's business; a stream that stops is this one's.
         stale = (
-            f_read is None or state is None or time.monotonic_ns() - f_read[1] > FORCE_STALE_S * 1e9
+            f_read is None
+            or state is None
+            or time.monotonic_ns() - f_read[1] > self.config.force_stale_ms * 1e6
         )
         measured = (
             None

@@ -253,7 +253,8 @@ def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float |
     """The bench's measures of one run.
 
     peak_force_n: largest contact force; steady_force_n / oscillation_rms_n: mean and RMS
-    about the mean of the contact force over the hold after `settle_s`; creep_n_s: its
+    about the mean of the contact force over the hold after `settle_s`; felt_force_n: the
+    mean force displayed on the hand over the same window; creep_n_s: its
     least-squares slope over that window (`trend_n_s`); penetration_mm: the
     largest; energy_generated_j: how far the channel's observed output ever exceeded its
     input (> 0 means energy was created); stable: no divergence and oscillation RMS below
@@ -264,6 +265,7 @@ def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float |
     hi = spec.approach_s + spec.hold_s
     points = [(t, f) for t, f in zip(res.t, res.f_contact, strict=True) if lo <= t < hi]
     window = [f for _, f in points]
+    felt = [f for t, f in zip(res.t, res.f_display, strict=True) if lo <= t < hi]
     steady = sum(window) / len(window) if window else 0.0
     rms = math.sqrt(sum((f - steady) ** 2 for f in window) / len(window)) if window else 0.0
     generated = 0.0
@@ -275,6 +277,7 @@ def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float |
     return {
         "peak_force_n": max(res.f_contact, default=0.0),
         "steady_force_n": steady,
+        "felt_force_n": sum(felt) / len(felt) if felt else 0.0,
         "oscillation_rms_n": rms,
         "creep_n_s": trend_n_s(points),
         "penetration_mm": 1e3 * max(res.penetration, default=0.0),

@@ -2,7 +2,8 @@
 
 The simulated operator presses the tool onto a stiff surface, holds and releases
 (`services.control.passivity.loop`), at round-trip delays 0, 50, 200 and 700 ms with 10 % jitter and
-1 % loss by default. Per run: peak and steady contact force, oscillation (RMS of the force
+1 % loss by default. Per run: peak and steady contact force, the force felt (the mean
+displayed on the hand over the same window as the steady force), oscillation (RMS of the force
 about its mean after settling), creep (the force's least-squares slope over the same window,
 N/s: a climb the RMS also counts), penetration, the energy balance (the most the channel's
 observed output ever exceeded its input) and what each controller dissipated. One table,
@@ -32,6 +33,7 @@ DEFAULT_DELAYS_MS = (0, 50, 200, 700)
 MEASURES = (
     "peak_force_n",
     "steady_force_n",
+    "felt_force_n",
     "oscillation_rms_n",
     "creep_n_s",
     "penetration_mm",
@@ -91,7 +93,7 @@ def _num(x: float | None, width: int, digits: int) -> str:
 def table(doc: dict[str, Any]) -> str:
     """The results as a fixed-width table, one row per delay and TDPA setting."""
     head = (
-        f"{'RTT ms':>7} {'TDPA':>4} {'peak N':>8} {'steady N':>9} {'osc RMS N':>10} "
+        f"{'RTT ms':>7} {'TDPA':>4} {'peak N':>8} {'steady N':>9} {'felt N':>7} {'osc RMS N':>10} "
         f"{'creep N/s':>9} {'pen mm':>7} {'gen. J':>8} {'stable':>6}"
     )
     lines = [head, "-" * len(head)]
@@ -101,6 +103,7 @@ def table(doc: dict[str, Any]) -> str:
             lines.append(
                 f"{delay:>7} {on:>4} {_num(doc[k + 'peak_force_n'], 8, 1)} "
                 f"{_num(doc[k + 'steady_force_n'], 9, 2)} "
+                f"{_num(doc.get(k + 'felt_force_n'), 7, 2)} "
                 f"{_num(doc[k + 'oscillation_rms_n'], 10, 2)} "
                 f"{_num(doc.get(k + 'creep_n_s'), 9, 2)} "
                 f"{_num(doc[k + 'penetration_mm'], 7, 1)} "

@@ -39,7 +39,7 @@ import numpy as np
 
 from services.bus import keys
 from services.bus.config import NodeConfig
-from services.bus.messages import Event, ForceSample, PassivityState, RobotState
+from services.bus.messages import Event, ForceSample, MasterFeedback, PassivityState, RobotState
 from services.bus.node import Node
 from services.bus.peers import Clients, Peers
 from services.control.decision.config import DecisionConfig
@@ -83,7 +83,9 @@ def watchdog_ms(rtt_ms: float) -> float:
     """The decision's watchdogs over a lossy link. A lost TCP segment stalls the stream for
     a retransmission timeout (Linux: the smoothed round trip + 4 × its variation, at least
     200 ms) plus the one-way delay: a watchdog shorter than that holds the arm at every
-    loss (at 700 ms with a 1 s watchdog, measured: the first loss lost the master)."""
+    loss (at 700 ms with a 1 s watchdog, measured: the first loss lost the master). The
+    master holds the last wrist force as long (`[master] force_stale_ms`): at 100 ms every
+    such stall dropped the display to zero and back, the hand lunging in at each."""
     return 1000.0 + 2.0 * rtt_ms
 
 
@@ -106,6 +108,7 @@ class Trace:
     states: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, tool z)
     slave: list[PassivityState] = field(default_factory=list)
     master: list[PassivityState] = field(default_factory=list)
+    felt: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, shown f_z up)
     puma_cmds: int = 0
     events: list[str] = field(default_factory=list)
     master_rx_s: float = 0.0
@@ -127,6 +130,11 @@ class Trace:
             (self.slave if m.side == "slave" else self.master).append(m)
             if m.side == "master":
                 self.master_rx_s = time.monotonic()
+
+    def on_feedback(self, m: MasterFeedback) -> None:
+        """The force the master displayed on the hand (master frame: its z is the press)."""
+        with self.lock:
+            self.felt.append((m.t_ns, float(m.f[2])))
 
     def master_quiet_s(self) -> float:
         """Seconds since the master's last passivity figures arrived (inf: none yet)."""
@@ -184,6 +192,7 @@ def build_robot(
     console.subscribe(keys.FORCE, trace.on_force)
     console.subscribe(keys.PASSIVITY_SLAVE, trace.on_passivity)
     console.subscribe(keys.PASSIVITY_MASTER, trace.on_passivity)
+    console.subscribe(keys.MASTER_FEEDBACK, trace.on_feedback)
     console.subscribe(keys.PUMA_CMD, trace.on_cmd)
     console.subscribe(keys.EVENTS, trace.on_event)
     state = console.latest(keys.STATE)
@@ -207,15 +216,18 @@ def build_robot(
 def metrics(
     trace: Trace, t_start_ns: int, hold_from_s: float, hold_to_s: float
 ) -> dict[str, float]:
-    """Peak |f| over the run; steady f, oscillation RMS and creep (N/s, `trend_n_s`) over
-    [hold_from, hold_to) after the master started; tool z range there (mm above the table
-    top); penetration (mm below the tool's height at the touch, over the whole run); final
+    """Peak |f| over the run; steady f, the mean force felt (shown on the hand,
+    `master/feedback`), oscillation RMS and creep (N/s, `trend_n_s`) over [hold_from,
+    hold_to) after the master started; tool z range there (mm above the table top);
+    penetration (mm below the tool's height at the touch, over the whole run); final
     energies of both ports."""
     t0 = t_start_ns
     lo_ns, hi_ns = t0 + int(hold_from_s * 1e9), t0 + int(hold_to_s * 1e9)
     points = [((t - t0) / 1e9, f) for t, f in trace.force_between(lo_ns, hi_ns)]
     window = [f for _, f in points]
     steady = sum(window) / len(window) if window else 0.0
+    with trace.lock:
+        felt = [f for t, f in trace.felt if lo_ns <= t < hi_ns]
     rms = math.sqrt(sum((f - steady) ** 2 for f in window) / len(window)) if window else 0.0
     zs = trace.z_between(lo_ns, hi_ns)
     touch = trace.touch()
@@ -228,6 +240,7 @@ def metrics(
     out = {
         "peak_n": peak,
         "steady_n": steady,
+        "felt_n": sum(felt) / len(felt) if felt else 0.0,
         "rms_n": rms,
         "creep_n_s": trend_n_s(points),
         "z_min_mm": 1e3 * (min(zs, default=math.nan) - top),
@@ -306,7 +319,7 @@ def robot(endpoint: str, passivity: bool, watchdog: float, zone_m: float) -> Non
         peers.close()
 
 
-def operator(endpoint: str, passivity: bool, rate_hz: float) -> None:
+def operator(endpoint: str, passivity: bool, rate_hz: float, stale_ms: float) -> None:
     udp = endpoint.startswith("udp/")  # a client of the robot host's router, see RouterSide
     cfg = NodeConfig(mode="client" if udp else "peer", connect=(endpoint,), lease_ms=LEASE_MS)
     node = Node("master", cfg, instance="op")
@@ -314,7 +327,11 @@ def operator(endpoint: str, passivity: bool, rate_hz: float) -> None:
         if not node.alive.wait("decision", 30.0):
             raise SystemExit(f"no decision server over the link (alive: {node.alive.names()})")
         mcfg = MasterConfig(
-            master_id="op", device="haptic_sim", passivity=passivity, rate_hz=rate_hz
+            master_id="op",
+            device="haptic_sim",
+            passivity=passivity,
+            rate_hz=rate_hz,
+            force_stale_ms=stale_ms,
         )
         device = SimHapticMaster(
             depth_m=DEPTH_M, approach_s=APPROACH_S, hold_s=HOLD_S, release_s=RELEASE_S
@@ -392,6 +409,7 @@ def run_over_link(
                         endpoint,
                         flag,
                         str(rate_hz),
+                        wd,
                     ),
                     capture_output=True,
                     text=True,
@@ -436,6 +454,7 @@ def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
     return {
         "peak_force_n": float(m["peak_n"]),
         "steady_force_n": steady,
+        "felt_force_n": float(m.get("felt_n", nan)),
         "oscillation_rms_n": rms,
         "creep_n_s": float(m.get("creep_n_s", nan)),
         "penetration_mm": float(m["penetration_mm"]),
@@ -534,7 +553,7 @@ def main(argv: list[str]) -> None:
     if role == "robot":
         robot(endpoint, passivity, float(argv[3]), float(argv[4]))
     elif role == "operator":
-        operator(endpoint, passivity, float(argv[3]))
+        operator(endpoint, passivity, float(argv[3]), float(argv[4]))
     else:
         raise SystemExit(f"unknown role {role!r}")
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from services.tools.bench.passivity import MEASURES, main, run, table
 
 
@@ -16,6 +18,11 @@ def test_run_names_every_measure_and_shows_the_instability_it_prevents() -> None
                 assert f"passivity_{delay}_{on}_{m}" in doc
     assert doc["passivity_200_off_stable"] is False
     assert doc["passivity_200_on_peak_force_n"] < doc["passivity_200_off_peak_force_n"] / 10
+    # The transparency criterion, in the simulation: at 0 ms the operator feels
+    # with TDPA what it feels without, within 5 %, and what it feels is the tool's force.
+    felt_on, felt_off = doc["passivity_0_on_felt_force_n"], doc["passivity_0_off_felt_force_n"]
+    assert felt_off > 5.0 and abs(felt_on - felt_off) < 0.05 * felt_off
+    assert felt_on == pytest.approx(doc["passivity_0_on_steady_force_n"], rel=0.05)
     assert set(results) == {(0, False), (0, True), (200, False), (200, True)}
     rows = table(doc).splitlines()
     assert len(rows) == 2 + 4 and "NO" in rows[4]  # 200 ms, off

@@ -10,6 +10,7 @@ from typing import Any
 
 import pytest
 
+from services.bus.messages import MasterFeedback
 from services.tools.bench import passivity, passivity_link
 
 
@@ -17,6 +18,7 @@ def fake_run(rtt_ms: float, on: bool, *_: object, **__: object) -> dict[str, Any
     m: dict[str, Any] = {
         "peak_n": 90.0 + rtt_ms / 100,
         "steady_n": 8.0,
+        "felt_n": 6.5 if on else 7.5,
         "rms_n": 0.4 if on else 4.0,
         "creep_n_s": 0.5 if on else 3.0,
         "penetration_mm": 2.5,
@@ -62,6 +64,7 @@ def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.Monkey
                 assert f"passivity_{delay}_{on}_{name}" in doc
     assert doc["passivity_700_on_peak_force_n"] == pytest.approx(97.0)
     assert doc["passivity_700_off_creep_n_s"] == pytest.approx(3.0)
+    assert doc["passivity_700_on_felt_force_n"] == pytest.approx(6.5)
     assert doc["passivity_700_off_energy_generated_j"] is None  # not observed: null, not NaN
     assert doc["settings"]["emulator"] == "delayline"
     assert doc["settings"]["transport"] == "udp"
@@ -155,3 +158,25 @@ def test_a_bad_link_rate_is_refused(argv: list[str]) -> None:
     with pytest.raises(SystemExit) as e:
         passivity.main(argv)
     assert e.value.code == 2
+
+
+def test_the_force_felt_is_the_mean_shown_on_the_hand_over_the_hold() -> None:
+    """`master/feedback` as the console receives it: only the samples inside the window
+    count, and the master frame's z (the press) is what the hand feels."""
+    trace = passivity_link.Trace()
+    t0 = 10**12
+    for k, fz in enumerate([30.0, 4.0, 6.0, 8.0, 50.0]):  # one before, three in, one after
+        trace.on_feedback(
+            MasterFeedback(
+                seq=k + 1,
+                t_ns=t0 + int((1.0 + k) * 1e9),
+                master="op",
+                f=(0.5, 0.0, fz),
+                c=(0.0, 0.0, 0.0),
+                saturated=False,
+                stale=False,
+            )
+        )
+    m = passivity_link.metrics(trace, t0, 2.0, 5.0)
+    assert m["felt_n"] == pytest.approx(6.0)
+    assert passivity_link.metrics(passivity_link.Trace(), t0, 2.0, 5.0)["felt_n"] == 0.0
