@@ -25,8 +25,16 @@ from services.control.passivity.wire import passivity_state
 
 RESERVE_J = 1e-4
 """The most the master port may ever owe the channel (J): see docs/passivity.md."""
-HAND_RATE_N_S = 20.0
-"""How fast the limiter assumes the hand's own force may change (N/s)."""
+HAND_RATE_N_S = 0.0
+"""How fast the limiter assumes the hand's own force may change within a tick (N/s). 0: the
+hand holds its force over the next tick; a hand that lets go within it shows as one tick's
+overdraw, observed and then paid back before the display may give again (classic TDPA).
+At 20 N/s, as before 2026-11-26, the bound charged a still hand ṙ·h³/m a tick: the display
+then held only while the hand sank at ṙ·h²/m (4–9 mm/s at 100 Hz), and the operator, never
+feeling the contact, pressed the tool on (docs/passivity.md)."""
+RISE = 0.3
+"""While the limiter holds the force back, it rises by this fraction of the gap to the bound
+a tick (`MasterPassivity.rise`): at once (1), the bound's own deadbeat made the display buzz."""
 HORIZON_TICKS = 50
 """The limiter predicts over the longest of the last this many tick intervals (a loop late
 once may be late again)."""
@@ -52,6 +60,7 @@ class MasterTdpa:
             mass_kg=device_mass_kg,
             reserve_j=RESERVE_J,
             hand_rate_n_s=HAND_RATE_N_S,
+            rise=RISE,
         )
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)

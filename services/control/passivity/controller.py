@@ -60,6 +60,10 @@ class MasterPassivity:
     the hand position now (m) and the time since the previous step (s); returns the force to
     display until the next step. `remote` holds the slave's input energy as received;
     `observer.e_in` is what the master sends.
+
+    With `limit`, the energy-bounding force limiter (`_bound`) acts last: `mass_kg`,
+    `reserve_j`, `hand_rate_n_s` and `horizon_s` shape its bound; `rise` < 1 lets a held-back
+    force approach that bound by that fraction of the gap a tick instead of at once.
     """
 
     enabled: bool = True
@@ -71,6 +75,7 @@ class MasterPassivity:
     bound_current: bool = True
     damp: bool = True
     horizon_s: float = 0.0
+    rise: float = 1.0
     observer: EnergyObserver = field(default_factory=EnergyObserver)
     remote: RemoteEnergy = field(default_factory=RemoteEnergy)
     telemetry: PortTelemetry = field(default_factory=PortTelemetry)
@@ -123,6 +128,16 @@ class MasterPassivity:
             # The larger root of a·k² + b·k − r = 0 (a = 0: no mass modelled, linear).
             root = (-b + math.sqrt(max(b * b + 4.0 * a * r, 0.0))) / (2.0 * a) if a > 0.0 else r / b
             k = min(k, max(root, 0.0))
+        if k < 1.0 and self.rise < 1.0 and len(held) == len(f):
+            # While the bound holds the force back, it rises towards the bound by `rise` of
+            # the gap a tick, never at once: the bound is the force that stops an inbound
+            # hand within one tick, and stopping it that hard overshoots (the device moves
+            # back out a few µm, the empty reservoir then cuts the force, the hand falls in
+            # again: a buzz at a third of the loop rate, measured over the link). Any k in
+            # [0, bound] keeps the bound's guarantee (W(k) is convex with W(0) = 0).
+            k_held = min(max(dot(held, f) / ff, 0.0), 1.0)
+            if k > k_held:
+                k = k_held + self.rise * (k - k_held)
         if k >= 1.0:
             return f
         self.limited_steps += 1

@@ -77,6 +77,31 @@ def test_the_reserve_is_spent_once_and_comes_back_only_with_slave_energy() -> No
     assert pc.step([10.0], [0.006], 0.004) == pytest.approx([0.5])
 
 
+def test_a_held_back_force_rises_towards_the_bound_by_a_fraction_of_the_gap() -> None:
+    """rise 0.3; the hand pushing in as in the test above (tick 2's bound 5 N): from 0 N
+    held, the force shown is 0 + 0.3 × (5 − 0) = 1.5 N. Tick 3, the hand still moving in at
+    0.1 m/s against 1.5 N: w = −0.1 − 1.5/0.5·0.01 = −0.13, W(k) = k·10·(−0.13)·0.01 +
+    k²·0.02 → bound k = 0.65 (6.5 N), shown 1.5 + 0.3 × (6.5 − 1.5) = 3 N."""
+    dt = 0.01
+    pc = MasterPassivity(
+        limit=True, damp=False, mass_kg=0.5, reserve_j=0.0, hand_rate_n_s=0.0, rise=0.3
+    )
+    assert pc.step([10.0], [0.0], dt) == [0.0]
+    assert pc.step([10.0], [-0.001], dt) == pytest.approx([1.5])
+    assert pc.step([10.0], [-0.002], dt) == pytest.approx([3.0])
+    assert pc.limited_steps == 3
+
+
+def test_an_unbounded_force_passes_at_once_whatever_rise() -> None:
+    """Energy to spare (the slave sent 1 J): 8 N asked on a still hand is shown at once,
+    so `rise` costs nothing while the loop is passive (a fast link, free space)."""
+    pc = MasterPassivity(limit=True, mass_kg=0.5, reserve_j=1e-4, hand_rate_n_s=0.0, rise=0.3)
+    pc.remote.update(0, 1.0)
+    assert pc.step([0.0], [0.0], 0.01) == [0.0]
+    assert pc.step([8.0], [0.0], 0.01) == [8.0]
+    assert pc.limited_steps == 0
+
+
 @settings(max_examples=80, deadline=None)
 @given(
     asked=st.lists(st.floats(-40.0, 40.0), min_size=30, max_size=120),
@@ -84,16 +109,23 @@ def test_the_reserve_is_spent_once_and_comes_back_only_with_slave_energy() -> No
     credit=st.lists(st.floats(0.0, 2e-3), min_size=30, max_size=120),
     dofs=st.sampled_from([1, 3]),
     reserve=st.sampled_from([0.0, 1e-4]),
+    rise=st.sampled_from([1.0, 0.3, 0.05]),
 )
 def test_the_master_port_never_gives_more_than_it_received(
-    asked: list[float], hand: list[float], credit: list[float], dofs: int, reserve: float
+    asked: list[float],
+    hand: list[float],
+    credit: list[float],
+    dofs: int,
+    reserve: float,
+    rise: float,
 ) -> None:
     """A device of 0.5 kg, the hand's force changing by at most `rate`·dt a tick in any
     direction (the fractions in `hand` pick the change: reversals, pushes, release), the
     force asked anything up to 40 N and the slave's energy arriving in random amounts:
-    after every tick the master's output ≤ what it received + the reserve."""
+    after every tick the master's output ≤ what it received + the reserve, whether the
+    force goes to the bound at once or rises towards it (`rise`)."""
     dt, rate, mass = 0.001, 200.0, 0.5
-    pc = MasterPassivity(limit=True, mass_kg=mass, reserve_j=reserve, hand_rate_n_s=rate)
+    pc = MasterPassivity(limit=True, mass_kg=mass, reserve_j=reserve, hand_rate_n_s=rate, rise=rise)
     dev = Device(mass_kg=mass, damping_ns_m=0.0, x=[0.0] * dofs, v=[0.0] * dofs)
     h = [0.0] * dofs
     received = 0.0
