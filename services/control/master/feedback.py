@@ -139,6 +139,8 @@ class ForceDisplay:
        a device fault: the hand is not coupled to the slave, so it is not pushed);
     3. × `ramp_gain` since the tick the master engaged (a rebase while engaged does not
        restart it), so a contact force held through a re-clutch does not kick the hand;
+       likewise since the force came back after a stale gap (the display was zero through
+       it, and the wrist may press harder now: a stream that resumes does not kick either);
     4. `hook` (None: unchanged), then saturated again to max_force_n / max_torque_nm.
     """
 
@@ -149,6 +151,7 @@ class ForceDisplay:
         self._max_force_n = config.max_force_n
         self._max_torque_nm = config.max_torque_nm
         self._engaged_since_s: float | None = None
+        self._fresh_since_s: float | None = None
         self.faults = 0
 
     def update(
@@ -167,14 +170,18 @@ class ForceDisplay:
         if self._engaged_since_s is None:
             self._engaged_since_s = now_s
         if measured is None:
+            self._fresh_since_s = None
             mapped = ForceFeedback.zero()
         else:
+            if self._fresh_since_s is None:
+                self._fresh_since_s = now_s
             try:
                 mapped = self.feedback.compute(*measured, frame)
             except ValueError:
                 self.faults += 1
                 return ForceFeedback.zero()
-        gain = ramp_gain(now_s - self._engaged_since_s, self._ramp_s)
+        since = max(self._engaged_since_s, self._fresh_since_s or self._engaged_since_s)
+        gain = ramp_gain(now_s - since, self._ramp_s)
         shown = DisplayWrench(
             gain * mapped.f, gain * mapped.c, mapped.force_saturated, mapped.torque_saturated
         )

@@ -256,6 +256,18 @@ def test_force_is_zero_unless_engaged_and_ramps_in_at_each_engagement() -> None:
     assert not display.update(None, "world", True, HAND, 0.01, 20.0).f.any()  # stale data
 
 
+def test_a_force_that_comes_back_after_a_stale_gap_ramps_in_again() -> None:
+    """Engaged and ramped in (4 N shown); the stream goes stale for a while (zero shown);
+    when it comes back the 4 N ramp in again over force_ramp_s instead of at once."""
+    display = ForceDisplay(MasterConfig(force_ramp_s=1.0))
+    display.update(PUSH, "world", True, HAND, 0.01, 10.0)
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 12.0).f[2], 4.0)
+    assert not display.update(None, "world", True, HAND, 0.01, 12.5).f.any()
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 13.0).f, 0.0)
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 13.25).f[2], 1.0)
+    np.testing.assert_allclose(display.update(PUSH, "world", True, HAND, 0.01, 14.5).f[2], 4.0)
+
+
 def test_non_finite_input_shows_zero_and_counts_a_fault() -> None:
     display = ForceDisplay(MasterConfig(force_ramp_s=0.0))
     bad = ((math.nan, 0.0, 0.0), (0.0, 0.0, 0.0), np.eye(3).reshape(9))
@@ -288,6 +300,7 @@ def test_a_hook_sees_the_wrench_and_cannot_exceed_the_limits() -> None:
             st.booleans(),
             st.floats(0.0, 0.2),
             st.lists(st.floats(-1e6, 1e6), min_size=6, max_size=6),
+            st.booleans(),
         ),
         min_size=1,
         max_size=40,
@@ -295,19 +308,25 @@ def test_a_hook_sees_the_wrench_and_cannot_exceed_the_limits() -> None:
     ramp_s=st.floats(0.0, 2.0),
 )
 def test_the_displayed_wrench_is_bounded_zero_when_disengaged_and_never_above_the_ramp(
-    ticks: list[tuple[bool, float, list[float]]], ramp_s: float
+    ticks: list[tuple[bool, float, list[float], bool]], ramp_s: float
 ) -> None:
+    """Engagements, master-shifts and stale ticks in any order: zero while disengaged or
+    stale, and never above the ramp since the later of the engagement and the force's
+    return from a stale gap."""
     cfg = MasterConfig(force_ramp_s=ramp_s, max_force_n=3.0, max_torque_nm=0.5)
     display = ForceDisplay(cfg)
-    now, since = 0.0, None
-    for engaged, dt, w in ticks:
+    now, since, fresh = 0.0, None, None
+    for engaged, dt, w, stale in ticks:
         now += dt
         since = (since if since is not None else now) if engaged else None
-        out = display.update((w[:3], w[3:], np.eye(3).reshape(9)), "tool", engaged, HAND, dt, now)
+        measured = None if stale else (w[:3], w[3:], np.eye(3).reshape(9))
+        if engaged:
+            fresh = None if stale else (fresh if fresh is not None else now)
+        out = display.update(measured, "tool", engaged, HAND, dt, now)
         assert np.linalg.norm(out.f) <= 3.0 * (1 + 1e-12)
         assert np.linalg.norm(out.c) <= 0.5 * (1 + 1e-12)
-        if since is None:
+        if since is None or fresh is None:
             assert not out.f.any() and not out.c.any()
         else:
-            limit = 3.0 * ramp_gain(now - since, ramp_s)
+            limit = 3.0 * ramp_gain(now - max(since, fresh), ramp_s)
             assert np.linalg.norm(out.f) <= limit * (1 + 1e-9) + 1e-12
