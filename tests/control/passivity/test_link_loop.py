@@ -46,6 +46,9 @@ def test_whole_loop_over_a_bad_link_stays_passive() -> None:
     # then rests there is not TDPA's promise: after the impact the slave may stay off it.)
     assert m["peak_n"] >= pl.CONTACT_N and m["penetration_mm"] > 0.0, m
     assert len(m["force"]) > 1000
+    # The operator felt it: every wrist force arrives 100 ms after its robot-host stamp here,
+    # and the master displays it all the same (before 2026-11-26 it showed 0 from ~150 ms).
+    assert m["felt_n"] > 0.5, m
     # Master port: the hand got no more than the slave sent (plus the reserve and one late
     # tick's misprediction), by the master's own count and by the slave's.
     allowance = RESERVE_J + 0.01 + TOLERANCE_J
