@@ -195,6 +195,14 @@ def main(argv: list[str] | None = None) -> int:
         "streams need, so Zenoh's queues fill)",
     )
     p.add_argument(
+        "--master-rate-hz",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="--link: the master station's loop rate (default 100; a haptic device runs "
+        "at 500-1000)",
+    )
+    p.add_argument(
         "--json", default=None, metavar="FILE", help="default artifacts/bench_passivity[_link].json"
     )
     p.add_argument("--plots", default="artifacts", metavar="DIR", help="'' for none")
@@ -211,6 +219,10 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--approach-zone needs --link and a value within 0 … 0.2 m")
     if args.rate_mbit and not (args.link and 0.05 <= args.rate_mbit <= 10_000.0):
         p.error("--rate-mbit needs --link and a value within 0.05 … 10000")
+    if args.master_rate_hz is not None and not (
+        args.link and 10.0 <= args.master_rate_hz <= 1000.0
+    ):
+        p.error("--master-rate-hz needs --link and a value within 10 … 1000")
     if args.link:
         from services.tools.bench import passivity_link
 
@@ -227,6 +239,11 @@ def main(argv: list[str] | None = None) -> int:
             transport=args.transport,
             approach_zone_m=zone,
             rate_mbit=args.rate_mbit,
+            master_rate_hz=(
+                passivity_link.MASTER_RATE_HZ
+                if args.master_rate_hz is None
+                else args.master_rate_hz
+            ),
         )
         path = Path(args.json or "artifacts/bench_passivity_link.json")
         drawn = passivity_link.plots(runs, Path(args.plots)) if args.plots else []

@@ -70,6 +70,8 @@ outlast a TCP retransmission at 700 ms round trip: the master's liveliness token
 the decision holds (measured)."""
 MODULE = "services.tools.bench.passivity_link"
 APPROACH_ZONE_M = 0.02
+MASTER_RATE_HZ = 100.0
+"""The master station's loop rate over the link (`--master-rate-hz`)."""
 """The decision's guarded approach (`approach_zone_m`) in the link bench: within 2 cm of
 the table top the tool goes down at `approach_speed_m_s` (2 cm/s) at most. Without it the
 operator's 7–8 cm/s approach reaches the table at that speed and the arm's braking lets
@@ -362,7 +364,7 @@ def run_over_link(
     passivity: bool,
     jitter: float = 0.1,
     loss: float = 0.01,
-    rate_hz: float = 100.0,
+    rate_hz: float = MASTER_RATE_HZ,
     transport: str = "tcp",
     approach_zone_m: float = APPROACH_ZONE_M,
     rate_mbit: float = 0.0,
@@ -473,6 +475,7 @@ def run_matrix(
     transport: str = "tcp",
     approach_zone_m: float = APPROACH_ZONE_M,
     rate_mbit: float = 0.0,
+    master_rate_hz: float = MASTER_RATE_HZ,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
     """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
     simulated bench's keys, the runs)."""
@@ -485,6 +488,7 @@ def run_matrix(
             "transport": transport,
             "approach_zone_m": approach_zone_m,
             "rate_mbit": rate_mbit,
+            "master_rate_hz": master_rate_hz,
         },
     }
     runs: dict[tuple[int, bool], dict[str, Any]] = {}
@@ -499,6 +503,7 @@ def run_matrix(
                 transport=transport,
                 approach_zone_m=approach_zone_m,
                 rate_mbit=rate_mbit,
+                rate_hz=master_rate_hz,
             )
             runs[(delay, on)] = m
             doc["settings"]["emulator"] = m["emulator"]

@@ -117,10 +117,11 @@ def _runs_told(monkeypatch: pytest.MonkeyPatch, keyword: str) -> list[object]:
 
 
 @pytest.mark.parametrize(
-    ("flag", "keyword", "value", "default"),
+    ("flag", "keyword", "value", "default", "told_as"),
     [
-        ("--approach-zone", "approach_zone_m", 0.0, passivity_link.APPROACH_ZONE_M),
-        ("--rate-mbit", "rate_mbit", 0.5, 0.0),
+        ("--approach-zone", "approach_zone_m", 0.0, passivity_link.APPROACH_ZONE_M, None),
+        ("--rate-mbit", "rate_mbit", 0.5, 0.0, None),
+        ("--master-rate-hz", "master_rate_hz", 500.0, passivity_link.MASTER_RATE_HZ, "rate_hz"),
     ],
 )
 def test_a_link_setting_reaches_every_run_and_the_document(
@@ -130,8 +131,10 @@ def test_a_link_setting_reaches_every_run_and_the_document(
     keyword: str,
     value: float,
     default: float,
+    told_as: str | None,
 ) -> None:
-    told = _runs_told(monkeypatch, keyword)
+    """`keyword` in the document's settings; `told_as` (default: the same) in each run."""
+    told = _runs_told(monkeypatch, told_as or keyword)
     out = tmp_path / "link.json"
     base = ["--link", "--delays-ms", "50", "--json", str(out), "--plots", ""]
     assert passivity.main(base) == 0
@@ -155,6 +158,20 @@ def test_a_bad_approach_zone_is_refused(argv: list[str]) -> None:
     [["--rate-mbit", "1"], ["--link", "--rate-mbit", "0.01"], ["--link", "--rate-mbit", "-2"]],
 )
 def test_a_bad_link_rate_is_refused(argv: list[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        passivity.main(argv)
+    assert e.value.code == 2
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["--master-rate-hz", "500"],
+        ["--link", "--master-rate-hz", "5"],
+        ["--link", "--master-rate-hz", "2000"],
+    ],
+)
+def test_a_bad_master_rate_is_refused(argv: list[str]) -> None:
     with pytest.raises(SystemExit) as e:
         passivity.main(argv)
     assert e.value.code == 2
