@@ -199,8 +199,15 @@ def main(argv: list[str] | None = None) -> int:
         type=float,
         default=None,
         metavar="HZ",
-        help="--link: the master station's loop rate (default 100; a haptic device runs "
-        "at 500-1000)",
+        help="--link: the master station's loop rate (default 500, a haptic device's)",
+    )
+    p.add_argument(
+        "--hold-s",
+        type=float,
+        default=None,
+        metavar="S",
+        help="--link: how long the operator holds the press (default 8; measured over its "
+        "last 3 s)",
     )
     p.add_argument(
         "--json", default=None, metavar="FILE", help="default artifacts/bench_passivity[_link].json"
@@ -223,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
         args.link and 10.0 <= args.master_rate_hz <= 1000.0
     ):
         p.error("--master-rate-hz needs --link and a value within 10 … 1000")
+    if args.hold_s is not None and not (args.link and 1.0 <= args.hold_s <= 60.0):
+        p.error("--hold-s needs --link and a value within 1 … 60")
     if args.link:
         from services.tools.bench import passivity_link
 
@@ -244,6 +253,7 @@ def main(argv: list[str] | None = None) -> int:
                 if args.master_rate_hz is None
                 else args.master_rate_hz
             ),
+            hold_s=passivity_link.HOLD_S if args.hold_s is None else args.hold_s,
         )
         path = Path(args.json or "artifacts/bench_passivity_link.json")
         drawn = passivity_link.plots(runs, Path(args.plots)) if args.plots else []

@@ -121,7 +121,8 @@ def _runs_told(monkeypatch: pytest.MonkeyPatch, keyword: str) -> list[object]:
     [
         ("--approach-zone", "approach_zone_m", 0.0, passivity_link.APPROACH_ZONE_M, None),
         ("--rate-mbit", "rate_mbit", 0.5, 0.0, None),
-        ("--master-rate-hz", "master_rate_hz", 500.0, passivity_link.MASTER_RATE_HZ, "rate_hz"),
+        ("--master-rate-hz", "master_rate_hz", 200.0, passivity_link.MASTER_RATE_HZ, "rate_hz"),
+        ("--hold-s", "hold_s", 4.0, passivity_link.HOLD_S, None),
     ],
 )
 def test_a_link_setting_reaches_every_run_and_the_document(
@@ -172,6 +173,15 @@ def test_a_bad_link_rate_is_refused(argv: list[str]) -> None:
     ],
 )
 def test_a_bad_master_rate_is_refused(argv: list[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        passivity.main(argv)
+    assert e.value.code == 2
+
+
+@pytest.mark.parametrize(
+    "argv", [["--hold-s", "4"], ["--link", "--hold-s", "0.5"], ["--link", "--hold-s", "61"]]
+)
+def test_a_bad_hold_is_refused(argv: list[str]) -> None:
     with pytest.raises(SystemExit) as e:
         passivity.main(argv)
     assert e.value.code == 2
