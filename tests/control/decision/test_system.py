@@ -199,7 +199,11 @@ class Cell:
 
     def robot(self, pred: Callable[[RobotState], bool], timeout_s: float = 5.0) -> RobotState:
         st = self.state.wait_for(pred, timeout_s)  # type: ignore[attr-defined]
-        assert st is not None, "robot/state never satisfied the condition"
+        if st is None:  # say where the arm was and what the decision said meanwhile
+            last = self.state.get()  # type: ignore[attr-defined]
+            where = None if last is None else (last.status, [round(x, 4) for x in last.tool_p])
+            told = [(e.source, e.kind, e.message[:80]) for e in self.events.items][-12:]
+            raise AssertionError(f"robot/state never satisfied the condition; last {where}; {told}")
         return st  # type: ignore[no-any-return]
 
     def tool_p(self) -> np.ndarray:
