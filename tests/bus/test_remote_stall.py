@@ -149,7 +149,6 @@ def test_on_loopback_the_control_class_still_blocks_and_loses_nothing(rig: Rig) 
     last = {"n": -1, "since": 0.0}
 
     def stuck() -> bool:
-
         n, now = rig.sent.get(), time.monotonic()
         if n != last["n"]:
             last["n"], last["since"] = n, now

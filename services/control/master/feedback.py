@@ -180,7 +180,9 @@ class ForceDisplay:
             except ValueError:
                 self.faults += 1
                 return ForceFeedback.zero()
-        since = max(self._engaged_since_s, self._fresh_since_s or self._engaged_since_s)
+        since = self._engaged_since_s
+        if self._fresh_since_s is not None:
+            since = max(since, self._fresh_since_s)
         gain = ramp_gain(now_s - since, self._ramp_s)
         shown = DisplayWrench(
             gain * mapped.f, gain * mapped.c, mapped.force_saturated, mapped.torque_saturated

@@ -235,12 +235,11 @@ def metrics(
     points = [((t - t0) / 1e9, f) for t, f in trace.force_between(lo_ns, hi_ns)]
     window = [f for _, f in points]
     steady = sum(window) / len(window) if window else 0.0
-    with trace.lock:
-        felt = [f for t, f in trace.felt if lo_ns <= t < hi_ns]
     rms = math.sqrt(sum((f - steady) ** 2 for f in window) / len(window)) if window else 0.0
     zs = trace.z_between(lo_ns, hi_ns)
     touch = trace.touch()
     with trace.lock:
+        felt = [f for t, f in trace.felt if lo_ns <= t < hi_ns]
         slave = trace.slave[-1] if trace.slave else None
         master = trace.master[-1] if trace.master else None
         peak = max(trace.force_norms, default=0.0)

@@ -10,10 +10,11 @@ import time
 import pytest
 
 from services.bus import keys
-from services.bus.messages import IDENTITY_R, ForceSample, PassivityState, RobotState
+from services.bus.messages import ForceSample, PassivityState
 from services.control.master.config import MasterConfig
 from services.control.master.service import MasterService
 from tests.conftest import Net, wait_until
+from tests.control.master.robot_side import moving_state
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(60)]
 
@@ -49,20 +50,7 @@ def test_master_damps_the_display_until_the_slave_pays(net: Net) -> None:
         while not stop.is_set():
             k += 1
             now = time.time_ns()
-            state_pub.put(
-                RobotState(
-                    seq=k,
-                    t_ns=now,
-                    status="moving",
-                    q=(0.0,) * 6,
-                    tool_p=(0.5, 0.0, 0.5),
-                    tool_R=IDENTITY_R,
-                    flange_p=(0.5, 0.0, 0.7),
-                    flange_R=IDENTITY_R,
-                    engage=1,
-                    cmd_seq=k,
-                )
-            )
+            state_pub.put(moving_state(k, now))
             force_pub.put(ForceSample(seq=k, t_ns=now, f=(0.0, 0.0, -6.0), c=(0.0, 0.0, 0.0)))
             if paid.is_set():
                 engage = station.teleop.engage
