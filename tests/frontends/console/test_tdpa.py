@@ -253,8 +253,14 @@ def test_the_page_shows_tdpa_when_the_figures_flow_and_off_when_they_stop(net: A
 
             assert wait_until(lambda: shown("inactive"), 20.0, poll_s=0.02), browser.gui(panel)
             assert wait_until(lambda: browser.gui(plot).get("visible") is True, 10.0)
-            content = browser.gui(panel)["content"]
-            assert content.count('class="tr-tdpa-port"') == 2 and "TDPA on — inactive" in content
+
+            def both_ports() -> bool:
+                # One side's figures can be drawn a frame before the other's (seen once).
+                shown("inactive")
+                return browser.gui(panel)["content"].count('class="tr-tdpa-port"') == 2
+
+            assert wait_until(both_ports, 20.0, poll_s=0.02), browser.gui(panel)
+            assert "TDPA on — inactive" in browser.gui(panel)["content"]
 
             def plotted() -> bool:
                 shown("inactive")
