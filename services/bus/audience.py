@@ -35,15 +35,19 @@ class Audience:
         self._listeners = []
         for key, probe in zip(keys_, self._probes, strict=True):
             # The listener first, then the status: a subscriber arriving in between is
-            # seen by one or the other, never missed.
+            # seen by one or the other, never missed. The status read is kept only if the
+            # listener has not reported yet: a report newer than the read (a subscriber
+            # that arrived just after it) must not be overwritten by the older read.
             self._listeners.append(probe.declare_matching_listener(self._updater(key)))
-            self._update(key, _matching(probe.matching_status))
+            self._update(key, _matching(probe.matching_status), initial=True)
 
     def _updater(self, key: str) -> Callable[[zenoh.MatchingStatus], None]:
         return lambda status: self._update(key, status.matching)
 
-    def _update(self, key: str, matched: bool) -> None:
+    def _update(self, key: str, matched: bool, *, initial: bool = False) -> None:
         with self._lock:
+            if initial and key in self._matched:
+                matched = self._matched[key]  # the listener spoke first: its report is newer
             self._matched[key] = matched
             watched = any(self._matched.values())
             if watched == self._watched:

@@ -55,7 +55,10 @@ def test_streams_2000_samples_without_seq_gaps(net) -> None:
     svc = ForceService(force_node, ForceConfig())
     try:
         _publish_pose(viewer)
-        assert enough.wait(30.0), f"only {len(seqs)} samples arrived"
+        if not enough.wait(30.0):
+            st = viewer.call("force", "sensor_status", {}, timeout_s=5.0)
+            said = {k: st.get(k) for k in ("running", "samples", "publishing", "unsent", "idle")}
+            pytest.fail(f"only {len(seqs)} samples arrived; the service says {said}")
         status = viewer.call("force", "sensor_status", {}, timeout_s=5.0)
     finally:
         svc.close()
