@@ -23,7 +23,10 @@ from services.control.master.passivity import RESERVE_J
 from services.control.passivity.controller import TOLERANCE_J
 from services.tools.bench import passivity_link as pl
 
-pytestmark = [pytest.mark.system, pytest.mark.timeout(180)]
+# Alone: the link is a userspace delay line and the master a 100 Hz loop in their own
+# processes; beside a second test worker a command stalled past the 1.4 s watchdog once
+# (fresh-clone CI, 2026-11-26) and the arm was held.
+pytestmark = [pytest.mark.system, pytest.mark.alone, pytest.mark.timeout(180)]
 
 
 def over_link(rtt_ms: float, passivity: bool, transport: str = "tcp") -> dict[str, Any]:
@@ -60,4 +63,5 @@ def test_whole_loop_over_a_bad_link_stays_passive() -> None:
     assert m["slave_out_j"] <= m["master_in_j"] + m["slave_recovered_j"] + 0.01, m
     assert pl.bench_measures(m)["energy_generated_j"] <= 0.01 + allowance
     # Nothing held the arm on the way: the link's stalls stay within the watchdogs.
-    assert not any("watchdog" in e for e in m["events"]), m["events"]
+    held = [e for e in m["events"] if "watchdog" in e]
+    assert not held, held
