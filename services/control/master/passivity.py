@@ -1,9 +1,9 @@
 """The master side of time-domain passivity on the bus (docs/passivity.md).
 
 `MasterTdpa.hook` is a `ForceDisplay` hook: it observes the master port (the wrench shown ×
-the hand's motion, master frame), damps the displayed force when the channel has no energy
-left to give the operator and bounds it to what the reservoir can pay over the next tick
-(`MasterPassivity`, limiter on), and publishes the port's energies on
+the hand's motion, master frame), bounds the displayed force to what the reservoir can pay
+over the next tick, with the hand's own force in the prediction (`MasterPassivity`, limiter
+on, damper off: `DAMP`), and publishes the port's energies on
 `robot/passivity/master`; it reads the slave's on `robot/passivity/slave`. A new engagement
 starts a new count on both sides (no energy is in the channel then, so nothing jumps: the
 display also ramps in). Called by the master loop thread only.
@@ -35,6 +35,20 @@ feeling the contact, pressed the tool on (docs/passivity.md)."""
 RISE = 0.3
 """While the limiter holds the force back, it rises by this fraction of the gap to the bound
 a tick (`MasterPassivity.rise`): at once (1), the bound's own deadbeat made the display buzz."""
+DAMP = False
+"""The classic TDPA damper (`MasterPassivity.damp`) is off: the limiter alone bounds the
+display. The damper predicts the next tick's work from the hand's current velocity alone;
+with the reservoir empty (a steady press: the slave sends nothing back) it removed the whole
+force at any outward velocity, however small (8 µm/s), though the hand pressing in stops
+the device within the tick. Traced tick by tick over the link (2026-11-26, 700 ms): each
+such collapse let the hand lunge in at 10–30 mm/s, the bound then allowed the full force,
+the device bounced back and the force collapsed again, two or three times; every lunge put
+0.5–5 mJ into the channel, which the slave spent pressing the tool deeper (the creep)."""
+BOUND_CURRENT = False
+"""The limiter's bound at the current velocity (`MasterPassivity.bound_current`) is off, for
+the same reason: only its prediction with the hand's own force (the last tick's
+acceleration) bounds the work. A hand that changes its force within a tick shows as that
+tick's overdraw, observed, owed, and no more given until the slave pays (classic TDPA)."""
 HORIZON_TICKS = 50
 """The limiter predicts over the longest of the last this many tick intervals (a loop late
 once may be late again)."""
@@ -61,6 +75,8 @@ class MasterTdpa:
             reserve_j=RESERVE_J,
             hand_rate_n_s=HAND_RATE_N_S,
             rise=RISE,
+            damp=DAMP,
+            bound_current=BOUND_CURRENT,
         )
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)

@@ -64,6 +64,8 @@ class MasterPassivity:
     With `limit`, the energy-bounding force limiter (`_bound`) acts last: `mass_kg`,
     `reserve_j`, `hand_rate_n_s` and `horizon_s` shape its bound; `rise` < 1 lets a held-back
     force approach that bound by that fraction of the gap a tick instead of at once.
+    Without `damp` (the master service's setting) the limiter is the only controller and
+    `telemetry.active_steps` counts the ticks it held the force back.
     """
 
     enabled: bool = True
@@ -141,6 +143,9 @@ class MasterPassivity:
         if k >= 1.0:
             return f
         self.limited_steps += 1
+        if not self.damp:
+            # The limiter is the only controller: its steps are the port's actions.
+            self.telemetry.active_steps += 1
         return [k * fi for fi in f]
 
     def _ramp(self, f: list[float], dt_s: float) -> list[float]:

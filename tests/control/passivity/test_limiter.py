@@ -142,3 +142,94 @@ def test_the_master_port_never_gives_more_than_it_received(
             h[(k // 7) % dofs] += rate * dt * hand[k]
         dev.step([a + b for a, b in zip(f, h, strict=True)], dt)
         assert pc.observer.e_out <= received + reserve + TOLERANCE_J + 1e-12
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    asked=st.lists(st.floats(-40.0, 40.0), min_size=30, max_size=150),
+    credit=st.lists(st.floats(0.0, 2e-3), min_size=30, max_size=150),
+    grips=st.lists(st.floats(-20.0, 20.0), min_size=1, max_size=6),
+    dofs=st.sampled_from([1, 3]),
+    reserve=st.sampled_from([0.0, 1e-4]),
+    rise=st.sampled_from([1.0, 0.3]),
+)
+def test_the_limiter_alone_gives_no_more_than_it_received_but_a_grip_change(
+    asked: list[float],
+    credit: list[float],
+    grips: list[float],
+    dofs: int,
+    reserve: float,
+    rise: float,
+) -> None:
+    """The master service's setting (`services.control.master.passivity`): the limiter alone,
+    no damper, no bound at the current velocity, the hand's force assumed held over the
+    tick. The hand grips the 0.5 kg device with a force that changes, now and then, to any
+    value up to 20 N (`grips`, one every 25 ticks). A change shows as that tick's
+    misprediction, at most |f|·|Δ|·dt²/m; the master's output never exceeds what it received
+    + the reserve + those, and between changes it gives nothing it did not receive."""
+    dt, mass = 0.002, 0.5
+    pc = MasterPassivity(
+        limit=True,
+        damp=False,
+        bound_current=False,
+        mass_kg=mass,
+        reserve_j=reserve,
+        hand_rate_n_s=0.0,
+        rise=rise,
+    )
+    dev = Device(mass_kg=mass, damping_ns_m=0.0, x=[0.0] * dofs, v=[0.0] * dofs)
+    hand = [0.0] * dofs
+    received = 0.0
+    allowance = 0.0
+    n = min(len(asked), len(credit))
+    for k in range(n):
+        received += credit[k]
+        pc.remote.update(0, received)
+        f_ask = [0.0] * dofs
+        f_ask[k % dofs] = asked[k]
+        f = pc.step(f_ask, dev.x, dt)
+        if k % 25 == 2:  # the hand changes its grip (from rest at k = 2)
+            new = [0.0] * dofs
+            new[(k // 25) % dofs] = grips[(k // 25) % len(grips)]
+            change = math.sqrt(sum((a - b) ** 2 for a, b in zip(new, hand, strict=True)))
+            allowance += math.sqrt(sum(x * x for x in f)) * change * dt * dt / mass
+            hand = new
+        dev.step([a + b for a, b in zip(f, hand, strict=True)], dt)
+        assert pc.observer.e_out <= received + reserve + allowance + TOLERANCE_J + 1e-12
+
+
+@pytest.mark.parametrize(
+    ("damp", "bound_current", "lowest"),
+    [(False, False, 3.99), (True, False, 0.0), (False, True, 0.0)],
+)
+def test_a_hand_holding_still_is_not_dropped_when_it_moves_out_by_micrometres(
+    damp: bool, bound_current: bool, lowest: float
+) -> None:
+    """The collapse traced over the link (docs/passivity.md, 2026-11-26): a hand pressing
+    with 4 N holds the 0.5 kg device still against a display of 4 N (6 N asked, no energy
+    from the slave). A nudge outward of 8 µm/s: the damper, and the bound at the current
+    velocity, each see a force pushing the hand out with nothing to pay it and cut it to 0
+    for a tick — then the hand lunges in and the full 6 N kicks it back. The prediction
+    with the hand's own force sees that the hand stops the device within the tick: the
+    display stays at 4 N. The energy given out is the same 63 nJ either way."""
+    pc = MasterPassivity(
+        limit=True,
+        damp=damp,
+        bound_current=bound_current,
+        mass_kg=0.5,
+        reserve_j=0.0,
+        hand_rate_n_s=0.0,
+        rise=0.3,
+    )
+    dev = Device(mass_kg=0.5, damping_ns_m=2.0, x=[0.0], v=[0.0])
+    shown = []
+    for k in range(300):
+        f = pc.step([6.0], dev.x, 0.002)
+        dev.step([f[0] - 4.0], 0.002)
+        if k == 200:
+            dev.v[0] += 8e-6
+        shown.append(f[0])
+    assert shown[190:201] == pytest.approx([4.0] * 11, abs=1e-3)  # held at the hand's 4 N
+    assert min(shown[201:]) == pytest.approx(lowest, abs=0.01)
+    assert max(shown[201:]) == pytest.approx(4.0 if lowest else 6.0, abs=0.01)
+    assert pc.observer.e_out == pytest.approx(6.35e-8, rel=0.01)
