@@ -28,7 +28,8 @@ RESERVE_J = 1e-4
 HAND_RATE_N_S = 0.0
 """How fast the limiter assumes the hand's own force may change within a tick (N/s). 0: the
 hand holds its force over the next tick; a hand that lets go within it shows as one tick's
-overdraw, observed and then paid back before the display may give again (classic TDPA).
+overdraw, observed and owed: the display gives nothing more until the slave's energy has
+repaid it (classic TDPA's correction after the fact).
 At 20 N/s, as before 2026-11-26, the bound charged a still hand ṙ·h³/m a tick: the display
 then held only while the hand sank at ṙ·h²/m (4–9 mm/s at 100 Hz), and the operator, never
 feeling the contact, pressed the tool on (docs/passivity.md)."""
