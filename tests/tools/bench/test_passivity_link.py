@@ -52,6 +52,27 @@ def test_measures_count_what_the_workcell_gave_back_as_input() -> None:
     assert math.isnan(off["energy_generated_j"]) and off["stable"] is False  # RMS 50 %
 
 
+@pytest.mark.parametrize(
+    ("steady", "rms", "stable"),
+    [
+        (10.0, 0.5, True),
+        (10.0, 1.0, False),
+        (0.5, 0.0, False),
+        (37.9, 0.1, True),
+        (38.0, 0.1, False),
+        (42.0, 0.02, False),
+    ],
+)
+def test_a_calm_rest_on_the_supervisors_limit_is_not_stable(
+    steady: float, rms: float, stable: bool
+) -> None:
+    """Calm means RMS < 10 % of a steady force between 1 N and 95 % of the decision's 40 N
+    contact limit: at the limit the supervisor holds the tool, the loop did not settle."""
+    assert passivity_link.SUPERVISOR_LIMIT_N == 40.0
+    m = fake_run(700.0, False) | {"steady_n": steady, "rms_n": rms}
+    assert passivity_link.bench_measures(m)["stable"] is stable
+
+
 def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(passivity_link, "run_over_link", fake_run)
     said: list[str] = []
