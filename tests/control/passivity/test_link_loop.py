@@ -6,11 +6,15 @@ TCP, 10 % jitter and 1 % loss (`services.tools.bench.passivity_link`,
 which `telerobot bench passivity --link` runs at every delay). The operator presses the
 tool onto the table, holds, releases.
 
-What TDPA guarantees is checked, not how calm the contact is (docs/passivity.md, "The whole
-loop over the link"): the master port gives the hand no more energy than the slave sent, and
-the slave port puts no more into the workcell than the master sent plus what the workcell
-gave back (its reflection of an impact). Skipped with the reason where the namespaces
-cannot be made.
+What TDPA guarantees is checked (docs/passivity.md, "The whole loop over the link"): the
+master port gives the hand no more energy than the slave sent, and the slave port puts no
+more into the workcell than the master sent plus what the workcell gave back (its
+reflection of an impact). And what the issue asks of it at this delay: the contact settles
+(force RMS over the hold's last 3 s below 10 % of the steady force) with the operator
+feeling it — the bench's protocol (500 Hz master, 8 s hold), calm in 15 of 15 bench runs
+at 0–200 ms and 3 of 3 with a busy core beside it (2026-11-26); at 100 Hz with a 4 s hold
+the operator has not settled yet and the force still climbs (0 of 4). Skipped with the
+reason where the namespaces cannot be made.
 """
 
 from __future__ import annotations
@@ -34,26 +38,20 @@ def over_link(rtt_ms: float, passivity: bool, transport: str = "tcp") -> dict[st
     if reason:
         pytest.skip(reason)
     try:
-        # The bench's 8 s hold at 500 Hz settles the contact; the guarantees checked here
-        # need neither, and 4 s at 100 Hz keep the suite's time and load down.
-        return pl.run_over_link(rtt_ms, passivity, transport=transport, rate_hz=100.0, hold_s=4.0)
+        return pl.run_over_link(rtt_ms, passivity, transport=transport)  # the bench's protocol
     except RuntimeError as e:
         if "Operation not permitted" in str(e) or "Permission denied" in str(e):
             pytest.skip(f"network namespace setup refused: {e}")
         raise
 
 
-def test_whole_loop_over_a_bad_link_stays_passive() -> None:
+def test_whole_loop_over_a_bad_link_stays_passive_and_settles() -> None:
     """200 ms with Zenoh peers over TCP. (700 ms over UDP keeps these too, but lost the
     master's liveliness once in 13 runs, which holds the arm: docs/passivity.md.)"""
     m = over_link(200.0, passivity=True)
-    # The run measured something: the operator brought the tool onto the table. (Whether it
-    # then rests there is not TDPA's promise: after the impact the slave may stay off it.)
+    # The run measured something: the operator brought the tool onto the table.
     assert m["peak_n"] >= pl.CONTACT_N and m["penetration_mm"] > 0.0, m
     assert len(m["force"]) > 1000
-    # The operator felt it: every wrist force arrives 100 ms after its robot-host stamp here,
-    # and the master displays it all the same (before 2026-11-26 it showed 0 from ~150 ms).
-    assert m["felt_n"] > 0.5, m
     # Master port: the hand got no more than the slave sent (plus the reserve and one late
     # tick's misprediction), by the master's own count and by the slave's.
     allowance = RESERVE_J + 0.01 + TOLERANCE_J
@@ -65,3 +63,9 @@ def test_whole_loop_over_a_bad_link_stays_passive() -> None:
     # Nothing held the arm on the way: the link's stalls stay within the watchdogs.
     held = [e for e in m["events"] if "watchdog" in e]
     assert not held, held
+    # The contact settled, and the operator feels most of its 8 N: every wrist force arrives
+    # 100 ms after its robot-host stamp here, and the master displays it all the same
+    # (before 2026-11-26 it showed 0 from ~150 ms; 6.7–7.2 N felt in the bench's runs).
+    measures = pl.bench_measures(m)
+    assert measures["stable"] is True, measures
+    assert m["felt_n"] > 4.0, m["felt_n"]
