@@ -71,7 +71,10 @@ class Writer:
             self.f64s(values)
 
     def string(self, s: str) -> None:
-        data = s.encode("utf-8")
+        """A string: UTF-8, NUL-terminated. A character UTF-8 cannot carry (a lone surrogate,
+        as `os.fsdecode` makes of a file name's undecodable bytes) is written as `?`: a ROS
+        string must be valid UTF-8, and the bridge must not fail on its own data."""
+        data = s.encode("utf-8", "replace")
         self.u32(len(data) + 1)
         self._buf += data
         self._buf.append(0)

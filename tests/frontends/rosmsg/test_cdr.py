@@ -130,7 +130,9 @@ messages = st.one_of(
     ),
     st.builds(msgs.WrenchStamped, headers, vec3, vec3),
     st.builds(msgs.TFMessage, st.lists(transforms, max_size=4).map(tuple)),
-    st.builds(msgs.String, st.text(alphabet=st.characters(exclude_characters="\x00"))),
+    st.builds(
+        msgs.String, st.text(alphabet=st.characters(codec="utf-8", exclude_characters="\x00"))
+    ),
     st.builds(msgs.CompressedImage, headers, names, st.binary(max_size=300)),
     st.builds(
         msgs.CameraInfo,
@@ -214,3 +216,11 @@ def test_decoder_refuses_lying_counts_and_bad_text() -> None:
     unterminated[11] = ord("d")
     with pytest.raises(CdrError, match="NUL"):
         msgs.decode(msgs.String, bytes(unterminated))
+
+
+def test_a_character_utf8_cannot_carry_is_written_as_a_question_mark() -> None:
+    """A lone surrogate (what `os.fsdecode` makes of undecodable bytes) in a string: the
+    writer sends `?` in its place rather than failing (found by hypothesis in CI, 2026-11-26)."""
+    data = msgs.encode(msgs.String("a\ud800b"))
+    assert data == msgs.encode(msgs.String("a?b"))
+    assert msgs.decode(msgs.String, data) == msgs.String("a?b")
