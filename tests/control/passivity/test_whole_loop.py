@@ -44,8 +44,11 @@ def test_whole_loop_with_the_simulated_operator(net: Net, rate_hz: float, limit:
             hold_s=HOLD_S,
             release_s=RELEASE_S,
         )
-        if station.passivity is not None:
-            station.passivity.pc.limit = limit  # free space still: nothing displayed yet
+        if station.passivity is not None and not limit:
+            # Free space still: nothing displayed yet. The service runs the limiter alone;
+            # the comparison is the classic damper alone.
+            station.passivity.pc.limit = False
+            station.passivity.pc.damp = True
         end = loop.t_start_ns + int((APPROACH_S + HOLD_S + RELEASE_S + 0.5) * 1e9)
         assert fl.wait_until(lambda: time.time_ns() >= end, 60.0)
         m = fl.metrics(loop, APPROACH_S + 1.0, APPROACH_S + HOLD_S)
