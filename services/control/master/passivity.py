@@ -3,7 +3,7 @@
 `MasterTdpa.hook` is a `ForceDisplay` hook: it observes the master port (the wrench shown ×
 the hand's motion, master frame), bounds the displayed force to what the reservoir can pay
 over the next tick, with the hand's own force in the prediction (`MasterPassivity`, limiter
-on, damper off: `DAMP`), and publishes the port's energies on
+on, its damper's gain bounded: `BETA_MAX_NS_M`), and publishes the port's energies on
 `robot/passivity/master`; it reads the slave's on `robot/passivity/slave`. A new engagement
 starts a new count on both sides (no energy is in the channel then, so nothing jumps: the
 display also ramps in). Called by the master loop thread only.
@@ -36,15 +36,20 @@ feeling the contact, pressed the tool on (docs/passivity.md)."""
 RISE = 0.3
 """While the limiter holds the force back, it rises by this fraction of the gap to the bound
 a tick (`MasterPassivity.rise`): at once (1), the bound's own deadbeat made the display buzz."""
-DAMP = False
-"""The classic TDPA damper (`MasterPassivity.damp`) is off: the limiter alone bounds the
-display. The damper predicts the next tick's work from the hand's current velocity alone;
-with the reservoir empty (a steady press: the slave sends nothing back) it removed the whole
-force at any outward velocity, however small (8 µm/s), though the hand pressing in stops
-the device within the tick. Traced tick by tick over the link (2026-11-26, 700 ms): each
-such collapse let the hand lunge in at 10–30 mm/s, the bound then allowed the full force,
-the device bounced back and the force collapsed again, two or three times; every lunge put
-0.5–5 mJ into the channel, which the slave spent pressing the tool deeper (the creep)."""
+BETA_MAX_NS_M = 20.0
+"""The classic TDPA damper's gain is bounded to this (`MasterPassivity.beta_max`, N·s/m). It
+predicts the next tick's work from the hand's velocity alone; unbounded, with the reservoir
+empty (a steady press: the slave sends nothing back while the tool presses) it removed the
+whole force at any outward velocity, however small (8 µm/s), though the hand pressing in
+stops the device within the tick. Traced tick by tick over the link (2026-11-26, 700 ms):
+each such collapse let the hand lunge in at 10–30 mm/s, the limiter then allowed the full
+force, the device bounced back and the force collapsed again, two or three times; every
+lunge put 0.5–5 mJ into the channel, which the slave spent pressing the tool deeper (the
+creep). Bounded, `β·v` is 0.16 mN at 8 µm/s and 0.4 N at 20 mm/s: no collapse, and a hand
+that really moves out under a debt still has energy taken from it. Off altogether (the
+limiter alone, 13:00–14:20 UTC) the link runs were as calm, but in-process one run in three
+at 500 Hz gave the hand 22 mJ more than the slave sent: nothing paid a late loop's
+mispredictions back (docs/passivity.md)."""
 BOUND_CURRENT = False
 """The limiter's bound at the current velocity (`MasterPassivity.bound_current`) is off, for
 the same reason: only its prediction with the hand's own force (the last tick's
@@ -76,7 +81,8 @@ class MasterTdpa:
             reserve_j=RESERVE_J,
             hand_rate_n_s=HAND_RATE_N_S,
             rise=RISE,
-            damp=DAMP,
+            damp=True,
+            beta_max=BETA_MAX_NS_M,
             bound_current=BOUND_CURRENT,
         )
         self._engage = engage

@@ -64,8 +64,10 @@ class MasterPassivity:
     With `limit`, the energy-bounding force limiter (`_bound`) acts last: `mass_kg`,
     `reserve_j`, `hand_rate_n_s` and `horizon_s` shape its bound; `rise` < 1 lets a held-back
     force approach that bound by that fraction of the gap a tick instead of at once.
-    Without `damp` (the master service's setting) the limiter is the only controller and
-    `telemetry.active_steps` counts the ticks it held the force back.
+    `beta_max` (N·s/m) bounds the damper's gain: `β·v` then stays small at small `v`, so a
+    hand drifting out by µm/s keeps its force (unbounded, the classic damper cuts all of it
+    whenever the reservoir is empty). `telemetry.active_steps` counts the steps either the
+    damper or the limiter acted.
     """
 
     enabled: bool = True
@@ -78,6 +80,7 @@ class MasterPassivity:
     damp: bool = True
     horizon_s: float = 0.0
     rise: float = 1.0
+    beta_max: float = math.inf
     observer: EnergyObserver = field(default_factory=EnergyObserver)
     remote: RemoteEnergy = field(default_factory=RemoteEnergy)
     telemetry: PortTelemetry = field(default_factory=PortTelemetry)
@@ -143,9 +146,6 @@ class MasterPassivity:
         if k >= 1.0:
             return f
         self.limited_steps += 1
-        if not self.damp:
-            # The limiter is the only controller: its steps are the port's actions.
-            self.telemetry.active_steps += 1
         return [k * fi for fi in f]
 
     def _ramp(self, f: list[float], dt_s: float) -> list[float]:
@@ -197,14 +197,16 @@ class MasterPassivity:
         budget = max(self.budget_j, 0.0)
         vv = dot(v, v)
         if self.enabled and self.damp and e_next > budget + TOLERANCE_J and vv > 0.0:
-            beta = (e_next - budget) / (vv * dt_s)
+            beta = min((e_next - budget) / (vv * dt_s), self.beta_max)
             out = [fi - beta * vi for fi, vi in zip(out, v, strict=True)]
             self.telemetry.dissipated_j += beta * vv * dt_s
-            self.telemetry.active_steps += 1
         self.telemetry.last_gain = beta
+        limited = self.limited_steps
         if self.enabled and self.limit:
             # Last, so that whatever the damper did, the force held fits the reservoir.
             out = self._bound(out, v, dt_s, measured)
+        if beta > 0.0 or self.limited_steps > limited:
+            self.telemetry.active_steps += 1  # the damper or the limiter acted this step
         self._v_prev = v if measured else None
         self._f_held = out
         return out

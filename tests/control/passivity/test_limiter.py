@@ -153,7 +153,7 @@ def test_the_master_port_never_gives_more_than_it_received(
     reserve=st.sampled_from([0.0, 1e-4]),
     rise=st.sampled_from([1.0, 0.3]),
 )
-def test_the_limiter_alone_gives_no_more_than_it_received_but_a_grip_change(
+def test_the_services_setting_gives_no_more_than_it_received_but_a_grip_change(
     asked: list[float],
     credit: list[float],
     grips: list[float],
@@ -161,16 +161,18 @@ def test_the_limiter_alone_gives_no_more_than_it_received_but_a_grip_change(
     reserve: float,
     rise: float,
 ) -> None:
-    """The master service's setting (`services.control.master.passivity`): the limiter alone,
-    no damper, no bound at the current velocity, the hand's force assumed held over the
-    tick. The hand grips the 0.5 kg device with a force that changes, now and then, to any
-    value up to 20 N (`grips`, one every 25 ticks). A change shows as that tick's
-    misprediction, at most |f|·|Δ|·dt²/m; the master's output never exceeds what it received
-    + the reserve + those, and between changes it gives nothing it did not receive."""
+    """The master service's setting (`services.control.master.passivity`): the limiter, the
+    damper's gain bounded to 20 N·s/m, no bound at the current velocity, the hand's force
+    assumed held over the tick. The hand grips the 0.5 kg device with a force that changes,
+    now and then, to any value up to 20 N (`grips`, one every 25 ticks). A change shows as
+    that tick's misprediction, at most |f|·|Δ|·dt²/m; the master's output never exceeds what
+    it received + the reserve + those, and between changes it gives nothing it did not
+    receive."""
     dt, mass = 0.002, 0.5
     pc = MasterPassivity(
         limit=True,
-        damp=False,
+        damp=True,
+        beta_max=20.0,
         bound_current=False,
         mass_kg=mass,
         reserve_j=reserve,
@@ -199,11 +201,16 @@ def test_the_limiter_alone_gives_no_more_than_it_received_but_a_grip_change(
 
 
 @pytest.mark.parametrize(
-    ("damp", "bound_current", "lowest"),
-    [(False, False, 3.99), (True, False, 0.0), (False, True, 0.0)],
+    ("damp", "beta_max", "bound_current", "lowest"),
+    [
+        (False, math.inf, False, 3.99),
+        (True, 20.0, False, 3.99),  # the master service's setting
+        (True, math.inf, False, 0.0),
+        (False, math.inf, True, 0.0),
+    ],
 )
 def test_a_hand_holding_still_is_not_dropped_when_it_moves_out_by_micrometres(
-    damp: bool, bound_current: bool, lowest: float
+    damp: bool, beta_max: float, bound_current: bool, lowest: float
 ) -> None:
     """The collapse traced over the link (docs/passivity.md, 2026-11-26): a hand pressing
     with 4 N holds the 0.5 kg device still against a display of 4 N (6 N asked, no energy
@@ -211,10 +218,12 @@ def test_a_hand_holding_still_is_not_dropped_when_it_moves_out_by_micrometres(
     velocity, each see a force pushing the hand out with nothing to pay it and cut it to 0
     for a tick — then the hand lunges in and the full 6 N kicks it back. The prediction
     with the hand's own force sees that the hand stops the device within the tick: the
-    display stays at 4 N. The energy given out is the same 63 nJ either way."""
+    display stays at 4 N, also with the damper's gain bounded to 20 N·s/m (β·v = 0.16 mN).
+    The energy given out is the same 63 nJ either way."""
     pc = MasterPassivity(
         limit=True,
         damp=damp,
+        beta_max=beta_max,
         bound_current=bound_current,
         mass_kg=0.5,
         reserve_j=0.0,

@@ -7,6 +7,7 @@ when set. Out of the suite (TELEROBOT_FULL_LOOP=1): load-sensitive, docs/passivi
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 
@@ -45,10 +46,10 @@ def test_whole_loop_with_the_simulated_operator(net: Net, rate_hz: float, limit:
             release_s=RELEASE_S,
         )
         if station.passivity is not None and not limit:
-            # Free space still: nothing displayed yet. The service runs the limiter alone;
-            # the comparison is the classic damper alone.
+            # Free space still: nothing displayed yet. The comparison: the classic damper
+            # alone (the service bounds its gain and adds the limiter).
             station.passivity.pc.limit = False
-            station.passivity.pc.damp = True
+            station.passivity.pc.beta_max = math.inf
         end = loop.t_start_ns + int((APPROACH_S + HOLD_S + RELEASE_S + 0.5) * 1e9)
         assert fl.wait_until(lambda: time.time_ns() >= end, 60.0)
         m = fl.metrics(loop, APPROACH_S + 1.0, APPROACH_S + HOLD_S)
