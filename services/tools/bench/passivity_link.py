@@ -119,7 +119,7 @@ class Trace:
     master: list[PassivityState] = field(default_factory=list)
     felt: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, shown f_z up)
     puma_cmds: int = 0
-    events: list[str] = field(default_factory=list)
+    events: list[tuple[float, str]] = field(default_factory=list)  # (arrival, monotonic s)
     master_rx_s: float = 0.0
     _R: np.ndarray = field(default_factory=lambda: np.eye(3))
 
@@ -152,7 +152,17 @@ class Trace:
 
     def on_event(self, e: Event) -> None:
         with self.lock:
-            self.events.append(f"{e.source}/{e.kind}: {e.message[:80]}")
+            self.events.append((time.monotonic(), f"{e.source}/{e.kind}: {e.message[:80]}"))
+
+    def events_split(self) -> tuple[list[str], list[str]]:
+        """The events up to the master's last figures (the run), and after them: the
+        operator's end (its liveliness lost, the decision holding), not the run's."""
+        with self.lock:
+            end = self.master_rx_s or math.inf
+            return (
+                [text for t, text in self.events if t <= end],
+                [text for t, text in self.events if t > end],
+            )
 
     def on_cmd(self, _: object) -> None:
         with self.lock:
@@ -315,11 +325,16 @@ def robot(endpoint: str, passivity: bool, watchdog: float, zone_m: float, hold_s
         if tdpa is not None:
             m["slave_recovered_j"] = tdpa.pc.recovered_j
             m["slave_clipped_j"] = tdpa.pc.clipped_j
+        events, after = trace.events_split()
         with trace.lock:
             m["puma_cmds"] = float(trace.puma_cmds)
-            events = list(trace.events)
             series = [((t - t0) / 1e9, f) for t, f in trace.forces if t >= t0]
-        doc = {"metrics": m, "events": events[-20:], "force": series[::2]}
+        doc = {
+            "metrics": m,
+            "events": events[-20:],
+            "events_after": after[-5:],
+            "force": series[::2],
+        }
         print(json.dumps(doc), flush=True)
     finally:
         for c in reversed(closers):
@@ -448,6 +463,7 @@ def run_over_link(
     m |= {"load1": os.getloadavg()[0], "emulator": emulator, "transport": transport}
     m["approach_zone_m"], m["rate_mbit"] = approach_zone_m, rate_mbit
     m["events"] = out["events"]
+    m["events_after"] = out.get("events_after", [])
     m["force"] = out["force"]
     return m
 

@@ -103,7 +103,7 @@ def test_decision_alone_stops_the_tool_at_the_first_touch(net: Net) -> None:
             with tr.lock:
                 zs = [round(1e3 * (z - fl.TOP_Z), 2) for _, z in tr.states[-60::6]]
                 n = touches(tr.forces)
-                events = tr.events[-8:]
+                events = [text for _, text in tr.events[-8:]]
             pytest.fail(f"touches {n}, tool heights (mm above the table) {zs}, events {events}")
     finally:
         stop.set()
@@ -114,7 +114,7 @@ def test_decision_alone_stops_the_tool_at_the_first_touch(net: Net) -> None:
         z_end = tr.states[-1][1]
         slave = tr.slave[-1]
     with tr.lock:
-        events = tr.events[-12:]
+        events = [text for _, text in tr.events[-12:]]
     # It stopped at the first touch: no bounce, no second press.
     assert touches(forces) == 1, (
         [round(f, 1) for _, f in forces if f > 1.0][:: max(1, len(forces) // 400)],

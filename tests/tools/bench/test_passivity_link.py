@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from services.bus.messages import MasterFeedback
+from services.bus.messages import Event, MasterFeedback
 from services.tools.bench import passivity, passivity_link
 
 
@@ -215,3 +215,20 @@ def test_the_force_felt_is_the_mean_shown_on_the_hand_over_the_hold() -> None:
     m = passivity_link.metrics(trace, t0, 2.0, 5.0)
     assert m["felt_n"] == pytest.approx(6.0)
     assert passivity_link.metrics(passivity_link.Trace(), t0, 2.0, 5.0)["felt_n"] == 0.0
+
+
+def test_events_after_the_operators_last_figures_are_the_ends_not_the_runs(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The decision's hold when the finished operator's token goes is teardown: the run's
+    events are those up to the master's last figures (seen in the suite's link test: a
+    `watchdog` event counted as a hold during the press)."""
+    clock = iter([10.0, 20.0])
+    monkeypatch.setattr(passivity_link.time, "monotonic", lambda: next(clock))
+    trace = passivity_link.Trace()
+    trace.on_event(Event(seq=1, t_ns=1, source="decision", kind="limit", message="zone"))
+    trace.master_rx_s = 15.0  # the master's last figures arrived between the two
+    trace.on_event(Event(seq=2, t_ns=2, source="decision", kind="watchdog", message="lost"))
+    assert trace.events_split() == (["decision/limit: zone"], ["decision/watchdog: lost"])
+    trace.master_rx_s = 0.0  # no figures yet: all of it is the run's
+    assert trace.events_split() == (["decision/limit: zone", "decision/watchdog: lost"], [])
