@@ -60,6 +60,21 @@ HORIZON_TICKS = 50
 once may be late again)."""
 
 
+def master_port(device_mass_kg: float, enabled: bool = True) -> MasterPassivity:
+    """The master port's controller as the service runs it (the constants above)."""
+    return MasterPassivity(
+        enabled=enabled,
+        limit=True,
+        mass_kg=device_mass_kg,
+        reserve_j=RESERVE_J,
+        hand_rate_n_s=HAND_RATE_N_S,
+        rise=RISE,
+        damp=True,
+        beta_max=BETA_MAX_NS_M,
+        bound_current=BOUND_CURRENT,
+    )
+
+
 class MasterTdpa:
     """enabled: damp (true) or only observe and publish (false)."""
 
@@ -74,17 +89,7 @@ class MasterTdpa:
         """`device_mass_kg`: the device's moving mass the force limiter predicts with
         (`[master] passivity_device_mass_kg`; 0.5 kg is the simulated haptic master's)."""
         self.master_id = master_id
-        self.pc = MasterPassivity(
-            enabled=enabled,
-            limit=True,
-            mass_kg=device_mass_kg,
-            reserve_j=RESERVE_J,
-            hand_rate_n_s=HAND_RATE_N_S,
-            rise=RISE,
-            damp=True,
-            beta_max=BETA_MAX_NS_M,
-            bound_current=BOUND_CURRENT,
-        )
+        self.pc = master_port(device_mass_kg, enabled)
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)
         self._slave = node.latest(keys.PASSIVITY_SLAVE)

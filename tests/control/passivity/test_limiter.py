@@ -5,11 +5,13 @@ reserve), whatever the hand does within its force rate (hypothesis over reversal
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from services.control.master.passivity import master_port
 from services.control.passivity.controller import TOLERANCE_J, MasterPassivity
 from services.control.passivity.dynamics import Device
 
@@ -161,24 +163,14 @@ def test_the_services_setting_gives_no_more_than_it_received_but_a_grip_change(
     reserve: float,
     rise: float,
 ) -> None:
-    """The master service's setting (`services.control.master.passivity`): the limiter, the
-    damper's gain bounded to 20 N·s/m, no bound at the current velocity, the hand's force
-    assumed held over the tick. The hand grips the 0.5 kg device with a force that changes,
+    """The master service's controller (`master_port`: the limiter, the damper's gain
+    bounded, no bound at the current velocity, the hand's force assumed held over the tick),
+    its reserve and rise varied. The hand grips the 0.5 kg device with a force that changes,
     now and then, to any value up to 20 N (`grips`, one every 25 ticks). A change shows as
-    that tick's misprediction, at most |f|·|Δ|·dt²/m; the master's output never exceeds what
-    it received + the reserve + those, and between changes it gives nothing it did not
-    receive."""
+    that tick's misprediction, at most |f|·|Δ|·dt²/m; after every tick the master's output
+    never exceeds what it received + the reserve + those."""
     dt, mass = 0.002, 0.5
-    pc = MasterPassivity(
-        limit=True,
-        damp=True,
-        beta_max=20.0,
-        bound_current=False,
-        mass_kg=mass,
-        reserve_j=reserve,
-        hand_rate_n_s=0.0,
-        rise=rise,
-    )
+    pc = replace(master_port(mass), reserve_j=reserve, rise=rise)
     dev = Device(mass_kg=mass, damping_ns_m=0.0, x=[0.0] * dofs, v=[0.0] * dofs)
     hand = [0.0] * dofs
     received = 0.0

@@ -11,8 +11,8 @@ master port gives the hand no more energy than the slave sent, and the slave por
 more into the workcell than the master sent plus what the workcell gave back (its
 reflection of an impact). And what the issue asks of it at this delay: the contact settles
 (force RMS over the hold's last 3 s below 10 % of the steady force) with the operator
-feeling it — the bench's protocol (500 Hz master, 8 s hold), calm in 15 of 15 bench runs
-at 0–200 ms and 3 of 3 with a busy core beside it (2026-11-26); at 100 Hz with a 4 s hold
+feeling it — the bench's protocol (500 Hz master, 8 s hold): calm in every bench run at
+0–200 ms on 2026-11-26, and 3 of 3 with a busy core beside it; at 100 Hz with a 4 s hold
 the operator has not settled yet and the force still climbs (0 of 4). Skipped with the
 reason where the namespaces cannot be made.
 """
@@ -27,7 +27,7 @@ from services.control.master.passivity import RESERVE_J
 from services.control.passivity.controller import TOLERANCE_J
 from services.tools.bench import passivity_link as pl
 
-# Alone: the link is a userspace delay line and the master a 100 Hz loop in their own
+# Alone: the link is a userspace delay line and the master a 500 Hz loop in their own
 # processes; beside a second test worker a command stalled past the 1.4 s watchdog once
 # (fresh-clone CI, 2026-11-26) and the arm was held.
 pytestmark = [pytest.mark.system, pytest.mark.alone, pytest.mark.timeout(180)]
