@@ -19,10 +19,20 @@ from tests.conftest import Net, wait_until
 pytestmark = [pytest.mark.system, pytest.mark.alone]
 
 
-def _publish_pose(node) -> None:  # type: ignore[no-untyped-def]
+def _publish_pose(node, svc: ForceService) -> None:  # type: ignore[no-untyped-def]
+    """Put the arm's pose until the service has sampled (as the puma does, at ≥ 100 Hz): one
+    put could go out before the service's subscription reached this peer, and the simulated
+    sensor gives nothing without a pose (fresh-clone CI, twice: 0 samples in 30 s)."""
+    pub = node.publisher(keys.STATE)
+    assert wait_until(
+        lambda: svc.core.latest is not None or _put_pose(pub), 10.0, what="a first sample"
+    )
+
+
+def _put_pose(pub) -> bool:  # type: ignore[no-untyped-def]
     kin = Puma560()
     oMt, oMe = kin.fk_tool(qn, DEFAULT_eMt), kin.fk_flange(qn)
-    node.publisher(keys.STATE).put(
+    pub.put(
         RobotState(
             seq=1,
             t_ns=1,
@@ -36,6 +46,7 @@ def _publish_pose(node) -> None:  # type: ignore[no-untyped-def]
             cmd_seq=0,
         )
     )
+    return False  # put, not yet sampled: wait_until polls again
 
 
 def test_streams_2000_samples_without_seq_gaps(net) -> None:
@@ -54,7 +65,7 @@ def test_streams_2000_samples_without_seq_gaps(net) -> None:
     viewer.subscribe(keys.FORCE, on_sample)
     svc = ForceService(force_node, ForceConfig())
     try:
-        _publish_pose(viewer)
+        _publish_pose(viewer, svc)
         if not enough.wait(30.0):
             st = viewer.call("force", "sensor_status", {}, timeout_s=5.0)
             said = {k: st.get(k) for k in ("running", "samples", "publishing", "unsent", "idle")}
@@ -78,7 +89,7 @@ def test_period_and_priority_changes_are_applied_and_reported(net) -> None:
     client = net.node("client")
     svc = ForceService(force_node, ForceConfig())
     try:
-        _publish_pose(client)
+        _publish_pose(client, svc)
         st = client.call(
             "force", "sensor_config", {"period_ms": 2.0, "priority": "below_normal"}, timeout_s=5.0
         )
@@ -108,7 +119,7 @@ def test_nothing_is_sent_while_nobody_subscribes_and_a_subscriber_gets_it_at_onc
     svc = ForceService(net.node("force"), ForceConfig())
     client = net.node("client")
     try:
-        _publish_pose(client)
+        _publish_pose(client, svc)
         assert wait_until(
             lambda: client.call("force", "sensor_status", {}, timeout_s=5.0)["unsent"] >= 50
         )
