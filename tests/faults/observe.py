@@ -97,6 +97,7 @@ def tool_steps(
     max_speed_m_s: float,
     state_period_s: float,
     sample_period_s: float = 0.0,
+    read_age_s: float = 0.0,
 ) -> Steps:
     """Compare each step of `tool_p` with `max_speed_m_s` × the time between the two states.
 
@@ -104,15 +105,18 @@ def tool_steps(
     periods between their `seq`s (a dropped state leaves a longer step; a late publish loop
     bunches states in time, never steps). An arm whose joints are read more slowly than
     states are sent (a serial controller's cycle) moves in steps of one reading: each change
-    of position is allowed `sample_period_s` of motion at least. A step above what is
-    allowed plus STEP_EPS_M is a jump."""
+    of position is allowed `sample_period_s` of motion at least. A state is stamped when it
+    is sent, but its joints were read up to `read_age_s` before (the puma reads them once per
+    control tick): the readings of two states may be that much further apart than their
+    stamps, so an arm at its speed limit is allowed that much more motion. A step above what
+    is allowed plus STEP_EPS_M is a jump."""
     worst, ratio, jumps, n = 0.0, 0.0, 0, 0
     for a, b in itertools.pairwise(states):
         if b.seq <= a.seq:
             continue  # a restarted puma counts from 1: not a step of one motion
         step = float(np.linalg.norm(np.subtract(b.tool_p, a.tool_p)))
         dt_s = max((b.t_ns - a.t_ns) / 1e9, (b.seq - a.seq) * state_period_s, sample_period_s)
-        allowed = max_speed_m_s * dt_s + STEP_EPS_M
+        allowed = max_speed_m_s * (dt_s + read_age_s) + STEP_EPS_M
         n += 1
         worst = max(worst, step)
         ratio = max(ratio, step / allowed)

@@ -65,6 +65,17 @@ def test_a_slowly_read_arm_may_move_one_reading_per_change() -> None:
     assert tool_steps(states, 0.5, PERIOD_S, sample_period_s=0.028).jumps == 0
 
 
+def test_joints_read_before_the_stamp_allow_one_read_age_more() -> None:
+    # At the 0.5 m/s limit, the second state's joints read 1 ms later in its 4 ms than the
+    # first's: 2.5 mm between stamps 4 ms apart. Allowed with a 2 ms read age; 1 cm is not.
+    at_limit = [_state(1, 0.0), _state(2, 0.0025)]
+    assert tool_steps(at_limit, 0.5, PERIOD_S).jumps == 1
+    assert tool_steps(at_limit, 0.5, PERIOD_S, read_age_s=0.002).jumps == 0
+    far = [_state(1, 0.0), _state(2, 0.01)]
+    steps = tool_steps(far, 0.5, PERIOD_S, read_age_s=0.002)
+    assert steps.jumps == 1 and steps.max_ratio == pytest.approx(0.01 / (0.5 * 0.006 + 1e-6))
+
+
 def test_event_seqs_restart_at_one_and_gaps_are_counted() -> None:
     evs = [_event("puma", s) for s in (1, 2, 3, 1, 2, 5, 6)] + [_event("force", 1)]
     c = event_continuity(evs)
