@@ -511,6 +511,20 @@ def test_a_queryable_without_token_is_not_called(net: Net) -> None:
 # --- namespaces ------------------------------------------------------------------------
 
 
+def _put_until_received(
+    pub: Publisher[ForceSample], sub: Subscription[ForceSample], start: int, n: int = 10
+) -> list[int]:
+    """Put samples `start`, `start`+1, … until `sub` has received `n`; the seqs put."""
+    sent: list[int] = []
+    deadline = time.monotonic() + DEADLINE_S
+    while not sub.wait_count(n, 0.05):
+        assert time.monotonic() < deadline, f"{sub.received} of {len(sent)} puts arrived"
+        for _ in range(n - sub.received):
+            sent.append(start + len(sent))
+            pub.put(force(sent[-1]))
+    return sent
+
+
 def test_namespaces_isolate_cells_on_one_network(net: Net) -> None:
     root = net.node("raw")  # no namespace: sees the keys as they travel
 
@@ -544,17 +558,22 @@ def test_namespaces_isolate_cells_on_one_network(net: Net) -> None:
         assert wait_until(functools.partial(matching, probe))  # root's sub is known
         probe.undeclare()
 
-    for i in range(1, 11):
-        pub2.put(force(i))
-    pub3.put(force(100))
-    assert sub2.wait_count(10, DEADLINE_S) and sub3.wait_count(1, DEADLINE_S)
-    assert wait_until(lambda: len(seen2) == 10 and len(seen3) == 1)
-    assert wait_until(lambda: len(raw) == 11)
-    # Each cell saw only its own stream; the raw subscriber sees the namespaced keys.
-    assert seen2 == list(range(1, 11)) and seen3 == [100]
-    assert sorted(raw) == sorted(
-        [("cell2/robot/force", i) for i in range(1, 11)] + [("cell3/robot/force", 100)]
-    )
+    # Put until each watcher has 10. In CI, once, fewer than 10 of a 10-put burst arrived
+    # within 10 s; the likeliest cause is the peers still meshing (gossip connects them
+    # directly while `raw` brokers). What is tested is where samples go, not that none is
+    # lost: every sample a watcher gets must be its own cell's.
+    sent2 = _put_until_received(pub2, sub2, start=1)
+    sent3 = _put_until_received(pub3, sub3, start=1001)
+    assert wait_until(lambda: len(seen2) >= 10 and len(seen3) >= 10)
+    assert set(seen2) <= set(sent2), (seen2, sent2)
+    assert set(seen3) <= set(sent3), (seen3, sent3)
+    # The raw subscriber sees both cells' samples under their namespaced keys, and nothing else.
+    assert wait_until(lambda: {k for k, _ in raw} == {"cell2/robot/force", "cell3/robot/force"})
+    with raw_lock:
+        travelled = list(raw)
+    assert {(k, i) for k, i in travelled} <= {("cell2/robot/force", i) for i in sent2} | {
+        ("cell3/robot/force", i) for i in sent3
+    }, travelled[:20]
 
     # Liveliness and methods are namespaced too.
     force2.serve("force", {"sensor_status": lambda a: {"cell": 2}})
