@@ -5,6 +5,10 @@
   sends the very bytes of a ForceSample at 1 kHz on `FLOOR_TOPIC` through the bench's router.
   The bench receives them with the probe it uses on `robot/force` (stamp first, decode,
   validate, append), so whatever our force path costs above this is ours, not Zenoh's.
+- relay: a minimal process takes the same bytes on `FLOOR_RELAY_IN` and puts them, untouched
+  and inline in Zenoh's callback, on `FLOOR_RELAY_OUT` (robot/force's QoS both ways). The
+  bench sends at 100 Hz and 1 kHz and receives them back: two hops through the router, as
+  master → decision → puma, and the floor under that path's latency.
 - get→reply: a minimal queryable in a process of the same kind replies inline in Zenoh's
   callback with a fixed msgpack map (puma's own `status` map) to plain `get`s from the bench's
   session: the floor under every method call.
@@ -40,6 +44,10 @@ from services.tools.bench.baselines import force_payload
 
 FLOOR_TOPIC = Topic("bench/floor/force", ForceSample, QoS.CONTROL, latest_wins=True)
 """Where the floor publisher sends: a key of the bench's own, so no service receives it."""
+FLOOR_RELAY_IN = Topic("bench/floor/relay/in", ForceSample, QoS.CONTROL, latest_wins=True)
+FLOOR_RELAY_OUT = Topic("bench/floor/relay/out", ForceSample, QoS.CONTROL, latest_wins=True)
+"""The relay's two keys: the bench puts on the first, the relay puts on the second."""
+RELAYING = "floor relaying"
 FLOOR_RPC_KEY = "bench/floor/rpc/status"
 MATCH_TIMEOUT_S = 20.0
 SERVING = "floor serving"
@@ -68,13 +76,7 @@ def _matching(pub: zenoh.Publisher) -> bool:
 def publish(endpoint: str, mode: str, rate_hz: float, duration_s: float) -> FloorSent:
     """The publisher: once a subscriber matches, one ForceSample per tick for `duration_s`."""
     with _session(endpoint, mode) as session:
-        pub = session.declare_publisher(
-            FLOOR_TOPIC.key,
-            encoding=zenoh.Encoding(ENCODING),
-            priority=FLOOR_PRIORITY,
-            express=FLOOR_EXPRESS,
-            congestion_control=FLOOR_CONGESTION,
-        )
+        pub = declare_floor_publisher(session, FLOOR_TOPIC.key)
         deadline = time.monotonic() + MATCH_TIMEOUT_S
         while not _matching(pub):
             if time.monotonic() > deadline:
@@ -91,6 +93,38 @@ def publish(endpoint: str, mode: str, rate_hz: float, duration_s: float) -> Floo
         report = FloorSent(sent, time.process_time() - cpu0, time.monotonic() - wall0)
         pub.undeclare()
     return report
+
+
+def declare_floor_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
+    """A publisher with robot/force's delivery (`FLOOR_*`)."""
+    return session.declare_publisher(
+        key,
+        encoding=zenoh.Encoding(ENCODING),
+        priority=FLOOR_PRIORITY,
+        express=FLOOR_EXPRESS,
+        congestion_control=FLOOR_CONGESTION,
+    )
+
+
+def relay(endpoint: str, mode: str, stop: threading.Event) -> int:
+    """The relay: every sample on FLOOR_RELAY_IN is put on FLOOR_RELAY_OUT at once, in Zenoh's
+    callback, until `stop`; how many it relayed."""
+    relayed = 0
+    with _session(endpoint, mode) as session:
+        pub = declare_floor_publisher(session, FLOOR_RELAY_OUT.key)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            nonlocal relayed
+            pub.put(sample.payload)
+            relayed += 1
+
+        sub = session.declare_subscriber(FLOOR_RELAY_IN.key, on_sample)
+        print(f"{RELAYING} {FLOOR_RELAY_IN.key} -> {FLOOR_RELAY_OUT.key}", flush=True)
+        while not stop.wait(0.2):
+            pass
+        sub.undeclare()
+        pub.undeclare()
+    return relayed
 
 
 def serve(endpoint: str, mode: str, reply: bytes, stop: threading.Event) -> None:
@@ -161,6 +195,19 @@ def pub_argv(endpoint: str, rate_hz: float, duration_s: float, mode: str = "clie
     ]
 
 
+def relay_argv(endpoint: str, mode: str = "client") -> list[str]:
+    return [
+        sys.executable,
+        "-m",
+        "services.tools.bench.floor",
+        "relay",
+        "--connect",
+        endpoint,
+        "--mode",
+        mode,
+    ]
+
+
 def serve_argv(endpoint: str, reply_file: Path, mode: str = "client") -> list[str]:
     return [
         sys.executable,
@@ -221,14 +268,18 @@ def time_gets(
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m services.tools.bench.floor", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
-    for name, text in (("pub", "the floor publisher"), ("serve", "the floor queryable")):
+    for name, text in (
+        ("pub", "the floor publisher"),
+        ("relay", "the floor relay"),
+        ("serve", "the floor queryable"),
+    ):
         s = sub.add_parser(name, help=text)
         s.add_argument("--connect", required=True, metavar="ENDPOINT")
         s.add_argument("--mode", choices=["client", "peer"], default="client")
         if name == "pub":
             s.add_argument("--rate-hz", type=float, default=1000.0)
             s.add_argument("--duration-s", type=float, default=5.0)
-        else:
+        elif name == "serve":
             s.add_argument("--reply", required=True, metavar="FILE", help="msgpack map to reply")
     args = p.parse_args(argv)
     if args.cmd == "pub":
@@ -241,6 +292,9 @@ def main(argv: list[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    if args.cmd == "relay":
+        print(f"relayed {relay(args.connect, args.mode, stop)}", flush=True)
+        return 0
     serve(args.connect, args.mode, Path(args.reply).read_bytes(), stop)
     return 0
 

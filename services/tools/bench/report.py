@@ -193,11 +193,17 @@ TCP = "raw TCP"
 XMLRPC = "XML-RPC"
 ZENOH = "bare Zenoh"
 ZENOH_GET = "bare Zenoh get"
+ZENOH_RELAY = "bare Zenoh relay, 2 hops"
 
 
 def _floor(stat: str) -> tuple[str, str]:
     """The pub/sub floor's `stat` (p50, p99, max) of one-way latency."""
     return (f"baseline_zenoh.latency_ms.{stat}", ZENOH)
+
+
+def _relay_floor(rate: int, stat: str) -> tuple[str, str]:
+    """The two-hop relay floor's `stat` of one-way latency at `rate` Hz (relay_phase)."""
+    return (f"baseline_zenoh_relay_{rate}hz.latency_ms.{stat}", ZENOH_RELAY)
 
 
 def _get_floor(stat: str) -> tuple[str, str]:
@@ -266,14 +272,15 @@ def _command_specs(rate: int) -> list[Spec]:
              f"commands the puma counted per s, sent at {name} (holds included)", "Hz",
              f"{phase}.puma_counter.rate_hz", "higher"),
         Spec(f"cmd_forward_{rate}_p50", f"master→puma p50, {name}", "ms", f"{phase}.puma_ms.p50",
-             "lower", floor=_floor("p50"), target="cmd_1khz_puma_p50_ms" if fast else None),
+             "lower", floor=_relay_floor(rate, "p50"),
+             target="cmd_1khz_puma_p50_ms" if fast else None),
         Spec(f"cmd_forward_{rate}_p99", f"master→puma p99, {name}", "ms", f"{phase}.puma_ms.p99",
-             "lower", floor=_floor("p99")),
+             "lower", floor=_relay_floor(rate, "p99")),
         Spec(f"cmd_setpoint_{rate}_p50", f"master→setpoint p50, {name}", "ms",
-             f"{phase}.setpoint_ms.p50", "lower", floor=_floor("p50"),
+             f"{phase}.setpoint_ms.p50", "lower", floor=_relay_floor(rate, "p50"),
              target="cmd_1khz_setpoint_p50_ms" if fast else None),
         Spec(f"cmd_setpoint_{rate}_p99", f"master→setpoint p99, {name}", "ms",
-             f"{phase}.setpoint_ms.p99", "lower", floor=_floor("p99"),
+             f"{phase}.setpoint_ms.p99", "lower", floor=_relay_floor(rate, "p99"),
              target="cmd_1khz_setpoint_p99_ms" if fast else None),
     ]  # fmt: skip
 
@@ -300,6 +307,13 @@ SPECS: tuple[Spec, ...] = (
     Spec("zenoh_floor_get_p99", "bare Zenoh get→reply p99", "ms",
          "baseline_zenoh_query.latency_ms.p99", "lower",
          baseline=("baseline_xmlrpc.latency_ms.p99", XMLRPC)),
+    *(
+        Spec(f"zenoh_relay_{rate}_{stat}", f"bare Zenoh relay, 2 hops, {stat} at {name}", "ms",
+             f"baseline_zenoh_relay_{rate}hz.latency_ms.{stat}", "lower",
+             baseline=(f"baseline_zenoh.latency_ms.{stat}", "bare Zenoh, 1 hop at 1 kHz"))
+        for rate, name in ((100, "100 Hz"), (1000, "1 kHz"))
+        for stat in ("p50", "p99")
+    ),
     Spec("force_rate_alone", "force rate, alone", "Hz", "force_alone.rate_hz", "higher",
          baseline=("baseline_tcp.rate_hz", TCP), floor=("baseline_zenoh.rate_hz", ZENOH),
          paper="force_alone_hz", target="force_alone_hz"),

@@ -7,8 +7,9 @@ mode connected to the router. The bench itself is one more client: the operator'
 The CPU phases at the end run the sim profile's set instead (services.tools.bench.system).
 
 Phases, in order (each `phase_s` long): IK throughput (in the bench process, before any
-child runs); force alone; the raw-TCP floor; the bare-Zenoh floor; commands at 100 Hz and at
-1 kHz (services.tools.bench.commands); method calls, the bare-Zenoh get→reply floor and the
+child runs); force alone; the raw-TCP floor; the bare-Zenoh floor; the two-hop bare-Zenoh
+relay at each command rate (services.tools.bench.relay_phase); commands at 100 Hz and at 1 kHz
+(services.tools.bench.commands); method calls, the bare-Zenoh get→reply floor and the
 XML-RPC baseline; force + stereo at the paper's setting; force + stereo at 640×480@30; CPU
 per service idle, then during 1 kHz teleop with VGA stereo.
 """
@@ -32,6 +33,7 @@ from services.tools.bench.notes import busy_note, force_note
 from services.tools.bench.options import BenchOptions, RunResult, Say
 from services.tools.bench.probes import CommandDriver, StreamProbe
 from services.tools.bench.procs import Children, free_port, telerobot_argv, wait_alive, wait_log
+from services.tools.bench.relay_phase import phase_relay_floor
 from services.tools.bench.rpc_phase import phase_rpc
 from services.tools.bench.video_phase import phase_video
 
@@ -131,6 +133,8 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
                 phase_tcp(opts, res, say)
             with log.phase("baseline_zenoh"):
                 phase_zenoh_floor(kids, node, endpoint, opts, res, say)
+            with log.phase("baseline_zenoh_relay"):
+                phase_relay_floor(kids, node, endpoint, opts.command_rates_hz, opts, res, say)
             driver = CommandDriver(node, MASTER_ID)
             for i, rate in enumerate(opts.command_rates_hz):
                 with log.phase(f"commands_{rate:.0f}hz"):

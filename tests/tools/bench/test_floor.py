@@ -14,7 +14,7 @@ from services.bus.messages import ForceSample
 from services.tools.bench import floor, stats
 from services.tools.bench.baselines import FORCE_C_NM, FORCE_F_N, FORCE_RAW, force_payload
 from services.tools.bench.probes import StreamProbe
-from tests.conftest import Net
+from tests.conftest import Net, wait_until
 
 RUN_TIMEOUT_S = 60.0
 
@@ -94,3 +94,38 @@ def test_time_gets_gives_up_when_nobody_serves(net: Net) -> None:
     client = net.node("client")
     with pytest.raises(TimeoutError, match="no reply"):
         floor.time_gets(client.session, 1, timeout_s=0.1, startup_s=0.3)
+
+
+def test_relay_process_puts_every_sample_on_again_untouched(net: Net) -> None:
+    bench = net.node("bench")  # listens: the relay process connects to it as a peer
+    probe = StreamProbe(bench, floor.FLOOR_RELAY_OUT, lambda m: (m.seq, m.t_ns)).start()
+    pub = floor.declare_floor_publisher(bench.session, floor.FLOOR_RELAY_IN.key)
+    proc = subprocess.Popen(
+        floor.relay_argv(net.endpoint, mode="peer"),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        # route set-up: put seq 1 until it comes back, then 2…50 once each
+        assert wait_until(lambda: pub.put(force_payload(1, 11)) or probe.count() > 0, 30.0)
+        for seq in range(2, 51):
+            pub.put(force_payload(seq, seq * 11))
+        assert wait_until(lambda: probe.newest() is not None and probe.newest()[1][0] == 50)
+        proc.terminate()  # SIGTERM: the relay leaves through its own close
+        out, err = proc.communicate(timeout=RUN_TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        pub.undeclare()
+    records = probe.stop()
+    seqs = [r[1][0] for r in records]
+    assert proc.returncode == 0, err
+    assert floor.RELAYING in out
+    assert seqs[-49:] == list(range(2, 51)) and set(seqs[:-49]) == {1}
+    assert [r[1][1] for r in records[-49:]] == [s * 11 for s in range(2, 51)]  # bytes untouched
+    # set-up puts the relay got before the way back existed were relayed to nobody
+    assert int(out.split("relayed ")[-1]) >= len(records)
+    assert probe.rejected == 0
