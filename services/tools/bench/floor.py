@@ -29,6 +29,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType
@@ -106,11 +107,14 @@ def declare_floor_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher
     )
 
 
-def relay(endpoint: str, mode: str, stop: threading.Event) -> int:
+def relay(endpoint: str, mode: str, stop: threading.Event, take: Sequence[str] = ()) -> int:
     """The relay: every sample on FLOOR_RELAY_IN is put on FLOOR_RELAY_OUT at once, in Zenoh's
-    callback, until `stop`; how many it relayed."""
+    callback, until `stop`; how many it relayed. It also takes the keys `take` the way the
+    decision takes robot/force and robot/state (Zenoh keeps the newest in a ring of one; no
+    Python per sample), so its link carries what the decision's does."""
     relayed = 0
     with _session(endpoint, mode) as session:
+        taken = [session.declare_subscriber(k, zenoh.handlers.RingChannel(1)) for k in take]
         pub = declare_floor_publisher(session, FLOOR_RELAY_OUT.key)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -124,6 +128,8 @@ def relay(endpoint: str, mode: str, stop: threading.Event) -> int:
             pass
         sub.undeclare()
         pub.undeclare()
+        for t in taken:
+            t.undeclare()
     return relayed
 
 
@@ -195,8 +201,8 @@ def pub_argv(endpoint: str, rate_hz: float, duration_s: float, mode: str = "clie
     ]
 
 
-def relay_argv(endpoint: str, mode: str = "client") -> list[str]:
-    return [
+def relay_argv(endpoint: str, mode: str = "client", take: Sequence[str] = ()) -> list[str]:
+    argv = [
         sys.executable,
         "-m",
         "services.tools.bench.floor",
@@ -206,6 +212,9 @@ def relay_argv(endpoint: str, mode: str = "client") -> list[str]:
         "--mode",
         mode,
     ]
+    for key in take:
+        argv += ["--take", key]
+    return argv
 
 
 def serve_argv(endpoint: str, reply_file: Path, mode: str = "client") -> list[str]:
@@ -279,6 +288,9 @@ def main(argv: list[str] | None = None) -> int:
         if name == "pub":
             s.add_argument("--rate-hz", type=float, default=1000.0)
             s.add_argument("--duration-s", type=float, default=5.0)
+        elif name == "relay":
+            s.add_argument("--take", action="append", default=[], metavar="KEY",
+                           help="also take KEY, newest kept (repeatable)")  # fmt: skip
         elif name == "serve":
             s.add_argument("--reply", required=True, metavar="FILE", help="msgpack map to reply")
     args = p.parse_args(argv)
@@ -293,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
     if args.cmd == "relay":
-        print(f"relayed {relay(args.connect, args.mode, stop)}", flush=True)
+        print(f"relayed {relay(args.connect, args.mode, stop, args.take)}", flush=True)
         return 0
     serve(args.connect, args.mode, Path(args.reply).read_bytes(), stop)
     return 0

@@ -6,11 +6,11 @@ one-hop floor (`baseline_zenoh`) is not its floor. Here a minimal relay process
 (services.tools.bench.floor `relay`) puts each sample on again inline in Zenoh's callback, so
 what master → puma costs above this is ours: the decision's and the puma's own Python.
 
-The machine carries what it carries in the command phases: there the decision takes
-robot/force (1 kHz through the router) while it follows, so here the bench takes it the way
-the decision does (Zenoh keeps the newest in a ring of one, no Python per sample). Without
-it the force service sends nothing (nobody subscribes) and the floor would be measured on a
-quieter machine than the path it is set against.
+The relay takes robot/force and robot/state the way the decision does while it follows
+(Zenoh keeps the newest in a ring of one, no Python per sample): its link carries what the
+decision's carries, and the force service sends its 1 kHz through the router as in the
+command phases. Without that the force service sends nothing (nobody subscribes) and the
+floor would be measured on a quieter machine than the path it is set against.
 """
 
 from __future__ import annotations
@@ -22,11 +22,12 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from services.bus.keys import FORCE
+from services.bus.keys import FORCE, STATE
 from services.bus.node import Node
 from services.bus.rate import RateLoop
 from services.tools.bench import floor, stats
 from services.tools.bench.baselines import force_payload
+from services.tools.bench.force_phases import counters_delta, force_counters
 from services.tools.bench.options import BenchOptions, RunResult, Say
 from services.tools.bench.probes import StreamProbe
 from services.tools.bench.procs import Children, wait_log
@@ -76,17 +77,11 @@ def phase_relay_floor(
     `baseline_zenoh_relay_<rate>hz` each."""
     probe = StreamProbe(node, floor.FLOOR_RELAY_OUT, lambda m: (m.seq, m.t_ns)).start()
     pub = floor.declare_floor_publisher(node.session, floor.FLOOR_RELAY_IN.key)
-    force = node.latest(FORCE)  # robot/force flows, as while the decision follows
     try:
-        relay = kids.spawn("zenoh-relay", floor.relay_argv(endpoint))
+        relay = kids.spawn("zenoh-relay", floor.relay_argv(endpoint, take=(FORCE.key, STATE.key)))
         wait_log(relay, floor.RELAYING, opts.startup_timeout_s)
         seq = _route(kids, pub, probe, opts.startup_timeout_s)
-        deadline = time.monotonic() + opts.startup_timeout_s
-        while force.read() is None:  # the force service starts sending on our subscription
-            kids.check()
-            if time.monotonic() > deadline:
-                raise TimeoutError("robot/force never flowed to the bench")
-            time.sleep(0.01)
+        _wait_force_flowing(kids, node, opts.startup_timeout_s)
         for rate in rates_hz:
             key = relay_key(rate)
             say(
@@ -94,7 +89,7 @@ def phase_relay_floor(
                 f"through the router) for {opts.phase_s:g} s …"
             )
             first = seq
-            f0 = force.read()
+            f0, t0 = force_counters(node), time.monotonic()
             loop = RateLoop(rate)
             end = time.monotonic() + opts.phase_s
             while time.monotonic() < end:
@@ -103,11 +98,11 @@ def phase_relay_floor(
                 loop.sleep()
             _drain(probe, seq, DRAIN_S)
             fig = relay_figures(rate, seq - first, first, probe.snapshot())
-            f1 = force.read()
-            # robot/force's rate meanwhile (the sensor's seq), to show the load was there
+            # robot/force's rate meanwhile (samples the service handed to the bus)
+            force_sent = counters_delta(f0, force_counters(node))
             fig["force_rate_hz"] = (
-                (f1[0].seq - f0[0].seq) / opts.phase_s
-                if f0 is not None and f1 is not None
+                force_sent["published"] / (time.monotonic() - t0)
+                if force_sent and "published" in force_sent
                 else None
             )
             res.phases[key] = fig
@@ -116,14 +111,29 @@ def phase_relay_floor(
             say(
                 f"    {fig['received']} of {fig['sent']} back, one way p50 "
                 f"{ms_text(lat['p50'])} p99 {ms_text(lat['p99'])}; robot/force meanwhile "
-                + (f"{flow:.0f} Hz" if flow is not None else "not flowing")
+                + (f"{flow:.0f} Hz" if flow is not None else "unknown")
             )
             kids.check("zenoh-relay")
     finally:
-        force.watch(False)
         probe.stop()
         pub.undeclare()
         kids.stop("zenoh-relay")
+
+
+def _wait_force_flowing(kids: Children, node: Node, timeout_s: float) -> None:
+    """Until the force service hands samples to the bus (it starts on the relay's
+    subscription, as on the decision's)."""
+    deadline = time.monotonic() + timeout_s
+    first = force_counters(node)
+    while True:
+        kids.check()
+        now = force_counters(node)
+        sent = counters_delta(first, now)
+        if sent is not None and sent.get("published", 0) > 0:
+            return
+        if time.monotonic() > deadline:
+            raise TimeoutError("the force service never sent on the relay's subscription")
+        time.sleep(0.05)
 
 
 def _route(kids: Children, pub: zenoh.Publisher, probe: StreamProbe[Any], timeout_s: float) -> int:

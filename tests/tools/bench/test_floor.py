@@ -101,7 +101,7 @@ def test_relay_process_puts_every_sample_on_again_untouched(net: Net) -> None:
     probe = StreamProbe(bench, floor.FLOOR_RELAY_OUT, lambda m: (m.seq, m.t_ns)).start()
     pub = floor.declare_floor_publisher(bench.session, floor.FLOOR_RELAY_IN.key)
     proc = subprocess.Popen(
-        floor.relay_argv(net.endpoint, mode="peer"),
+        floor.relay_argv(net.endpoint, mode="peer", take=("robot/force", "robot/state")),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -129,3 +129,11 @@ def test_relay_process_puts_every_sample_on_again_untouched(net: Net) -> None:
     # set-up puts the relay got before the way back existed were relayed to nobody
     assert int(out.split("relayed ")[-1]) >= len(records)
     assert probe.rejected == 0
+
+
+def test_relay_argv_takes_each_key() -> None:
+    argv = floor.relay_argv("tcp/127.0.0.1:7447", take=("robot/force", "robot/state"))
+    assert argv[argv.index("relay") :] == [
+        "relay", "--connect", "tcp/127.0.0.1:7447", "--mode", "client",
+        "--take", "robot/force", "--take", "robot/state",
+    ]  # fmt: skip
