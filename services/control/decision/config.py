@@ -108,7 +108,8 @@ class DecisionConfig:
         default spans the table (x 0.35…0.85, y −0.45…0.45, top z = 0.40) and its margins;
         its floor is the table top, so the tool point never enters the table.
       max_tool_speed_m_s, max_tool_rot_speed_rad_s: the supervised target never moves
-        faster (per tick: speed / rate_hz).
+        faster: a step covers at most speed × the time since the previous one (at most
+        0.1 s of it: `target.MAX_SPAN_S`), whatever the master's rate.
       approach_zone_m, approach_speed_m_s: within approach_zone_m of a face of the
         workspace box, the target moves towards that face at most at approach_speed_m_s
         (guarded approach: the floor is the table top, so a tool that touches it arrives
