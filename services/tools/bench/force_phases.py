@@ -181,20 +181,12 @@ def phase_zenoh_floor(
     finally:
         records = probe.stop()
         kids.stop("zenoh-floor")
-    rx = np.array([r[0] for r in records], dtype=np.int64)
-    seqs = [int(r[1][0]) for r in records]
-    lat = stats.latencies_ms(rx, [r[1][1] for r in records])
-    loss = stats.seq_loss(seqs)
     wall_s = t_b - t_a
     router = cpu.percent_of_core(cpu_a, cpu_b, wall_s).get("router")
     res.phases["baseline_zenoh"] = {
         "duration_s": sent.wall_s,
-        "sent": sent.sent,
-        "received": len(seqs),
-        "rate_hz": stats.rate_from_times(rx),
-        "payload_bytes": len(force_payload(max(seqs, default=1), time.time_ns())),
-        "latency_ms": stats.summarize(lat).as_dict(),
-        "loss": {**loss.as_dict(), "lost": sent.sent - loss.unique},
+        **stats.sent_stream(sent.sent, records),
+        "payload_bytes": len(force_payload(sent.sent, time.time_ns())),
         "rejected": probe.rejected,
         "publisher_cpu_pct": sent.cpu_pct,
         "subscriber_cpu_pct": (own_b - own_a) / wall_s * 100.0 if wall_s > 0 else None,

@@ -119,7 +119,7 @@ class Trace:
     master: list[PassivityState] = field(default_factory=list)
     felt: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, shown f_z up)
     puma_cmds: int = 0
-    events: list[tuple[float, str]] = field(default_factory=list)  # (arrival, monotonic s)
+    events: list[tuple[float, str]] = field(default_factory=list)  # (arrival, monotonic s; text)
     master_rx_s: float = 0.0
     _R: np.ndarray = field(default_factory=lambda: np.eye(3))
 

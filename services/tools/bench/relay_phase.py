@@ -19,7 +19,6 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-import numpy as np
 import zenoh
 
 from services.bus.keys import FORCE, STATE
@@ -37,31 +36,9 @@ DRAIN_S = 2.0
 ROUTE_PUT_S = 0.01
 """Before the timed run, one put per this until the first comes back (route set-up)."""
 
-Record = tuple[int, tuple[Any, ...]]
-
 
 def relay_key(rate_hz: float) -> str:
     return f"baseline_zenoh_relay_{rate_hz:.0f}hz"
-
-
-def relay_figures(
-    rate_hz: float, sent: int, first: int, records: Sequence[Record]
-) -> dict[str, Any]:
-    """The figures of one rate: samples `first`+1 … `first`+`sent` were timed; `records` are
-    the probe's `(arrival_ns, (seq, t_ns))` (the route set-up's samples are left out)."""
-    timed = [r for r in records if first < int(r[1][0]) <= first + sent]
-    seqs = [int(r[1][0]) for r in timed]
-    loss = stats.seq_loss(seqs)
-    rx = np.array([r[0] for r in timed], dtype=np.int64)
-    lat = stats.latencies_ms(rx, [int(r[1][1]) for r in timed])
-    return {
-        "sent_rate_hz": rate_hz,
-        "sent": sent,
-        "received": len(seqs),
-        "rate_hz": stats.rate_from_times(rx),
-        "latency_ms": stats.summarize(lat).as_dict(),
-        "loss": {**loss.as_dict(), "lost": sent - loss.unique},
-    }
 
 
 def phase_relay_floor(
@@ -97,7 +74,7 @@ def phase_relay_floor(
                 pub.put(force_payload(seq, time.time_ns()))
                 loop.sleep()
             _drain(probe, seq, DRAIN_S)
-            fig = relay_figures(rate, seq - first, first, probe.snapshot())
+            fig = {"sent_rate_hz": rate, **stats.sent_stream(seq - first, probe.snapshot(), first)}
             # robot/force's rate meanwhile (samples the service handed to the bus)
             force_sent = counters_delta(f0, force_counters(node))
             fig["force_rate_hz"] = (

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -145,6 +146,26 @@ def seq_loss(seqs: Sequence[int]) -> SeqLoss:
         duplicates=duplicates,
         reordered=reordered,
     )
+
+
+def sent_stream(
+    sent: int, records: Sequence[tuple[int, tuple[Any, ...]]], first: int = 0
+) -> dict[str, Any]:
+    """Figures of a stream the bench knows the sending of: samples `first`+1 … `first`+`sent`
+    were sent; `records` are a probe's `(arrival_ns, (seq, t_ns))` (others, such as a route
+    set-up's, are left out). Received, rate from the arrivals, one-way latency summary, seq
+    loss with `lost` = sent − distinct received."""
+    timed = [r for r in records if first < int(r[1][0]) <= first + sent]
+    seqs = [int(r[1][0]) for r in timed]
+    loss = seq_loss(seqs)
+    rx = np.array([r[0] for r in timed], dtype=np.int64)
+    return {
+        "sent": sent,
+        "received": len(seqs),
+        "rate_hz": rate_from_times(rx),
+        "latency_ms": summarize(latencies_ms(rx, [int(r[1][1]) for r in timed])).as_dict(),
+        "loss": {**loss.as_dict(), "lost": sent - loss.unique},
+    }
 
 
 def rate_hz(count: int, duration_s: float) -> float:

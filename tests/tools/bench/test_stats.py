@@ -263,3 +263,20 @@ def test_stamped_commands_without_the_puma_stream_takes_each_origins_first_state
 def test_stamped_commands_of_services_without_the_fields_is_empty() -> None:
     got = stats.stamped_commands([1, 2], [(1, None)], [(1, None, None, None)])
     assert (got.reached, got.sampled, got.puma_ms.size, got.setpoint_ms.size) == (0, 0, 0, 0)
+
+
+def test_sent_stream_counts_only_the_timed_samples_and_their_loss() -> None:
+    # seqs 1–3 were a route set-up; 4–13 timed (10 sent), 7 lost; each back 2 ms after its stamp
+    records = [(t * 1_000_000 + 2_000_000, (s, t * 1_000_000)) for t, s in enumerate(range(1, 14))]
+    records = [r for r in records if r[1][0] != 7]
+    fig = stats.sent_stream(10, records, first=3)
+    assert fig["sent"] == 10 and fig["received"] == 9
+    assert fig["loss"]["lost"] == 1
+    assert fig["latency_ms"]["p50"] == pytest.approx(2.0)
+    assert fig["latency_ms"]["max"] == pytest.approx(2.0)
+    assert fig["rate_hz"] == pytest.approx(8 / 0.009)  # 9 arrivals over 9 ms
+
+
+def test_sent_stream_with_nothing_back_is_all_lost() -> None:
+    fig = stats.sent_stream(5, [])
+    assert fig["received"] == 0 and fig["loss"]["lost"] == 5
