@@ -225,7 +225,7 @@ class HaplyMaster:
             raise DeviceNotFound(f"no Inverse3 ({wanted or 'any'}) at {self._url}", found)
         self._inverse3_id, self._grip_id = picked, ""
         self._session_id = inventory.session_id
-        self._accept(inventory, time.monotonic())
+        self._accept(inventory, time.monotonic(), self._since())
         if not self._has_grip:
             log.warning("no wireless VerseGrip at %s yet: the dead-man cannot engage", self._url)
         configure = {"profile": {"name": SESSION_PROFILE}, "basis": {"permutation": "XYZ"}}
@@ -305,8 +305,15 @@ class HaplyMaster:
 
     def _receive(self) -> None:
         """Take the state frame of our oldest unanswered message (waiting up to
-        reply_timeout_s), then whatever else has already arrived (at most _MAX_DRAIN)."""
+        reply_timeout_s), then whatever else has already arrived (at most _MAX_DRAIN).
+
+        Every frame of one drain is checked for jumps against the hand as it was before it
+        (`_since`): frames that arrive together after a late tick were answered over that
+        whole time, so their steps between each other, timed by their arrival, would read as
+        jumps (a master-shift, then a rebase that loses the motion) though the hand moved at
+        a hand's speed (fresh-clone CI, 2026-11-26: a 108 ms late tick)."""
         timeout = self._reply_timeout_s if self._in_flight else 0.0
+        since = self._since()
         for _ in range(_MAX_DRAIN):
             try:
                 raw = self._ws.recv(timeout=timeout)
@@ -320,10 +327,21 @@ class HaplyMaster:
             except ProtocolError as e:
                 self._reject(str(e))
             else:
-                self._accept(frame, time.monotonic())
+                self._accept(frame, time.monotonic(), since)
             timeout = 0.0
 
-    def _accept(self, frame: ServiceFrame, now: float) -> None:
+    def _since(self) -> tuple[NDArray[np.float64], NDArray[np.float64], float] | None:
+        """The hand as the last valid frame gave it, and that frame's time (None before one)."""
+        return (self._p, self._R, self._valid_t) if self._stats["frames"] > 0 else None
+
+    def _accept(
+        self,
+        frame: ServiceFrame,
+        now: float,
+        since: tuple[NDArray[np.float64], NDArray[np.float64], float] | None,
+    ) -> None:
+        """Take a valid frame; a step from `since` (the hand's position, orientation and the
+        time of its frame; None for the first) faster than a hand can move is a jump."""
         cursor = frame.cursor(self._inverse3_id)
         if cursor is None:
             self._reject(f"inverse3 {self._inverse3_id} missing from the state frame")
@@ -333,10 +351,11 @@ class HaplyMaster:
         grip = frame.grip(self._grip_id) if self._grip_id else None
         p = np.array(cursor.position_m)
         R = self._R if grip is None else R_from_wxyz(grip.orientation_wxyz)
-        if self._stats["frames"] > 0:
-            dt = now - self._valid_t
-            step_m = float(np.linalg.norm(p - self._p))
-            turn_rad = rotation_angle(self._R.T @ R)
+        if since is not None:
+            p0, R0, t0 = since
+            dt = now - t0
+            step_m = float(np.linalg.norm(p - p0))
+            turn_rad = rotation_angle(R0.T @ R)
             if step_m > self._max_speed_m_s * dt + 0.005 or (
                 turn_rad > self._max_rate_rad_s * dt + 0.05
             ):

@@ -354,6 +354,32 @@ def test_a_teleport_reads_as_master_shift_for_one_tick(
     assert not r.clutch and r.hand_p[0] == pytest.approx(0.3)
 
 
+def test_frames_that_arrive_together_after_a_late_tick_are_no_jump(
+    fake: FakeInverseService, haply: HaplyMaster
+) -> None:
+    """Two replies answered 6 mm apart, read in one drain after the loop stalled 200 ms: the
+    hand moved 12 mm in 200 ms, a hand's speed. Judged against each other by arrival (0 ms
+    apart, CI 2026-11-26) they read as a jump, a master-shift, a rebase losing the motion."""
+    fake.set_pose(a=True)
+    assert wait_until(lambda: not haply.read(0.01).clutch)
+    jumps, x0 = haply.stats.jumps, haply.read(0.01).hand_p[0]
+    moved = [_frame_at(x0 + dx) for dx in (0.006, 0.012)]
+    fake.inject(*moved)
+    n = fake.messages
+    haply._send(np.zeros(3))  # two messages the stalled loop would have sent …
+    haply._send(np.zeros(3))
+    assert wait_until(lambda: fake.messages >= n + 2)  # … answered by the two frames
+    haply._valid_t -= 0.2  # … and its last valid frame 200 ms old
+    r = haply.read(0.01)
+    assert r.hand_p[0] == pytest.approx(x0 + 0.012)
+    assert not r.clutch and haply.stats.jumps == jumps
+
+
+def _frame_at(x: float) -> str:
+    """The fake's own frame (dead-man held, grip level) with the cursor at x."""
+    return json.dumps(frame_with(("inverse3", 0, "state", "cursor_position", "x"), x, ENGAGED_POSE))
+
+
 def test_a_missing_grip_releases_the_dead_man(fake: FakeInverseService, haply: HaplyMaster) -> None:
     fake.set_pose(a=True)
     assert wait_until(lambda: not haply.read(0.01).clutch)
