@@ -39,6 +39,7 @@ from services.bus.errors import (
     Unavailable,
 )
 from services.bus.events import EventLimiter
+from services.bus.intake import Intake
 from services.bus.keys import ALIVE_PREFIX, EVENTS, Topic, alive_key, rpc_key
 from services.bus.messages import MAX_TEXT, Event, Message
 from services.bus.streams import (
@@ -140,6 +141,7 @@ class Node:
         self._closed = False
         self._token: Any = None
         self._decls: list[Any] = []
+        self._intakes: list[Intake[Any, Any]] = []
         self._subs: list[Subscription[Any]] = []
         self._event_pub: Publisher[Event] | None = None
         self._event_seq = 0
@@ -168,6 +170,8 @@ class Node:
             if self._closed:
                 return
             self._closed = True
+        for intake in self._intakes:
+            intake.close()
         self._rpc_pool.shutdown(wait=False, cancel_futures=True)
         try:
             self.session.close()
@@ -228,18 +232,16 @@ class Node:
 
     def batches(
         self, topic: Topic[M], on_batch: Callable[[tuple[M, ...]], None], depth: int = 64
-    ) -> None:
-        """React to a stream on arrival, in batches when the reader falls behind.
+    ) -> Intake[zenoh.Sample, M]:
+        """React to a stream on arrival, in batches when the reader falls behind (intake.py).
 
-        Zenoh keeps up to `depth` samples in a ring (the oldest dropped beyond that) and a
-        thread of ours wakes on each arrival, takes every sample waiting, and calls
-        `on_batch` once with the valid ones in arrival order. A reader slower than the
-        stream thus handles what accumulated at once instead of queuing behind Zenoh's
-        callback thread (where a backlog grows without bound and pushes back on the
-        publisher). For streams whose newest message supersedes the older ones
-        (commands relative to an engagement). Bad payloads are counted and reported."""
-        sub = self.session.declare_subscriber(topic.key, zenoh.handlers.RingChannel(depth))
-        self._decls.append(sub)
+        While the reader keeps up, each sample is handled at once in Zenoh's callback (no
+        thread to wake); one that arrives while the reader is busy, or queued in Zenoh behind
+        the last, is stored (up to `depth`, the oldest dropped) and a thread of ours takes
+        what piled up in one call, so the delay stays bounded instead of growing behind a
+        slow reader. `on_batch` gets the valid messages in arrival order and must not block:
+        it may run on Zenoh's thread. For streams whose newest message supersedes the older
+        ones (commands relative to an engagement). Bad payloads are counted and reported."""
 
         def decode(sample: zenoh.Sample) -> M | None:
             try:
@@ -248,35 +250,20 @@ class Node:
                 self.report_rejected(str(sample.key_expr), str(e))
                 return None
 
-        def run() -> None:
-            while not self._closed:
-                try:
-                    first = sub.recv()  # blocks (the GIL released) until a sample arrives
-                except Exception:  # the subscriber was undeclared: the node is closing
-                    return
-                samples = [first]
-                for _ in range(depth):
-                    try:
-                        more = sub.try_recv()
-                    except Exception:
-                        more = None
-                    if more is None:
-                        break
-                    samples.append(more)
-                msgs = tuple(m for m in map(decode, samples) if m is not None)
-                if not msgs:
-                    continue
-                try:
-                    on_batch(msgs)
-                except Exception:  # a handler bug is reported, the stream keeps flowing
-                    log.exception("handler for %s failed", topic.key)
-                    self.event(
-                        "error",
-                        f"handler for {topic.key} failed",
-                        {"traceback": traceback.format_exc(limit=5)},
-                    )
+        def on_error() -> None:
+            log.exception("handler for %s failed", topic.key)
+            self.event(
+                "error",
+                f"handler for {topic.key} failed",
+                {"traceback": traceback.format_exc(limit=5)},
+            )
 
-        threading.Thread(target=run, name=f"{self.name}-{topic.key}", daemon=True).start()
+        intake: Intake[zenoh.Sample, M] = Intake(
+            f"{self.name}-{topic.key}", decode, on_batch, on_error, depth
+        )
+        self._intakes.append(intake)
+        self._decls.append(self.session.declare_subscriber(topic.key, intake.on_sample))
+        return intake
 
     def latest(self, topic: Topic[M], watch: bool = True) -> Latest[M]:
         """The newest message of `topic`, decoded when read (see `Latest`); `watch=False`:

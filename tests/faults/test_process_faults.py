@@ -293,9 +293,9 @@ def test_flood_of_commands_leaves_decision_responsive_and_force_streaming(
         lines = [ln for ln in rogue.log_tail(50).splitlines() if ln.startswith(MARK)]
         assert lines, f"the rogue did not finish its flood\n{rogue.log_tail()}"
         result = json.loads(lines[-1][len(MARK) :])
-        # The decision takes robot/cmd from a ring of 64 (Node.batches): under a flood the
-        # oldest samples are dropped by Zenoh unread, so it counts what it read, never more
-        # than was sent, and has nothing left to work through once the ring is empty.
+        # The decision takes robot/cmd through its intake (Node.batches): under a flood what
+        # waits is bounded (64, the oldest dropped unread), so it counts what it read, never
+        # more than was sent, and has nothing left to work through once the flood ends.
         t_end = time.monotonic()
         counts: list[int] = []
 

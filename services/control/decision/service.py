@@ -127,7 +127,7 @@ class DecisionService:
         self._pub = node.publisher(PUMA_CMD)
         self.passivity = SlaveTdpa(node, contact_n=config.max_force_n) if config.passivity else None
         self._op_engage: dict[str, int] = {}
-        node.batches(CMD, self._on_commands)
+        self._intake = node.batches(CMD, self._on_commands)
         # What `status` shows of the other services: kept, refreshed behind (peeks.py).
         self._peeks = tuple(
             Peek(node, service, method, STATUS_CALL_TIMEOUT_S)
@@ -437,6 +437,12 @@ class DecisionService:
                 "late_max_ms": round(self.timer_late_max_ms, 3),
                 "errors": self.loop_errors,
                 "publish_errors": self.publish_errors,
+                "intake": {
+                    "inline": self._intake.inline,
+                    "handed": self._intake.handed,
+                    "dropped": self._intake.dropped,
+                    "batches": self._intake.batches,
+                },
             },
         }
 

@@ -286,11 +286,11 @@ def phase_commands(
     events and the puma's own command counter around it) and its notes."""
     key = f"commands_{rate_hz:.0f}hz"
     say(f"[{key}] robot/cmd at {rate_hz:g} Hz through decision to puma for {duration_s:g} s …")
-    before = interventions(node)
+    before = decision_counters(node)
     puma_before, t_before = puma_commands_counter(node), time.monotonic()
     s = stream(node, driver, rate_hz, duration_s, sign)
     puma_after, t_after = puma_commands_counter(node), time.monotonic()
-    after = interventions(node)
+    after = decision_counters(node)
     fig = command_figures(rate_hz, s.run, s.step_m, s.fwd_rec, s.st_rec)
     t_first = s.run.sent[0][1] if s.run.sent else 0
     ev = [e for rx, e in s.ev_rec if rx >= t_first and e[0] == "decision"]
@@ -298,10 +298,10 @@ def phase_commands(
     if fig["puma_counter"] is None:
         fig["na"]["puma_counter"] = "puma status has no counters.commands"
     fig["decision_events"] = dict(Counter(e[1] for e in ev))
-    fig["decision_interventions"] = (
-        {k: after[k] - before.get(k, 0) for k in after if after[k] != before.get(k, 0)}
+    fig["decision_interventions"], fig["decision_intake"] = (
+        (counters_delta(before[0], after[0]), counters_delta(before[1], after[1]))
         if before is not None and after is not None
-        else None
+        else (None, None)
     )
     fig["decision_messages"] = [e[2] for e in ev if e[1] != "status"][:MAX_MESSAGES]
     notes = [method_note(key, fig)]
@@ -321,9 +321,20 @@ def phase_commands(
         + f"); master→puma p50 {ms_text(fig['puma_ms']['p50'])} p99 "
         f"{ms_text(fig['puma_ms']['p99'])}; master→setpoint p50 "
         f"{ms_text(fig['setpoint_ms']['p50'])} p99 {ms_text(fig['setpoint_ms']['p99'])} "
-        f"({fig['puma_method']}, {fig['setpoint_method']})"
+        f"({fig['puma_method']}, {fig['setpoint_method']})" + intake_text(fig["decision_intake"])
     )
     return fig, notes
+
+
+def intake_text(intake: dict[str, int] | None) -> str:
+    """How the decision took the phase's commands (status loop.intake), for the log line."""
+    if not intake:
+        return ""
+    return (
+        f"; the decision took {intake.get('inline', 0)} at once in Zenoh's callback, "
+        f"{intake.get('handed', 0)} handed to its intake thread, {intake.get('dropped', 0)} "
+        f"dropped, in {intake.get('batches', 0)} ticks"
+    )
 
 
 def counter_delta(
@@ -351,11 +362,25 @@ def puma_commands_counter(node: Node) -> int | None:
     return value if isinstance(value, int) and not isinstance(value, bool) else None
 
 
-def interventions(node: Node) -> dict[str, int] | None:
-    """The decision's intervention counters (its `status`), to difference around a phase;
-    None when the decision did not answer."""
+def decision_counters(node: Node) -> tuple[dict[str, int], dict[str, int]] | None:
+    """The decision's intervention counters and its command intake's (`status`:
+    `interventions`, `loop.intake`), to difference around a phase; None when the decision
+    did not answer."""
     try:
-        got = node.call("decision", "status", {}, CALL_TIMEOUT_S).get("interventions", {})
+        got = node.call("decision", "status", {}, CALL_TIMEOUT_S)
     except (Unavailable, RpcError):
         return None
-    return {str(k): int(v) for k, v in got.items() if isinstance(v, int)}
+    loop = got.get("loop")
+    intake = loop.get("intake") if isinstance(loop, dict) else None
+    return _ints(got.get("interventions")), _ints(intake)
+
+
+def _ints(d: Any) -> dict[str, int]:
+    if not isinstance(d, dict):
+        return {}
+    return {str(k): v for k, v in d.items() if isinstance(v, int) and not isinstance(v, bool)}
+
+
+def counters_delta(before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
+    """What changed between two readings of counters (those that did not are left out)."""
+    return {k: after[k] - before.get(k, 0) for k in after if after[k] != before.get(k, 0)}

@@ -11,6 +11,8 @@ from services.tools.bench import stats
 from services.tools.bench.commands import (
     command_figures,
     counter_delta,
+    counters_delta,
+    intake_text,
     method_note,
     step_for,
 )
@@ -107,3 +109,15 @@ def test_counter_delta_and_step() -> None:
     assert counter_delta(None, 5, 1.0) is None
     assert step_for(1000.0, 5.0, -1.0) == pytest.approx(-4e-6)  # 20 mm over 5000 commands
     assert step_for(100.0, 5.0, 1.0) == 5e-6  # capped
+
+
+def test_the_decision_counters_change_over_a_phase_and_say_how_commands_were_taken() -> None:
+    before = {"inline": 10, "handed": 2, "dropped": 0, "batches": 11}
+    after = {"inline": 4710, "handed": 290, "dropped": 0, "batches": 4830}
+    delta = counters_delta(before, after)
+    assert delta == {"inline": 4700, "handed": 288, "batches": 4819}  # unchanged: left out
+    assert intake_text(delta) == (
+        "; the decision took 4700 at once in Zenoh's callback, 288 handed to its intake "
+        "thread, 0 dropped, in 4819 ticks"
+    )
+    assert intake_text(None) == "" and intake_text({}) == ""
