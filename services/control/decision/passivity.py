@@ -45,7 +45,7 @@ class SlaveTdpa:
         self,
         node: Node,
         enabled: bool = True,
-        drift_m_s: float = 0.01,
+        drift_m_s: float = 0.03,
         deadband_n: float = DEADBAND_N,
         contact_n: float = math.inf,
     ) -> None:

@@ -89,7 +89,7 @@ class LoopSpec:
     duration_s: float = 7.0
     force_scale: float = 1.0
     max_force_n: float = 40.0
-    drift_m_s: float = 0.01
+    drift_m_s: float = 0.03
     slack_m: float = 0.0
     ramp_n_s: float = 0.0
     limit: bool = True

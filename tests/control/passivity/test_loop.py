@@ -56,9 +56,27 @@ def test_without_delay_tdpa_changes_nothing_the_operator_feels(dofs: int) -> Non
     off, on = contact_metrics(run(0.0, False, dofs)), contact_metrics(run(0.0, True, dofs))
     assert off["stable"] and on["stable"]
     assert on["steady_force_n"] == pytest.approx(off["steady_force_n"], rel=0.05)
-    # The peak with TDPA is at the release (the slave lets go a tick or two later): 10.0 N
-    # against 8.6 N in 1-DoF; while pressing they agree to the steady force's 5 %.
+    # 8.4 N against 8.6 N in 1-DoF (10.0 N at the release while the drift was 1 cm/s).
     assert on["peak_force_n"] == pytest.approx(off["peak_force_n"], rel=0.2)
+
+
+@pytest.mark.parametrize(("seed", "loss"), [(0, 0.0)] + [(seed, 0.01) for seed in range(1, 7)])
+def test_without_delay_the_force_felt_is_the_same_whatever_the_link_drops(
+    seed: int, loss: float
+) -> None:
+    """Issue 18's "at 0 ms within 5 %", on what the operator feels, for every seed and with
+    no loss at all. With the offset given back at 1 cm/s (before 2026-11-26 evening) the
+    slave's correction at the impact was never repaid while the simulated operator pressed:
+    felt 5.8-6.0 N against 8.2 N in every run without loss and in seeds 3-6 (seeds 1-2 only
+    because a dropped packet happened to break the cycle)."""
+    results = []
+    for tdpa in (False, True):
+        spec = LoopSpec(round_trip_s=0.0, jitter=0.1, loss=loss, tdpa=tdpa, seed=seed)
+        results.append(contact_metrics(simulate(spec)))
+    off, on = results
+    assert on["stable"]
+    assert on["felt_force_n"] == pytest.approx(off["felt_force_n"], rel=0.05)
+    assert on["steady_force_n"] == pytest.approx(off["steady_force_n"], rel=0.05)
 
 
 @pytest.mark.parametrize("dofs", [1, 3])
