@@ -311,7 +311,9 @@ class HaplyMaster:
         (`_since`): frames that arrive together after a late tick were answered over that
         whole time, so their steps between each other, timed by their arrival, would read as
         jumps (a master-shift, then a rebase that loses the motion) though the hand moved at
-        a hand's speed (fresh-clone CI, 2026-11-26: a 108 ms late tick)."""
+        a hand's speed (fresh-clone CI, 2026-11-26: a 108 ms late tick). A frame that jumped
+        is where the hand is now: the frames after it in the drain are judged against it (a
+        teleport answered twice is one jump)."""
         timeout = self._reply_timeout_s if self._in_flight else 0.0
         since = self._since()
         for _ in range(_MAX_DRAIN):
@@ -327,7 +329,8 @@ class HaplyMaster:
             except ProtocolError as e:
                 self._reject(str(e))
             else:
-                self._accept(frame, time.monotonic(), since)
+                if self._accept(frame, time.monotonic(), since):
+                    since = self._since()
             timeout = 0.0
 
     def _since(self) -> tuple[NDArray[np.float64], NDArray[np.float64], float] | None:
@@ -339,18 +342,20 @@ class HaplyMaster:
         frame: ServiceFrame,
         now: float,
         since: tuple[NDArray[np.float64], NDArray[np.float64], float] | None,
-    ) -> None:
+    ) -> bool:
         """Take a valid frame; a step from `since` (the hand's position, orientation and the
-        time of its frame; None for the first) faster than a hand can move is a jump."""
+        time of its frame; None for the first) faster than a hand can move is a jump.
+        Returns whether it jumped."""
         cursor = frame.cursor(self._inverse3_id)
         if cursor is None:
             self._reject(f"inverse3 {self._inverse3_id} missing from the state frame")
-            return
+            return False
         if not self._grip_id:
             self._grip_id = _pick([g.device_id for g in frame.grips], self._wanted_grip)
         grip = frame.grip(self._grip_id) if self._grip_id else None
         p = np.array(cursor.position_m)
         R = self._R if grip is None else R_from_wxyz(grip.orientation_wxyz)
+        jumped = False
         if since is not None:
             p0, R0, t0 = since
             dt = now - t0
@@ -360,12 +365,13 @@ class HaplyMaster:
                 turn_rad > self._max_rate_rad_s * dt + 0.05
             ):
                 self._stats["jumps"] += 1
-                self._jumped = True
+                self._jumped = jumped = True
         self._p, self._R = p, R
         self._has_grip = grip is not None
         self._buttons = 0 if grip is None else grip.buttons
         self._valid_t = now
         self._stats["frames"] += 1
+        return jumped
 
     def _reject(self, reason: str) -> None:
         self._stats["rejected"] += 1

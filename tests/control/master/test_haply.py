@@ -364,7 +364,8 @@ def test_frames_that_arrive_together_after_a_late_tick_are_no_jump(
     assert wait_until(lambda: not haply.read(0.01).clutch)
     jumps, x0 = haply.stats.jumps, haply.read(0.01).hand_p[0]
     moved = [_frame_at(x0 + dx) for dx in (0.006, 0.012)]
-    fake.inject(*moved)
+    fake.set_pose(cursor_m=(x0 + 0.012, -0.12, 0.15))  # where the hand is now: the reply to
+    fake.inject(*moved)  # read()'s own message may come in the same drain
     n = fake.messages
     haply._send(np.zeros(3))  # two messages the stalled loop would have sent …
     haply._send(np.zeros(3))
@@ -373,6 +374,28 @@ def test_frames_that_arrive_together_after_a_late_tick_are_no_jump(
     r = haply.read(0.01)
     assert r.hand_p[0] == pytest.approx(x0 + 0.012)
     assert not r.clutch and haply.stats.jumps == jumps
+
+
+def test_a_teleport_answered_twice_in_one_drain_is_one_jump(
+    fake: FakeInverseService, haply: HaplyMaster
+) -> None:
+    """Frames after a jump in the same drain are judged against the jumped frame, where the
+    hand now is (fresh-clone CI 2026-11-26: judged against the hand before the drain, the
+    second reply of a teleport counted as a second jump)."""
+    fake.set_pose(a=True)
+    assert wait_until(lambda: not haply.read(0.01).clutch)
+    jumps, x0 = haply.stats.jumps, haply.read(0.01).hand_p[0]
+    fake.set_pose(cursor_m=(x0 + 0.2, -0.12, 0.15))  # read()'s own reply: there too
+    fake.inject(_frame_at(x0 + 0.2), _frame_at(x0 + 0.2))
+    n = fake.messages
+    haply._send(np.zeros(3))
+    haply._send(np.zeros(3))
+    assert wait_until(lambda: fake.messages >= n + 2)
+    r = haply.read(0.01)
+    assert r.clutch and r.hand_p[0] == pytest.approx(x0 + 0.2)  # a master-shift, this tick
+    assert haply.stats.jumps == jumps + 1
+    assert wait_until(lambda: not haply.read(0.01).clutch)  # the hand stays there
+    assert haply.stats.jumps == jumps + 1
 
 
 def _frame_at(x: float) -> str:
