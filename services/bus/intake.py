@@ -131,13 +131,13 @@ class Intake(Generic[S, M]):
                     return
                 samples = tuple(self._pending)
                 self._pending.clear()
-            msgs = tuple(m for m in map(self._decode, samples) if m is not None)
-            if not msgs:
-                continue
-            self.batches += 1
             try:
+                msgs = tuple(m for m in map(self._decode, samples) if m is not None)
+                if not msgs:
+                    continue
+                self.batches += 1
                 self._on_batch(msgs)
-            except Exception:  # a handler bug is reported, the stream keeps flowing
+            except Exception:  # a bug is reported; the stream and the thread keep going
                 self._on_error()
 
 

@@ -188,6 +188,26 @@ def test_a_failing_handler_is_reported_and_the_stream_flows(make: Make) -> None:
     assert reader.errors == 1 and reader.batches == [(1,), (3,)]
 
 
+def test_a_decoder_bug_is_reported_and_the_thread_goes_on(make: Make) -> None:
+    clock, reader = Clock(), Reader()
+
+    def decode(sample: int) -> int | None:
+        if sample == 99:
+            raise RuntimeError("decoder bug")
+        return sample
+
+    intake: Intake[int, int] = Intake("t", decode, reader.on_batch, reader.on_error, 64, clock)
+    try:
+        back_to_back(intake, clock, range(1, INLINE_RUN + 1))
+        back_to_back(intake, clock, range(99, 100))  # past the budget: on the thread
+        assert wait_until(lambda: reader.errors == 1, DEADLINE_S)
+        back_to_back(intake, clock, range(200, 201))  # still queued: the thread again
+        assert wait_until(lambda: reader.seqs()[-1:] == [200], DEADLINE_S)
+        assert intake.thread.is_alive()
+    finally:
+        intake.close()
+
+
 def test_close_stops_the_thread_and_later_samples_are_ignored(make: Make) -> None:
     clock, reader = Clock(), Reader()
     intake = make(reader, clock)

@@ -45,10 +45,25 @@ def over_link(rtt_ms: float, passivity: bool, transport: str = "tcp") -> dict[st
         raise
 
 
+def link_lost_the_operator(m: dict[str, Any]) -> bool:
+    """The decision held because the operator's session lapsed (its liveliness lost)."""
+    return any("master 'op' lost" in e for e in m["events"])
+
+
 def test_whole_loop_over_a_bad_link_stays_passive_and_settles() -> None:
     """200 ms with Zenoh peers over TCP. (700 ms over UDP keeps these too, but lost the
-    master's liveliness once in 13 runs, which holds the arm: docs/passivity.md.)"""
+    master's liveliness once in 13 runs, which holds the arm: docs/passivity.md.)
+
+    Over TCP too the link itself now and then stalls past the 2 s lease on a lost
+    retransmission, and the operator's liveliness lapses (the decision then holds, as it
+    must): 1 run in 8–12 on 2026-11-26, with this stop's code and with the code before it.
+    Such a run measures the link's TCP, not the loop: it is run once more, and two in a row
+    fail."""
     m = over_link(200.0, passivity=True)
+    if link_lost_the_operator(m):
+        first = m["events"]
+        m = over_link(200.0, passivity=True)
+        assert not link_lost_the_operator(m), ("the operator's session lapsed twice", first)
     # The run measured something: the operator brought the tool onto the table.
     assert m["peak_n"] >= pl.CONTACT_N and m["penetration_mm"] > 0.0, m
     assert len(m["force"]) > 1000
