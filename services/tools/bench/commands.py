@@ -299,7 +299,7 @@ def phase_commands(
         fig["na"]["puma_counter"] = "puma status has no counters.commands"
     fig["decision_events"] = dict(Counter(e[1] for e in ev))
     fig["decision_interventions"], fig["decision_intake"] = (
-        (counters_delta(before[0], after[0]), counters_delta(before[1], after[1]))
+        (changed_counters(before[0], after[0]), changed_counters(before[1], after[1]))
         if before is not None and after is not None
         else (None, None)
     )
@@ -381,6 +381,6 @@ def _ints(d: Any) -> dict[str, int]:
     return {str(k): v for k, v in d.items() if isinstance(v, int) and not isinstance(v, bool)}
 
 
-def counters_delta(before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
+def changed_counters(before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
     """What changed between two readings of counters (those that did not are left out)."""
-    return {k: after[k] - before.get(k, 0) for k in after if after[k] != before.get(k, 0)}
+    return {k: d for k, d in (stats.counters_delta(before, after) or {}).items() if d}

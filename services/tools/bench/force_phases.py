@@ -84,13 +84,6 @@ def force_counters(node: Node) -> dict[str, int] | None:
     return {k: int(got[k]) for k in FORCE_COUNTERS if isinstance(got.get(k), int)}
 
 
-def counters_delta(a: dict[str, int] | None, b: dict[str, int] | None) -> dict[str, int] | None:
-    """b − a per counter, around a measuring window (None if either call failed)."""
-    if a is None or b is None:
-        return None
-    return {k: b[k] - a[k] for k in b if k in a}
-
-
 def phase_force(
     kids: Children, node: Node, opts: BenchOptions, res: RunResult, key: str, say: Say
 ) -> None:
@@ -106,7 +99,7 @@ def phase_force(
     after = force_counters(node)
     fig, trace = force_figures(probe.stop(), t0, t1)
     fig["rejected"] = probe.rejected
-    fig["service"] = counters_delta(before, after)
+    fig["service"] = stats.counters_delta(before, after)
     pct = cpu.percent_of_core(cpu_a, cpu_b, (t1 - t0) / stats.NS_PER_S)
     fig["service_cpu_pct"] = pct.get("force")
     fig["router_cpu_pct"] = pct.get("router")

@@ -26,7 +26,7 @@ from services.bus.node import Node
 from services.bus.rate import RateLoop
 from services.tools.bench import floor, stats
 from services.tools.bench.baselines import force_payload
-from services.tools.bench.force_phases import counters_delta, force_counters
+from services.tools.bench.force_phases import force_counters
 from services.tools.bench.options import BenchOptions, RunResult, Say
 from services.tools.bench.probes import StreamProbe
 from services.tools.bench.procs import Children, wait_log
@@ -76,7 +76,7 @@ def phase_relay_floor(
             _drain(probe, seq, DRAIN_S)
             fig = {"sent_rate_hz": rate, **stats.sent_stream(seq - first, probe.snapshot(), first)}
             # robot/force's rate meanwhile (samples the service handed to the bus)
-            force_sent = counters_delta(f0, force_counters(node))
+            force_sent = stats.counters_delta(f0, force_counters(node))
             fig["force_rate_hz"] = (
                 force_sent["published"] / (time.monotonic() - t0)
                 if force_sent and "published" in force_sent
@@ -105,7 +105,7 @@ def _wait_force_flowing(kids: Children, node: Node, timeout_s: float) -> None:
     while True:
         kids.check()
         now = force_counters(node)
-        sent = counters_delta(first, now)
+        sent = stats.counters_delta(first, now)
         if sent is not None and sent.get("published", 0) > 0:
             return
         if time.monotonic() > deadline:

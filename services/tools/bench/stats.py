@@ -168,6 +168,16 @@ def sent_stream(
     }
 
 
+def counters_delta(
+    a: Mapping[str, int] | None, b: Mapping[str, int] | None
+) -> dict[str, int] | None:
+    """b − a per counter read both times, around a measuring window (None if either reading
+    failed)."""
+    if a is None or b is None:
+        return None
+    return {k: b[k] - a[k] for k in b if k in a}
+
+
 def rate_hz(count: int, duration_s: float) -> float:
     """Events per second over a window of `duration_s` (0 for an empty window)."""
     if count < 0:

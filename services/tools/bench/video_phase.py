@@ -12,7 +12,6 @@ from services.bus.messages import VisionStats
 from services.bus.node import Node
 from services.tools.bench import stats
 from services.tools.bench.force_phases import (
-    counters_delta,
     force_counters,
     force_figures,
     force_line,
@@ -76,7 +75,7 @@ def phase_video(
             "capture_skew_ms": last_stats.skew_ms,
         }
     ffig, trace = force_figures(force_rec, t0, t1)
-    ffig["service"] = counters_delta(before, after)
+    ffig["service"] = stats.counters_delta(before, after)
     inflight = stats.rate_in_windows([r[0] for r in force_rec if t0 <= r[0] <= t1], windows)
     ffig["in_flight"] = {
         "count": inflight.count,

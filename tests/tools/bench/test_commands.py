@@ -9,9 +9,9 @@ import pytest
 
 from services.tools.bench import stats
 from services.tools.bench.commands import (
+    changed_counters,
     command_figures,
     counter_delta,
-    counters_delta,
     intake_text,
     method_note,
     step_for,
@@ -114,7 +114,7 @@ def test_counter_delta_and_step() -> None:
 def test_the_decision_counters_change_over_a_phase_and_say_how_commands_were_taken() -> None:
     before = {"inline": 10, "handed": 2, "dropped": 0, "batches": 11}
     after = {"inline": 4710, "handed": 290, "dropped": 0, "batches": 4830}
-    delta = counters_delta(before, after)
+    delta = changed_counters(before, after)
     assert delta == {"inline": 4700, "handed": 288, "batches": 4819}  # unchanged: left out
     assert intake_text(delta) == (
         "; the decision took 4700 at once in Zenoh's callback, 288 handed to its intake "

@@ -280,3 +280,11 @@ def test_sent_stream_counts_only_the_timed_samples_and_their_loss() -> None:
 def test_sent_stream_with_nothing_back_is_all_lost() -> None:
     fig = stats.sent_stream(5, [])
     assert fig["received"] == 0 and fig["loss"]["lost"] == 5
+
+
+def test_counters_delta_keeps_every_counter_read_both_times() -> None:
+    before = {"samples": 10, "overruns": 2, "gone": 1}
+    after = {"samples": 1010, "overruns": 2, "new": 5}
+    assert stats.counters_delta(before, after) == {"samples": 1000, "overruns": 0}
+    assert stats.counters_delta(None, after) is None
+    assert stats.counters_delta(before, None) is None
