@@ -7,8 +7,10 @@ priority and idle until sensing is triggered; its period (TimerValue) and priori
 - the sampling thread sleeps to absolute deadlines (`MonotonicClock`), so the period does
   not drift; it sleeps until the deadline, and spins the last `spin_us` only where a
   real-time policy (SCHED_FIFO/RR) was asked for and granted; a tick that ends after the
-  next deadline counts the deadlines it missed as overruns and skips them rather than
-  bursting to catch up;
+  next deadline but before the one after it (a short stall: a late wake-up, a preempted
+  put) is followed at once by the missed deadline's tick (`caught_up`; once in a row, so
+  an overloaded loop still sleeps), and a tick that ends later counts the deadlines it
+  missed as overruns and skips them rather than bursting to catch up;
 - `handoff="inline"` (the force service's): `publish` runs on the sampling thread, right
   after the reading (a Zenoh put of pre-encoded bytes, ~10 µs): no hand-off, no thread
   wake-up per sample; a publish that blocks shows as overruns. `handoff="queue"`: each
@@ -128,6 +130,7 @@ class SamplerStats:
     ticks: int
     empty: int
     overruns: int
+    caught_up: int
     drops: int
     published: int
     publish_errors: int
@@ -148,6 +151,7 @@ class SamplerStats:
             "ticks": self.ticks,
             "empty": self.empty,
             "overruns": self.overruns,
+            "caught_up": self.caught_up,
             "drops": self.drops,
             "published": self.published,
             "publish_errors": self.publish_errors,
@@ -238,6 +242,7 @@ class Sampler(Generic[S]):
         self._ticks = 0
         self._empty = 0
         self._overruns = 0
+        self._caught_up = 0
         self._drops = 0
         self._published = 0
         self._publish_errors = 0
@@ -368,6 +373,7 @@ class Sampler(Generic[S]):
             ticks=self._ticks,
             empty=self._empty,
             overruns=self._overruns,
+            caught_up=self._caught_up,
             drops=self._drops,
             published=self._published,
             publish_errors=self._publish_errors,
@@ -411,6 +417,7 @@ class Sampler(Generic[S]):
         self._stale = False
         self._period_changed = False
         self._stamps.clear()
+        caught_up = False
         while True:
             sleep_until(next_ns, interrupted)
             if not self._want_run or self._closed:
@@ -470,9 +477,16 @@ class Sampler(Generic[S]):
 
             next_ns += period_ns
             if now >= next_ns:
+                if now < next_ns + period_ns and not caught_up:
+                    # One deadline passed during this tick (a short stall): its sample is
+                    # taken at once, and the schedule goes on from it. Once in a row only.
+                    caught_up = True
+                    self._caught_up += 1
+                    continue
                 missed = (now - next_ns) // period_ns + 1
                 self._overruns += missed
                 next_ns += missed * period_ns
+            caught_up = False
 
     def _read_failed(self, e: Exception) -> None:
         self._read_errors += 1

@@ -71,9 +71,10 @@ def measure_window(probe_ready: Callable[[], bool], phase_s: float) -> tuple[int
     return t0, time.time_ns()
 
 
-FORCE_COUNTERS = ("samples", "published", "drops", "overruns")
+FORCE_COUNTERS = ("samples", "published", "drops", "overruns", "caught_up")
 """The force sampler's counters (its `sensor_status`): samples taken, handed to the bus,
-dropped from its hand-off queue when the publisher fell behind, periods skipped late."""
+dropped from its hand-off queue when the publisher fell behind, periods skipped late,
+periods sampled at once after a short stall."""
 
 
 def force_counters(node: Node) -> dict[str, int] | None:

@@ -56,7 +56,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the force sampler's priority (default: highest, as deploy/robot.toml)",
     )
     p.add_argument("--json", default="artifacts/bench.json", metavar="FILE")
-    p.add_argument("--plot", default="artifacts/bench_force_latency.png", metavar="FILE")
+    p.add_argument(
+        "--plot",
+        default="artifacts/bench_force_latency.png",
+        metavar="FILE",
+        help="the force-latency plot ('' for none)",
+    )
     p.add_argument("--logs", default="artifacts/bench-logs", metavar="DIR", help="children's logs")
     args = p.parse_args(args_in)
 
@@ -109,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     json_path = Path(args.json)
     json_path.parent.mkdir(parents=True, exist_ok=True)
     json_path.write_text(json.dumps(doc, indent=2) + "\n")
-    plot_path = force_latency_plot(res.traces, args.plot)
+    plot_path = force_latency_plot(res.traces, args.plot) if args.plot else "none"
     print()
     print(table(doc))
     wall_s = doc["settings"]["wall_s"]

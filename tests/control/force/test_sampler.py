@@ -153,6 +153,38 @@ def test_overruns_count_missed_deadlines_and_do_not_burst(closing: list[Sampler[
     assert set(diffs(script.ticks)) == {6 * MS}
 
 
+def test_a_short_stall_is_caught_up_once_and_the_schedule_kept(
+    closing: list[Sampler[Any]],
+) -> None:
+    """A read that stalls 1.5 periods (a late wake-up, a preempted put): the deadline that
+    passed meanwhile is sampled at once, then the grid goes on, no sample lost. A stall in
+    the catch-up itself is not caught up again (an overloaded loop still sleeps)."""
+    stalls = {10: 3 * MS // 2, 30: 3 * MS // 2, 31: 4 * MS // 5}  # tick number: its read
+    clock = VirtualClock()
+    ticks: list[int] = []
+
+    def acquire() -> int:
+        ticks.append(clock.t)
+        clock.t += stalls.get(len(ticks), 0)
+        return len(ticks)
+
+    s: Sampler[int] = Sampler(acquire, lambda x: None, period_ms=1.0, clock=clock)
+    closing.append(s)
+    s.start()
+    assert wait_until(lambda: len(ticks) >= 60)
+    s.stop()
+    t = ticks
+    # Tick 10 (index 9) starts at 9 ms and ends at 10.5: the 10 ms deadline is sampled at
+    # once (10.5), the 11 ms one on time.
+    assert t[9:12] == [9 * MS, 10 * MS + MS // 2, 11 * MS]
+    # Ticks 30 and 31 both stall: 31 is the catch-up of 30's stall and ends at 31.3 ms; the
+    # 31 ms deadline is skipped (an overrun), the grid resumes at 32 ms.
+    assert t[29:33] == [29 * MS, 30 * MS + MS // 2, 32 * MS, 33 * MS]
+    st = s.stats()
+    assert (st.caught_up, st.overruns) == (2, 1)
+    assert set(diffs(t[33:])) == {1 * MS}
+
+
 def test_stale_once_per_stall_within_ten_periods(closing: list[Sampler[Any]]) -> None:
     def data(k: int) -> int | None:
         return None if 11 <= k <= 40 or 61 <= k <= 200 else k
