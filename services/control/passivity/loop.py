@@ -1,7 +1,8 @@
 """A whole position–force bilateral loop over a bad link, in simulation (pure, seeded).
 
-hand → device → [link] → slave (kinematic, follows the commanded position, as the simulated
-PUMA does) → wall → force → [link] → device → hand. The master sends its position and its
+hand → device → [link] → slave (follows the commanded position kinematically, at most at
+the PUMA's tool speed, as the simulated PUMA does behind its safety filter) → wall → force →
+[link] → device → hand. The master sends its position and its
 cumulative input energy each tick; the slave sends the wall force and its cumulative input
 energy. The link delays every packet by `delay_s` ± `jitter` (a fraction, uniform), loses a
 fraction `loss`, and the receiver keeps the newest packet (highest seq), as our latest-wins
@@ -75,10 +76,17 @@ class Link:
         return self.latest
 
 
+SLAVE_SPEED_M_S = 0.5
+"""The simulated slave's speed limit: PumaConfig's `max_tool_speed_m_s` default."""
+
+
 @dataclass(frozen=True, slots=True)
 class LoopSpec:
     """The simulated contact task. Defaults: 1 kHz, 1-DoF, a 5 kN/m wall 5 cm away, the hand
-    aiming 3 cm past it."""
+    aiming 3 cm past it. `slave_speed_m_s`: the slave arm chases its target at most this fast
+    (PumaConfig.max_tool_speed_m_s, 0.5 m/s); 0: it jumps to each target in one tick (over a
+    jittery link the positions arrive in bunches, and the jumps are impacts faster than the
+    slave's controller can see: docs/passivity.md)."""
 
     round_trip_s: float = 0.0
     jitter: float = 0.0
@@ -90,6 +98,7 @@ class LoopSpec:
     force_scale: float = 1.0
     max_force_n: float = 40.0
     drift_m_s: float = 0.03
+    slave_speed_m_s: float = SLAVE_SPEED_M_S
     slack_m: float = 0.0
     ramp_n_s: float = 0.0
     limit: bool = True
@@ -172,6 +181,8 @@ def simulate(spec: LoopSpec) -> LoopResult:
     )
     slave = SlavePassivity(enabled=spec.tdpa, drift_m_s=spec.drift_m_s, slack_m=spec.slack_m)
     x_s = [0.0] * n
+    x_tgt = [0.0] * n
+    done: list[float] | None = None
     v_s = [0.0] * n
     x_cmd_prev = [0.0] * n
     f_env = [0.0] * n
@@ -201,7 +212,19 @@ def simulate(spec: LoopSpec) -> LoopResult:
             x_cmd_prev = list(x_cmd)
         else:
             dx = [0.0] * n
-        dx = slave.step(f_env, dx, spec.dt_s)
+        if spec.slave_speed_m_s > 0.0:
+            # The arm chases its target at its speed limit: the controller corrects the
+            # whole motion still to come (target − tool), as the service's slave port does.
+            pend = [t - x + d for t, x, d in zip(x_tgt, x_s, dx, strict=True)]
+            out = slave.step(f_env, pend, spec.dt_s, done=done)
+            x_tgt = [x + o for x, o in zip(x_s, out, strict=True)]
+            gap = [t - x for t, x in zip(x_tgt, x_s, strict=True)]
+            norm = math.sqrt(dot(gap, gap))
+            cap = spec.slave_speed_m_s * spec.dt_s
+            dx = gap if norm <= cap else [g * cap / norm for g in gap]
+            done = dx
+        else:
+            dx = slave.step(f_env, dx, spec.dt_s)
         v_s = [d / spec.dt_s for d in dx]
         x_s = [a + d for a, d in zip(x_s, dx, strict=True)]
         f_env = spec.wall.force(x_s, v_s)

@@ -27,7 +27,13 @@ from pathlib import Path
 from typing import Any
 
 from services.control.passivity.dynamics import Wall
-from services.control.passivity.loop import LoopResult, LoopSpec, contact_metrics, simulate
+from services.control.passivity.loop import (
+    SLAVE_SPEED_M_S,
+    LoopResult,
+    LoopSpec,
+    contact_metrics,
+    simulate,
+)
 
 DEFAULT_DELAYS_MS = (0, 50, 200, 700)
 MEASURES = (
@@ -51,6 +57,7 @@ def run(
     dofs: int = 1,
     seed: int = 1,
     master_limit: bool = True,
+    slave_speed_m_s: float = SLAVE_SPEED_M_S,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], LoopResult]]:
     """(the JSON document, the traces per (delay, tdpa))."""
     extra: dict[str, Any] = {}
@@ -63,6 +70,7 @@ def run(
             "loss": loss,
             "dofs": dofs,
             "master_limit": master_limit,
+            "slave_speed_m_s": slave_speed_m_s,
         },
     }
     results: dict[tuple[int, bool], LoopResult] = {}
@@ -75,6 +83,7 @@ def run(
                 tdpa=on,
                 seed=seed,
                 limit=master_limit,
+                slave_speed_m_s=slave_speed_m_s,
                 **extra,
             )
             res = simulate(spec)
@@ -168,6 +177,14 @@ def main(argv: list[str] | None = None) -> int:
         help="TDPA on without the master's force limiter (the damper alone)",
     )
     p.add_argument(
+        "--slave-speed",
+        type=float,
+        default=None,
+        metavar="M_S",
+        help=f"the simulated slave's speed limit (default {SLAVE_SPEED_M_S:g} m/s, "
+        "the PUMA's tool speed; 0: it jumps to each target in one tick)",
+    )
+    p.add_argument(
         "--link",
         action="store_true",
         help="the real services over a real bad link (network namespaces; root)",
@@ -232,6 +249,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--master-rate-hz needs --link and a value within 10 … 1000")
     if args.hold_s is not None and not (args.link and 1.0 <= args.hold_s <= 60.0):
         p.error("--hold-s needs --link and a value within 1 … 60")
+    if args.slave_speed is not None and (args.link or not 0.0 <= args.slave_speed <= 10.0):
+        p.error("--slave-speed is the simulation's (not --link) and within 0 … 10 m/s")
     if args.link:
         from services.tools.bench import passivity_link
 
@@ -258,8 +277,9 @@ def main(argv: list[str] | None = None) -> int:
         path = Path(args.json or "artifacts/bench_passivity_link.json")
         drawn = passivity_link.plots(runs, Path(args.plots)) if args.plots else []
     else:
+        speed = SLAVE_SPEED_M_S if args.slave_speed is None else args.slave_speed
         doc, results = run(
-            delays, args.jitter, args.loss, args.dofs, args.seed, not args.no_master_limit
+            delays, args.jitter, args.loss, args.dofs, args.seed, not args.no_master_limit, speed
         )
         path = Path(args.json or "artifacts/bench_passivity.json")
         drawn = plots(results, Path(args.plots)) if args.plots else []

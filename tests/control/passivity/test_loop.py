@@ -122,8 +122,9 @@ def _overdrafts(res: LoopResult) -> tuple[float, float, float]:
 def test_slave_port_gives_the_environment_no_more_than_the_operator_put_in(rtt_s: float) -> None:
     off_exchanged, _, off_slave = _overdrafts(run(rtt_s, False))
     exchanged, _, slave = _overdrafts(run(rtt_s, True))
-    assert off_slave > off_exchanged  # without TDPA the channel creates energy
-    # With it: only one-tick prediction errors, 1.3 mJ at 700 ms. (With the master's
+    # Without TDPA the channel creates energy: the bound below is broken by far (joules).
+    assert off_slave > 5 * max(0.1 * off_exchanged, 0.002)
+    # With it: only one-tick prediction errors, ~1 mJ at 700 ms. (With the master's
     # limiter the contact no longer bounces, so far less is exchanged: 10 mJ at 700 ms.)
     assert slave < max(0.1 * exchanged, 0.002)
 
@@ -160,3 +161,35 @@ def test_trend_is_the_least_squares_slope() -> None:
     wobble = [(0.01 * i, 8.0 + (1.0 if i % 2 else -1.0)) for i in range(200)]
     assert abs(trend_n_s(wobble)) < 0.1  # an oscillation has no trend
     assert trend_n_s([]) == 0.0 and trend_n_s([(1.0, 3.0), (1.0, 4.0)]) == 0.0
+
+
+def _slave_speeds(res: LoopResult) -> list[float]:
+    dt = res.spec.dt_s
+    return [abs(b - a) / dt for a, b in zip(res.x_slave, res.x_slave[1:], strict=False)]
+
+
+@pytest.mark.parametrize("seed", range(1, 7))
+def test_the_slave_arm_chases_its_target_within_its_speed_and_creates_no_energy(
+    seed: int,
+) -> None:
+    """The simulated slave moves as the PUMA's safety filter lets it (0.5 m/s at the tool,
+    PumaConfig.max_tool_speed_m_s). At 700 ms with 10 % jitter the latest-wins link delivers
+    the master's positions in bunches: a slave that jumps to each one steps over a
+    millisecond's worth of the wall (seed 4: 1.7 mm in one tick, 9 mJ out of a channel
+    that had been given none). Chasing it at the arm's speed, every impact is a few ticks
+    the controller sees: the channel never shows more than 2 mJ generated, in every seed."""
+    spec = LoopSpec(round_trip_s=0.7, jitter=0.1, loss=0.01, tdpa=True, seed=seed)
+    res = simulate(spec)
+    assert max(_slave_speeds(res)) <= spec.slave_speed_m_s * (1 + 1e-9)
+    m = contact_metrics(res)
+    assert m["energy_generated_j"] < 0.002
+    assert m["peak_force_n"] < 15.0 and m["penetration_mm"] < 3.0
+
+
+def test_a_slave_without_a_speed_limit_jumps_with_the_bunched_packets() -> None:
+    """Why the speed limit is modelled: without it the same run steps the tool by more than
+    a millimetre in one tick into the wall (1.7 m/s), and the channel shows 9 mJ created."""
+    spec = LoopSpec(round_trip_s=0.7, jitter=0.1, loss=0.01, tdpa=True, seed=4, slave_speed_m_s=0.0)
+    res = simulate(spec)
+    assert max(_slave_speeds(res)) > 1.0
+    assert contact_metrics(res)["energy_generated_j"] > 0.005
