@@ -120,6 +120,7 @@ class DecisionService:
         self.timer_late = 0
         self.timer_late_max_ms = 0.0
         self._planned_ns: int | None = None
+        self._settings_kept: tuple[DecisionConfig, dict[str, Any]] | None = None
         """The deadline the timer sleeps to (None: it is awake, or waits for input)."""
         self._task_waiters = 0
         """Callers of `task` waiting for their task to end (every tick notifies them)."""
@@ -406,7 +407,7 @@ class DecisionService:
         with self._cond:
             watching = self._force.watching
             snap = self.supervisor.snapshot()
-            settings = self.config.settings()
+            settings = self._settings()
             state, force = self._state.read(), self._force.read()
         # Not subscribed to robot/force (idle): the sensor's newest sample, asked for.
         read = None if watching else self._peeks[2].get(wait)
@@ -445,6 +446,15 @@ class DecisionService:
                 },
             },
         }
+
+    def _settings(self) -> dict[str, Any]:
+        """`config.settings()`, built once per configuration (a third of `status`'s own
+        work; the configuration changes only through `supervisor`). Not to be mutated."""
+        cfg = self.config
+        kept = self._settings_kept
+        if kept is None or kept[0] is not cfg:
+            kept = self._settings_kept = (cfg, cfg.settings())
+        return kept[1]
 
     def _cmd_rejections(self) -> int:
         return sum(

@@ -469,6 +469,7 @@ def test_robot_force_is_received_only_while_the_arm_may_move(
 
 def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) -> None:
     cell = make_cell()
+    before = cell.call("status", {})["settings"]["workspace_max"]
     with pytest.raises(RpcError) as bad:
         cell.call("supervisor", {"workspace_max": [0.95, -0.6, 1.2]})  # max below min
     assert bad.value.code == "bad_request"
@@ -478,6 +479,9 @@ def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) 
         assert refused.value.code == "bad_request" and "fixed at start-up" in str(refused.value)
     reply = cell.call("supervisor", {"workspace_max": [0.95, 0.05, 1.2]})
     assert reply["settings"]["workspace_max"] == [0.95, 0.05, 1.2]
+    # status keeps its settings map per configuration: the change shows at once
+    assert before != [0.95, 0.05, 1.2]
+    assert cell.call("status", {})["settings"]["workspace_max"] == [0.95, 0.05, 1.2]
     y0 = cell.tool_p()[1]  # the arm is at rest: the engagement's p0
     m = cell.master("m1")
     m.engage_new(ramp((0.0, 0.12, 0.0), 0.2))
