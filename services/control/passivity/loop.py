@@ -147,6 +147,8 @@ def simulate(spec: LoopSpec) -> LoopResult:
     n = spec.dofs
     if n not in (1, 3) or len(spec.target_m) != n or len(spec.wall.normal) != n:
         raise ValueError("dofs must be 1 or 3, with target_m and wall.normal of that length")
+    if not 0.0 <= spec.slave_speed_m_s < math.inf:
+        raise ValueError("slave_speed_m_s must be ≥ 0 (0: no limit) and finite")
     rng = random.Random(spec.seed)
     one_way = LinkSpec(spec.round_trip_s / 2.0, spec.jitter, spec.loss)
     to_slave, to_master = Link(one_way, rng), Link(one_way, rng)

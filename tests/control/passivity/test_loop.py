@@ -5,6 +5,7 @@ Assertions are on forces, penetration and energies of seeded simulations, never 
 
 from __future__ import annotations
 
+import math
 from functools import cache
 
 import pytest
@@ -193,3 +194,9 @@ def test_a_slave_without_a_speed_limit_jumps_with_the_bunched_packets() -> None:
     res = simulate(spec)
     assert max(_slave_speeds(res)) > 1.0
     assert contact_metrics(res)["energy_generated_j"] > 0.005
+
+
+@pytest.mark.parametrize("speed", [-0.1, math.nan, math.inf])
+def test_a_bad_slave_speed_is_refused(speed: float) -> None:
+    with pytest.raises(ValueError, match="slave_speed_m_s"):
+        simulate(LoopSpec(slave_speed_m_s=speed))
