@@ -49,13 +49,13 @@ lease refusals are in the decision's intervention counters)."""
 MAX_MESSAGES = 10
 
 # Field positions in the probes' records.
-F_SEQ, F_MASTER, F_ACTIVE, F_DP_X, F_ENGAGE, F_ORIGIN = range(6)
+F_SEQ, F_MASTER, F_ACTIVE, F_DP_X, F_ENGAGE, F_ORIGIN, F_T = range(7)
 S_T, S_CMD_SEQ, S_STATUS, S_RX, S_SETPOINT, S_ORIGIN = range(6)
 
 
 def puma_cmd_fields(m: OperatorCommand) -> tuple[Any, ...]:
     """What the bench keeps of a `robot/puma/cmd` (indices F_*)."""
-    return (m.seq, m.master, m.active, m.dp[0], m.engage, m.origin_t_ns)
+    return (m.seq, m.master, m.active, m.dp[0], m.engage, m.origin_t_ns, m.t_ns)
 
 
 def state_fields(m: RobotState) -> tuple[Any, ...]:
@@ -159,6 +159,7 @@ def command_figures(
         [(int(f[F_SEQ]), f[F_ORIGIN]) for _, f in fwd_rec],
         [(int(s[S_CMD_SEQ]), s[S_RX], s[S_SETPOINT], s[S_ORIGIN]) for rx, s in st_rec
          if rx >= t_first],
+        {int(f[F_SEQ]): int(f[F_T]) for _, f in fwd_rec if f[F_ORIGIN] is not None},
     )  # fmt: skip
     reached = stamped.reached if has_origin else m.forwarded_distinct
     puma_ms = stamped.puma_ms if has_rx else m.forward_ms
@@ -190,6 +191,11 @@ def command_figures(
         "setpoint_ms": stats.summarize(setpoint_ms).as_dict(),
         "setpoint_method": "setpoint_ns" if has_setpoint else "state_t_ns",
         "stamped_sampled": stamped.sampled,
+        "hops_ms": {
+            "decision": stats.summarize(stamped.decision_ms).as_dict(),
+            "to_puma": stats.summarize(stamped.to_puma_ms).as_dict(),
+            "apply": stats.summarize(stamped.apply_ms).as_dict(),
+        },
         "forwarded_distinct": m.forwarded_distinct,
         "forwarded_rate_hz": stats.rate_hz(m.forwarded_distinct, duration_s),
         "puma_cmd_rate_hz": stats.rate_from_times(fwd_rx),

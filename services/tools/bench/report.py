@@ -282,6 +282,12 @@ def _command_specs(rate: int) -> list[Spec]:
         Spec(f"cmd_setpoint_{rate}_p99", f"master→setpoint p99, {name}", "ms",
              f"{phase}.setpoint_ms.p99", "lower", floor=_relay_floor(rate, "p99"),
              target="cmd_1khz_setpoint_p99_ms" if fast else None),
+        Spec(f"cmd_hop_decision_{rate}_p50", f"hop: master→decision's tick p50, {name}", "ms",
+             f"{phase}.hops_ms.decision.p50", "lower"),
+        Spec(f"cmd_hop_to_puma_{rate}_p50", f"hop: decision's tick→puma p50, {name}", "ms",
+             f"{phase}.hops_ms.to_puma.p50", "lower"),
+        Spec(f"cmd_hop_apply_{rate}_p50", f"hop: puma→setpoint p50, {name}", "ms",
+             f"{phase}.hops_ms.apply.p50", "lower"),
     ]  # fmt: skip
 
 

@@ -9,8 +9,8 @@ recorded, so each function is tested on hand-worked inputs.
 from __future__ import annotations
 
 import math
-from collections.abc import Collection, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Collection, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -363,12 +363,23 @@ class StampedCommands:
       cmd_origin_t_ns`: master → the first arm setpoint computed from it;
     sampled: commands `robot/state` showed (a sample: the state stream runs slower than a
       1 kHz master, so it shows only the command newest at each state).
+
+    The same path hop by hop, where the decision's send stamps are known (`sent_at`):
+    decision_ms: per reached command, the `t_ns` of the first `robot/puma/cmd` carrying it
+      (the decision's tick) − `origin_t_ns`: master → decision, through the router;
+    to_puma_ms: per command shown, `cmd_rx_ns` − that `t_ns`: the decision's tick → the
+      puma's receipt (the supervision, the put, the router);
+    apply_ms: per command shown with both, `setpoint_ns − cmd_rx_ns`: the puma's receipt →
+      the setpoint (its control thread waking, IK and the checks, the tick).
     """
 
     reached: int
     puma_ms: np.ndarray
     setpoint_ms: np.ndarray
     sampled: int
+    decision_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    to_puma_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    apply_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def first_carriers(puma_cmds: Sequence[tuple[int, int | None]]) -> dict[int, int]:
@@ -385,13 +396,15 @@ def stamped_commands(
     sent_t_ns: Collection[int],
     puma_cmds: Sequence[tuple[int, int | None]],
     states: Sequence[tuple[int, int | None, int | None, int | None]],
+    sent_at: Mapping[int, int] | None = None,
 ) -> StampedCommands:
     """The operator's path from the extension fields.
 
     sent_t_ns: the `t_ns` of every command the bench sent in the phase;
     puma_cmds: `(seq, origin_t_ns)` per `robot/puma/cmd` seen (any order);
     states: `(cmd_seq, cmd_rx_ns, setpoint_ns, cmd_origin_t_ns)` per `robot/state`, in
-      arrival order.
+      arrival order;
+    sent_at: `robot/puma/cmd` seq → its `t_ns` (the decision's tick), for the hops.
 
     Each bench command counts once, through the first puma command that carried it: a later
     puma command carrying the same origin (a re-send) arrived later than the operator's
@@ -417,11 +430,18 @@ def stamped_commands(
         if setpoint_ns is not None:
             setpoint.setdefault(origin, setpoint_ns)
     shown = set(rx) | set(setpoint)
+    at = sent_at or {}
+    tick = {o: at[seq] for o, seq in carriers.items() if o in ours and seq in at}
+
+    def ms(pairs: Iterable[tuple[int, int]]) -> np.ndarray:
+        return np.array([(b - a) / NS_PER_MS for a, b in pairs], dtype=float)
+
     return StampedCommands(
         reached=reached,
-        puma_ms=np.array([(rx[o] - o) / NS_PER_MS for o in sorted(rx)], dtype=float),
-        setpoint_ms=np.array(
-            [(setpoint[o] - o) / NS_PER_MS for o in sorted(setpoint)], dtype=float
-        ),
+        puma_ms=ms((o, rx[o]) for o in sorted(rx)),
+        setpoint_ms=ms((o, setpoint[o]) for o in sorted(setpoint)),
         sampled=len(shown),
+        decision_ms=ms((o, tick[o]) for o in sorted(tick)),
+        to_puma_ms=ms((tick[o], rx[o]) for o in sorted(rx) if o in tick),
+        apply_ms=ms((rx[o], setpoint[o]) for o in sorted(rx) if o in setpoint),
     )

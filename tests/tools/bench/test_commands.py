@@ -31,19 +31,21 @@ def _run() -> CommandRun:
 
 
 def _records(fields: bool, setpoint: bool = True) -> tuple[list[Any], list[Any]]:
-    """The decision forwards every other command (its tick carries the newest), 0.5 ms after
-    it was sent; the puma receives it 0.3 ms after it was sent, has its setpoint 0.8 ms after,
-    and publishes a state 1 ms after — but only for every fourth command (states run slower)."""
+    """The decision forwards every other command (its tick carries the newest) from a tick
+    0.1 ms after it was sent, and the bench sees that 0.5 ms after it was sent; the puma
+    receives it 0.3 ms after it was sent, has its setpoint 0.8 ms after, and publishes a
+    state 1 ms after — but only for every fourth command (states run slower)."""
     fwd, states = [], []
     for i, k in enumerate(range(0, N, 2)):
         t = T0 + k * MS
         origin = t if fields else None
-        fwd.append((t + MS // 2, (SEQ0 + i, "decision", True, k * STEP, 7, origin)))
+        fwd.append((t + MS // 2, (SEQ0 + i, "decision", True, k * STEP, 7, origin, t + MS // 10)))
         if k % 4 == 0:
             rx = t + 3 * MS // 10 if fields else None
             sp = t + 8 * MS // 10 if fields and setpoint else None
             states.append((t + 11 * MS // 10, (t + MS, SEQ0 + i, "moving", rx, sp, origin)))
-    fwd.append((T0 + 20 * MS, (SEQ0 + 9, "decision", False, 0.0, 7, None)))  # the hold after
+    hold = (SEQ0 + 9, "decision", False, 0.0, 7, None, T0 + 20 * MS)
+    fwd.append((T0 + 20 * MS, hold))  # the hold after
     return fwd, states
 
 
@@ -61,6 +63,13 @@ def test_the_extension_fields_time_the_path_on_the_puma_clock() -> None:
     assert f["puma_ms"]["n"] == 3 and f["puma_ms"]["p50"] == pytest.approx(0.3)
     assert f["setpoint_ms"]["n"] == 3 and f["setpoint_ms"]["p50"] == pytest.approx(0.8)
     assert f["na"] == {}
+    # hop by hop: master → the decision's tick for all 5 it carried, then, for the 3 shown,
+    # the tick → the puma's receipt and the receipt → the setpoint; they add up.
+    hops = f["hops_ms"]
+    assert (hops["decision"]["n"], hops["to_puma"]["n"], hops["apply"]["n"]) == (5, 3, 3)
+    assert hops["decision"]["p50"] == pytest.approx(0.1)
+    assert hops["to_puma"]["p50"] == pytest.approx(0.2)
+    assert hops["apply"]["p50"] == pytest.approx(0.5)
     # the dp-matching figures are kept beside them
     assert f["forwarded_distinct"] == 5 and f["forward_ms"]["p50"] == pytest.approx(0.5)
     assert "timed from the extension fields" in method_note("commands_1000hz", f)

@@ -87,12 +87,22 @@ def full_phases() -> dict[str, Any]:
             "puma_counter": {"commands": 490, "window_s": 5.0, "rate_hz": 98.0},
             "puma_ms": _summary(0.8, 2.0),
             "setpoint_ms": _summary(3.0, 6.0),
+            "hops_ms": {
+                "decision": _summary(0.4, 1.0),
+                "to_puma": _summary(0.4, 1.0),
+                "apply": _summary(2.2, 4.0),
+            },
         },
         "commands_1000hz": {
             "reached_rate_hz": 480.0,
             "puma_counter": {"commands": 2500, "window_s": 5.0, "rate_hz": 500.0},
             "puma_ms": _summary(0.7, 2.5),
             "setpoint_ms": _summary(3.1, 7.0),
+            "hops_ms": {
+                "decision": _summary(0.3, 1.2),
+                "to_puma": _summary(0.4, 1.3),
+                "apply": _summary(2.4, 4.5),
+            },
         },
         "rpc_decision_status": _summary(2.0, 5.0),
         "rpc_decision_supervisor": _summary(0.6, 1.5),

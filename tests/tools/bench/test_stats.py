@@ -245,11 +245,21 @@ def test_stamped_commands_hand_worked() -> None:
         (24, _ms(4.2), _ms(4.6), _ms(4)),
         (25, _ms(9.2), _ms(9.5), _ms(9)),  # another master's
     ]
-    got = stats.stamped_commands(sent, puma, states)
+    # The decision's ticks: 20 at 1.1 ms, 21 at 2.1, 22 at 2.6 (the re-send), 24 at 4.05.
+    ticks = {20: _ms(1.1), 21: _ms(2.1), 22: _ms(2.6), 24: _ms(4.05), 25: _ms(9.1)}
+    got = stats.stamped_commands(sent, puma, states, ticks)
     assert got.reached == 3  # 1, 2 and 4 ms
     assert got.sampled == 2  # 1 and 4 ms: 2 ms was only shown through its re-send
     np.testing.assert_allclose(got.puma_ms, [0.3, 0.2])
     np.testing.assert_allclose(got.setpoint_ms, [0.9, 0.6])
+    # hops: master → tick for the three reached (through each one's first carrier), tick →
+    # receipt and receipt → setpoint for the two shown
+    np.testing.assert_allclose(got.decision_ms, [0.1, 0.1, 0.05])
+    np.testing.assert_allclose(got.to_puma_ms, [0.2, 0.15])
+    np.testing.assert_allclose(got.apply_ms, [0.6, 0.4])
+    without = stats.stamped_commands(sent, puma, states)  # no send stamps: no hops
+    assert without.decision_ms.size == without.to_puma_ms.size == 0
+    np.testing.assert_allclose(without.apply_ms, [0.6, 0.4])
 
 
 def test_stamped_commands_without_the_puma_stream_takes_each_origins_first_state() -> None:
