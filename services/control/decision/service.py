@@ -120,8 +120,9 @@ class DecisionService:
         self.timer_late = 0
         self.timer_late_max_ms = 0.0
         self._planned_ns: int | None = None
-        self._settings_kept: tuple[DecisionConfig, dict[str, Any]] | None = None
         """The deadline the timer sleeps to (None: it is awake, or waits for input)."""
+        self._settings_kept: tuple[DecisionConfig, dict[str, Any]] | None = None
+        """`config.settings()` and the configuration it was built from (`_settings`)."""
         self._task_waiters = 0
         """Callers of `task` waiting for their task to end (every tick notifies them)."""
 
