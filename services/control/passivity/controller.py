@@ -15,11 +15,11 @@ slave out of contact (holding still exchanges no energy, so it is passive too).
 
 Sampled data: each side observes the energy of the interval just ended with what really
 happened in it — the master the force it held times the hand's measured displacement, the
-slave the displacement it commanded times the force measured at its end (for a stiff
-contact that over-counts what went in and under-counts what came back: conservative) —
-and its controller bounds the next interval with the velocity of the last one. A
-prediction that falls short shows in the next observation and is paid back at once, so the
-observed balance is off by at most one tick's energy, never cumulatively.
+slave the displacement it made (the one it commanded when that is not measured) times the
+mean of the forces measured at its start and end (exact for a linear spring) — and its
+controller bounds the next interval with the velocity of the last one. A prediction that
+falls short shows in the next observation and is paid back at once, so the observed
+balance is off by at most one tick's energy, never cumulatively.
 
 With `enabled = False` a side only observes (telemetry with the controller off).
 
@@ -263,19 +263,21 @@ class SlavePassivity:
         done: Sequence[float] | None = None,
     ) -> list[float]:
         """done: the displacement the tool really made over the interval just ended, when
-        it is measured (a speed-limited arm, a supervisor that changed the target); the
-        observer then takes whichever of it and the commanded step is the more conservative
-        (less energy in, more energy out)."""
+        it is measured (a speed-limited arm); the observer then counts it, not the command:
+        only that motion crossed the port. A command the arm has not yet made (`dx` is then
+        the whole motion still to come) would otherwise be counted again every tick it
+        stays pending: an arm catching up at its speed limit at an impact showed twice its
+        output (docs/passivity.md, "The slave's speed"), as the decision's `SlavePort`
+        does not (it observes the measured motion)."""
         f = [float(x) for x in f_env]
         if self._dx_prev is not None and len(self._dx_prev) == len(f):
             f_mid = f
             if self._f_prev is not None and len(self._f_prev) == len(f):
                 f_mid = [(a + b) / 2 for a, b in zip(f, self._f_prev, strict=True)]
-            e = dot(f_mid, self._dx_prev)
             if done is not None and len(done) == len(f):
-                # Commanded and measured motion disagree (lag, speed limit, a supervisor's
-                # own correction): count the smaller input, the larger output.
-                e = min(e, dot(f_mid, [float(x) for x in done]))
+                e = dot(f_mid, [float(x) for x in done])
+            else:
+                e = dot(f_mid, self._dx_prev)
             self.observer.record(e)
         self._f_prev = f
         if len(dx) != len(self.offset):

@@ -274,16 +274,53 @@ def trend_n_s(points: Sequence[tuple[float, float]]) -> float:
     return math.fsum((t - mt) * (f - mf) for t, f in points) / stt
 
 
+def _nondecreasing_fit(values: Sequence[float]) -> list[float]:
+    """The least-squares non-decreasing fit of `values` (pool adjacent violators)."""
+    sums: list[float] = []
+    counts: list[int] = []
+    for v in values:
+        sums.append(v)
+        counts.append(1)
+        # Merge while the block before has the higher mean (cross-multiplied: no division).
+        while len(sums) > 1 and sums[-2] * counts[-1] > sums[-1] * counts[-2]:
+            s, c = sums.pop(), counts.pop()
+            sums[-1] += s
+            counts[-1] += c
+    fit: list[float] = []
+    for s, c in zip(sums, counts, strict=True):
+        fit.extend([s / c] * c)
+    return fit
+
+
+def swing_rms(values: Sequence[float]) -> float:
+    """The RMS of `values` about their best monotone fit (rising or falling, least squares):
+    the back-and-forth no steady rise or fall explains. A contact force that steps or
+    creeps to a new level swings 0; one that bounces swings about as much as its RMS about
+    the mean, which bounds it (a constant is monotone). 0 for no values."""
+    n = len(values)
+    if n == 0:
+        return 0.0
+    best = math.inf
+    for sign in (1.0, -1.0):
+        ys = [sign * float(v) for v in values]
+        fit = _nondecreasing_fit(ys)
+        best = min(best, math.fsum((y - f) ** 2 for y, f in zip(ys, fit, strict=True)))
+    return math.sqrt(best / n)
+
+
 def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float | bool]:
     """The bench's measures of one run.
 
     peak_force_n: largest contact force; steady_force_n / oscillation_rms_n: mean and RMS
-    about the mean of the contact force over the hold after `settle_s`; felt_force_n: the
-    mean force displayed on the hand over the same window; creep_n_s: its
-    least-squares slope over that window (`trend_n_s`); penetration_mm: the
-    largest; energy_generated_j: how far the channel's observed output ever exceeded its
-    input (> 0 means energy was created); stable: no divergence and oscillation RMS below
-    10 % of the steady force.
+    about the mean of the contact force over the hold after `settle_s`; swing_rms_n: its
+    RMS about its best monotone fit over that window (`swing_rms`: a step or a creep of
+    the contact is not an oscillation); felt_force_n: the mean force displayed on the hand
+    over the same window; creep_n_s: its least-squares slope over that window
+    (`trend_n_s`); penetration_mm: the largest; energy_generated_j: how far the channel's
+    observed output ever exceeded its input (> 0 means energy was created); stable: no
+    divergence and a swing below 10 % of the steady force (no sustained oscillation);
+    settled: no divergence and oscillation RMS below 10 % of the steady force (nor a step
+    inside the window: the operator still pressing towards its goal force counts here).
     """
     spec = res.spec
     lo = spec.approach_s + settle_s
@@ -298,16 +335,19 @@ def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float |
         res.master_in, res.master_out, res.slave_in, res.slave_out, strict=True
     ):
         generated = max(generated, (mo + so) - (mi + si))
-    stable = (not res.diverged) and steady > 0.0 and rms < 0.1 * steady
+    swing = swing_rms(window)
+    calm = (not res.diverged) and steady > 0.0
     return {
         "peak_force_n": max(res.f_contact, default=0.0),
         "steady_force_n": steady,
         "felt_force_n": sum(felt) / len(felt) if felt else 0.0,
         "oscillation_rms_n": rms,
+        "swing_rms_n": swing,
         "creep_n_s": trend_n_s(points),
         "penetration_mm": 1e3 * max(res.penetration, default=0.0),
         "energy_generated_j": generated,
         "master_dissipated_j": res.master_dissipated_j,
         "slave_dissipated_j": res.slave_dissipated_j,
-        "stable": stable,
+        "stable": calm and swing < 0.1 * steady,
+        "settled": calm and rms < 0.1 * steady,
     }

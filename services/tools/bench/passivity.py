@@ -4,9 +4,13 @@ The simulated operator presses the tool onto a stiff surface, holds and releases
 (`services.control.passivity.loop`), at round-trip delays 0, 50, 200 and 700 ms with 10 % jitter and
 1 % loss by default. Per run: peak and steady contact force, the force felt (the mean
 displayed on the hand over the same window as the steady force), oscillation (RMS of the force
-about its mean after settling), creep (the force's least-squares slope over the same window,
-N/s: a climb the RMS also counts), penetration, the energy balance (the most the channel's
-observed output ever exceeded its input) and what each controller dissipated. One table,
+about its mean after settling), swing (its RMS about its best monotone fit over the same
+window: the back-and-forth, which a step or a climb of the contact is not), creep (the
+force's least-squares slope over the same window, N/s: a climb the RMS also counts),
+penetration, the energy balance (the most the channel's observed output ever exceeded its
+input) and what each controller dissipated; stable (swing below 10 % of the steady force:
+no sustained oscillation) and settled (the RMS below 10 %: no step in the window either).
+One table,
 one JSON (keys `passivity_<delay_ms>_<on|off>_<measure>`), one plot per delay (contact force
 over time, off and on). "on" is both ports with the master's energy-bounding force limiter
 (`--no-master-limit`: the damper alone). docs/passivity.md.
@@ -41,12 +45,14 @@ MEASURES = (
     "steady_force_n",
     "felt_force_n",
     "oscillation_rms_n",
+    "swing_rms_n",
     "creep_n_s",
     "penetration_mm",
     "energy_generated_j",
     "master_dissipated_j",
     "slave_dissipated_j",
     "stable",
+    "settled",
 )
 
 
@@ -99,11 +105,16 @@ def _num(x: float | None, width: int, digits: int) -> str:
     return f"{'–':>{width}}" if x is None else f"{x:>{width}.{digits}f}"
 
 
+def _yes_no(x: bool | None) -> str:
+    return "–" if x is None else ("yes" if x else "NO")
+
+
 def table(doc: dict[str, Any]) -> str:
     """The results as a fixed-width table, one row per delay and TDPA setting."""
     head = (
         f"{'RTT ms':>7} {'TDPA':>4} {'peak N':>8} {'steady N':>9} {'felt N':>7} {'osc RMS N':>10} "
-        f"{'creep N/s':>9} {'pen mm':>7} {'gen. J':>8} {'stable':>6}"
+        f"{'swing N':>8} {'creep N/s':>9} {'pen mm':>7} {'gen. J':>8} {'stable':>6} "
+        f"{'settled':>7}"
     )
     lines = [head, "-" * len(head)]
     for delay in doc["settings"]["delays_ms"]:
@@ -114,10 +125,12 @@ def table(doc: dict[str, Any]) -> str:
                 f"{_num(doc[k + 'steady_force_n'], 9, 2)} "
                 f"{_num(doc.get(k + 'felt_force_n'), 7, 2)} "
                 f"{_num(doc[k + 'oscillation_rms_n'], 10, 2)} "
+                f"{_num(doc.get(k + 'swing_rms_n'), 8, 2)} "
                 f"{_num(doc.get(k + 'creep_n_s'), 9, 2)} "
                 f"{_num(doc[k + 'penetration_mm'], 7, 1)} "
                 f"{_num(doc[k + 'energy_generated_j'], 8, 3)} "
-                f"{'yes' if doc[k + 'stable'] else 'NO':>6}"
+                f"{'yes' if doc[k + 'stable'] else 'NO':>6} "
+                f"{_yes_no(doc.get(k + 'settled')):>7}"
             )
     return "\n".join(lines)
 

@@ -49,7 +49,7 @@ from services.control.force.service import ForceService
 from services.control.master.config import MasterConfig
 from services.control.master.haptic_sim import SimHapticMaster
 from services.control.master.service import MasterService
-from services.control.passivity.loop import trend_n_s
+from services.control.passivity.loop import swing_rms, trend_n_s
 from services.control.puma.config import HOME_Q_RAD, PumaConfig
 from services.control.puma.service import PumaService
 from services.control.puma.sim_arm import SimArm
@@ -236,7 +236,8 @@ def metrics(
     trace: Trace, t_start_ns: int, hold_from_s: float, hold_to_s: float
 ) -> dict[str, float]:
     """Peak |f| over the run; steady f, the mean force felt (shown on the hand,
-    `master/feedback`), oscillation RMS and creep (N/s, `trend_n_s`) over [hold_from,
+    `master/feedback`), oscillation RMS, swing (`swing_rms`) and creep (N/s,
+    `trend_n_s`) over [hold_from,
     hold_to) after the master started; tool z range there (mm above the table top);
     penetration (mm below the tool's height at the touch, over the whole run); final
     energies of both ports."""
@@ -260,6 +261,7 @@ def metrics(
         "steady_n": steady,
         "felt_n": sum(felt) / len(felt) if felt else 0.0,
         "rms_n": rms,
+        "swing_n": swing_rms(window),
         "creep_n_s": trend_n_s(points),
         "z_min_mm": 1e3 * (min(zs, default=math.nan) - top),
         "z_max_mm": 1e3 * (max(zs, default=math.nan) - top),
@@ -478,9 +480,11 @@ def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
     """The simulated bench's measures (`passivity.MEASURES`) from one run over the link.
     energy_generated_j: the channel's output beyond its input at the end, counting what the
     workcell gave back to repay an impact as input (0 with TDPA off: nothing observed).
-    stable: RMS below 10 % of a steady force above 1 N and below 95 % of the supervisor's
-    contact limit (`SUPERVISOR_LIMIT_N`)."""
-    steady, rms = float(m["steady_n"]), float(m["rms_n"])
+    stable: a swing (`swing_rms`: RMS about the best monotone fit) below 10 % of a steady
+    force above 1 N and below 95 % of the supervisor's contact limit (`SUPERVISOR_LIMIT_N`);
+    settled: the same with the RMS about the mean (a step inside the window counts)."""
+    steady, rms, swing = float(m["steady_n"]), float(m["rms_n"]), float(m["swing_n"])
+    resting = 1.0 < steady < 0.95 * SUPERVISOR_LIMIT_N
     nan = math.nan
     if m["passivity"]:
         out_j = m["master_out_j"] + m["slave_out_j"]
@@ -493,12 +497,14 @@ def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
         "steady_force_n": steady,
         "felt_force_n": float(m.get("felt_n", nan)),
         "oscillation_rms_n": rms,
+        "swing_rms_n": swing,
         "creep_n_s": float(m.get("creep_n_s", nan)),
         "penetration_mm": float(m["penetration_mm"]),
         "energy_generated_j": generated,
         "master_dissipated_j": float(m.get("master_dissipated_j", nan)),
         "slave_dissipated_j": float(m.get("slave_dissipated_j", nan)),
-        "stable": 1.0 < steady < 0.95 * SUPERVISOR_LIMIT_N and rms < 0.1 * steady,
+        "stable": resting and swing < 0.1 * steady,
+        "settled": resting and rms < 0.1 * steady,
     }
 
 

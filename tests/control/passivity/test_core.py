@@ -225,11 +225,21 @@ def test_slave_controller_never_adds_energy(
         assert pc.observer.e_out <= pc.remote.e_in + TOLERANCE_J * (k + 1) + 1e-12
 
 
-def test_slave_counts_the_more_conservative_of_commanded_and_measured_motion() -> None:
+def test_slave_counts_the_motion_the_arm_made_not_the_one_commanded() -> None:
     pc = SlavePassivity(enabled=False)
     wall = [-10.0]
     pc.step(wall, [0.001], 0.001)  # commanded 1 mm in
     pc.step(wall, [-0.001], 0.001, done=[0.002])  # the arm went 2 mm in: 20 mJ out
     assert pc.observer.e_out == pytest.approx(0.02)
+    assert pc.observer.e_in == 0.0
     pc.step(wall, [0.0], 0.001, done=[-0.0005])  # commanded 1 mm back, went 0.5: 5 mJ in
     assert pc.observer.e_in == pytest.approx(0.005)
+    # An arm lagging its command (a speed limit): only the 0.2 mm it made crossed the port,
+    # not the 1 mm still to come, which is counted again as the arm makes it.
+    pc.step(wall, [0.0], 0.001, done=[0.0])
+    out_before = pc.observer.e_out
+    pc.step(wall, [0.001], 0.001, done=[0.0])
+    pc.step(wall, [0.0008], 0.001, done=[0.0002])
+    assert pc.observer.e_out - out_before == pytest.approx(0.002)
+    pc.step(wall, [0.0], 0.001, done=[0.0008])
+    assert pc.observer.e_out - out_before == pytest.approx(0.010)

@@ -9,6 +9,8 @@ import math
 from functools import cache
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from services.control.passivity.dynamics import Wall
 from services.control.passivity.loop import (
@@ -18,6 +20,7 @@ from services.control.passivity.loop import (
     LoopSpec,
     contact_metrics,
     simulate,
+    swing_rms,
     trend_n_s,
 )
 
@@ -92,16 +95,35 @@ def test_without_tdpa_contact_goes_unstable(dofs: int, rtt_s: float) -> None:
 
 
 @pytest.mark.parametrize("dofs", [1, 3])
-@pytest.mark.parametrize(("rtt_s", "max_rel_rms"), [(0.1, 0.1), (0.2, 0.12)])
-def test_with_tdpa_contact_stays_bounded_and_settles(
-    dofs: int, rtt_s: float, max_rel_rms: float
-) -> None:
+@pytest.mark.parametrize("rtt_s", [0.1, 0.2])
+def test_with_tdpa_contact_stays_bounded_and_calm(dofs: int, rtt_s: float) -> None:
     ref = contact_metrics(run(0.0, True, dofs))
     m = contact_metrics(run(rtt_s, True, dofs))
     assert m["peak_force_n"] < 1.5 * ref["peak_force_n"]
     assert m["penetration_mm"] < 1.5 * ref["penetration_mm"]
     assert m["steady_force_n"] > 0.6 * ref["steady_force_n"]  # still in contact, pressing
-    assert m["oscillation_rms_n"] < max_rel_rms * m["steady_force_n"]
+    assert m["stable"]
+    assert m["swing_rms_n"] < 0.05 * m["steady_force_n"]
+
+
+@pytest.mark.parametrize("dofs", [1, 3])
+@pytest.mark.parametrize("rtt_s", [0.2, 0.7])
+def test_with_tdpa_no_seed_oscillates_though_some_step_late(dofs: int, rtt_s: float) -> None:
+    """Six seeds: with TDPA the contact never swings back and forth (below 3 % of the steady
+    force about its best monotone fit; 36-178 % without TDPA), but in some seeds it steps up
+    late in the hold: the simulated operator still pressing towards its 8 N at the rate its
+    model allows (0.3 N/s per N it misses), the display following the hand's push while the
+    master's reservoir is empty (docs/passivity.md, "Late steps"). The RMS about the mean
+    counts such a step; the swing does not, and never exceeds that RMS."""
+    extra: dict[str, object] = dict(THREE_DOF) if dofs == 3 else {}
+    for seed in range(1, 7):
+        spec = LoopSpec(round_trip_s=rtt_s, jitter=0.1, loss=0.01, tdpa=True, seed=seed, **extra)
+        m = contact_metrics(simulate(spec))
+        assert m["stable"], (seed, m)
+        assert m["swing_rms_n"] < 0.03 * m["steady_force_n"], seed
+        assert m["swing_rms_n"] <= m["oscillation_rms_n"] + 1e-12
+        if not m["settled"]:
+            assert m["creep_n_s"] > 0.0  # a step up, not down: the operator pressing on
 
 
 def test_with_tdpa_a_700ms_round_trip_stays_bounded() -> None:
@@ -162,6 +184,30 @@ def test_trend_is_the_least_squares_slope() -> None:
     wobble = [(0.01 * i, 8.0 + (1.0 if i % 2 else -1.0)) for i in range(200)]
     assert abs(trend_n_s(wobble)) < 0.1  # an oscillation has no trend
     assert trend_n_s([]) == 0.0 and trend_n_s([(1.0, 3.0), (1.0, 4.0)]) == 0.0
+
+
+def test_swing_counts_back_and_forth_not_steps() -> None:
+    assert swing_rms([]) == 0.0
+    assert swing_rms([5.0, 5.0, 5.0, 7.2, 7.2, 7.2]) == 0.0  # a late step of the contact
+    assert swing_rms([9.0, 8.0, 8.0, 6.5]) == 0.0  # sinking
+    # Rising fit 0, 0, 0, 0 (residuals ±1: 1); falling fit 1, 0, 0, -1 (0, -1, 1, 0).
+    assert swing_rms([1.0, -1.0, 1.0, -1.0]) == pytest.approx(math.sqrt(0.5))
+    # Rising fit 0, 1.5, 1.5, 3: residuals 0, ±0.5, 0 -> sqrt(0.5 / 4); falling: 1.12.
+    assert swing_rms([0.0, 2.0, 1.0, 3.0]) == pytest.approx(math.sqrt(0.125))
+    # Rising fit 2, 6, 6, 6 (residuals 0, 2, 0, -2 -> sqrt(2)); falling 16/3 x 3, 4 (2.16).
+    assert swing_rms([2.0, 8.0, 6.0, 4.0]) == pytest.approx(math.sqrt(2.0))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1e3, 1e3), max_size=40), st.floats(-1e3, 1e3))
+def test_swing_never_exceeds_the_rms_about_the_mean(values: list[float], shift: float) -> None:
+    swing = swing_rms(values)
+    mean = sum(values) / len(values) if values else 0.0
+    rms = math.sqrt(sum((v - mean) ** 2 for v in values) / len(values)) if values else 0.0
+    assert 0.0 <= swing <= rms + 1e-9 * (1.0 + rms)
+    assert swing_rms([v + shift for v in values]) == pytest.approx(swing, abs=1e-6)
+    assert swing_rms(sorted(values)) == pytest.approx(0.0, abs=1e-9)
+    assert swing_rms(sorted(values, reverse=True)) == pytest.approx(0.0, abs=1e-9)
 
 
 def _slave_speeds(res: LoopResult) -> list[float]:
