@@ -308,6 +308,14 @@ def swing_rms(values: Sequence[float]) -> float:
     return math.sqrt(best / n)
 
 
+def held(window: Sequence[float], steady_n: float) -> bool:
+    """The contact held through the window: its force never fell below 10 % of the steady
+    force. A bounce whose period is longer than the window leaves the surface and hits it
+    again once in it, which no swing shows (a rise from 0 is monotone: over the link at
+    700 ms without TDPA, 2026-11-26)."""
+    return bool(window) and min(window) >= 0.1 * steady_n
+
+
 def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float | bool]:
     """The bench's measures of one run.
 
@@ -318,9 +326,10 @@ def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float |
     over the same window; creep_n_s: its least-squares slope over that window
     (`trend_n_s`); penetration_mm: the largest; energy_generated_j: how far the channel's
     observed output ever exceeded its input (> 0 means energy was created); stable: no
-    divergence and a swing below 10 % of the steady force (no sustained oscillation);
-    settled: no divergence and oscillation RMS below 10 % of the steady force (nor a step
-    inside the window: the operator still pressing towards its goal force counts here).
+    divergence, the contact held through the window (`held`) and a swing below 10 % of
+    the steady force (no sustained oscillation); settled: no divergence and oscillation RMS
+    below 10 % of the steady force (nor a step inside the window: the operator still
+    pressing towards its goal force counts here).
     """
     spec = res.spec
     lo = spec.approach_s + settle_s
@@ -337,6 +346,7 @@ def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float |
         generated = max(generated, (mo + so) - (mi + si))
     swing = swing_rms(window)
     calm = (not res.diverged) and steady > 0.0
+    stable = calm and held(window, steady) and swing < 0.1 * steady
     return {
         "peak_force_n": max(res.f_contact, default=0.0),
         "steady_force_n": steady,
@@ -348,6 +358,6 @@ def contact_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float |
         "energy_generated_j": generated,
         "master_dissipated_j": res.master_dissipated_j,
         "slave_dissipated_j": res.slave_dissipated_j,
-        "stable": calm and swing < 0.1 * steady,
+        "stable": stable,
         "settled": calm and rms < 0.1 * steady,
     }

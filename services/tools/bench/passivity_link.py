@@ -49,7 +49,7 @@ from services.control.force.service import ForceService
 from services.control.master.config import MasterConfig
 from services.control.master.haptic_sim import SimHapticMaster
 from services.control.master.service import MasterService
-from services.control.passivity.loop import swing_rms, trend_n_s
+from services.control.passivity.loop import held, swing_rms, trend_n_s
 from services.control.puma.config import HOME_Q_RAD, PumaConfig
 from services.control.puma.service import PumaService
 from services.control.puma.sim_arm import SimArm
@@ -262,6 +262,7 @@ def metrics(
         "felt_n": sum(felt) / len(felt) if felt else 0.0,
         "rms_n": rms,
         "swing_n": swing_rms(window),
+        "held": held(window, steady),
         "creep_n_s": trend_n_s(points),
         "z_min_mm": 1e3 * (min(zs, default=math.nan) - top),
         "z_max_mm": 1e3 * (max(zs, default=math.nan) - top),
@@ -480,9 +481,10 @@ def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
     """The simulated bench's measures (`passivity.MEASURES`) from one run over the link.
     energy_generated_j: the channel's output beyond its input at the end, counting what the
     workcell gave back to repay an impact as input (0 with TDPA off: nothing observed).
-    stable: a swing (`swing_rms`: RMS about the best monotone fit) below 10 % of a steady
-    force above 1 N and below 95 % of the supervisor's contact limit (`SUPERVISOR_LIMIT_N`);
-    settled: the same with the RMS about the mean (a step inside the window counts)."""
+    stable: the contact held through the window (`held`) and a swing (`swing_rms`: RMS
+    about the best monotone fit) below 10 % of a steady force above 1 N and below 95 % of
+    the supervisor's contact limit (`SUPERVISOR_LIMIT_N`); settled: a RMS about the mean
+    below 10 % of such a force (a step inside the window counts)."""
     steady, rms, swing = float(m["steady_n"]), float(m["rms_n"]), float(m["swing_n"])
     resting = 1.0 < steady < 0.95 * SUPERVISOR_LIMIT_N
     nan = math.nan
@@ -503,7 +505,7 @@ def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
         "energy_generated_j": generated,
         "master_dissipated_j": float(m.get("master_dissipated_j", nan)),
         "slave_dissipated_j": float(m.get("slave_dissipated_j", nan)),
-        "stable": resting and swing < 0.1 * steady,
+        "stable": resting and bool(m["held"]) and swing < 0.1 * steady,
         "settled": resting and rms < 0.1 * steady,
     }
 

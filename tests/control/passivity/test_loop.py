@@ -19,6 +19,7 @@ from services.control.passivity.loop import (
     LoopResult,
     LoopSpec,
     contact_metrics,
+    held,
     simulate,
     swing_rms,
     trend_n_s,
@@ -196,6 +197,15 @@ def test_swing_counts_back_and_forth_not_steps() -> None:
     assert swing_rms([0.0, 2.0, 1.0, 3.0]) == pytest.approx(math.sqrt(0.125))
     # Rising fit 2, 6, 6, 6 (residuals 0, 2, 0, -2 -> sqrt(2)); falling 16/3 x 3, 4 (2.16).
     assert swing_rms([2.0, 8.0, 6.0, 4.0]) == pytest.approx(math.sqrt(2.0))
+
+
+def test_a_contact_lost_in_the_window_did_not_hold() -> None:
+    assert held([5.0, 5.0, 7.2, 7.2], 6.1)  # a late step: held
+    assert not held([0.0, 0.0, 42.0, 42.0], 21.0)  # left the surface, hit it again
+    assert not held([], 0.0)
+    # Without TDPA at 700 ms the sim's contact leaves the surface in the window too.
+    off = contact_metrics(run(0.7, False))
+    assert not off["stable"] and not off["settled"]
 
 
 @settings(max_examples=200, deadline=None)
