@@ -13,7 +13,8 @@ no sustained oscillation) and settled (the RMS below 10 %: no step in the window
 One table,
 one JSON (keys `passivity_<delay_ms>_<on|off>_<measure>`), one plot per delay (contact force
 over time, off and on). "on" is both ports with the master's energy-bounding force limiter
-(`--no-master-limit`: the damper alone). docs/passivity.md.
+(`--no-master-limit`: the damper alone). `--seeds N` also runs seeds 1 … N (each its own
+jitter and losses) and sums them up per delay (`seeds`). docs/passivity.md.
 
 The link here is the simulation's own (seeded, deterministic, no processes). `--link` runs
 the same task through the real services over a real bad link instead (network namespaces,
@@ -98,6 +99,79 @@ def run(
                 key = f"passivity_{delay}_{'on' if on else 'off'}_{name}"
                 doc[key] = value if isinstance(value, bool) else round(float(value), 6)
     return doc, results
+
+
+SEED_FIGURES = (
+    "stable",
+    "settled",
+    "swing_max_pct",
+    "rms_max_pct",
+    "felt_min_pct",
+    "felt_max_pct",
+    "generated_max_j",
+)
+"""Per delay and TDPA setting over seeds 1 … N (`seeds`): how many runs were stable and
+settled; the largest swing and RMS (% of each run's steady force); the force felt as % of
+the tool's (smallest, largest); the most energy generated."""
+
+
+def seeds(
+    count: int,
+    delays_ms: tuple[int, ...] = DEFAULT_DELAYS_MS,
+    jitter: float = 0.1,
+    loss: float = 0.01,
+    dofs: int = 1,
+    master_limit: bool = True,
+    slave_speed_m_s: float = SLAVE_SPEED_M_S,
+) -> dict[str, Any]:
+    """The same grid for seeds 1 … count (each its own jitter and losses), summed up as
+    `passivity_<delay>_<on|off>_seeds_<figure>` keys (`SEED_FIGURES`): what one seed's
+    table cannot say (a late step in one seed of six)."""
+    runs: dict[tuple[int, str], list[dict[str, Any]]] = {}
+    for seed in range(1, count + 1):
+        doc, _ = run(delays_ms, jitter, loss, dofs, seed, master_limit, slave_speed_m_s)
+        for delay in delays_ms:
+            for on in ("off", "on"):
+                k = f"passivity_{delay}_{on}_"
+                one = {m: doc[k + m] for m in MEASURES}
+                runs.setdefault((delay, on), []).append(one)
+    out: dict[str, Any] = {}
+    for (delay, on), ms in runs.items():
+        k = f"passivity_{delay}_{on}_seeds_"
+
+        def pct(name: str, m: dict[str, Any]) -> float:
+            steady = float(m["steady_force_n"])
+            return 100.0 * float(m[name]) / steady if steady > 0.0 else float("inf")
+
+        felt = [pct("felt_force_n", m) for m in ms]
+        out[k + "stable"] = sum(bool(m["stable"]) for m in ms)
+        out[k + "settled"] = sum(bool(m["settled"]) for m in ms)
+        out[k + "swing_max_pct"] = round(max(pct("swing_rms_n", m) for m in ms), 3)
+        out[k + "rms_max_pct"] = round(max(pct("oscillation_rms_n", m) for m in ms), 3)
+        out[k + "felt_min_pct"] = round(min(felt), 3)
+        out[k + "felt_max_pct"] = round(max(felt), 3)
+        out[k + "generated_max_j"] = max(float(m["energy_generated_j"]) for m in ms)
+    return out
+
+
+def seeds_table(summary: dict[str, Any], delays_ms: tuple[int, ...], n: int) -> str:
+    """`seeds`' figures over seeds 1 … n, one row per delay and TDPA setting."""
+    head = (
+        f"{'RTT ms':>7} {'TDPA':>4} {'stable':>7} {'settled':>7} {'swing max %':>11} "
+        f"{'RMS max %':>9} {'felt % of tool':>14} {'gen. max J':>10}"
+    )
+    lines = [f"seeds 1 … {n}:", head, "-" * len(head)]
+    for delay in delays_ms:
+        for on in ("off", "on"):
+            k = f"passivity_{delay}_{on}_seeds_"
+            felt = f"{summary[k + 'felt_min_pct']:.0f}–{summary[k + 'felt_max_pct']:.0f}"
+            lines.append(
+                f"{delay:>7} {on:>4} {summary[k + 'stable']:>3} / {n:<1} "
+                f"{summary[k + 'settled']:>3} / {n:<1} {summary[k + 'swing_max_pct']:>11.1f} "
+                f"{summary[k + 'rms_max_pct']:>9.1f} {felt:>14} "
+                f"{summary[k + 'generated_max_j']:>10.4f}"
+            )
+    return "\n".join(lines)
 
 
 def _num(x: float | None, width: int, digits: int) -> str:
@@ -185,6 +259,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dofs", type=int, default=1, choices=[1, 3])
     p.add_argument("--seed", type=int, default=1)
     p.add_argument(
+        "--seeds",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also run seeds 1 … N and sum them up per delay (stable and settled counts, "
+        "the largest swing, the force felt, the energy generated); simulation only",
+    )
+    p.add_argument(
         "--no-master-limit",
         action="store_true",
         help="TDPA on without the master's force limiter (the damper alone)",
@@ -264,6 +346,9 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--hold-s needs --link and a value within 1 … 60")
     if args.slave_speed is not None and (args.link or not 0.0 <= args.slave_speed <= 10.0):
         p.error("--slave-speed is the simulation's (not --link) and within 0 … 10 m/s")
+    if args.seeds and (args.link or not 1 <= args.seeds <= 100):
+        p.error("--seeds is the simulation's (not --link) and within 1 … 100")
+    summary: dict[str, Any] | None = None
     if args.link:
         from services.tools.bench import passivity_link
 
@@ -294,11 +379,25 @@ def main(argv: list[str] | None = None) -> int:
         doc, results = run(
             delays, args.jitter, args.loss, args.dofs, args.seed, not args.no_master_limit, speed
         )
+        if args.seeds:
+            summary = seeds(
+                args.seeds,
+                delays,
+                args.jitter,
+                args.loss,
+                args.dofs,
+                not args.no_master_limit,
+                speed,
+            )
+            doc |= summary
+            doc["settings"]["seeds"] = args.seeds
         path = Path(args.json or "artifacts/bench_passivity.json")
         drawn = plots(results, Path(args.plots)) if args.plots else []
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=2) + "\n")
     print(table(doc))
+    if summary is not None:
+        print("\n" + seeds_table(summary, delays, args.seeds))
     print(f"\nJSON: {path}" + (f"  plots: {', '.join(str(x) for x in drawn)}" if drawn else ""))
     return 0
 

@@ -7,7 +7,15 @@ from pathlib import Path
 
 import pytest
 
-from services.tools.bench.passivity import MEASURES, main, run, table
+from services.tools.bench.passivity import (
+    MEASURES,
+    SEED_FIGURES,
+    main,
+    run,
+    seeds,
+    seeds_table,
+    table,
+)
 
 
 def test_run_names_every_measure_and_shows_the_instability_it_prevents() -> None:
@@ -46,3 +54,36 @@ def test_at_700ms_the_master_limiter_is_what_settles_the_contact() -> None:
         with_limit["passivity_700_on_oscillation_rms_n"]
         < damper_only["passivity_700_on_oscillation_rms_n"] / 10
     )
+
+
+def test_seeds_sum_up_each_seeds_run() -> None:
+    summary = seeds(2, (200,))
+    docs = [run((200,), seed=seed)[0] for seed in (1, 2)]
+    for on in ("off", "on"):
+        k = f"passivity_200_{on}_"
+        assert summary[k + "seeds_stable"] == sum(d[k + "stable"] for d in docs)
+        assert summary[k + "seeds_settled"] == sum(d[k + "settled"] for d in docs)
+        swings = [100 * d[k + "swing_rms_n"] / d[k + "steady_force_n"] for d in docs]
+        assert summary[k + "seeds_swing_max_pct"] == pytest.approx(max(swings), abs=1e-3)
+        felt = [100 * d[k + "felt_force_n"] / d[k + "steady_force_n"] for d in docs]
+        assert summary[k + "seeds_felt_min_pct"] == pytest.approx(min(felt), abs=1e-3)
+        gen = max(d[k + "energy_generated_j"] for d in docs)
+        assert summary[k + "seeds_generated_max_j"] == gen
+    assert summary["passivity_200_off_seeds_stable"] == 0  # bounces in both seeds
+    assert summary["passivity_200_on_seeds_stable"] == 2
+    assert len(summary) == 2 * len(SEED_FIGURES)
+    rows = seeds_table(summary, (200,), 2).splitlines()
+    assert rows[0] == "seeds 1 … 2:" and len(rows) == 3 + 2
+    assert "0 / 2" in rows[3] and "2 / 2" in rows[4]
+
+
+def test_cli_seeds_is_the_simulations(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["--seeds", "3", "--link"])
+    assert "--seeds" in capsys.readouterr().err
+    out = tmp_path / "s.json"
+    assert main(["--delays-ms", "0", "--seeds", "2", "--json", str(out), "--plots", ""]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["settings"]["seeds"] == 2
+    assert doc["passivity_0_on_seeds_settled"] == 2
+    assert "seeds 1 … 2:" in capsys.readouterr().out
