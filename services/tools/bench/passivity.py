@@ -135,14 +135,14 @@ def seeds(
                 k = f"passivity_{delay}_{on}_"
                 one = {m: doc[k + m] for m in MEASURES}
                 runs.setdefault((delay, on), []).append(one)
+
+    def pct(name: str, m: dict[str, Any]) -> float:
+        steady = float(m["steady_force_n"])
+        return 100.0 * float(m[name]) / steady if steady > 0.0 else float("inf")
+
     out: dict[str, Any] = {}
     for (delay, on), ms in runs.items():
         k = f"passivity_{delay}_{on}_seeds_"
-
-        def pct(name: str, m: dict[str, Any]) -> float:
-            steady = float(m["steady_force_n"])
-            return 100.0 * float(m[name]) / steady if steady > 0.0 else float("inf")
-
         felt = [pct("felt_force_n", m) for m in ms]
         out[k + "stable"] = sum(bool(m["stable"]) for m in ms)
         out[k + "settled"] = sum(bool(m["settled"]) for m in ms)
@@ -166,8 +166,8 @@ def seeds_table(summary: dict[str, Any], delays_ms: tuple[int, ...], n: int) -> 
             k = f"passivity_{delay}_{on}_seeds_"
             felt = f"{summary[k + 'felt_min_pct']:.0f}–{summary[k + 'felt_max_pct']:.0f}"
             lines.append(
-                f"{delay:>7} {on:>4} {summary[k + 'stable']:>3} / {n:<1} "
-                f"{summary[k + 'settled']:>3} / {n:<1} {summary[k + 'swing_max_pct']:>11.1f} "
+                f"{delay:>7} {on:>4} {summary[k + 'stable']:>3} / {n} "
+                f"{summary[k + 'settled']:>3} / {n} {summary[k + 'swing_max_pct']:>11.1f} "
                 f"{summary[k + 'rms_max_pct']:>9.1f} {felt:>14} "
                 f"{summary[k + 'generated_max_j']:>10.4f}"
             )

@@ -236,9 +236,9 @@ def metrics(
     trace: Trace, t_start_ns: int, hold_from_s: float, hold_to_s: float
 ) -> dict[str, float]:
     """Peak |f| over the run; steady f, the mean force felt (shown on the hand,
-    `master/feedback`), oscillation RMS, swing (`swing_rms`) and creep (N/s,
-    `trend_n_s`) over [hold_from,
-    hold_to) after the master started; tool z range there (mm above the table top);
+    `master/feedback`), oscillation RMS, swing (`swing_rms`), whether the contact `held`
+    and creep (N/s, `trend_n_s`) over [hold_from, hold_to) after the master started; tool
+    z range there (mm above the table top);
     penetration (mm below the tool's height at the touch, over the whole run); final
     energies of both ports."""
     t0 = t_start_ns
@@ -483,7 +483,7 @@ def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
     workcell gave back to repay an impact as input (0 with TDPA off: nothing observed).
     stable: the contact held through the window (`held`) and a swing (`swing_rms`: RMS
     about the best monotone fit) below 10 % of a steady force above 1 N and below 95 % of
-    the supervisor's contact limit (`SUPERVISOR_LIMIT_N`); settled: a RMS about the mean
+    the supervisor's contact limit (`SUPERVISOR_LIMIT_N`); settled: an RMS about the mean
     below 10 % of such a force (a step inside the window counts)."""
     steady, rms, swing = float(m["steady_n"]), float(m["rms_n"]), float(m["swing_n"])
     resting = 1.0 < steady < 0.95 * SUPERVISOR_LIMIT_N
