@@ -75,7 +75,9 @@ def test_robot_and_operator_profiles_come_up_together(tmp_path: Path) -> None:
             with Node("check", cfg) as node:
                 want = ROBOT_SERVICES | STATION
                 up = wait_until(lambda: want <= node.alive.names(), DEADLINE_S, poll_s=0.1)
-                assert up, node.alive.names()
+                # Strings, so that pytest prints every line of both launchers on a miss.
+                missing = f"missing {sorted(want - node.alive.names())}"
+                assert up, "\n".join([missing, *station.lines[-40:], *robot.lines[-40:]])
                 status = node.call("decision", "status", {}, DEADLINE_S)
                 assert want <= set(status["alive"]), status["alive"]
             assert stop(station) == 0, station.rest()[-20:]

@@ -95,7 +95,7 @@ def run_demo(
     with spawned(argv) as demo:
         demo.expect(lambda s: "Telerobot simulation is up." in s, UP_S)
         result = demo.expect(lambda s: s.startswith("result "), TASK_S)
-        assert result.split()[-1] == "SUCCESS", demo.lines
+        assert result.split()[-1] == "SUCCESS", "\n".join(demo.lines[-60:])
         demo.expect("telerobot demo: task done", TASK_S)
         before = len(demo.lines)
         if while_running is not None:
@@ -109,7 +109,8 @@ def run_demo(
                 break
         window = len(demo.lines) - before
         demo.proc.send_signal(signal.SIGINT)
-        assert demo.wait(60.0) == 0, demo.lines[-30:]
+        # A string, so that pytest prints every line (a list's repr is cut short).
+        assert demo.wait(60.0) == 0, "\n".join(demo.lines[-60:])
         lines = demo.rest()
     return lines, before, window, len(lines) - before - window
 
