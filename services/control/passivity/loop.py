@@ -217,13 +217,13 @@ def simulate(spec: LoopSpec) -> LoopResult:
         if spec.slave_speed_m_s > 0.0:
             # The arm chases its target at its speed limit: the controller corrects the
             # whole motion still to come (target − tool), as the service's slave port does.
-            pend = [t - x + d for t, x, d in zip(x_tgt, x_s, dx, strict=True)]
+            pend = [g - x + d for g, x, d in zip(x_tgt, x_s, dx, strict=True)]
             out = slave.step(f_env, pend, spec.dt_s, done=done)
             x_tgt = [x + o for x, o in zip(x_s, out, strict=True)]
-            gap = [t - x for t, x in zip(x_tgt, x_s, strict=True)]
-            norm = math.sqrt(dot(gap, gap))
+            gap = [g - x for g, x in zip(x_tgt, x_s, strict=True)]
+            gap_m = math.sqrt(dot(gap, gap))
             cap = spec.slave_speed_m_s * spec.dt_s
-            dx = gap if norm <= cap else [g * cap / norm for g in gap]
+            dx = gap if gap_m <= cap else [g * cap / gap_m for g in gap]
             done = dx
         else:
             dx = slave.step(f_env, dx, spec.dt_s)

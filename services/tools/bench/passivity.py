@@ -27,7 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -136,22 +136,38 @@ def seeds(
                 one = {m: doc[k + m] for m in MEASURES}
                 runs.setdefault((delay, on), []).append(one)
 
-    def pct(name: str, m: dict[str, Any]) -> float:
-        steady = float(m["steady_force_n"])
-        return 100.0 * float(m[name]) / steady if steady > 0.0 else float("inf")
-
     out: dict[str, Any] = {}
     for (delay, on), ms in runs.items():
         k = f"passivity_{delay}_{on}_seeds_"
-        felt = [pct("felt_force_n", m) for m in ms]
-        out[k + "stable"] = sum(bool(m["stable"]) for m in ms)
-        out[k + "settled"] = sum(bool(m["settled"]) for m in ms)
-        out[k + "swing_max_pct"] = round(max(pct("swing_rms_n", m) for m in ms), 3)
-        out[k + "rms_max_pct"] = round(max(pct("oscillation_rms_n", m) for m in ms), 3)
-        out[k + "felt_min_pct"] = round(min(felt), 3)
-        out[k + "felt_max_pct"] = round(max(felt), 3)
-        out[k + "generated_max_j"] = max(float(m["energy_generated_j"]) for m in ms)
+        out |= {k + name: value for name, value in seed_figures(ms).items()}
     return out
+
+
+def seed_figures(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """`SEED_FIGURES` over the measures of several runs (`MEASURES` each). The percentages
+    leave out a run with no steady force (diverged, or never in contact): null when no run
+    had one, never an infinity (which is not JSON)."""
+
+    def pct(name: str) -> list[float]:
+        return [
+            100.0 * float(m[name]) / float(m["steady_force_n"])
+            for m in runs
+            if float(m["steady_force_n"]) > 0.0
+        ]
+
+    def rounded(xs: list[float], pick: Callable[[list[float]], float]) -> float | None:
+        return round(pick(xs), 3) if xs else None
+
+    felt = pct("felt_force_n")
+    return {
+        "stable": sum(bool(m["stable"]) for m in runs),
+        "settled": sum(bool(m["settled"]) for m in runs),
+        "swing_max_pct": rounded(pct("swing_rms_n"), max),
+        "rms_max_pct": rounded(pct("oscillation_rms_n"), max),
+        "felt_min_pct": rounded(felt, min),
+        "felt_max_pct": rounded(felt, max),
+        "generated_max_j": max((float(m["energy_generated_j"]) for m in runs), default=None),
+    }
 
 
 def seeds_table(summary: dict[str, Any], delays_ms: tuple[int, ...], n: int) -> str:
@@ -164,12 +180,13 @@ def seeds_table(summary: dict[str, Any], delays_ms: tuple[int, ...], n: int) -> 
     for delay in delays_ms:
         for on in ("off", "on"):
             k = f"passivity_{delay}_{on}_seeds_"
-            felt = f"{summary[k + 'felt_min_pct']:.0f}–{summary[k + 'felt_max_pct']:.0f}"
+            lo, hi = summary[k + "felt_min_pct"], summary[k + "felt_max_pct"]
+            felt = "–" if lo is None or hi is None else f"{lo:.0f}–{hi:.0f}"
             lines.append(
                 f"{delay:>7} {on:>4} {summary[k + 'stable']:>3} / {n} "
-                f"{summary[k + 'settled']:>3} / {n} {summary[k + 'swing_max_pct']:>11.1f} "
-                f"{summary[k + 'rms_max_pct']:>9.1f} {felt:>14} "
-                f"{summary[k + 'generated_max_j']:>10.4f}"
+                f"{summary[k + 'settled']:>3} / {n} {_num(summary[k + 'swing_max_pct'], 11, 1)} "
+                f"{_num(summary[k + 'rms_max_pct'], 9, 1)} {felt:>14} "
+                f"{_num(summary[k + 'generated_max_j'], 10, 4)}"
             )
     return "\n".join(lines)
 

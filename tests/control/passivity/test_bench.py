@@ -12,6 +12,7 @@ from services.tools.bench.passivity import (
     SEED_FIGURES,
     main,
     run,
+    seed_figures,
     seeds,
     seeds_table,
     table,
@@ -87,3 +88,27 @@ def test_cli_seeds_is_the_simulations(tmp_path: Path, capsys: pytest.CaptureFixt
     assert doc["settings"]["seeds"] == 2
     assert doc["passivity_0_on_seeds_settled"] == 2
     assert "seeds 1 … 2:" in capsys.readouterr().out
+
+
+def test_a_run_without_a_steady_force_is_left_out_of_the_percentages() -> None:
+    def one(steady: float, swing: float, felt: float) -> dict[str, object]:
+        return {
+            "steady_force_n": steady,
+            "swing_rms_n": swing,
+            "oscillation_rms_n": 2 * swing,
+            "felt_force_n": felt,
+            "energy_generated_j": 0.001,
+            "stable": steady > 0.0,
+            "settled": False,
+        }
+
+    got = seed_figures([one(8.0, 0.4, 6.0), one(0.0, 0.0, 0.0), one(4.0, 0.4, 4.0)])
+    assert got["stable"] == 2 and got["settled"] == 0
+    assert got["swing_max_pct"] == 10.0 and got["rms_max_pct"] == 20.0  # 0.4 of 4 N
+    assert (got["felt_min_pct"], got["felt_max_pct"]) == (75.0, 100.0)
+    none = seed_figures([one(0.0, 0.0, 0.0)])
+    assert none["swing_max_pct"] is None and none["felt_min_pct"] is None
+    json.dumps(none, allow_nan=False)  # no infinity in the document
+    summary = {f"passivity_0_{on}_seeds_{f}": v for on in ("off", "on") for f, v in none.items()}
+    row = seeds_table(summary, (0,), 1).splitlines()[-1]
+    assert row.split()[:2] == ["0", "on"] and row.count("–") == 3  # swing, RMS, felt
