@@ -114,6 +114,10 @@ class RobotState(Message):
     cmd_origin_t_ns: Count | None = None
     """Extension: the `origin_t_ns` that command `cmd_seq` carried (the operator's send
     time), so master→puma and master→setpoint are timed on one clock."""
+    tool_p_cmd: Vec3 | None = None
+    """Extension: the tool position (world) of the setpoint the arm is following; the pose
+    the puma takes as a new engagement's start (`tool_p` is measured, and trails it by the
+    servo's error)."""
 
 
 @dataclass(frozen=True, slots=True)

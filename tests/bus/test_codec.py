@@ -79,6 +79,7 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "cmd_rx_ns": 11,
         "setpoint_ns": 12,
         "cmd_origin_t_ns": 8,
+        "tool_p_cmd": [0.5, 0.0, 0.3],
     },
     ForceSample: {
         "seq": 1,
@@ -160,7 +161,14 @@ VALID: dict[type[Message], dict[str, Any]] = {
 
 OPTIONAL: dict[type[Message], set[str]] = {
     OperatorCommand: {"grip", "origin_t_ns"},
-    RobotState: {"grip", "manipulability", "cmd_rx_ns", "setpoint_ns", "cmd_origin_t_ns"},
+    RobotState: {
+        "grip",
+        "manipulability",
+        "cmd_rx_ns",
+        "setpoint_ns",
+        "cmd_origin_t_ns",
+        "tool_p_cmd",
+    },
     ForceSample: {"raw"},
     Event: {"data"},
     StereoFrame: {"fx", "fy", "cx", "cy", "baseline"},

@@ -245,7 +245,12 @@ def test_extension_timing_fields_follow_the_contract_fields_in_order() -> None:
     assert codec.encode(with_origin) == msgpack.packb(expected, use_bin_type=True)
     state = GOLDEN[1][0]
     assert isinstance(state, RobotState)
-    timing = {"cmd_rx_ns": 2**63 - 1, "setpoint_ns": 0, "cmd_origin_t_ns": 17}
+    timing = {
+        "cmd_rx_ns": 2**63 - 1,
+        "setpoint_ns": 0,
+        "cmd_origin_t_ns": 17,
+        "tool_p_cmd": (0.5, -0.25, 0.125),
+    }
     timed = RobotState(**{**_fields(state), **timing})
     assert codec.encode(timed) == msgpack.packb(
         {**codec.to_fields(state), **timing}, use_bin_type=True

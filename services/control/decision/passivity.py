@@ -94,8 +94,14 @@ class SlaveTdpa:
             self._arm_engage = cmd.engage
             self.pc.rebase()
             if state is not None:
+                # The puma starts the engagement from its setpoint's pose, not the measured
+                # one, which trails it by the servo's error: with the measured pose every
+                # target was that far off what the puma aimed at (0.13 mm after the move to
+                # the start pose), and the port, holding its target "at the tool", pressed
+                # the tool in by that much at each correction (docs/passivity.md).
+                p0 = state.tool_p_cmd if state.tool_p_cmd is not None else state.tool_p
                 self._R0 = np.asarray(state.tool_R, dtype=float).reshape(3, 3)
-                self._p0 = np.asarray(state.tool_p, dtype=float)
+                self._p0 = np.asarray(p0, dtype=float)
         d = np.asarray(cmd.dp, dtype=float)
         if cmd.frame == "tool":
             d = self._R0 @ d

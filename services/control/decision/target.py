@@ -2,7 +2,8 @@
 from the operator's (or a task's) goal through the filters, and the commands that carry it.
 
 Each outgoing engagement (`engage_out`, its own `seq_out`, master id "decision") starts
-from the tool pose (p0, R0) then measured. The target (p_sup, R_sup) moves towards the goal
+from the tool pose (p0, R0) then (the setpoint's position, as the puma's start, when
+robot/state carries it). The target (p_sup, R_sup) moves towards the goal
 through (a) contact, (b) active compliance, (c) tool speed, (d) workspace box; the puma is
 sent `dp = p_sup − p0`, `dR = R0ᵀ·R_sup` in the world frame, so whatever a filter held back
 stays an offset of the target (off_p, off_R): it never turns into a jump.
@@ -162,9 +163,12 @@ class SupervisedTarget:
         self.last_adv_ns = now_ns
 
     def begin(self, state: RobotState, now_ns: int, period_s: float) -> None:
-        """Start a new engagement towards the puma, rebased on the current tool pose."""
+        """Start a new engagement towards the puma, rebased on the current tool pose: the
+        setpoint's (`tool_p_cmd`), which the puma records as its start, when the state
+        carries it; the measured one trails it by the servo's error."""
         self.engage_out = max(self.engage_out, state.engage) + 1
-        self._p0 = self._p = v3(state.tool_p)
+        start = state.tool_p_cmd if state.tool_p_cmd is not None else state.tool_p
+        self._p0 = self._p = v3(start)
         self._R0 = self._R = ortho9(m9(state.tool_R))
         self._off_p = _ZERO
         self._off_R = I9

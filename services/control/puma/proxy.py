@@ -315,6 +315,7 @@ class PumaProxy(ProxyControl):
             out["cmd_origin_t_ns"] = self._cmd_origin_t_ns
         if self._setpoint_ns is not None:
             out["setpoint_ns"] = self._setpoint_ns
+        out["tool_p_cmd"] = list(self._pose_cmd[0])
         return out
 
     def _poses_locked(self) -> dict[str, Any]:

@@ -3,6 +3,7 @@ per-master records (masters.py), the forwarded-motion watch (watch.py)."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from collections.abc import Callable
 from typing import Any
@@ -20,6 +21,7 @@ from services.control.decision.notices import (
     NOTICES_PER_S,
     Notices,
 )
+from services.control.decision.target import SupervisedTarget
 from services.control.decision.watch import (
     WATCH_START_NS,
     Watch,
@@ -141,6 +143,20 @@ def test_masters_stay_bounded_and_keep_the_lease_holder() -> None:
         masters.record(cmd(f"m{i}", 1), lease="holder")
         assert len(masters) <= MAX_MASTERS and "holder" in masters
     assert list(masters)[-1] == f"m{5 * MAX_MASTERS - 1}"
+
+
+def test_an_engagement_starts_where_the_puma_starts_it() -> None:
+    """The puma records the setpoint's pose as an engagement's start; the measured tool
+    trails it (0.13 mm here). The supervised target starts there too, so `dp = 0` is "stay
+    where the puma aims", and the checks see the target the puma will reach."""
+    measured = state("moving")
+    setpoint = (0.6, 0.0, 0.6 - 1.3e-4)
+    target = SupervisedTarget(0, 0, 0.002)
+    target.begin(dataclasses.replace(measured, tool_p_cmd=setpoint), 0, 0.002)
+    assert target.p0 is not None and np.array_equal(target.p0, setpoint)
+    assert np.array_equal(target.p_sup, setpoint)
+    target.begin(measured, 1, 0.002)  # a puma that does not say: the measured pose
+    assert target.p0 is not None and np.array_equal(target.p0, measured.tool_p)
 
 
 # --- watch ---------------------------------------------------------------------------------

@@ -106,6 +106,7 @@ def robot_state(
     tool_p: tuple[float, ...] = (0.5, 0.0, 0.5),
     seq: int = 1,
     t_ns: int | None = None,
+    tool_p_cmd: tuple[float, ...] | None = None,
 ) -> RobotState:
     return RobotState(
         seq=seq,
@@ -118,6 +119,7 @@ def robot_state(
         flange_R=tool_R,
         engage=1,
         cmd_seq=1,
+        tool_p_cmd=tool_p_cmd,
     )
 
 
@@ -190,6 +192,26 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
     hold = OperatorCommand(**{**codec.to_fields(command(10, -0.3)), "active": False})  # type: ignore[arg-type]
     st = robot_state()
     assert tdpa.apply(hold, op, st, push_up, 0) is hold
+
+
+def test_decision_starts_from_the_pose_the_puma_starts_from(net: Net) -> None:
+    """The puma maps an engagement onto its setpoint's pose; the measured tool trails it
+    (here still 0.13 mm above it, settling after a move). In contact, with no energy from
+    the operator, the port holds the target the puma aims at on the measured tool: the dp
+    it sends puts the puma's target there, not 0.13 mm into the wall (which it did while it
+    took the measured pose as the start)."""
+    tdpa = SlaveTdpa(net.node("decision"), drift_m_s=0.0)
+    op = ("m1", 1)
+    t0 = 1_000_000_000
+    setpoint, tool = (0.5, 0.0, 0.5), (0.5, 0.0, 0.50013)
+    push = ForceSample(seq=1, t_ns=t0, f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
+    st = robot_state(tool_p=tool, seq=1, t_ns=t0, tool_p_cmd=setpoint)
+    out = tdpa.apply(command(1, 0.0), op, st, push, t0)
+    assert setpoint[2] + out.dp[2] == pytest.approx(tool[2], abs=1e-12)
+    # Without the setpoint's pose in robot/state (an older puma), the measured one.
+    old = SlaveTdpa(net.node("decision2"), drift_m_s=0.0)
+    out = old.apply(command(1, 0.0), op, robot_state(tool_p=tool, seq=1, t_ns=t0), push, t0)
+    assert out.dp[2] == pytest.approx(0.0, abs=1e-12)
 
 
 def test_decision_ignores_forces_below_the_deadband(net: Net) -> None:
