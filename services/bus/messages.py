@@ -215,6 +215,7 @@ class MasterFeedback(Message):
 
 
 Joules = Annotated[float, Range(0.0, 1e6)]
+Newtons = Annotated[float, Range(0.0, 1e6)]
 PortSide = Literal["master", "slave"]
 
 
@@ -227,7 +228,10 @@ class PassivityState(Message):
     engagement began (cumulative, never decreasing within it); the other side bounds its
     output by this side's `e_in`. dissipated_j: energy the controller removed; gain: its
     last action (N·s/m damping at the master, m/N correction at the slave); active_steps:
-    how many steps it acted; enabled: false when the side only observes."""
+    how many steps it acted; enabled: false when the side only observes. asked_n / shown_n
+    (optional, master side): the force the master was asked to display on its last step
+    and the force its controller let the hand feel, both as newtons at the tool (the
+    display's magnitudes ÷ its force scale); the slave yields what is withheld."""
 
     name: ClassVar[str] = "PassivityState"
     seq: Count
@@ -241,6 +245,8 @@ class PassivityState(Message):
     dissipated_j: Joules
     gain: Annotated[float, Range(0.0, 1e12)]
     active_steps: Count
+    asked_n: Newtons | None = None
+    shown_n: Newtons | None = None
 
 
 ALL_MESSAGES: tuple[type[Message], ...] = (

@@ -156,6 +156,8 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "dissipated_j": 0.125,
         "gain": 3.0,
         "active_steps": 4,
+        "asked_n": 8.5,
+        "shown_n": 7.25,
     },
 }
 
@@ -175,7 +177,7 @@ OPTIONAL: dict[type[Message], set[str]] = {
     MasterState: set(),
     VisionStats: {"data"},
     MasterFeedback: set(),
-    PassivityState: set(),
+    PassivityState: {"asked_n", "shown_n"},
 }
 
 

@@ -22,7 +22,7 @@ Vec3T = tuple[float, float, float]
 #: settings fixed at start-up: the `supervisor` method refuses to change them.
 #: (`passivity`: the slave port's energies are counted from the service's start.)
 STARTUP_ONLY: frozenset[str] = frozenset(
-    {"rate_hz", "rpc_timeout_s", "wait_timeout_s", "passivity"}
+    {"rate_hz", "rpc_timeout_s", "wait_timeout_s", "passivity", "passivity_yield_m_s_n"}
 )
 
 _POSITIVE = (
@@ -52,6 +52,7 @@ _NON_NEGATIVE = (
     "tool_tip_radius_m",
     "grip_time_s",
     "approach_zone_m",
+    "passivity_yield_m_s_n",
 )
 
 
@@ -64,6 +65,7 @@ _KINDS: dict[str, str] = {
     "max_force_n": "force_n",
     "max_torque_nm": "torque_nm",
     "admittance_m_per_n_s": "admittance_m_n_s",
+    "passivity_yield_m_s_n": "admittance_m_n_s",
     "admittance_rad_per_nm_s": "admittance_rad_nm_s",
     "admittance_deadband_n": "force_n",
     "admittance_deadband_nm": "torque_nm",
@@ -101,6 +103,9 @@ class DecisionConfig:
       max_force_n, max_torque_nm: above these the motion into the contact is removed.
       passivity: time-domain passivity on the slave port (docs/passivity.md): the
         command's motion into a contact is bounded by the energy the operator put in.
+      passivity_yield_m_s_n: with passivity on, the tool backs out of a contact at this
+        many m/s per newton it presses harder than the master shows the operator (0: off;
+        5e-5 measured; for fast links only, docs/passivity.md "Yielding to the hand").
       compliance: admittance on: the target yields to the wrist force,
         dp = admittance_m_per_n_s · f_world · dt, dθ = admittance_rad_per_nm_s · c_tool · dt,
         with deadbands admittance_deadband_n / admittance_deadband_nm.
@@ -158,6 +163,7 @@ class DecisionConfig:
     event_interval_s: float = 1.0
     estop_power_off: bool = False
     passivity: bool = False
+    passivity_yield_m_s_n: float = 0.0
 
     def __post_init__(self) -> None:
         for key in _POSITIVE:

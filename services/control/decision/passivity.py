@@ -39,7 +39,8 @@ class SlaveTdpa:
     """enabled: correct (true) or only observe and publish (false). drift_m_s: see
     `SlavePort`; deadband_n: see DEADBAND_N; contact_n: the supervisor's contact force
     limit (N): above it the supervisor moves the target itself (retraction), so the energy
-    its motion brings in is not the operator channel's (excluded)."""
+    its motion brings in is not the operator channel's (excluded). yield_m_s_n: see
+    `SlavePort` (0: off; `[decision] passivity_yield_m_s_n`)."""
 
     def __init__(
         self,
@@ -48,10 +49,11 @@ class SlaveTdpa:
         drift_m_s: float = 0.03,
         deadband_n: float = DEADBAND_N,
         contact_n: float = math.inf,
+        yield_m_s_n: float = 0.0,
     ) -> None:
         self.deadband_n = deadband_n
         self.contact_n = contact_n
-        self.pc = SlavePort(enabled=enabled, drift_m_s=drift_m_s)
+        self.pc = SlavePort(enabled=enabled, drift_m_s=drift_m_s, yield_m_s_n=yield_m_s_n)
         self._pub = node.publisher(keys.PASSIVITY_SLAVE)
         self._master_energy = node.latest(keys.PASSIVITY_MASTER)
         self._seq = 0
@@ -110,6 +112,9 @@ class SlaveTdpa:
         got = self._master_energy.read()
         if got is not None and got[0].master == operator[0] and got[0].side == "master":
             self.pc.remote.update(got[0].engage, got[0].e_in)
+            ours = got[0].engage == operator[1]
+            self.pc.asked_n = got[0].asked_n if ours else None
+            self.pc.shown_n = got[0].shown_n if ours else None
         f_now = self._observe()
         if state is None:
             return cmd

@@ -127,7 +127,11 @@ class DecisionService:
         """Callers of `task` waiting for their task to end (every tick notifies them)."""
 
         self._pub = node.publisher(PUMA_CMD)
-        self.passivity = SlaveTdpa(node, contact_n=config.max_force_n) if config.passivity else None
+        self.passivity = (
+            SlaveTdpa(node, contact_n=config.max_force_n, yield_m_s_n=config.passivity_yield_m_s_n)
+            if config.passivity
+            else None
+        )
         self._op_engage: dict[str, int] = {}
         self._intake = node.batches(CMD, self._on_commands)
         # What `status` shows of the other services: kept, refreshed behind (peeks.py).

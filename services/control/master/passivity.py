@@ -85,10 +85,14 @@ class MasterTdpa:
         engage: Callable[[], int],
         enabled: bool = True,
         device_mass_kg: float = 0.5,
+        force_scale: float = 1.0,
     ) -> None:
         """`device_mass_kg`: the device's moving mass the force limiter predicts with
-        (`[master] passivity_device_mass_kg`; 0.5 kg is the simulated haptic master's)."""
+        (`[master] passivity_device_mass_kg`; 0.5 kg is the simulated haptic master's).
+        `force_scale`: the display's (`[master] force_scale`), to report the forces asked and
+        shown as newtons at the tool."""
         self.master_id = master_id
+        self.force_scale = force_scale
         self.pc = master_port(device_mass_kg, enabled)
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)
@@ -120,4 +124,6 @@ class MasterTdpa:
 
     def _publish(self, engage: int) -> None:
         self._seq += 1
-        self._pub.put(passivity_state(self._seq, self.master_id, engage, "master", self.pc))
+        self._pub.put(
+            passivity_state(self._seq, self.master_id, engage, "master", self.pc, self.force_scale)
+        )

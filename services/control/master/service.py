@@ -75,6 +75,7 @@ class MasterService:
                 config.master_id,
                 lambda: self.teleop.engage,
                 device_mass_kg=config.passivity_device_mass_kg,
+                force_scale=config.force_scale,
             )
             force_hook = self.passivity.hook
         self.force_display = ForceDisplay(config, force_hook)

@@ -85,6 +85,8 @@ class MasterPassivity:
     remote: RemoteEnergy = field(default_factory=RemoteEnergy)
     telemetry: PortTelemetry = field(default_factory=PortTelemetry)
     limited_steps: int = 0
+    asked_n: float = 0.0
+    shown_n: float = 0.0
     _f_held: list[float] | None = None
     _x_prev: list[float] | None = None
     _v_prev: list[float] | None = None
@@ -167,6 +169,7 @@ class MasterPassivity:
         self.observer.reset()
         self.remote.reset(epoch)
         self.telemetry.last_gain = 0.0
+        self.asked_n = self.shown_n = 0.0
         self._f_held = None
         self._x_prev = None
         self._v_prev = None
@@ -209,6 +212,8 @@ class MasterPassivity:
             self.telemetry.active_steps += 1  # the damper or the limiter acted this step
         self._v_prev = v if measured else None
         self._f_held = out
+        self.asked_n = math.sqrt(dot(f, f))
+        self.shown_n = math.sqrt(dot(out, out))
         return out
 
 

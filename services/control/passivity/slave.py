@@ -22,6 +22,16 @@ Supervisor's own corrections (a contact retraction above its force limit, a hold
 the operator's channel: while `supervised` is true, energy flowing into the robot is not
 credited to the channel (`excluded_j` counts it), energy flowing out still is
 (conservative).
+
+Yielding to the hand (`yield_m_s_n` > 0; off by default): the master reports the force it
+was asked to show and the force it let the hand feel (`asked_n`, `shown_n`, newtons at the
+tool). With its reservoir empty the master shows the hand what it pushes with and no more,
+and a tool that pressed harder at the touch stays harder: nothing moves, so nothing refills
+the reservoir. The port then backs the target out along the contact force at
+`yield_m_s_n` × the excess, the energy the workcell gives back meanwhile excluded (handed to
+the master it let the display push the hand out and the hand lunge back in: 40 N peaks in 2
+runs of 6), and the offset is given back into the contact only slowly and only while the
+tool presses no harder than the hand feels (docs/passivity.md, "Yielding to the hand").
 """
 
 from __future__ import annotations
@@ -44,6 +54,18 @@ MIN_FORCE_N = 1e-3
 MAX_BACKOFF_M = 0.002
 """The farthest the controller puts the target outside the measured tool, along the force
 (repaying an overdraw needs the contact to relax, not the arm to leave)."""
+YIELD_M_S_N = 5e-5
+"""The yield rate measured (m/s per N, `[decision] passivity_yield_m_s_n`; off by default):
+0.25 mm/s for 5 N, which sheds 5 N/s against the link bench's 20 kN/m table."""
+DRIFT_CONTACT_M_S = 0.001
+"""With the yield on, the offset is given back into a contact at this speed at most (m/s;
+20 N/s against the 20 kN/m table), and only while the tool presses no harder than the
+operator feels. At the free-space speed (the decision's 3 cm/s) the offset the operator
+had pushed past the clamped target was given back at 20 N/s to 32 N at 700 ms."""
+YIELD_MAX_M_S = 0.002
+"""The fastest the target backs out for the operator (m/s)."""
+YIELD_MIN_N = 0.5
+"""An excess below this (N) is not yielded: the master's limiter catching up with the force."""
 HISTORY_LEN = 64
 """Samples kept per stream (at 100–1000 Hz: 64 ms … 0.6 s, longer than any pairing gap)."""
 
@@ -92,6 +114,9 @@ class SlavePort:
     `observe(f, p, supervised)`: the environment force on the tool (N, world) and the tool
     position (m, world) at one instant, later than the previous call's. `correct(target,
     p_now, f)`: the target position (m, world) to send in place of the master's.
+    `yield_m_s_n`: the yield to the hand (0: off); `asked_n` / `shown_n`: the master's
+    last figures for this engagement (None: not known, no yield); `yielding`: the last
+    `correct` yielded; `yielded_m`: how far the target was backed out so far.
     """
 
     enabled: bool = True
@@ -103,6 +128,11 @@ class SlavePort:
     excluded_j: float = 0.0
     recovered_j: float = 0.0
     clipped_j: float = 0.0
+    yield_m_s_n: float = 0.0
+    asked_n: float | None = None
+    shown_n: float | None = None
+    yielding: bool = False
+    yielded_m: float = 0.0
     _f_prev: tuple[float, ...] | None = None
     _p_prev: tuple[float, ...] | None = None
 
@@ -119,6 +149,9 @@ class SlavePort:
         self.recovered_j = 0.0
         self.excluded_j = 0.0
         self.clipped_j = 0.0
+        self.asked_n = self.shown_n = None
+        self.yielding = False
+        self.yielded_m = 0.0
         self.rebase()
         self.telemetry.last_gain = 0.0
 
@@ -149,8 +182,11 @@ class SlavePort:
                 pay = min(e, -self.budget_j)
                 self.recovered_j += pay
                 e -= pay
-            if supervised and e > 0.0:
-                self.excluded_j += e  # the supervisor's motion, not the operator's channel
+            if (supervised or self.yielding) and e > 0.0:
+                # The supervisor's motion, or the port's own yield to the operator: not the
+                # operator's channel (a yield that handed the workcell's energy to the master
+                # let it push the hand back out, and the hand lunged in when it ran out).
+                self.excluded_j += e
                 e = 0.0
             if e > 0.0:
                 # The workcell is passive: it never gives back more than it was given.
@@ -180,7 +216,18 @@ class SlavePort:
         ff = dot(f, f)
         if ff < MIN_FORCE_N**2:
             f, ff = [0.0] * len(want), 0.0
-        comp = self._drift_step(dt_s)
+        excess = self.withheld_n(math.sqrt(ff))
+        self.yielding = self.yield_m_s_n > 0.0 and excess >= YIELD_MIN_N
+        yields = self.yield_m_s_n > 0.0
+        contact_speed = DRIFT_CONTACT_M_S if yields else self.drift_m_s
+        comp = self._drift_step(dt_s, contact_speed if ff > 0.0 else self.drift_m_s)
+        over = yields and self.shown_n is not None and math.sqrt(ff) > self.shown_n + YIELD_MIN_N
+        if (self.yielding or over) and dot(f, comp) < 0.0:
+            # Not back into the contact while the tool presses harder than the operator
+            # feels (the force now against what the hand held, late by the link): given
+            # back regardless, the offset the operator pushed past a clamped target pressed
+            # the tool to 32 N at 700 ms, at 20 N/s, with the hand feeling 5.
+            comp = [0.0] * len(comp)
         if any(comp):
             tried = [w + c for w, c in zip(want, comp, strict=True)]
             # Free in free space, unless overdrawn (it would only lead to the next impact).
@@ -199,17 +246,55 @@ class SlavePort:
                 self.telemetry.dissipated_j += alpha * ff
                 self.telemetry.active_steps += 1
         self.telemetry.last_gain = alpha
+        if self.yielding:
+            want = self._yield(want, p_now, f, excess, dt_s)
         self.offset = [w - float(t) for w, t in zip(want, target, strict=True)]
         return want
+
+    def withheld_n(self, f_n: float) -> float:
+        """The force the tool presses with now (`f_n`, N) beyond what the operator feels:
+        `min(f_n, asked_n) − shown_n` (0 without the master's figures). The master's are
+        late by the link, but `shown_n` is what the hand holds, which changes slowly; `asked_n`
+        only keeps a force the master could not display anyway (its own limit) from being
+        yielded. As the tool yields, the excess falls with the force now, not a round trip
+        later: the yield stops where the hand is, however long the link."""
+        if self.asked_n is None or self.shown_n is None:
+            return 0.0
+        return max(min(f_n, self.asked_n) - self.shown_n, 0.0)
+
+    def _yield(
+        self,
+        want: list[float],
+        p_now: Sequence[float],
+        f: Sequence[float],
+        excess: float,
+        dt_s: float,
+    ) -> list[float]:
+        """The target moved out along the contact force by `yield_m_s_n` × `excess` (the
+        force the operator is not shown, N) × dt_s, at most `YIELD_MAX_M_S` × dt_s and never
+        past `MAX_BACKOFF_M` outside the tool: the tool presses no harder than the operator
+        feels. Passive: it only backs out, and what the workcell gives back meanwhile is
+        not the channel's (`observe` excludes it)."""
+        norm = math.sqrt(dot(f, f))
+        u = [fi / norm for fi in f]
+        out_m = math.fsum(ui * (w - p) for ui, w, p in zip(u, want, p_now, strict=True))
+        step = min(self.yield_m_s_n * excess, YIELD_MAX_M_S) * dt_s
+        step = min(step, max(MAX_BACKOFF_M - out_m, 0.0))
+        if step <= 0.0:
+            return want
+        self.yielded_m += step
+        return [w + step * ui for w, ui in zip(want, u, strict=True)]
 
     @staticmethod
     def _committed(f: Sequence[float], target: Sequence[float], p_now: Sequence[float]) -> float:
         """The energy the robot puts into the workcell going from p_now to target under f."""
         return -math.fsum(fi * (t - p) for fi, t, p in zip(f, target, p_now, strict=True))
 
-    def _drift_step(self, dt_s: float) -> list[float]:
+    def _drift_step(self, dt_s: float, speed_m_s: float) -> list[float]:
+        """The step that gives back the offset at `speed_m_s` (at most `drift_m_s`)."""
         n = math.sqrt(dot(self.offset, self.offset))
-        if self.drift_m_s <= 0.0 or n == 0.0 or not (dt_s > 0.0):
+        speed = min(speed_m_s, self.drift_m_s)
+        if speed <= 0.0 or n == 0.0 or not (dt_s > 0.0):
             return [0.0] * len(self.offset)
-        k = min(1.0, self.drift_m_s * dt_s / n)
+        k = min(1.0, speed * dt_s / n)
         return [-k * o for o in self.offset]

@@ -16,9 +16,15 @@ def passivity_state(
     engage: int,
     side: Literal["master", "slave"],
     pc: MasterPassivity | SlavePassivity | SlavePort,
+    force_scale: float = 0.0,
 ) -> PassivityState:
-    """What the port at `side` has observed and done since `engage` began."""
+    """What the port at `side` has observed and done since `engage` began. force_scale: the
+    master display's (operator N per tool N; > 0: the master's asked and shown forces go
+    along, as newtons at the tool)."""
     t = pc.telemetry
+    asked = shown = None
+    if isinstance(pc, MasterPassivity) and force_scale > 0.0:
+        asked, shown = pc.asked_n / force_scale, pc.shown_n / force_scale
     return PassivityState(
         seq=seq,
         t_ns=time.time_ns(),
@@ -31,4 +37,6 @@ def passivity_state(
         dissipated_j=t.dissipated_j,
         gain=t.last_gain,
         active_steps=t.active_steps,
+        asked_n=asked,
+        shown_n=shown,
     )

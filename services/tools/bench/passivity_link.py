@@ -297,7 +297,14 @@ class RouterSide(Clients):
         self.router.close()
 
 
-def robot(endpoint: str, passivity: bool, watchdog: float, zone_m: float, hold_s: float) -> None:
+def robot(
+    endpoint: str,
+    passivity: bool,
+    watchdog: float,
+    zone_m: float,
+    hold_s: float,
+    yield_m_s_n: float = 0.0,
+) -> None:
     peers: Peers | RouterSide = (
         RouterSide(endpoint)
         if endpoint.startswith("udp/")
@@ -311,6 +318,7 @@ def robot(endpoint: str, passivity: bool, watchdog: float, zone_m: float, hold_s
             watchdog_ms=watchdog,
             state_stale_ms=watchdog,
             approach_zone_m=zone_m,
+            passivity_yield_m_s_n=yield_m_s_n,
         )
         print("ready", flush=True)
         start = sys.stdin.readline().split()
@@ -328,6 +336,8 @@ def robot(endpoint: str, passivity: bool, watchdog: float, zone_m: float, hold_s
         if tdpa is not None:
             m["slave_recovered_j"] = tdpa.pc.recovered_j
             m["slave_clipped_j"] = tdpa.pc.clipped_j
+            m["slave_excluded_j"] = tdpa.pc.excluded_j
+            m["slave_yielded_mm"] = tdpa.pc.yielded_m * 1e3
         events, after = trace.events_split()
         with trace.lock:
             m["puma_cmds"] = float(trace.puma_cmds)
@@ -395,9 +405,11 @@ def run_over_link(
     approach_zone_m: float = APPROACH_ZONE_M,
     rate_mbit: float = 0.0,
     hold_s: float = HOLD_S,
+    yield_m_s_n: float = 0.0,
 ) -> dict[str, Any]:
     """One press–hold–release over a fresh link (`rate_mbit` > 0: its bandwidth each way,
-    a link the streams can saturate; the hold `hold_s` long): the robot side's metrics,
+    a link the streams can saturate; the hold `hold_s` long; `yield_m_s_n`: the
+    decision's `passivity_yield_m_s_n`): the robot side's metrics,
     the operator's own figures (keys `op_…`), the link's emulator, the last events and the
     force series ((s since the operator started, world f_z)). Raises RuntimeError when the
     link cannot be made (`unavailable()` says why beforehand) or a side fails."""
@@ -418,6 +430,7 @@ def run_over_link(
                 wd,
                 str(approach_zone_m),
                 str(hold_s),
+                str(yield_m_s_n),
             ),
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
@@ -465,6 +478,7 @@ def run_over_link(
     m |= {"rtt_ms": rtt_ms, "passivity": passivity, "rate_hz": rate_hz, "hold_s": hold_s}
     m |= {"load1": os.getloadavg()[0], "emulator": emulator, "transport": transport}
     m["approach_zone_m"], m["rate_mbit"] = approach_zone_m, rate_mbit
+    m["yield_m_s_n"] = yield_m_s_n
     m["events"] = out["events"]
     m["events_after"] = out.get("events_after", [])
     m["force"] = out["force"]
@@ -520,6 +534,7 @@ def run_matrix(
     rate_mbit: float = 0.0,
     master_rate_hz: float = MASTER_RATE_HZ,
     hold_s: float = HOLD_S,
+    yield_m_s_n: float = 0.0,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
     """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
     simulated bench's keys, the runs)."""
@@ -535,6 +550,7 @@ def run_matrix(
             "master_rate_hz": master_rate_hz,
             "hold_s": hold_s,
             "measured_s": min(MEASURE_S, hold_s),
+            "yield_m_s_n": yield_m_s_n,
         },
     }
     runs: dict[tuple[int, bool], dict[str, Any]] = {}
@@ -551,6 +567,7 @@ def run_matrix(
                 rate_mbit=rate_mbit,
                 rate_hz=master_rate_hz,
                 hold_s=hold_s,
+                yield_m_s_n=yield_m_s_n,
             )
             runs[(delay, on)] = m
             doc["settings"]["emulator"] = m["emulator"]
@@ -567,6 +584,8 @@ def run_matrix(
             "events": list(m.get("events", []))[-20:],
             "puma_cmds": m.get("puma_cmds"),
             "slave_recovered_j": m.get("slave_recovered_j"),
+            "slave_excluded_j": m.get("slave_excluded_j"),
+            "slave_yielded_mm": m.get("slave_yielded_mm"),
             "master_out_j": m.get("op_master_out_j"),
             "master_in_j": m.get("op_master_in_j"),
             "load1": m.get("load1"),
@@ -603,7 +622,7 @@ def plots(runs: dict[tuple[int, bool], dict[str, Any]], out_dir: Path) -> list[P
 def main(argv: list[str]) -> None:
     role, endpoint, passivity = argv[0], argv[1], argv[2] == "1"
     if role == "robot":
-        robot(endpoint, passivity, float(argv[3]), float(argv[4]), float(argv[5]))
+        robot(endpoint, passivity, float(argv[3]), float(argv[4]), float(argv[5]), float(argv[6]))
     elif role == "operator":
         operator(endpoint, passivity, float(argv[3]), float(argv[4]), float(argv[5]))
     else:

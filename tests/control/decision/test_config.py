@@ -42,6 +42,8 @@ def test_defaults_keep_the_tool_out_of_the_table() -> None:
         ({"guarded_speed_m_s": 0.5}, "decision.guarded_speed_m_s"),
         ({"approach_zone_m": -0.01}, "decision.approach_zone_m"),
         ({"approach_zone_m": 5.0}, "decision.approach_zone_m"),
+        ({"passivity_yield_m_s_n": -1e-5}, "decision.passivity_yield_m_s_n"),
+        ({"passivity_yield_m_s_n": 2.0}, "decision.passivity_yield_m_s_n"),
         ({"approach_speed_m_s": 0.0}, "decision.approach_speed_m_s"),
         ({"approach_speed_m_s": 0.3}, "decision.approach_speed_m_s"),
     ],

@@ -10,7 +10,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.control.passivity.controller import TOLERANCE_J
-from services.control.passivity.slave import MAX_BACKOFF_M, MIN_FORCE_N, SlavePort, TimedHistory
+from services.control.passivity.slave import (
+    DRIFT_CONTACT_M_S,
+    MAX_BACKOFF_M,
+    MIN_FORCE_N,
+    YIELD_MAX_M_S,
+    YIELD_MIN_N,
+    SlavePort,
+    TimedHistory,
+)
 
 UP = (0.0, 0.0, 1.0)
 
@@ -108,6 +116,129 @@ def test_drift_is_given_back_only_with_energy_to_spare() -> None:
     assert sp.offset[2] == pytest.approx(off)  # in contact, no energy: kept
     sp.correct((0.0, 0.0, -0.05), (0.0, 0.0, -0.03), (0.0, 0.0, 0.0), 0.1)
     assert sp.offset[2] == pytest.approx(off - 0.001)  # free: 1 cm/s
+
+
+# --- yielding to the hand -------------------------------------------------------------------
+
+
+def test_withheld_is_the_force_now_beyond_what_the_hand_feels() -> None:
+    sp = SlavePort(yield_m_s_n=5e-5)
+    assert sp.withheld_n(13.0) == 0.0  # no figures from the master: nothing known
+    sp.asked_n, sp.shown_n = 10.0, 7.5
+    assert sp.withheld_n(8.0) == pytest.approx(0.5)  # the force now, not the one asked
+    # A force the master could not show anyway (its own limit: asked 10 N of 13) is not
+    # the controller's: only what it withheld of the 10 N.
+    assert sp.withheld_n(13.0) == pytest.approx(2.5)
+    assert sp.withheld_n(7.0) == 0.0  # the tool presses less than the hand feels
+
+
+def test_the_target_yields_along_the_force_at_the_rate_and_stops_past_the_bound() -> None:
+    """A tool at 12 N where the hand feels 8 (master asked 12): 4 N withheld, out along the
+    force (+z) at 5e-5 m/(N·s) × 4 N = 0.2 mm/s, never more than MAX_BACKOFF_M past the tool."""
+    sp = SlavePort(drift_m_s=0.0, yield_m_s_n=5e-5)
+    sp.remote.update(0, 1.0)  # energy to spare: the energy controller leaves it alone
+    sp.asked_n, sp.shown_n = 12.0, 8.0
+    tool, f = (0.0, 0.0, -0.001), (0.0, 0.0, 12.0)
+    out = sp.correct(tool, tool, f, 0.01)
+    assert sp.yielding
+    assert out == pytest.approx((0.0, 0.0, -0.001 + 5e-5 * 4.0 * 0.01))
+    assert sp.offset[2] == pytest.approx(2e-6) and sp.yielded_m == pytest.approx(2e-6)
+    # A huge excess: at YIELD_MAX_M_S; the arm not following: never past the bound.
+    sp.asked_n, sp.shown_n = 1000.0, 0.0
+    f = (0.0, 0.0, 1000.0)
+    out = sp.correct(tool, tool, f, 0.01)
+    assert out[2] - tool[2] == pytest.approx(2e-6 + YIELD_MAX_M_S * 0.01)
+    for _ in range(200):
+        out = sp.correct(tool, tool, f, 0.01)
+    assert out[2] - tool[2] == pytest.approx(MAX_BACKOFF_M)
+    # Below YIELD_MIN_N of excess, or off, or in free space: nothing.
+    for port, asked, shown, force in (
+        (SlavePort(drift_m_s=0.0, yield_m_s_n=5e-5), 12.0, 12.0 - 0.9 * YIELD_MIN_N, 12.0),
+        (SlavePort(drift_m_s=0.0), 12.0, 8.0, 12.0),
+        (SlavePort(drift_m_s=0.0, yield_m_s_n=5e-5), 12.0, 8.0, 0.0),
+    ):
+        port.remote.update(0, 1.0)
+        port.asked_n, port.shown_n = asked, shown
+        assert port.correct(tool, tool, (0.0, 0.0, force), 0.01) == pytest.approx(tool)
+        assert not port.yielding
+
+
+def test_what_the_workcell_gives_back_while_yielding_is_not_the_channels() -> None:
+    """The tool backs out 0.1 mm under 12 N while yielding: 1.2 mJ the workcell gives back,
+    excluded (not for the master); the same motion without a yield is credited."""
+    for yielding in (True, False):
+        sp = SlavePort(drift_m_s=0.0, yield_m_s_n=5e-5)
+        sp.observe((0.0, 0.0, 12.0), (0.0, 0.0, -0.001))
+        sp.observe((0.0, 0.0, 12.0), (0.0, 0.0, -0.002))  # 1 mm in under 12 N: 12 mJ out
+        sp.remote.update(0, 1.0)
+        sp.asked_n, sp.shown_n = (12.0, 8.0) if yielding else (12.0, 12.0)
+        sp.correct((0.0, 0.0, -0.002), (0.0, 0.0, -0.002), (0.0, 0.0, 12.0), 0.01)
+        assert sp.yielding is yielding
+        e = sp.observe((0.0, 0.0, 12.0), (0.0, 0.0, -0.0019))
+        if yielding:
+            assert e == 0.0 and sp.excluded_j == pytest.approx(12.0 * 1e-4)
+            assert sp.observer.e_in == 0.0
+        else:
+            assert e == pytest.approx(12.0 * 1e-4) and sp.excluded_j == 0.0
+
+
+def test_with_the_yield_on_the_offset_returns_into_a_contact_slowly_and_not_past_the_hand() -> None:
+    sp = SlavePort(drift_m_s=0.03, yield_m_s_n=5e-5)
+    sp.remote.update(0, 1.0)
+    sp.offset = [0.0, 0.0, 0.001]  # the slave 1 mm out of where the master says
+    tool, target = (0.0, 0.0, -0.001), (0.0, 0.0, -0.002)
+    sp.asked_n, sp.shown_n = 8.0, 8.0  # the hand feels all of the 8 N: given back, slowly
+    out = sp.correct(target, tool, (0.0, 0.0, 8.0), 0.01)
+    assert out[2] == pytest.approx(-0.001 - DRIFT_CONTACT_M_S * 0.01)
+    sp.offset = [0.0, 0.0, 0.001]
+    sp.shown_n = 8.0 - 1.5 * YIELD_MIN_N  # the tool presses harder than the hand feels
+    sp.asked_n = 8.0 - 1.5 * YIELD_MIN_N  # (and was never asked more: no yield either)
+    out = sp.correct(target, tool, (0.0, 0.0, 8.0), 0.01)
+    assert not sp.yielding and out[2] == pytest.approx(-0.001)
+    sp.offset = [0.0, 0.0, 0.001]  # in free space: at drift_m_s
+    out = sp.correct(target, tool, (0.0, 0.0, 0.0), 0.01)
+    assert out[2] == pytest.approx(-0.001 - 0.03 * 0.01)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    steps=st.lists(
+        st.tuples(
+            st.tuples(*[st.floats(-0.1, 0.1, allow_nan=False)] * 3),
+            st.tuples(*[st.floats(-0.1, 0.1, allow_nan=False)] * 3),
+            st.tuples(*[st.floats(-100.0, 100.0, allow_nan=False)] * 3),
+            st.floats(0.0, 200.0),
+            st.floats(0.0, 200.0),
+        ),
+        min_size=1,
+        max_size=20,
+    ),
+    remote=st.floats(0.0, 1.0),
+)
+def test_the_yield_only_ever_backs_the_target_out(
+    steps: list[tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...], float, float]],
+    remote: float,
+) -> None:
+    """Whatever the master reports, the yield moves the target along the contact force
+    (out of it, never in), by at most YIELD_MAX_M_S × dt, and never further than
+    MAX_BACKOFF_M past the tool unless the target was already there."""
+    with_y = SlavePort(drift_m_s=0.0, yield_m_s_n=5e-5)
+    without = SlavePort(drift_m_s=0.0)
+    for port in (with_y, without):
+        port.remote.update(0, remote)
+    for target, p_now, f, asked, shown in steps:
+        with_y.asked_n, with_y.shown_n = asked, shown
+        with_y.offset = list(without.offset)  # the same start, the yield alone differs
+        a = with_y.correct(target, p_now, f, 0.01)
+        b = without.correct(target, p_now, f, 0.01)
+        d = [x - y for x, y in zip(a, b, strict=True)]
+        norm = math.sqrt(sum(x * x for x in f))
+        moved = math.sqrt(sum(x * x for x in d))
+        assert moved <= YIELD_MAX_M_S * 0.01 + 1e-12
+        if moved > 0.0:
+            assert sum(x * y for x, y in zip(d, f, strict=True)) == pytest.approx(moved * norm)
+            out_m = sum(fi * (x - p) for fi, x, p in zip(f, a, p_now, strict=True)) / norm
+            assert out_m <= MAX_BACKOFF_M + 1e-12
 
 
 vec3 = st.tuples(*[st.floats(-0.1, 0.1, allow_nan=False)] * 3)

@@ -101,6 +101,42 @@ def test_master_hook_damps_until_the_slave_has_put_energy_in(net: Net) -> None:
     assert wait_until(lambda: seen[-1].e_out > 0.0)
 
 
+def test_the_master_reports_the_force_asked_and_shown_at_the_tool_and_the_slave_takes_its_own(
+    net: Net,
+) -> None:
+    """The master shows the hand 2 N of the 8 it is asked (its reservoir empty, the hand
+    pushing 2 N) at a force scale of 0.5: 16 N asked and 4 N shown at the tool. The slave
+    port takes them for its own engagement only."""
+    a, b = net.node("master"), net.node("robot")
+    tdpa = MasterTdpa(a, "m1", lambda: 7, force_scale=0.5)
+    seen: list[PassivityState] = []
+    b.subscribe(keys.PASSIVITY_MASTER, seen.append)
+    slave = SlaveTdpa(b, drift_m_s=0.0, yield_m_s_n=5e-5)
+    tdpa.hook(wrench(-2.0), hand(0.0), 0.002)
+    shown = tdpa.hook(wrench(-8.0), hand(0.0), 0.002).f[0]
+    assert -8.0 < shown < 0.0  # held back: nothing in the reservoir to push the hand with
+    assert wait_until(lambda: bool(seen) and seen[-1].seq >= 2)
+    assert seen[-1].asked_n == pytest.approx(16.0)
+    assert seen[-1].shown_n == pytest.approx(-shown / 0.5)
+    st = robot_state()
+    push = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
+
+    def taken(engage: int) -> bool:
+        tdpa.hook(wrench(-8.0), hand(0.0), 0.002)  # the master goes on publishing
+        slave.apply(command(1, 0.0), ("m1", engage), st, push, 0)
+        return slave.pc.shown_n is not None
+
+    assert wait_until(lambda: taken(7))
+    assert slave.pc.asked_n == pytest.approx(16.0)
+    assert not taken(6)  # another engagement's figures are not this one's
+    assert slave.pc.asked_n is None
+    # Without a force scale (a display that shows nothing) the figures are left out.
+    quiet = MasterTdpa(a, "m2", lambda: 7, force_scale=0.0)
+    quiet.hook(wrench(-8.0), hand(0.0), 0.002)
+    assert wait_until(lambda: seen[-1].master == "m2")
+    assert seen[-1].asked_n is None and seen[-1].shown_n is None
+
+
 def robot_state(
     tool_R: tuple[float, ...] = IDENTITY_R,
     tool_p: tuple[float, ...] = (0.5, 0.0, 0.5),

@@ -152,6 +152,7 @@ def _runs_told(monkeypatch: pytest.MonkeyPatch, keyword: str) -> list[object]:
         ("--rate-mbit", "rate_mbit", 0.5, 0.0, None),
         ("--master-rate-hz", "master_rate_hz", 200.0, passivity_link.MASTER_RATE_HZ, "rate_hz"),
         ("--hold-s", "hold_s", 4.0, passivity_link.HOLD_S, None),
+        ("--yield", "yield_m_s_n", 5e-5, 0.0, None),
     ],
 )
 def test_a_link_setting_reaches_every_run_and_the_document(
@@ -190,6 +191,9 @@ def test_a_link_setting_reaches_every_run_and_the_document(
         ["--hold-s", "4"],
         ["--link", "--hold-s", "0.5"],
         ["--link", "--hold-s", "nan"],
+        ["--yield", "5e-5"],
+        ["--link", "--yield", "-1e-5"],
+        ["--link", "--yield", "0.5"],
     ],
 )
 def test_a_bad_link_setting_is_refused_by_name(
