@@ -224,8 +224,9 @@ class SlavePort:
         if (self.yielding or over) and dot(f, comp) < 0.0:
             # Not back into the contact while the tool presses harder than the operator
             # feels (the force now against what the hand held, late by the link): given
-            # back regardless, the offset the operator pushed past a clamped target pressed
-            # the tool to 32 N at 700 ms, at 20 N/s, with the hand feeling 5.
+            # back regardless (at 1 mm/s, with the yield on), the offset the operator had
+            # pushed past a clamped target pressed the tool to 32 N at 700 ms, the hand
+            # feeling 5.
             comp = [0.0] * len(comp)
         if any(comp):
             tried = [w + c for w, c in zip(want, comp, strict=True)]
@@ -256,7 +257,8 @@ class SlavePort:
         late by the link, but `shown_n` is what the hand holds, which changes slowly; `asked_n`
         only keeps a force the master could not display anyway (its own limit) from being
         yielded. As the tool yields, the excess falls with the force now, not a round trip
-        later: the yield stops where the hand is, however long the link."""
+        later, so the yield stops at what the hand is shown; at long delays that trails the
+        force itself, and the yield pulls the force down towards it (docs/passivity.md)."""
         if self.asked_n is None or self.shown_n is None:
             return 0.0
         return max(min(f_n, self.asked_n) - self.shown_n, 0.0)

@@ -112,12 +112,18 @@ def test_the_master_reports_the_force_asked_and_shown_at_the_tool_and_the_slave_
     seen: list[PassivityState] = []
     b.subscribe(keys.PASSIVITY_MASTER, seen.append)
     slave = SlaveTdpa(b, drift_m_s=0.0, yield_m_s_n=5e-5)
-    tdpa.hook(wrench(-2.0), hand(0.0), 0.002)
-    shown = tdpa.hook(wrench(-8.0), hand(0.0), 0.002).f[0]
-    assert -8.0 < shown < 0.0  # held back: nothing in the reservoir to push the hand with
-    assert wait_until(lambda: bool(seen) and seen[-1].seq >= 2)
-    assert seen[-1].asked_n == pytest.approx(16.0)
-    assert seen[-1].shown_n == pytest.approx(-shown / 0.5)
+    shown: list[float] = []
+
+    def published() -> bool:  # the hand still: nothing to push it out with
+        shown.append(tdpa.hook(wrench(-8.0), hand(0.0), 0.002).f[0])
+        return bool(seen)
+
+    assert wait_until(published)
+    assert all(-8.0 < x < 0.0 for x in shown)  # held back, every step
+    msg = seen[-1]
+    assert msg.asked_n == pytest.approx(16.0)
+    assert msg.shown_n is not None
+    assert any(msg.shown_n == pytest.approx(-x / 0.5) for x in shown)
     st = robot_state()
     push = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
 
@@ -132,8 +138,12 @@ def test_the_master_reports_the_force_asked_and_shown_at_the_tool_and_the_slave_
     assert slave.pc.asked_n is None
     # Without a force scale (a display that shows nothing) the figures are left out.
     quiet = MasterTdpa(a, "m2", lambda: 7, force_scale=0.0)
-    quiet.hook(wrench(-8.0), hand(0.0), 0.002)
-    assert wait_until(lambda: seen[-1].master == "m2")
+
+    def quiet_published() -> bool:
+        quiet.hook(wrench(-8.0), hand(0.0), 0.002)
+        return seen[-1].master == "m2"
+
+    assert wait_until(quiet_published)
     assert seen[-1].asked_n is None and seen[-1].shown_n is None
 
 
