@@ -117,7 +117,7 @@ class RobotState(Message):
     tool_p_cmd: Vec3 | None = None
     """Extension: the tool position (world) of the setpoint the arm is following; the pose
     the puma takes as a new engagement's start (`tool_p` is measured, and trails it by the
-    servo's error)."""
+    servo's error). Left out when the two agree (at rest)."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -61,6 +61,11 @@ from services.control.puma.planning import Plan, PlanFn, plan_joint, plan_pose
 
 Vec = NDArray[np.float64]
 
+SETPOINT_SHOWN_M = 1e-6
+"""robot/state carries the setpoint's tool position (`tool_p_cmd`) while it is more than
+this from the measured one on some axis: moving or settling. At rest the two agree and the
+field is left out (each message costs ~0.3 µs more to decode with it)."""
+
 
 class PumaProxy(ProxyControl):
     """The IProxyRobot of PROTOCOL.md §4 over an `Arm`; events go out through `emit`.
@@ -315,7 +320,9 @@ class PumaProxy(ProxyControl):
             out["cmd_origin_t_ns"] = self._cmd_origin_t_ns
         if self._setpoint_ns is not None:
             out["setpoint_ns"] = self._setpoint_ns
-        out["tool_p_cmd"] = list(self._pose_cmd[0])
+        p_cmd, p = self._pose_cmd[0], out["tool_p"]
+        if max(abs(a - b) for a, b in zip(p_cmd, p, strict=True)) > SETPOINT_SHOWN_M:
+            out["tool_p_cmd"] = list(p_cmd)
         return out
 
     def _poses_locked(self) -> dict[str, Any]:
