@@ -77,6 +77,10 @@ class PortFigures:
     dissipated_j: float
     active_steps: int
     acting: bool
+    asked_n: float | None = None
+    shown_n: float | None = None
+    """The master's: the force it was asked to display and the one the hand felt, N at the
+    tool (None: the slave, or not reported)."""
 
     @property
     def reservoir_j(self) -> float:
@@ -130,6 +134,8 @@ def tdpa_view(seen: Mapping[str, PortSeen], now_s: float) -> TdpaView:
                 dissipated_j=m.dissipated_j,
                 active_steps=m.active_steps,
                 acting=now_s - rec.acted_s <= ACTING_HOLD_S,
+                asked_n=m.asked_n,
+                shown_n=m.shown_n,
             )
         )
     return TdpaView(tuple(ports))

@@ -225,7 +225,7 @@ def _port_html(p: PortFigures) -> str:
     symbol, unit = _ACTION[p.side]
     color = "#bc4c00" if p.acting and p.enabled else "#24292f"
     remote = "slave" if p.side == "master" else "master"
-    cells = (
+    cells: list[tuple[str, str, str]] = [
         ("in (J)", "tr-tdpa-in", _joules(p.e_in_j)),
         ("out (J)", "tr-tdpa-out", _joules(p.e_out_j)),
         (f"{remote} in (J)", "tr-tdpa-remote", _joules(p.remote_in_j)),
@@ -233,7 +233,11 @@ def _port_html(p: PortFigures) -> str:
         (f"{symbol} ({unit})", "tr-tdpa-gain", f"{p.gain:.3g}"),
         ("dissipated (J)", "tr-tdpa-dissipated", _joules(p.dissipated_j)),
         ("acted (steps)", "tr-tdpa-steps", str(p.active_steps)),
-    )
+    ]
+    if p.asked_n is not None and p.shown_n is not None:
+        # What the controller withholds from the hand, at the tool (docs/passivity.md).
+        felt = f"{p.shown_n:.2f} of {p.asked_n:.2f}"
+        cells.append(("hand feels (N)", "tr-tdpa-felt", felt))
     rows = "".join(
         _row(label, f'<code class="{cls}" style="color:{color}">{_e(v)}</code>')
         for label, cls, v in cells

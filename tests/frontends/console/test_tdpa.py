@@ -149,6 +149,16 @@ def test_the_panel_says_off_inactive_or_active_and_shows_each_port() -> None:
     assert ">+0.3000<" in out and ">+0.0700<" in out and ">+0.1000<" in out
     quiet = passivity_html(tdpa_view(seen, ACTING_HOLD_S + 0.1))
     assert 'data-tdpa="inactive"' in quiet and "TDPA on — inactive" in quiet
+    assert "tr-tdpa-felt" not in out  # no figures of the hand reported
+
+
+def test_the_master_port_shows_what_the_hand_feels_of_what_it_was_asked() -> None:
+    held = replace(fig("master", steps=3), asked_n=10.46, shown_n=7.74)
+    v = tdpa_view({"master": PortSeen.first(held, 0.0)}, 0.1)
+    m = v.port("master")
+    assert m is not None and (m.asked_n, m.shown_n) == (10.46, 7.74)
+    out = passivity_html(v)
+    assert "hand feels (N)" in out and ">7.74 of 10.46<" in out
 
 
 @given(st.text(min_size=1, max_size=128), st.floats(0.0, 1e6), st.floats(0.0, 1e6))
