@@ -58,11 +58,13 @@ YIELD_M_S_N = 5e-5
 """The yield rate measured (m/s per N, `[decision] passivity_yield_m_s_n`; off by default):
 0.25 mm/s for 5 N, which sheds 5 N/s against the link bench's 20 kN/m table."""
 DRIFT_CONTACT_M_S = 0.001
-"""In contact the offset is given back at this speed at most (m/s; 20 N/s against the link
-bench's 20 kN/m table), and, when the master reports what the hand feels, only while the
-tool presses no harder than that. At the free-space speed (the decision's 3 cm/s) the
-master's input, arriving in bunches at 700 ms, paid the offset the operator had pushed past
-the clamped target back in steps of 15 N, to 37 N with the hand feeling 4."""
+"""With the yield on, the offset is given back into a contact at this speed at most (m/s;
+20 N/s against the link bench's 20 kN/m table), and only while the tool presses no harder
+than the hand feels: the yield's offset given back at the free-space 3 cm/s pressed the
+tool to 32 N at 700 ms. Not with the yield off: there, held in contact, the offset built up
+at the touch (the hand's figures a round trip late) was given back at 3 cm/s whenever the
+force dipped under the dead band, and the tool struck the table at 49–71 N in 4 runs of 18
+at 200 ms (0 of 20 without the rule, 2026-11-27)."""
 YIELD_MAX_M_S = 0.002
 """The fastest the target backs out for the operator (m/s)."""
 YIELD_MIN_N = 0.5
@@ -219,14 +221,14 @@ class SlavePort:
             f, ff = [0.0] * len(want), 0.0
         excess = self.withheld_n(math.sqrt(ff))
         self.yielding = self.yield_m_s_n > 0.0 and excess >= YIELD_MIN_N
-        comp = self._drift_step(dt_s, DRIFT_CONTACT_M_S if ff > 0.0 else self.drift_m_s)
-        over = self.shown_n is not None and math.sqrt(ff) > self.shown_n + YIELD_MIN_N
+        yields = self.yield_m_s_n > 0.0
+        comp = self._drift_step(dt_s, DRIFT_CONTACT_M_S if yields and ff > 0.0 else self.drift_m_s)
+        over = yields and self.shown_n is not None and math.sqrt(ff) > self.shown_n + YIELD_MIN_N
         if (self.yielding or over) and dot(f, comp) < 0.0:
-            # Not back into the contact while the tool presses harder than the operator
-            # feels (the force now against what the hand held, late by the link): given
-            # back regardless (at 1 mm/s, with the yield on), the offset the operator had
-            # pushed past a clamped target pressed the tool to 32 N at 700 ms, the hand
-            # feeling 5.
+            # With the yield on, not back into the contact while the tool presses harder
+            # than the operator feels (the force now against what the hand held, late by
+            # the link): given back regardless, the offset the operator had pushed past a
+            # clamped target pressed the tool to 32 N at 700 ms, the hand feeling 5.
             comp = [0.0] * len(comp)
         if any(comp):
             tried = [w + c for w, c in zip(want, comp, strict=True)]

@@ -198,6 +198,15 @@ def test_with_the_yield_on_the_offset_returns_into_a_contact_slowly_and_not_past
     sp.offset = [0.0, 0.0, 0.001]  # in free space: at drift_m_s
     out = sp.correct(target, tool, (0.0, 0.0, 0.0), 0.01)
     assert out[2] == pytest.approx(-0.001 - 0.03 * 0.01)
+    # With the yield off, the contact is as before: at drift_m_s when the energy pays,
+    # whatever the hand feels (held back, the offset built at the touch came back at once
+    # when the force dipped under the dead band: impacts of 49–71 N at 200 ms).
+    off = SlavePort(drift_m_s=0.03)
+    off.remote.update(0, 1.0)
+    off.offset = [0.0, 0.0, 0.001]
+    off.asked_n, off.shown_n = 8.0, 2.0
+    out = off.correct(target, tool, (0.0, 0.0, 8.0), 0.01)
+    assert out[2] == pytest.approx(-0.001 - 0.03 * 0.01)
 
 
 @settings(max_examples=80, deadline=None)
