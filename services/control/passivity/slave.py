@@ -219,11 +219,12 @@ class SlavePort:
         ff = dot(f, f)
         if ff < MIN_FORCE_N**2:
             f, ff = [0.0] * len(want), 0.0
-        excess = self.withheld_n(math.sqrt(ff))
-        self.yielding = self.yield_m_s_n > 0.0 and excess >= YIELD_MIN_N
+        f_n = math.sqrt(ff)
         yields = self.yield_m_s_n > 0.0
+        excess = self.withheld_n(f_n)
+        self.yielding = yields and excess >= YIELD_MIN_N
         comp = self._drift_step(dt_s, DRIFT_CONTACT_M_S if yields and ff > 0.0 else self.drift_m_s)
-        over = yields and self.shown_n is not None and math.sqrt(ff) > self.shown_n + YIELD_MIN_N
+        over = yields and self.shown_n is not None and f_n > self.shown_n + YIELD_MIN_N
         if (self.yielding or over) and dot(f, comp) < 0.0:
             # With the yield on, not back into the contact while the tool presses harder
             # than the operator feels (the force now against what the hand held, late by
@@ -249,7 +250,7 @@ class SlavePort:
                 self.telemetry.active_steps += 1
         self.telemetry.last_gain = alpha
         if self.yielding:
-            want = self._yield(want, p_now, f, excess, dt_s)
+            want = self._yield(want, p_now, f, f_n, excess, dt_s)
         self.offset = [w - float(t) for w, t in zip(want, target, strict=True)]
         return want
 
@@ -270,6 +271,7 @@ class SlavePort:
         want: list[float],
         p_now: Sequence[float],
         f: Sequence[float],
+        f_n: float,
         excess: float,
         dt_s: float,
     ) -> list[float]:
@@ -278,8 +280,7 @@ class SlavePort:
         past `MAX_BACKOFF_M` outside the tool: the tool presses no harder than the operator
         feels. Passive: it only backs out, and what the workcell gives back meanwhile is
         not the channel's (`observe` excludes it)."""
-        norm = math.sqrt(dot(f, f))
-        u = [fi / norm for fi in f]
+        u = [fi / f_n for fi in f]
         out_m = math.fsum(ui * (w - p) for ui, w, p in zip(u, want, p_now, strict=True))
         step = min(self.yield_m_s_n * excess, YIELD_MAX_M_S) * dt_s
         step = min(step, max(MAX_BACKOFF_M - out_m, 0.0))
