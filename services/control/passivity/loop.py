@@ -6,7 +6,8 @@ the PUMA's tool speed, as the simulated PUMA does behind its safety filter) → 
 cumulative input energy each tick; the slave sends the wall force and its cumulative input
 energy. The link delays every packet by `delay_s` ± `jitter` (a fraction, uniform), loses a
 fraction `loss`, and the receiver keeps the newest packet (highest seq), as our latest-wins
-subscribers do. With `tdpa` both passivity controllers run.
+subscribers do. With `tdpa` both passivity controllers run; the slave's is the reference
+controller, or with `slave_port` the decision service's own port.
 
 `simulate` returns a `LoopResult` with the traces and the energy figures; `contact_metrics`
 turns it into the bench's measures (peak and steady force, oscillation RMS, penetration).
@@ -24,6 +25,7 @@ from typing import Any
 from services.control.passivity.controller import MasterPassivity, SlavePassivity
 from services.control.passivity.dynamics import Device, Operator, Path, Wall, press_hold_release
 from services.control.passivity.observer import dot
+from services.control.passivity.slave import SlavePort
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,7 +88,11 @@ class LoopSpec:
     aiming 3 cm past it. `slave_speed_m_s`: the slave arm chases its target at most this fast
     (PumaConfig.max_tool_speed_m_s, 0.5 m/s); 0: it jumps to each target in one tick (over a
     jittery link the positions arrive in bunches, and the jumps are impacts faster than the
-    slave's controller can see: docs/passivity.md)."""
+    slave's controller can see: docs/passivity.md). `slave_port`: the slave side is the
+    decision service's own port (`SlavePort`: it corrects the target against the measured
+    tool, repays an impact's overdraw from what the wall gives back) instead of the
+    reference controller (`SlavePassivity`); it needs `slave_speed_m_s` > 0 (the arm chases
+    the target it is given)."""
 
     round_trip_s: float = 0.0
     jitter: float = 0.0
@@ -100,6 +106,7 @@ class LoopSpec:
     drift_m_s: float = 0.03
     slave_speed_m_s: float = SLAVE_SPEED_M_S
     slack_m: float = 0.0
+    slave_port: bool = False
     ramp_n_s: float = 0.0
     limit: bool = True
     limit_mass: bool = True
@@ -149,6 +156,8 @@ def simulate(spec: LoopSpec) -> LoopResult:
         raise ValueError("dofs must be 1 or 3, with target_m and wall.normal of that length")
     if not 0.0 <= spec.slave_speed_m_s < math.inf:
         raise ValueError("slave_speed_m_s must be ≥ 0 (0: no limit) and finite")
+    if spec.slave_port and spec.slave_speed_m_s <= 0.0:
+        raise ValueError("slave_port needs slave_speed_m_s > 0 (the arm chases its target)")
     rng = random.Random(spec.seed)
     one_way = LinkSpec(spec.round_trip_s / 2.0, spec.jitter, spec.loss)
     to_slave, to_master = Link(one_way, rng), Link(one_way, rng)
@@ -182,6 +191,9 @@ def simulate(spec: LoopSpec) -> LoopResult:
         damp=spec.damp,
     )
     slave = SlavePassivity(enabled=spec.tdpa, drift_m_s=spec.drift_m_s, slack_m=spec.slack_m)
+    port = SlavePort(enabled=spec.tdpa, drift_m_s=spec.drift_m_s, offset=[0.0] * n)
+    use_port = spec.slave_port
+    x_goal = [0.0] * n
     x_s = [0.0] * n
     x_tgt = [0.0] * n
     done: list[float] | None = None
@@ -207,30 +219,38 @@ def simulate(spec: LoopSpec) -> LoopResult:
         to_slave.send(t, (list(device.x), master.observer.e_in))
         # --- slave side ---
         cmd = to_slave.receive(t)
-        if cmd is not None:
+        if cmd is not None and use_port:
+            x_goal, e_in_m = cmd
+            port.remote.update(0, e_in_m)
+            dx = [0.0] * n
+        elif cmd is not None:
             x_cmd, e_in_m = cmd
             slave.remote.update(0, e_in_m)
             dx = [a - b for a, b in zip(x_cmd, x_cmd_prev, strict=True)]
             x_cmd_prev = list(x_cmd)
         else:
             dx = [0.0] * n
-        if spec.slave_speed_m_s > 0.0:
+        if use_port:
+            # The service's port: the tool's motion observed as it happened, the target
+            # corrected against the tool (the master's position is the port's target).
+            port.observe(f_env, x_s)
+            x_tgt = port.correct(x_goal, x_s, f_env, spec.dt_s)
+            dx = _chase(x_tgt, x_s, spec.slave_speed_m_s * spec.dt_s)
+        elif spec.slave_speed_m_s > 0.0:
             # The arm chases its target at its speed limit: the controller corrects the
             # whole motion still to come (target − tool), as the service's slave port does.
             pend = [g - x + d for g, x, d in zip(x_tgt, x_s, dx, strict=True)]
             out = slave.step(f_env, pend, spec.dt_s, done=done)
             x_tgt = [x + o for x, o in zip(x_s, out, strict=True)]
-            gap = [g - x for g, x in zip(x_tgt, x_s, strict=True)]
-            gap_m = math.sqrt(dot(gap, gap))
-            cap = spec.slave_speed_m_s * spec.dt_s
-            dx = gap if gap_m <= cap else [g * cap / gap_m for g in gap]
+            dx = _chase(x_tgt, x_s, spec.slave_speed_m_s * spec.dt_s)
             done = dx
         else:
             dx = slave.step(f_env, dx, spec.dt_s)
         v_s = [d / spec.dt_s for d in dx]
         x_s = [a + d for a, d in zip(x_s, dx, strict=True)]
         f_env = spec.wall.force(x_s, v_s)
-        to_master.send(t, (list(f_env), slave.observer.e_in))
+        e_in_slave = port.observer.e_in if use_port else slave.observer.e_in
+        to_master.send(t, (list(f_env), e_in_slave))
         # --- traces ---
         res.t.append(t)
         res.f_display.append(-dot(f_show, normal))
@@ -240,16 +260,29 @@ def simulate(spec: LoopSpec) -> LoopResult:
         res.x_slave.append(dot(x_s, normal))
         res.master_in.append(master.observer.e_in)
         res.master_out.append(master.observer.e_out)
-        res.slave_in.append(slave.observer.e_in)
-        res.slave_out.append(slave.observer.e_out)
+        if use_port:
+            # What the wall gave back to repay an overdraw is input the master never saw.
+            res.slave_in.append(port.observer.e_in + port.recovered_j)
+            res.slave_out.append(port.observer.e_out)
+        else:
+            res.slave_in.append(slave.observer.e_in)
+            res.slave_out.append(slave.observer.e_out)
         if not all(math.isfinite(x) and abs(x) < 10.0 for x in device.x):
             res.diverged = True
             break
     res.master_dissipated_j = master.telemetry.dissipated_j
-    res.slave_dissipated_j = slave.telemetry.dissipated_j
+    sp = port.telemetry if use_port else slave.telemetry
+    res.slave_dissipated_j = sp.dissipated_j
     res.master_active = master.telemetry.active_steps
-    res.slave_active = slave.telemetry.active_steps
+    res.slave_active = sp.active_steps
     return res
+
+
+def _chase(target: Sequence[float], x: Sequence[float], cap_m: float) -> list[float]:
+    """The arm's step towards `target` from `x`: all of it, or `cap_m` along it."""
+    gap = [g - xi for g, xi in zip(target, x, strict=True)]
+    gap_m = math.sqrt(dot(gap, gap))
+    return gap if gap_m <= cap_m else [g * cap_m / gap_m for g in gap]
 
 
 def _saturate(f: Sequence[float], max_n: float) -> list[float]:

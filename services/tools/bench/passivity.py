@@ -65,8 +65,10 @@ def run(
     seed: int = 1,
     master_limit: bool = True,
     slave_speed_m_s: float = SLAVE_SPEED_M_S,
+    slave_port: bool = False,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], LoopResult]]:
-    """(the JSON document, the traces per (delay, tdpa))."""
+    """(the JSON document, the traces per (delay, tdpa)). slave_port: the slave side is the
+    decision service's own port (`LoopSpec.slave_port`), not the reference controller."""
     extra: dict[str, Any] = {}
     if dofs == 3:
         extra = {"dofs": 3, "target_m": (0.02, 0.0, 0.08), "wall": Wall(normal=(0.0, 0.0, 1.0))}
@@ -78,6 +80,7 @@ def run(
             "dofs": dofs,
             "master_limit": master_limit,
             "slave_speed_m_s": slave_speed_m_s,
+            "slave_port": slave_port,
         },
     }
     results: dict[tuple[int, bool], LoopResult] = {}
@@ -91,6 +94,7 @@ def run(
                 seed=seed,
                 limit=master_limit,
                 slave_speed_m_s=slave_speed_m_s,
+                slave_port=slave_port,
                 **extra,
             )
             res = simulate(spec)
@@ -123,13 +127,14 @@ def seeds(
     dofs: int = 1,
     master_limit: bool = True,
     slave_speed_m_s: float = SLAVE_SPEED_M_S,
+    slave_port: bool = False,
 ) -> dict[str, Any]:
     """The same grid for seeds 1 … count (each its own jitter and losses), summed up as
     `passivity_<delay>_<on|off>_seeds_<figure>` keys (`SEED_FIGURES`): what one seed's
     table cannot say (a late step in one seed of six)."""
     runs: dict[tuple[int, str], list[dict[str, Any]]] = {}
     for seed in range(1, count + 1):
-        doc, _ = run(delays_ms, jitter, loss, dofs, seed, master_limit, slave_speed_m_s)
+        doc, _ = run(delays_ms, jitter, loss, dofs, seed, master_limit, slave_speed_m_s, slave_port)
         for delay in delays_ms:
             for on in ("off", "on"):
                 k = f"passivity_{delay}_{on}_"
@@ -297,6 +302,12 @@ def main(argv: list[str] | None = None) -> int:
         "the PUMA's tool speed; 0: it jumps to each target in one tick)",
     )
     p.add_argument(
+        "--slave-port",
+        action="store_true",
+        help="the simulated slave side is the decision service's own passivity port "
+        "(default: the reference controller)",
+    )
+    p.add_argument(
         "--link",
         action="store_true",
         help="the real services over a real bad link (network namespaces; root)",
@@ -374,6 +385,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--yield needs --link and a value within 0 … 0.001 m/(N·s)")
     if args.slave_speed is not None and (args.link or not 0.0 <= args.slave_speed <= 10.0):
         p.error("--slave-speed is the simulation's (not --link) and within 0 … 10 m/s")
+    if args.slave_port and (args.link or args.slave_speed == 0.0):
+        p.error("--slave-port is the simulation's (not --link) and needs --slave-speed > 0")
     if args.seeds and (args.link or not 1 <= args.seeds <= 100):
         p.error("--seeds is the simulation's (not --link) and within 1 … 100")
     summary: dict[str, Any] | None = None
@@ -405,8 +418,9 @@ def main(argv: list[str] | None = None) -> int:
         drawn = passivity_link.plots(runs, Path(args.plots)) if args.plots else []
     else:
         speed = SLAVE_SPEED_M_S if args.slave_speed is None else args.slave_speed
+        limit = not args.no_master_limit
         doc, results = run(
-            delays, args.jitter, args.loss, args.dofs, args.seed, not args.no_master_limit, speed
+            delays, args.jitter, args.loss, args.dofs, args.seed, limit, speed, args.slave_port
         )
         if args.seeds:
             summary = seeds(
@@ -415,8 +429,9 @@ def main(argv: list[str] | None = None) -> int:
                 args.jitter,
                 args.loss,
                 args.dofs,
-                not args.no_master_limit,
+                limit,
                 speed,
+                args.slave_port,
             )
             doc |= summary
             doc["settings"]["seeds"] = args.seeds

@@ -337,6 +337,7 @@ def robot(
             m["slave_recovered_j"] = tdpa.pc.recovered_j
             m["slave_clipped_j"] = tdpa.pc.clipped_j
             m["slave_excluded_j"] = tdpa.pc.excluded_j
+            m["slave_forgiven_j"] = tdpa.pc.forgiven_j
             m["slave_yielded_mm"] = tdpa.pc.yielded_m * 1e3
         events, after = trace.events_split()
         with trace.lock:
@@ -585,6 +586,7 @@ def run_matrix(
             "puma_cmds": m.get("puma_cmds"),
             "slave_recovered_j": m.get("slave_recovered_j"),
             "slave_excluded_j": m.get("slave_excluded_j"),
+            "slave_forgiven_j": m.get("slave_forgiven_j"),
             "slave_yielded_mm": m.get("slave_yielded_mm"),
             "master_out_j": m.get("op_master_out_j"),
             "master_in_j": m.get("op_master_in_j"),

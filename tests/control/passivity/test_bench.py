@@ -57,6 +57,23 @@ def test_at_700ms_the_master_limiter_is_what_settles_the_contact() -> None:
     )
 
 
+def test_cli_slave_port_runs_the_services_port_in_the_simulation(tmp_path: Path) -> None:
+    for bad in (["--slave-port", "--link"], ["--slave-port", "--slave-speed", "0"]):
+        with pytest.raises(SystemExit):
+            main(bad)
+    out = tmp_path / "p.json"
+    assert main(["--delays-ms", "700", "--slave-port", "--json", str(out), "--plots", ""]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["settings"]["slave_port"] is True
+    # The service's port presses and holds at 700 ms (it grazed the wall, owing, before
+    # the forgiveness), and differs from the reference controller's run.
+    assert doc["passivity_700_on_stable"] is True
+    assert doc["passivity_700_on_steady_force_n"] > 3.0
+    ref, _ = run((700,))
+    assert ref["settings"]["slave_port"] is False
+    assert ref["passivity_700_on_steady_force_n"] != doc["passivity_700_on_steady_force_n"]
+
+
 def test_seeds_sum_up_each_seeds_run() -> None:
     summary = seeds(2, (200,))
     docs = [run((200,), seed=seed)[0] for seed in (1, 2)]

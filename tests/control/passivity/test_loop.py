@@ -252,6 +252,31 @@ def test_a_slave_without_a_speed_limit_jumps_with_the_bunched_packets() -> None:
     assert contact_metrics(res)["energy_generated_j"] > 0.005
 
 
+@pytest.mark.parametrize("rtt_s", [0.2, 0.7])
+def test_the_services_slave_port_presses_and_holds_with_nothing_slowing_the_approach(
+    rtt_s: float,
+) -> None:
+    """The decision's own port on the slave side, no guarded approach: the first impact
+    at the arm's 0.5 m/s overdraws the budget, and what the wall kept of it is forgiven
+    once the tool is out of contact. Left owing (before 2026-11-27) the budget stayed below
+    zero, every re-entry overdrew again and the master was sent nothing: at 700 ms the tool
+    grazed the wall (0.02–0.7 N in six seeds of six) while the operator pushed 6 cm past
+    it. Every seed now presses and holds, the impacts' energy bounded by a few ticks'."""
+    for seed in range(1, 7):
+        spec = LoopSpec(
+            round_trip_s=rtt_s, jitter=0.1, loss=0.01, tdpa=True, seed=seed, slave_port=True
+        )
+        m = contact_metrics(simulate(spec))
+        assert m["stable"] and m["steady_force_n"] > 3.0, (seed, m)
+        assert m["penetration_mm"] < 3.0 and m["peak_force_n"] < 15.0, seed
+        assert m["energy_generated_j"] < 0.005, seed
+
+
+def test_the_services_slave_port_needs_an_arm_that_chases_its_target() -> None:
+    with pytest.raises(ValueError, match="slave_port"):
+        simulate(LoopSpec(slave_port=True, slave_speed_m_s=0.0))
+
+
 @pytest.mark.parametrize("speed", [-0.1, math.nan, math.inf])
 def test_a_bad_slave_speed_is_refused(speed: float) -> None:
     with pytest.raises(ValueError, match="slave_speed_m_s"):

@@ -118,6 +118,33 @@ def test_drift_is_given_back_only_with_energy_to_spare() -> None:
     assert sp.offset[2] == pytest.approx(off - 0.001)  # free: 1 cm/s
 
 
+def test_an_overdraw_the_workcell_keeps_is_forgiven_once_out_of_contact() -> None:
+    """What the workcell gives back repays an impact's overdraw; what it keeps (its
+    damping) is forgiven only out of contact, and counted: left owing, the port held the
+    budget below zero for good and the operator pushed 6 cm past a wall the tool grazed."""
+    sp = SlavePort(drift_m_s=0.03)
+    sp.observe((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    sp.observe((0.0, 0.0, 20.0), (0.0, 0.0, -0.002))  # the impact: 10 N × 2 mm, none paid
+    assert sp.budget_j == pytest.approx(-0.02)
+    sp.observe((0.0, 0.0, 10.0), (0.0, 0.0, -0.001))  # 15 N × 1 mm back: repays, in contact
+    assert sp.recovered_j == pytest.approx(0.015) and sp.observer.e_in == 0.0
+    assert sp.forgiven_j == 0.0 and sp.budget_j == pytest.approx(-0.005)
+    sp.observe((0.0, 0.0, 0.0), (0.0, 0.0, -0.0005))  # 5 N × 0.5 mm back, and out of contact
+    assert sp.recovered_j == pytest.approx(0.0175)
+    assert sp.forgiven_j == pytest.approx(0.0025) and sp.budget_j == pytest.approx(0.0)
+    sp.offset = [0.0, 0.0, 0.001]  # left owing: no drift back into it, as when owed
+    out = sp.correct((0.0, 0.0, -0.01), (0.0, 0.0, -0.0005), (0.0, 0.0, 0.0), 0.01)
+    assert out[2] == pytest.approx(-0.009)
+    sp.remote.update(0, 0.01)  # the next contact, paid for: the offset goes back again
+    sp.correct((0.0, 0.0, -0.01), (0.0, 0.0, -0.0005), (0.0, 0.0, 2.0), 0.01)
+    before = sp.offset[2]
+    assert before > 0.03 * 0.01
+    out = sp.correct((0.0, 0.0, -0.01), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 0.01)
+    assert out[2] == pytest.approx(-0.01 + before - 0.03 * 0.01)
+    sp.reset(1)
+    assert sp.forgiven_j == 0.0
+
+
 # --- yielding to the hand -------------------------------------------------------------------
 
 
