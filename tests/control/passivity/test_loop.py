@@ -252,19 +252,28 @@ def test_a_slave_without_a_speed_limit_jumps_with_the_bunched_packets() -> None:
     assert contact_metrics(res)["energy_generated_j"] > 0.005
 
 
-@pytest.mark.parametrize("rtt_s", [0.2, 0.7])
+@pytest.mark.parametrize(("rtt_s", "dofs"), [(0.2, 1), (0.7, 1), (0.2, 3)])
 def test_the_services_slave_port_presses_and_holds_with_nothing_slowing_the_approach(
-    rtt_s: float,
+    rtt_s: float, dofs: int
 ) -> None:
     """The decision's own port on the slave side, no guarded approach: the first impact
     at the arm's 0.5 m/s overdraws the budget, and what the wall kept of it is forgiven
     once the tool is out of contact. Left owing (before 2026-11-27) the budget stayed below
     zero, every re-entry overdrew again and the master was sent nothing: at 700 ms the tool
     grazed the wall (0.02–0.7 N in six seeds of six) while the operator pushed 6 cm past
-    it. Every seed now presses and holds, the impacts' energy bounded by a few ticks'."""
+    it. In 3-DoF at 200 ms the contact also came and went (3 seeds of 6) while the target
+    backed out past where the contact began. Every seed now presses and holds, the impacts'
+    energy bounded by a few ticks'."""
+    extra: dict[str, object] = dict(THREE_DOF) if dofs == 3 else {}
     for seed in range(1, 7):
         spec = LoopSpec(
-            round_trip_s=rtt_s, jitter=0.1, loss=0.01, tdpa=True, seed=seed, slave_port=True
+            round_trip_s=rtt_s,
+            jitter=0.1,
+            loss=0.01,
+            tdpa=True,
+            seed=seed,
+            slave_port=True,
+            **extra,
         )
         m = contact_metrics(simulate(spec))
         assert m["stable"] and m["steady_force_n"] > 3.0, (seed, m)

@@ -102,6 +102,8 @@ def test_correct_stops_at_the_first_touch_without_energy_and_passes_free_motion(
 
 def test_an_overdrawn_budget_backs_the_target_out_along_the_force() -> None:
     sp = SlavePort(drift_m_s=0.0)
+    sp.correct((0.0, 0.0, -0.01), (0.0, 0.0, 0.0), (0.0, 0.0, 20.0), 0.01)  # the touch at 0
+    sp.offset = [0.0, 0.0, 0.0]
     sp.observe((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
     sp.observe((0.0, 0.0, 20.0), (0.0, 0.0, -0.002))  # 0.02 J out, none paid
     out = sp.correct((0.0, 0.0, -0.01), (0.0, 0.0, -0.002), (0.0, 0.0, 20.0), 0.01)
@@ -116,6 +118,33 @@ def test_drift_is_given_back_only_with_energy_to_spare() -> None:
     assert sp.offset[2] == pytest.approx(off)  # in contact, no energy: kept
     sp.correct((0.0, 0.0, -0.05), (0.0, 0.0, -0.03), (0.0, 0.0, 0.0), 0.1)
     assert sp.offset[2] == pytest.approx(off - 0.001)  # free: 1 cm/s
+
+
+def test_the_target_backs_out_no_further_than_where_the_contact_began() -> None:
+    """Overdrawn, the target backs out along the force, at most 2 mm past the tool and
+    never past the point where this contact began: past it the tool leaves the surface,
+    the display goes blank a round trip later and the hand sinks (the simulated loop with
+    the service's port, 3-DoF at 200 ms: the contact came and went in 3 seeds of 6)."""
+    sp = SlavePort(drift_m_s=0.0)
+    sp.correct((0.0, 0.0, -0.001), (0.0, 0.0, 0.0), (0.0, 0.0, 2.0), 0.01)  # felt at z = 0
+    sp.observer.record(-0.05)  # 50 mJ overdrawn
+    for tool_z, want_z in [
+        (-0.001, 0.0),  # the tool 1 mm in: back to where the contact began, not 2 mm out
+        (-0.005, -0.005 + MAX_BACKOFF_M),  # 5 mm in: 2 mm past the tool
+        (0.0005, 0.0005),  # above where it began: held at the tool
+    ]:
+        sp.offset = [0.0, 0.0, 0.0]
+        out = sp.correct((0.0, 0.0, -0.003), (0.0, 0.0, tool_z), (0.0, 0.0, 20.0), 0.01)
+        assert out[2] == pytest.approx(want_z), tool_z
+    sp.correct((0.0, 0.0, -0.003), (0.0, 0.0, -0.001), (0.0, 0.0, 0.0), 0.01)  # contact lost
+    sp.offset = [0.0, 0.0, 0.0]
+    out = sp.correct((0.0, 0.0, -0.003), (0.0, 0.0, -0.002), (0.0, 0.0, 20.0), 0.01)
+    assert out[2] == pytest.approx(-0.002)  # a new contact, felt here: held at the tool
+    sp.offset = [0.0, 0.0, 0.0]
+    out = sp.correct((0.0, 0.0, -0.003), (0.0, 0.0, -0.0035), (0.0, 0.0, 20.0), 0.01)
+    assert out[2] == pytest.approx(-0.002)  # the arm ran on 1.5 mm: backed out to the touch
+    sp.reset(1)
+    assert sp.backoff_m((0.0, 0.0, 20.0), (0.0, 0.0, -0.002)) == MAX_BACKOFF_M  # none known
 
 
 def test_an_overdraw_the_workcell_keeps_is_forgiven_once_out_of_contact() -> None:
@@ -300,8 +329,11 @@ def test_correct_never_commits_more_than_the_budget(
         committed = -sum(fi * (o - p) for fi, o, p in zip(f, out, p_now, strict=True))
         norm = math.sqrt(sum(x * x for x in f))
         if norm >= MIN_FORCE_N:
-            # Within the budget; an overdrawn one backs out at most MAX_BACKOFF_M.
-            backed_out = -committed / norm >= MAX_BACKOFF_M - 1e-9
+            # Within the budget; an overdrawn one backs out at most MAX_BACKOFF_M, and not
+            # past where the contact began.
+            bound = sp.backoff_m(f, p_now)
+            assert 0.0 <= bound <= MAX_BACKOFF_M
+            backed_out = -committed / norm >= bound - 1e-9
             assert committed <= sp.budget_j + 1e-9 or (sp.budget_j < 0.0 and backed_out)
         sp.observe(f, out)  # the arm got there
         assert sp.observer.e_in + sp.recovered_j <= sp.observer.e_out + TOLERANCE_J + 1e-12
