@@ -132,6 +132,13 @@ class DecisionService:
             if config.passivity
             else None
         )
+        if config.passivity and config.approach_zone_m <= 0.0:
+            # Measured in-process without it: 96–107 N at the first impact, 10–35 N RMS over
+            # the hold (docs/passivity.md, "Turning it on").
+            log.warning(
+                "passivity is on without a guarded approach (approach_zone_m = 0): the arm "
+                "meets a surface at the operator's speed; set approach_zone_m = 0.02"
+            )
         self._op_engage: dict[str, int] = {}
         self._intake = node.batches(CMD, self._on_commands)
         # What `status` shows of the other services: kept, refreshed behind (peeks.py).

@@ -4,6 +4,7 @@ command correction, each talking to a peer over loopback Zenoh."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 
 import numpy as np
@@ -18,7 +19,9 @@ from services.bus.messages import (
     PassivityState,
     RobotState,
 )
+from services.control.decision.config import DecisionConfig
 from services.control.decision.passivity import SlaveTdpa
+from services.control.decision.service import DecisionService
 from services.control.master.devices import HandReading
 from services.control.master.feedback import DisplayWrench
 from services.control.master.passivity import MasterTdpa
@@ -331,3 +334,22 @@ def test_decision_tool_frame_correction_is_mapped_back(net: Net) -> None:
     assert tdpa.apply(command(1, 0.003, "tool", seq=3), op, st, free, 4_000_000).dp[
         2
     ] == pytest.approx(0.001)
+
+
+@pytest.mark.parametrize(
+    ("passivity", "zone", "warned"), [(True, 0.0, True), (True, 0.02, False), (False, 0.0, False)]
+)
+def test_decision_warns_when_passivity_runs_without_a_guarded_approach(
+    net: Net, caplog: pytest.LogCaptureFixture, passivity: bool, zone: float, warned: bool
+) -> None:
+    with caplog.at_level(logging.WARNING, logger="telerobot.decision"):
+        dec = DecisionService(
+            net.node("decision"), DecisionConfig(passivity=passivity, approach_zone_m=zone)
+        )
+    try:
+        said = [r.getMessage() for r in caplog.records if "guarded approach" in r.getMessage()]
+        assert len(said) == (1 if warned else 0)
+        if warned:
+            assert "approach_zone_m" in said[0]
+    finally:
+        dec.close()
