@@ -363,6 +363,9 @@ def test_frames_that_arrive_together_after_a_late_tick_are_no_jump(
     fake.set_pose(a=True)
     assert wait_until(lambda: not haply.read(0.01).clutch)
     jumps, x0 = haply.stats.jumps, haply.read(0.01).hand_p[0]
+    # The replies to what read() sent are all here first: one still on its way counted
+    # towards the two below, and the drain then ended at 6 mm (fresh-clone CI 2026-11-27).
+    assert wait_until(lambda: _unread(haply) >= haply._in_flight)
     moved = [_frame_at(x0 + dx) for dx in (0.006, 0.012)]
     fake.set_pose(cursor_m=(x0 + 0.012, -0.12, 0.15))  # where the hand is now: the reply to
     fake.inject(*moved)  # read()'s own message may come in the same drain
@@ -385,6 +388,7 @@ def test_a_teleport_answered_twice_in_one_drain_is_one_jump(
     fake.set_pose(a=True)
     assert wait_until(lambda: not haply.read(0.01).clutch)
     jumps, x0 = haply.stats.jumps, haply.read(0.01).hand_p[0]
+    assert wait_until(lambda: _unread(haply) >= haply._in_flight)  # as above
     fake.set_pose(cursor_m=(x0 + 0.2, -0.12, 0.15))  # read()'s own reply: there too
     fake.inject(_frame_at(x0 + 0.2), _frame_at(x0 + 0.2))
     q = _unread(haply)
