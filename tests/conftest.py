@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import random
 import socket
 import time
 from collections.abc import Callable, Iterator
@@ -19,9 +21,34 @@ settings.register_profile("suite", deadline=None, suppress_health_check=[HealthC
 settings.load_profile("suite")
 
 
+PORTS_FROM = 20_000
+"""Test ports are taken below Linux's ephemeral range (32768–60999 by default), in a slice
+of 1 000 per pytest-xdist worker. A port the kernel handed out by `bind(0)` comes from the
+range it also gives every outgoing connection its local port from: between the test taking
+it and a router binding it, a Zenoh client of a parallel test could connect from it, and
+the router's listener failed (fresh-clone CI 2026-11-27: the operator profile never reached
+the robot's router over TLS, its three services missing after 45 s)."""
+_given: set[int] = set()
+_rng = random.Random(os.getpid())
+
+
 def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+    """A TCP port on 127.0.0.1 that nothing listens on right now, not handed out before by
+    this process, and outside the kernel's ephemeral range (`PORTS_FROM`)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw")
+    lo = PORTS_FROM + (int(worker) % 12 if worker.isdigit() else 0) * 1_000
+    for _ in range(200):
+        port = _rng.randrange(lo, lo + 1_000)
+        if port in _given:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        _given.add(port)
+        return port
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:  # the slice is full
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
