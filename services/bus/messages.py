@@ -231,7 +231,10 @@ class PassivityState(Message):
     how many steps it acted; enabled: false when the side only observes. asked_n / shown_n
     (optional, master side): the force the master was asked to display on its last step
     and the force its controller let the hand feel, both as newtons at the tool (the
-    display's magnitudes ÷ its force scale); the slave yields what is withheld."""
+    display's magnitudes ÷ its force scale); the slave yields what is withheld.
+    repaid_j / forgiven_j (optional, slave side): of what the slave overdrew at impacts, the
+    energy the workcell gave back to repay it, and the rest, forgiven once the tool was out
+    of contact (energy the channel created: one tick's impact, sampled late)."""
 
     name: ClassVar[str] = "PassivityState"
     seq: Count
@@ -247,6 +250,8 @@ class PassivityState(Message):
     active_steps: Count
     asked_n: Newtons | None = None
     shown_n: Newtons | None = None
+    repaid_j: Joules | None = None
+    forgiven_j: Joules | None = None
 
 
 ALL_MESSAGES: tuple[type[Message], ...] = (

@@ -158,6 +158,8 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "active_steps": 4,
         "asked_n": 8.5,
         "shown_n": 7.25,
+        "repaid_j": 0.0625,
+        "forgiven_j": 0.03125,
     },
 }
 
@@ -177,7 +179,7 @@ OPTIONAL: dict[type[Message], set[str]] = {
     MasterState: set(),
     VisionStats: {"data"},
     MasterFeedback: set(),
-    PassivityState: {"asked_n", "shown_n"},
+    PassivityState: {"asked_n", "shown_n", "repaid_j", "forgiven_j"},
 }
 
 

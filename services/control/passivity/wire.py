@@ -20,11 +20,14 @@ def passivity_state(
 ) -> PassivityState:
     """What the port at `side` has observed and done since `engage` began. force_scale: the
     master display's (operator N per tool N; > 0: the master's asked and shown forces go
-    along, as newtons at the tool)."""
+    along, as newtons at the tool). The decision's port also sends what the workcell repaid
+    of its overdraws and what it forgave."""
     t = pc.telemetry
-    asked = shown = None
+    asked = shown = repaid = forgiven = None
     if isinstance(pc, MasterPassivity) and force_scale > 0.0:
         asked, shown = pc.asked_n / force_scale, pc.shown_n / force_scale
+    if isinstance(pc, SlavePort):
+        repaid, forgiven = pc.recovered_j, pc.forgiven_j
     return PassivityState(
         seq=seq,
         t_ns=time.time_ns(),
@@ -39,4 +42,6 @@ def passivity_state(
         active_steps=t.active_steps,
         asked_n=asked,
         shown_n=shown,
+        repaid_j=repaid,
+        forgiven_j=forgiven,
     )

@@ -81,6 +81,10 @@ class PortFigures:
     shown_n: float | None = None
     """The master's: the force it was asked to display and the one the hand felt, N at the
     tool (None: the slave, or not reported)."""
+    repaid_j: float | None = None
+    forgiven_j: float | None = None
+    """The slave's: what the workcell repaid of its overdraws, and what was forgiven (energy
+    the channel created; None: the master, or not reported)."""
 
     @property
     def reservoir_j(self) -> float:
@@ -136,6 +140,8 @@ def tdpa_view(seen: Mapping[str, PortSeen], now_s: float) -> TdpaView:
                 acting=now_s - rec.acted_s <= ACTING_HOLD_S,
                 asked_n=m.asked_n,
                 shown_n=m.shown_n,
+                repaid_j=m.repaid_j,
+                forgiven_j=m.forgiven_j,
             )
         )
     return TdpaView(tuple(ports))

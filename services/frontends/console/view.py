@@ -238,6 +238,10 @@ def _port_html(p: PortFigures) -> str:
         # What the controller withholds from the hand, at the tool (docs/passivity.md).
         felt = f"{p.shown_n:.2f} of {p.asked_n:.2f}"
         cells.append(("hand feels (N)", "tr-tdpa-felt", felt))
+    if p.repaid_j is not None and p.forgiven_j is not None:
+        # An impact's overdraw: repaid by the workcell, or forgiven (created by the channel).
+        cells.append(("overdraw repaid (J)", "tr-tdpa-repaid", _joules(p.repaid_j)))
+        cells.append(("forgiven (J)", "tr-tdpa-forgiven", _joules(p.forgiven_j)))
     rows = "".join(
         _row(label, f'<code class="{cls}" style="color:{color}">{_e(v)}</code>')
         for label, cls, v in cells

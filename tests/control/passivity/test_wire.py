@@ -222,6 +222,8 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
         return len(seen) > 0 and seen[-1].master == "m1" and seen[-1].engage == 4
 
     assert wait_until(heard)
+    # The slave's figures carry what its overdraws were repaid and forgiven (none yet).
+    assert (seen[-1].repaid_j, seen[-1].forgiven_j) == (0.0, 0.0)
     # The operator pays 0.05 J: 2.5 mm more are allowed (20 N × 2.5 mm), the rest waits.
     master_pub.put(state("master", 4, 0.05))
 

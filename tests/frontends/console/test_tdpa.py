@@ -161,6 +161,18 @@ def test_the_master_port_shows_what_the_hand_feels_of_what_it_was_asked() -> Non
     assert "hand feels (N)" in out and ">7.74 of 10.46<" in out
 
 
+def test_the_slave_port_shows_what_was_repaid_and_forgiven_of_its_overdraws() -> None:
+    slave = replace(fig("slave", steps=2), repaid_j=0.0021, forgiven_j=0.0004)
+    v = tdpa_view({"slave": PortSeen.first(slave, 0.0)}, 0.1)
+    s = v.port("slave")
+    assert s is not None and (s.repaid_j, s.forgiven_j) == (0.0021, 0.0004)
+    out = passivity_html(v)
+    assert "overdraw repaid (J)" in out and ">+0.0021<" in out
+    assert "forgiven (J)" in out and ">+0.0004<" in out
+    plain = passivity_html(tdpa_view({"slave": PortSeen.first(fig("slave"), 0.0)}, 0.1))
+    assert "tr-tdpa-forgiven" not in plain  # not reported: no row
+
+
 @given(st.text(min_size=1, max_size=128), st.floats(0.0, 1e6), st.floats(0.0, 1e6))
 def test_bus_text_is_escaped_and_the_reservoir_is_remote_in_minus_out(
     master: str, e_in: float, e_out: float
