@@ -68,6 +68,12 @@ display went blank a round trip later and the hand sank (the simulated loop with
 port, 3-DoF at 200 ms: the contact came and went in 3 seeds of 6, 0 of 6 since). Where it
 began is the tool's position at the first sample with a contact force
 (`SlavePort.backoff_m`)."""
+OWING_CLEAR_M = 0.005
+"""Left owing at the last contact (`SlavePort.forgiven_j`), the offset is given back in free
+space only away from that contact's surface, or while the target stays this far (m) out of
+it: no second touch from a master that sent no energy, and the tool back on the master's
+mapping once the operator has let go (it stayed 38 mm off in the simulated 3-DoF loop at
+700 ms, seed 1)."""
 YIELD_M_S_N = 5e-5
 """The yield rate measured (m/s per N, `[decision] passivity_yield_m_s_n`; off by default):
 0.25 mm/s for 5 N, which sheds 5 N/s against the link bench's 20 kN/m table."""
@@ -153,6 +159,7 @@ class SlavePort:
     yielded_m: float = 0.0
     _owing: bool = False
     _touch: tuple[float, ...] | None = None
+    _surface: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     _f_prev: tuple[float, ...] | None = None
     _p_prev: tuple[float, ...] | None = None
 
@@ -160,8 +167,8 @@ class SlavePort:
     def budget_j(self) -> float:
         """Energy the robot may still put into the workcell (< 0: overdrawn; the target
         then backs out along the force until the workcell has given the excess back, and
-        what it has not when the tool is out of contact is forgiven; no drift is given back
-        then until the next contact)."""
+        what it has not when the tool is out of contact is forgiven; until the next contact
+        the drift then goes back towards that surface only clear of it, OWING_CLEAR_M)."""
         return self.remote.e_in - self.observer.e_out + self.recovered_j + self.forgiven_j
 
     def reset(self, epoch: int) -> None:
@@ -173,7 +180,7 @@ class SlavePort:
         self.clipped_j = 0.0
         self.forgiven_j = 0.0
         self._owing = False
-        self._touch = None
+        self._touch = self._surface = None
         self.asked_n = self.shown_n = None
         self.yielding = False
         self.yielded_m = 0.0
@@ -224,9 +231,9 @@ class SlavePort:
             self.observer.record(e)
             if not any(fs) and self.budget_j < 0.0:
                 # Out of contact: the workcell has given back all it will; the rest of the
-                # overdraw was one tick's impact, sampled late (module docstring). No
-                # drift back until the next contact, as when it was owed (it would only
-                # lead to the next impact).
+                # overdraw was one tick's impact, sampled late (module docstring). Until
+                # the next contact no drift back towards that surface near it, as when it
+                # was owed (it would only lead to the next impact): OWING_CLEAR_M.
                 self.forgiven_j -= self.budget_j
                 self._owing = True
         self._f_prev, self._p_prev = fs, ps
@@ -257,6 +264,7 @@ class SlavePort:
                 # tool out of contact instead lifts the tool off (one tick of approach): in
                 # the simulated 3-DoF loop at 200 ms, 1 seed of 6 stable against 6 of 6.
                 self._touch = tuple(float(x) for x in p_now)
+                self._surface = (self._touch, tuple(fi / f_n for fi in f))
         else:
             self._touch = None
         yields = self.yield_m_s_n > 0.0
@@ -273,9 +281,10 @@ class SlavePort:
         if any(comp):
             tried = [w + c for w, c in zip(want, comp, strict=True)]
             # Free in free space, unless overdrawn, or left so (forgiven) at the last
-            # contact: it would only lead to the next impact.
+            # contact and going back towards its surface near it: it would only lead to
+            # the next impact.
             if ff == 0.0:
-                pays = budget >= 0.0 and not self._owing
+                pays = budget >= 0.0 and (not self._owing or self._clear_of_surface(tried, comp))
             else:
                 pays = self._committed(f, tried, p_now) <= budget
             if pays:
@@ -333,6 +342,18 @@ class SlavePort:
             return want
         self.yielded_m += step
         return [w + step * ui for w, ui in zip(want, u, strict=True)]
+
+    def _clear_of_surface(self, tried: Sequence[float], comp: Sequence[float]) -> bool:
+        """The drift `comp` leads away from the last contact's surface, or leaves the target
+        `tried` at least OWING_CLEAR_M out of it (no surface known: never)."""
+        if self._surface is None:
+            return False
+        p_c, n = self._surface
+        if dot(n, comp) >= 0.0:
+            return True
+        return math.fsum(ni * (t - c) for ni, t, c in zip(n, tried, p_c, strict=True)) >= (
+            OWING_CLEAR_M
+        )
 
     def backoff_m(self, f: Sequence[float], p_now: Sequence[float]) -> float:
         """How far outside the tool at `p_now`, along the force `f`, the target may go:

@@ -252,7 +252,7 @@ def test_a_slave_without_a_speed_limit_jumps_with_the_bunched_packets() -> None:
     assert contact_metrics(res)["energy_generated_j"] > 0.005
 
 
-@pytest.mark.parametrize(("rtt_s", "dofs"), [(0.2, 1), (0.7, 1), (0.2, 3)])
+@pytest.mark.parametrize(("rtt_s", "dofs"), [(0.2, 1), (0.7, 1), (0.2, 3), (0.7, 3)])
 def test_the_services_slave_port_presses_and_holds_with_nothing_slowing_the_approach(
     rtt_s: float, dofs: int
 ) -> None:
@@ -263,7 +263,8 @@ def test_the_services_slave_port_presses_and_holds_with_nothing_slowing_the_appr
     grazed the wall (0.02–0.7 N in six seeds of six) while the operator pushed 6 cm past
     it. In 3-DoF at 200 ms the contact also came and went (3 seeds of 6) while the target
     backed out past where the contact began. Every seed now presses and holds, the impacts'
-    energy bounded by a few ticks'."""
+    energy bounded by a few ticks', and once the operator has let go the tool is back where
+    the master says (3-DoF at 700 ms, seed 1, it stayed 38 mm off, owing)."""
     extra: dict[str, object] = dict(THREE_DOF) if dofs == 3 else {}
     for seed in range(1, 7):
         spec = LoopSpec(
@@ -275,8 +276,10 @@ def test_the_services_slave_port_presses_and_holds_with_nothing_slowing_the_appr
             slave_port=True,
             **extra,
         )
-        m = contact_metrics(simulate(spec))
+        res = simulate(spec)
+        m = contact_metrics(res)
         assert m["stable"] and m["steady_force_n"] > 3.0, (seed, m)
+        assert abs(res.x_slave[-1] - res.x_master[-1]) < 1e-4, seed
         assert m["penetration_mm"] < 3.0 and m["peak_force_n"] < 15.0, seed
         assert m["energy_generated_j"] < 0.005, seed
 

@@ -14,6 +14,7 @@ from services.control.passivity.slave import (
     DRIFT_CONTACT_M_S,
     MAX_BACKOFF_M,
     MIN_FORCE_N,
+    OWING_CLEAR_M,
     YIELD_MAX_M_S,
     YIELD_MIN_N,
     SlavePort,
@@ -172,6 +173,28 @@ def test_an_overdraw_the_workcell_keeps_is_forgiven_once_out_of_contact() -> Non
     assert out[2] == pytest.approx(-0.01 + before - 0.03 * 0.01)
     sp.reset(1)
     assert sp.forgiven_j == 0.0
+
+
+def test_left_owing_the_offset_goes_back_only_away_from_the_surface_or_clear_of_it() -> None:
+    """Forgiven at the last contact, the offset is not given back towards that surface
+    near it (no second touch from a master that sent no energy), but it is away from it,
+    and towards it while the target stays OWING_CLEAR_M out (the operator let go)."""
+    sp = SlavePort(drift_m_s=0.03)
+    sp.correct((0.0, 0.0, -0.003), (0.0, 0.0, 0.0), (0.0, 0.0, 20.0), 0.01)  # felt at z = 0
+    sp.observe((0.0, 0.0, 20.0), (0.0, 0.0, 0.0))
+    sp.observe((0.0, 0.0, 20.0), (0.0, 0.0, -0.001))  # 20 mJ out, none paid
+    sp.observe((0.0, 0.0, 0.0), (0.0, 0.0, 0.0004))  # 10 N × 1.4 mm back: 6 mJ forgiven
+    assert sp.forgiven_j == pytest.approx(0.006)
+    tool, free, step = (0.0, 0.0, 0.0004), (0.0, 0.0, 0.0), 0.03 * 0.01
+    for master_z, offset_z, out_z in [
+        (0.004, 0.003, 0.007 - step),  # towards it, the target 6.7 mm out: given back
+        (0.001, 0.003, 0.004),  # towards it, 3.7 mm out: kept
+        (0.004, -0.002, 0.002 + step),  # away from it: given back
+    ]:
+        sp.offset = [0.0, 0.0, offset_z]
+        out = sp.correct((0.0, 0.0, master_z), tool, free, 0.01)
+        assert out[2] == pytest.approx(out_z), (master_z, offset_z)
+    assert 0.0067 >= OWING_CLEAR_M > 0.0037
 
 
 # --- yielding to the hand -------------------------------------------------------------------
