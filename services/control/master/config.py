@@ -99,6 +99,10 @@ class MasterConfig:
     passivity_device_mass_kg: the moving mass of the device (kg, at the hand) that the
         passivity force limiter predicts with; set it to your device's (a lighter device
         than assumed is accelerated more by a force step than predicted).
+    passivity_moments: with passivity on, display the wrist's moment too. Only the
+        translational port is passivated, so by default a device that can show moments
+        (`serial_arm`) shows none while passivity is on: a delayed moment loop is as
+        unguarded as the force loop was. True shows them unpassivated, as without passivity.
     force_ramp_s: the displayed wrench ramps from zero to full over this time after each
         engagement (0 = at once); it is zero whenever the master is not engaged.
     force_stale_ms: no wrist force *received* for this long and nothing is displayed (the
@@ -137,6 +141,7 @@ class MasterConfig:
     haply_max_force_n: float = 3.0
     passivity: bool = False
     passivity_device_mass_kg: float = 0.5
+    passivity_moments: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.master_id, str) or not self.master_id:
@@ -175,8 +180,9 @@ class MasterConfig:
             for key in ("clutch_button", "grip_button"):
                 if getattr(self, key) >= HAPLY_BUTTONS:
                     raise _err(key, "must be 0, 1 or 2 for haply (VerseGrip a, b, c)")
-        if not isinstance(self.passivity, bool):
-            raise _err("passivity", "must be true or false")
+        for key in ("passivity", "passivity_moments"):
+            if not isinstance(getattr(self, key), bool):
+                raise _err(key, "must be true or false")
         mass = _number("passivity_device_mass_kg", self.passivity_device_mass_kg)
         if not MIN_DEVICE_MASS_KG <= mass <= MAX_DEVICE_MASS_KG:
             raise _err(

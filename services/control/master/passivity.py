@@ -86,13 +86,17 @@ class MasterTdpa:
         enabled: bool = True,
         device_mass_kg: float = 0.5,
         force_scale: float = 1.0,
+        show_moments: bool = False,
     ) -> None:
         """`device_mass_kg`: the device's moving mass the force limiter predicts with
         (`[master] passivity_device_mass_kg`; 0.5 kg is the simulated haptic master's).
         `force_scale`: the display's (`[master] force_scale`), to report the forces asked and
-        shown as newtons at the tool."""
+        shown as newtons at the tool. `show_moments`: pass the moment on unpassivated
+        (`[master] passivity_moments`); otherwise none is shown (only the translational port
+        is passivated)."""
         self.master_id = master_id
         self.force_scale = force_scale
+        self.show_moments = show_moments
         self.pc = master_port(device_mass_kg, enabled)
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)
@@ -115,12 +119,14 @@ class MasterTdpa:
         self.pc.horizon_s = max(self._dts)
         f = self.pc.step([float(x) for x in wrench.f], [float(x) for x in hand.hand_p], dt_s)
         self._publish(engage)
-        return DisplayWrench(
-            np.asarray(f, dtype=float),
-            wrench.c,
-            wrench.force_saturated,
-            wrench.torque_saturated,
-        )
+        if self.show_moments:
+            return DisplayWrench(
+                np.asarray(f, dtype=float),
+                wrench.c,
+                wrench.force_saturated,
+                wrench.torque_saturated,
+            )
+        return DisplayWrench(np.asarray(f, dtype=float), np.zeros(3), wrench.force_saturated, False)
 
     def _publish(self, engage: int) -> None:
         self._seq += 1

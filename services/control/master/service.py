@@ -76,6 +76,7 @@ class MasterService:
                 lambda: self.teleop.engage,
                 device_mass_kg=config.passivity_device_mass_kg,
                 force_scale=config.force_scale,
+                show_moments=config.passivity_moments,
             )
             force_hook = self.passivity.hook
         self.force_display = ForceDisplay(config, force_hook)

@@ -96,6 +96,7 @@ def test_engage_on_start_defaults_by_device(device: str, engages: bool) -> None:
         ("passivity_device_mass_kg", 21.0),
         ("passivity_device_mass_kg", math.inf),
         ("passivity_device_mass_kg", "0.5"),
+        ("passivity_moments", "yes"),
     ],
 )
 def test_bad_values_name_their_key(key: str, value: object) -> None:

@@ -104,6 +104,20 @@ def test_master_hook_damps_until_the_slave_has_put_energy_in(net: Net) -> None:
     assert wait_until(lambda: seen[-1].e_out > 0.0)
 
 
+def test_the_master_shows_no_moment_with_passivity_unless_asked(net: Net) -> None:
+    """Only the translational port is passivated: a moment (the serial master arm shows
+    them) is not displayed while passivity is on, unless `passivity_moments` asks for it
+    unpassivated, as it was."""
+    held = DisplayWrench(np.array([2.0, 0.0, 0.0]), np.array([0.0, 0.3, 0.0]), False, True)
+    hidden = MasterTdpa(net.node("a"), "m1", lambda: 7).hook(held, hand(0.0), 0.001)
+    assert hidden.c.tolist() == [0.0, 0.0, 0.0] and not hidden.torque_saturated
+    assert hidden.f[0] == pytest.approx(2.0)
+    shown = MasterTdpa(net.node("b"), "m1", lambda: 7, show_moments=True).hook(
+        held, hand(0.0), 0.001
+    )
+    assert shown.c.tolist() == [0.0, 0.3, 0.0] and shown.torque_saturated
+
+
 def test_the_master_reports_the_force_asked_and_shown_at_the_tool_and_the_slave_takes_its_own(
     net: Net,
 ) -> None:
