@@ -119,14 +119,13 @@ class MasterTdpa:
         self.pc.horizon_s = max(self._dts)
         f = self.pc.step([float(x) for x in wrench.f], [float(x) for x in hand.hand_p], dt_s)
         self._publish(engage)
-        if self.show_moments:
-            return DisplayWrench(
-                np.asarray(f, dtype=float),
-                wrench.c,
-                wrench.force_saturated,
-                wrench.torque_saturated,
-            )
-        return DisplayWrench(np.asarray(f, dtype=float), np.zeros(3), wrench.force_saturated, False)
+        shown = self.show_moments  # the moment, unpassivated, only when asked for
+        return DisplayWrench(
+            np.asarray(f, dtype=float),
+            wrench.c if shown else np.zeros(3),
+            wrench.force_saturated,
+            wrench.torque_saturated and shown,
+        )
 
     def _publish(self, engage: int) -> None:
         self._seq += 1

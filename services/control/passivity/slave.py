@@ -158,7 +158,7 @@ class SlavePort:
     yielding: bool = False
     yielded_m: float = 0.0
     _owing: bool = False
-    _touch: tuple[float, ...] | None = None
+    _in_contact: bool = False
     _surface: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     _f_prev: tuple[float, ...] | None = None
     _p_prev: tuple[float, ...] | None = None
@@ -180,7 +180,8 @@ class SlavePort:
         self.clipped_j = 0.0
         self.forgiven_j = 0.0
         self._owing = False
-        self._touch = self._surface = None
+        self._in_contact = False
+        self._surface = None
         self.asked_n = self.shown_n = None
         self.yielding = False
         self.yielded_m = 0.0
@@ -258,15 +259,14 @@ class SlavePort:
         f_n = math.sqrt(ff)
         if ff > 0.0:
             self._owing = False
-            if self._touch is None:
+            if not self._in_contact:
                 # Where the contact was first felt: an arm that overruns a touch (its
                 # braking lag) goes on past it, and backing out to it sheds that. The last
                 # tool out of contact instead lifts the tool off (one tick of approach): in
                 # the simulated 3-DoF loop at 200 ms, 1 seed of 6 stable against 6 of 6.
-                self._touch = tuple(float(x) for x in p_now)
-                self._surface = (self._touch, tuple(fi / f_n for fi in f))
-        else:
-            self._touch = None
+                touch = tuple(float(x) for x in p_now)
+                self._surface = (touch, tuple(fi / f_n for fi in f))
+        self._in_contact = ff > 0.0
         yields = self.yield_m_s_n > 0.0
         excess = self.withheld_n(f_n)
         self.yielding = yields and excess >= YIELD_MIN_N
@@ -360,9 +360,10 @@ class SlavePort:
         MAX_BACKOFF_M, and no further than where this contact began (the tool's position at
         its first sample with a contact force: how deep the tool is past that point)."""
         norm = math.sqrt(dot(f, f))
-        if self._touch is None or norm == 0.0:
+        if not self._in_contact or self._surface is None or norm == 0.0:
             return MAX_BACKOFF_M
-        depth = math.fsum(fi * (c - p) for fi, c, p in zip(f, self._touch, p_now, strict=True))
+        touch = self._surface[0]
+        depth = math.fsum(fi * (c - p) for fi, c, p in zip(f, touch, p_now, strict=True))
         return min(MAX_BACKOFF_M, max(depth / norm, 0.0))
 
     @staticmethod
