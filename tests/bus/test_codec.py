@@ -160,6 +160,7 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "shown_n": 7.25,
         "repaid_j": 0.0625,
         "forgiven_j": 0.03125,
+        "moments": True,
     },
 }
 
@@ -179,7 +180,7 @@ OPTIONAL: dict[type[Message], set[str]] = {
     MasterState: set(),
     VisionStats: {"data"},
     MasterFeedback: set(),
-    PassivityState: {"asked_n", "shown_n", "repaid_j", "forgiven_j"},
+    PassivityState: {"asked_n", "shown_n", "repaid_j", "forgiven_j", "moments"},
 }
 
 

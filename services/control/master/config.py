@@ -62,6 +62,11 @@ def _number(key: str, value: object) -> float:
 
 MIN_DEVICE_MASS_KG, MAX_DEVICE_MASS_KG = 0.01, 20.0
 """A haptic device's moving mass at the hand: from a pen-sized stylus to a large arm."""
+MIN_DEVICE_INERTIA_KG_M2, MAX_DEVICE_INERTIA_KG_M2 = 1e-5, 1.0
+"""Its rotational inertia at the hand: from a stylus's roll to a large arm's wrist."""
+DEVICE_INERTIA_KG_M2 = 0.002
+"""The default rotational inertia at the hand (kg·m²): a 0.5 kg handle's 6 cm radius of
+gyration."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -99,10 +104,12 @@ class MasterConfig:
     passivity_device_mass_kg: the moving mass of the device (kg, at the hand) that the
         passivity force limiter predicts with; set it to your device's (a lighter device
         than assumed is accelerated more by a force step than predicted).
-    passivity_moments: with passivity on, display the wrist's moment too. Only the
-        translational port is passivated, so by default a device that can show moments
-        (`serial_arm`) shows none while passivity is on: a delayed moment loop is as
-        unguarded as the force loop was. True shows them unpassivated, as without passivity.
+    passivity_moments: with passivity on, display the wrist's moment too, passivated with
+        the force in one port (force and moment against the hand's motion and rotation).
+        False (default): the port is the force alone and no moment is shown, for a device
+        that shows none (the haptic masters; set it true for `serial_arm`).
+    passivity_device_inertia_kg_m2: with passivity_moments, the rotational inertia of the
+        device at the hand (kg·m²) the limiter predicts with, as the mass for the force.
     force_ramp_s: the displayed wrench ramps from zero to full over this time after each
         engagement (0 = at once); it is zero whenever the master is not engaged.
     force_stale_ms: no wrist force *received* for this long and nothing is displayed (the
@@ -142,6 +149,7 @@ class MasterConfig:
     passivity: bool = False
     passivity_device_mass_kg: float = 0.5
     passivity_moments: bool = False
+    passivity_device_inertia_kg_m2: float = DEVICE_INERTIA_KG_M2
 
     def __post_init__(self) -> None:
         if not isinstance(self.master_id, str) or not self.master_id:
@@ -188,6 +196,12 @@ class MasterConfig:
             raise _err(
                 "passivity_device_mass_kg",
                 f"must be within {MIN_DEVICE_MASS_KG:g} … {MAX_DEVICE_MASS_KG:g} kg",
+            )
+        inertia = _number("passivity_device_inertia_kg_m2", self.passivity_device_inertia_kg_m2)
+        if not MIN_DEVICE_INERTIA_KG_M2 <= inertia <= MAX_DEVICE_INERTIA_KG_M2:
+            raise _err(
+                "passivity_device_inertia_kg_m2",
+                f"must be within {MIN_DEVICE_INERTIA_KG_M2:g} … {MAX_DEVICE_INERTIA_KG_M2:g} kg·m²",
             )
         if not 0.0 <= _number("force_ramp_s", self.force_ramp_s) <= MAX_RAMP_S:
             raise _err("force_ramp_s", f"must be within 0 … {MAX_RAMP_S:g} s")

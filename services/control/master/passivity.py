@@ -18,10 +18,12 @@ import numpy as np
 
 from services.bus import keys
 from services.bus.node import Node
+from services.control.master.config import DEVICE_INERTIA_KG_M2
 from services.control.master.devices import HandReading
 from services.control.master.feedback import DisplayWrench
 from services.control.passivity.controller import MasterPassivity
 from services.control.passivity.wire import passivity_state
+from services.control.passivity.wrench import MasterWrenchPort, WrenchCoords
 
 RESERVE_J = 1e-4
 """The most the master port may ever owe the channel (J): see docs/passivity.md."""
@@ -60,17 +62,23 @@ HORIZON_TICKS = 50
 once may be late again)."""
 
 
-def master_port(device_mass_kg: float, enabled: bool = True) -> MasterPassivity:
-    """The master port's controller as the service runs it (the constants above)."""
+def master_port(
+    device_mass_kg: float, enabled: bool = True, wrench: bool = False
+) -> MasterPassivity:
+    """The master port's controller as the service runs it (the constants above).
+
+    wrench: the six-vector port of force and moment, in `WrenchCoords.master` coordinates,
+    where the device has unit mass in every coordinate and the damper's gain `β` in N·s/m
+    is `β / m` (so its bound is the translational one's)."""
     return MasterPassivity(
         enabled=enabled,
         limit=True,
-        mass_kg=device_mass_kg,
+        mass_kg=1.0 if wrench else device_mass_kg,
         reserve_j=RESERVE_J,
         hand_rate_n_s=HAND_RATE_N_S,
         rise=RISE,
         damp=True,
-        beta_max=BETA_MAX_NS_M,
+        beta_max=BETA_MAX_NS_M / device_mass_kg if wrench else BETA_MAX_NS_M,
         bound_current=BOUND_CURRENT,
     )
 
@@ -87,17 +95,25 @@ class MasterTdpa:
         device_mass_kg: float = 0.5,
         force_scale: float = 1.0,
         show_moments: bool = False,
+        device_inertia_kg_m2: float = DEVICE_INERTIA_KG_M2,
     ) -> None:
         """`device_mass_kg`: the device's moving mass the force limiter predicts with
         (`[master] passivity_device_mass_kg`; 0.5 kg is the simulated haptic master's).
         `force_scale`: the display's (`[master] force_scale`), to report the forces asked and
-        shown as newtons at the tool. `show_moments`: pass the moment on unpassivated
-        (`[master] passivity_moments`); otherwise none is shown (only the translational port
-        is passivated)."""
+        shown as newtons at the tool. `show_moments` (`[master] passivity_moments`): the port
+        is the whole wrench, force and moment against the hand's motion and rotation, with
+        `device_inertia_kg_m2` (`[master] passivity_device_inertia_kg_m2`) in the limiter's
+        prediction (`services/control/passivity/wrench.py`); otherwise it is the force alone
+        and no moment is shown (a device without one: the haptic masters)."""
         self.master_id = master_id
         self.force_scale = force_scale
         self.show_moments = show_moments
-        self.pc = master_port(device_mass_kg, enabled)
+        self.pc = master_port(device_mass_kg, enabled, wrench=show_moments)
+        self.wrench = (
+            MasterWrenchPort(self.pc, WrenchCoords.master(device_mass_kg, device_inertia_kg_m2))
+            if show_moments
+            else None
+        )
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)
         self._slave = node.latest(keys.PASSIVITY_SLAVE)
@@ -109,7 +125,10 @@ class MasterTdpa:
         engage = self._engage()
         if engage != self._epoch:
             self._epoch = engage
-            self.pc.reset(engage)
+            if self.wrench is not None:
+                self.wrench.reset(engage)
+            else:
+                self.pc.reset(engage)
         got = self._slave.read()
         if got is not None:
             msg = got[0]
@@ -117,18 +136,32 @@ class MasterTdpa:
                 self.pc.remote.update(msg.engage, msg.e_in)
         self._dts.append(dt_s)
         self.pc.horizon_s = max(self._dts)
-        f = self.pc.step([float(x) for x in wrench.f], [float(x) for x in hand.hand_p], dt_s)
+        port = self.wrench
+        if port is None:
+            f = self.pc.step([float(x) for x in wrench.f], [float(x) for x in hand.hand_p], dt_s)
+            self._publish(engage)
+            return DisplayWrench(
+                np.asarray(f, dtype=float), np.zeros(3), wrench.force_saturated, False
+            )
+        f_out, c_out = port.step(wrench.f, wrench.c, hand.hand_p, hand.hand_R, dt_s)
         self._publish(engage)
-        shown = self.show_moments  # the moment, unpassivated, only when asked for
         return DisplayWrench(
-            np.asarray(f, dtype=float),
-            wrench.c if shown else np.zeros(3),
+            np.asarray(f_out, dtype=float),
+            np.asarray(c_out, dtype=float),
             wrench.force_saturated,
-            wrench.torque_saturated and shown,
+            wrench.torque_saturated,
         )
 
     def _publish(self, engage: int) -> None:
         self._seq += 1
         self._pub.put(
-            passivity_state(self._seq, self.master_id, engage, "master", self.pc, self.force_scale)
+            passivity_state(
+                self._seq,
+                self.master_id,
+                engage,
+                "master",
+                self.pc,
+                self.force_scale,
+                moments=self.show_moments,
+            )
         )

@@ -77,6 +77,7 @@ class MasterService:
                 device_mass_kg=config.passivity_device_mass_kg,
                 force_scale=config.force_scale,
                 show_moments=config.passivity_moments,
+                device_inertia_kg_m2=config.passivity_device_inertia_kg_m2,
             )
             force_hook = self.passivity.hook
         self.force_display = ForceDisplay(config, force_hook)

@@ -17,11 +17,13 @@ def passivity_state(
     side: Literal["master", "slave"],
     pc: MasterPassivity | SlavePassivity | SlavePort,
     force_scale: float = 0.0,
+    moments: bool = False,
 ) -> PassivityState:
     """What the port at `side` has observed and done since `engage` began. force_scale: the
     master display's (operator N per tool N; > 0: the master's asked and shown forces go
     along, as newtons at the tool). The decision's port also sends what the workcell repaid
-    of its overdraws and what it forgave."""
+    of its overdraws and what it forgave. moments: the port is the whole wrench (force and
+    moment; its energies count both), sent as `moments` only when true."""
     t = pc.telemetry
     asked = shown = repaid = forgiven = None
     if isinstance(pc, MasterPassivity) and force_scale > 0.0:
@@ -44,4 +46,5 @@ def passivity_state(
         shown_n=shown,
         repaid_j=repaid,
         forgiven_j=forgiven,
+        moments=True if moments else None,
     )

@@ -85,6 +85,8 @@ class PortFigures:
     forgiven_j: float | None = None
     """The slave's: what the workcell repaid of its overdraws, and what was forgiven (energy
     the channel created; None: the master, or not reported)."""
+    moments: bool = False
+    """The port is the whole wrench: its energies count moment × rotation too."""
 
     @property
     def reservoir_j(self) -> float:
@@ -142,6 +144,7 @@ def tdpa_view(seen: Mapping[str, PortSeen], now_s: float) -> TdpaView:
                 shown_n=m.shown_n,
                 repaid_j=m.repaid_j,
                 forgiven_j=m.forgiven_j,
+                moments=bool(m.moments),
             )
         )
     return TdpaView(tuple(ports))

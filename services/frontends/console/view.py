@@ -248,12 +248,14 @@ def _port_html(p: PortFigures) -> str:
     )
     head = (
         f'<b>{_e(p.side)} port</b> <span style="color:#57606a">{_e(p.master)} #{p.engage}'
-        f"{'' if p.enabled else ', observing'}</span>"
+        f"{'' if p.enabled else ', observing'}"
+        f"{', force and moment' if p.moments else ''}</span>"
     )
     return (
         f'<div class="tr-tdpa-port" data-side="{_e(p.side)}" '
         f'data-acting="{str(p.acting and p.enabled).lower()}" '
-        f'data-reservoir="{p.reservoir_j!r}" data-gain="{p.gain!r}">{head}'
+        f'data-reservoir="{p.reservoir_j!r}" data-gain="{p.gain!r}" '
+        f'data-moments="{str(p.moments).lower()}">{head}'
         f'<table style="font-size:1em;width:100%">{rows}</table></div>'
     )
 

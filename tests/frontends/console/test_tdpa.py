@@ -306,3 +306,14 @@ def test_the_page_shows_tdpa_when_the_figures_flow_and_off_when_they_stop(net: A
 def test_no_nan_reaches_the_plot_rows() -> None:
     v = tdpa_view({"slave": PortSeen.first(fig("slave", e_in=0.1), 0.0)}, 0.0)
     assert all(math.isfinite(x) for x in plot_row(v))
+
+
+def test_a_port_of_the_whole_wrench_says_so() -> None:
+    both = replace(fig("master", steps=1), moments=True)
+    v = tdpa_view({"master": PortSeen.first(both, 0.0)}, 0.1)
+    m = v.port("master")
+    assert m is not None and m.moments
+    out = passivity_html(v)
+    assert 'data-moments="true"' in out and "force and moment" in out
+    plain = passivity_html(tdpa_view({"master": PortSeen.first(fig("master"), 0.0)}, 0.1))
+    assert 'data-moments="false"' in plain and "force and moment" not in plain
