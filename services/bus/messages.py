@@ -234,10 +234,10 @@ class PassivityState(Message):
     display's magnitudes ÷ its force scale); the slave yields what is withheld.
     repaid_j / forgiven_j (optional, slave side): of what the slave overdrew at impacts, the
     energy the workcell gave back to repay it, and the rest, forgiven once the tool was out
-    of contact (energy the channel created: one tick's impact, sampled late). moments
-    (optional, true or absent): the port is the whole wrench, force × motion and moment ×
-    rotation, and e_in / e_out count both; the slave's port counts the moment only while the
-    master's says so."""
+    of contact (energy the channel created: one tick's impact, sampled late). rot_e_in /
+    rot_e_out / rot_dissipated_j (optional, both sides): the same for the side's rotational
+    port (moment × rotation), when it runs one; the slave runs its own only while the
+    master's figures carry `rot_e_in`."""
 
     name: ClassVar[str] = "PassivityState"
     seq: Count
@@ -255,7 +255,9 @@ class PassivityState(Message):
     shown_n: Newtons | None = None
     repaid_j: Joules | None = None
     forgiven_j: Joules | None = None
-    moments: bool | None = None
+    rot_e_in: Joules | None = None
+    rot_e_out: Joules | None = None
+    rot_dissipated_j: Joules | None = None
 
 
 ALL_MESSAGES: tuple[type[Message], ...] = (

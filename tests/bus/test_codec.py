@@ -160,7 +160,9 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "shown_n": 7.25,
         "repaid_j": 0.0625,
         "forgiven_j": 0.03125,
-        "moments": True,
+        "rot_e_in": 0.015625,
+        "rot_e_out": 0.0078125,
+        "rot_dissipated_j": 0.00390625,
     },
 }
 
@@ -180,7 +182,15 @@ OPTIONAL: dict[type[Message], set[str]] = {
     MasterState: set(),
     VisionStats: {"data"},
     MasterFeedback: set(),
-    PassivityState: {"asked_n", "shown_n", "repaid_j", "forgiven_j", "moments"},
+    PassivityState: {
+        "asked_n",
+        "shown_n",
+        "repaid_j",
+        "forgiven_j",
+        "rot_e_in",
+        "rot_e_out",
+        "rot_dissipated_j",
+    },
 }
 
 

@@ -17,11 +17,12 @@ command) passes unchanged and is not observed. The correction only shortens moti
 contact or backs it out along the contact force (at most 2 mm past the tool); the
 supervisor checked the uncorrected target.
 
-Moments: while the master's port is the whole wrench (its PassivityState says `moments`),
-so is this one: the wrist's moment about the tool point against the tool's rotation, in
-`WrenchCoords.slave(ROTATION_LENGTH_M)` coordinates, and the command's rotation is corrected
-along the contact moment as its position is along the force (docs/passivity.md,
-"Rotations"). Otherwise rotations pass unchanged, as before.
+Moments: while the operator's master runs a rotational port (its figures carry
+`rot_e_in`), so does this side (`rot`): the wrist's moment about the tool point against the
+tool's rotation, paired at the same instant as the force's, in `port_angles` /
+`port_moment` coordinates, its energies of its own; the command's rotation is corrected
+along the contact moment as its position is along the force. Otherwise rotations pass
+unchanged (docs/passivity.md, "Rotations").
 """
 
 from __future__ import annotations
@@ -34,19 +35,20 @@ import numpy as np
 from services.bus import keys
 from services.bus.messages import ForceSample, OperatorCommand, RobotState
 from services.bus.node import Node
+from services.control.passivity.rotation import (
+    RotationTrack,
+    angles_of,
+    angles_towards,
+    port_angles,
+    port_moment,
+    rotate_towards,
+)
 from services.control.passivity.slave import DEADBAND_N, SlavePort, TimedHistory
 from services.control.passivity.wire import passivity_state
-from services.control.passivity.wrench import RotationTrack, WrenchCoords, rotate_towards
-from services.geometry import M9, V3, log9, m9, mul9, mv9, sub3, tmul9
+from services.geometry import m9, mul9, sub3, tmul9
 
 DT_MIN_S = 1e-4
 DT_MAX_S = 0.1
-ROTATION_LENGTH_M = 0.1
-"""A rotation of 1 rad counts as this many metres in the slave port's geometry, a moment of
-1 N·m as 1/this newtons (`WrenchCoords.slave`): the back-out of at most 2 mm is 0.02 rad
-(1.1°) in rotation, the 1 N dead band 0.1 N·m, the drift's 3 cm/s 0.3 rad/s. Energies are
-unchanged (joules either way)."""
-ZERO3 = (0.0, 0.0, 0.0)
 
 
 class SlaveTdpa:
@@ -67,13 +69,13 @@ class SlaveTdpa:
     ) -> None:
         self.deadband_n = deadband_n
         self.contact_n = contact_n
-        self.pc = SlavePort(
-            enabled=enabled, drift_m_s=drift_m_s, yield_m_s_n=yield_m_s_n, offset=[0.0] * 6
-        )
-        self.coords = WrenchCoords.slave(ROTATION_LENGTH_M)
-        self.moments = False
-        """The port counts the moment (the master's port does, for this engagement)."""
+        self.pc = SlavePort(enabled=enabled, drift_m_s=drift_m_s, yield_m_s_n=yield_m_s_n)
+        self.rot: SlavePort | None = None
+        """The rotational port, while the operator's master runs one (None: it does not)."""
+        self._enabled, self._drift_m_s = enabled, drift_m_s
         self._turn = RotationTrack()
+        self._angles = TimedHistory()
+        self._moment = TimedHistory()
         self._pub = node.publisher(keys.PASSIVITY_SLAVE)
         self._master_energy = node.latest(keys.PASSIVITY_MASTER)
         self._seq = 0
@@ -107,15 +109,19 @@ class SlaveTdpa:
         self._remember(state, force)
         if not cmd.active or operator is None:
             self.pc.restart()
+            if self.rot is not None:
+                self.rot.restart()
             return cmd
         if operator != self._operator:
             self._operator = operator
             self.pc.reset(operator[1])
+            self.rot = None
             self._arm_engage = None
-            self.moments = False
         if cmd.engage != self._arm_engage:
             self._arm_engage = cmd.engage
             self.pc.rebase()
+            if self.rot is not None:
+                self.rot.rebase()
             if state is not None:
                 # The puma starts the engagement from its setpoint's pose, not the measured
                 # one, which trails it by the servo's error: with the measured pose every
@@ -136,81 +142,92 @@ class SlaveTdpa:
             ours = got[0].engage == operator[1]
             self.pc.asked_n = got[0].asked_n if ours else None
             self.pc.shown_n = got[0].shown_n if ours else None
-            if ours and got[0].moments:
-                self.moments = True
-        f_now = self._observe()
+            if ours and got[0].rot_e_in is not None:
+                if self.rot is None:  # the master's runs one: so does ours, from now on
+                    self.rot = SlavePort(enabled=self._enabled, drift_m_s=self._drift_m_s)
+                    self.rot.reset(operator[1])
+                self.rot.remote.update(got[0].engage, got[0].rot_e_in)
+        f_now, c_now = self._observe()
         if state is None:
             return cmd
-        cs = self.coords
-        theta = self._turn.theta
-        if self.moments:
-            # The target's angles: the tool's now, turned by what separates the target from it.
-            R_target = mul9(m9(self._R0), m9(cmd.dR))
-            ahead = log9(tmul9(m9(state.tool_R), R_target))  # tool frame
-            turn = _spatial(m9(state.tool_R), ahead)
-            rot_target = [t + w for t, w in zip(theta, turn, strict=True)]
-        else:
-            rot_target = list(theta)
-        target = self.pc.correct(
-            cs.motion((self._p0 + d).tolist(), rot_target),
-            cs.motion(state.tool_p, theta),
-            f_now,
-            dt_s,
-        )
+        target = self.pc.correct((self._p0 + d).tolist(), list(state.tool_p), f_now.tolist(), dt_s)
+        dR = self._turned(cmd, state, c_now, dt_s)
         self._publish(operator)
-        p_out, th_out = cs.split_motion(target)
-        out = np.asarray(p_out) - self._p0
+        out = np.asarray(target) - self._p0
         if cmd.frame == "tool":
             out = self._R0.T @ out
         dp = tuple(float(x) for x in out)
-        if not self.moments or not any(self.pc.offset[3:]):
-            return dataclasses.replace(cmd, dp=dp)
-        # Corrected in rotation: the tool's orientation now, turned to the corrected angles.
-        R_out = rotate_towards(m9(state.tool_R), sub3(th_out, theta))
-        return dataclasses.replace(cmd, dp=dp, dR=tmul9(m9(self._R0), R_out))
+        return (
+            dataclasses.replace(cmd, dp=dp)
+            if dR is None
+            else dataclasses.replace(cmd, dp=dp, dR=dR)
+        )
+
+    def _turned(
+        self, cmd: OperatorCommand, state: RobotState, c_now: list[float], dt_s: float
+    ) -> tuple[float, ...] | None:
+        """The rotational port's correction of the command's rotation: the new `dR`, or None
+        when it is unchanged (no rotational port, or no offset in rotation)."""
+        rot = self.rot
+        if rot is None:
+            return None
+        theta = self._turn.theta
+        R_now = m9(state.tool_R)
+        goal = angles_towards(theta, R_now, mul9(m9(self._R0), m9(cmd.dR)))
+        target = rot.correct(port_angles(goal), port_angles(theta), c_now, dt_s)
+        if not any(rot.offset):
+            return None
+        R_out = rotate_towards(R_now, sub3(angles_of(target), theta))
+        return tmul9(m9(self._R0), R_out)
 
     def _remember(self, state: RobotState | None, force: ForceSample | None) -> None:
         """Keep the tool positions and the wrist forces (world frame) with their own times."""
         if state is not None and state.seq != self._state_seq:
             self._state_seq = state.seq
-            theta = self._turn.update(state.tool_R)
-            self._tool.add(state.t_ns, self.coords.motion(state.tool_p, theta))
+            self._tool.add(state.t_ns, state.tool_p)
+            self._angles.add(state.t_ns, port_angles(self._turn.update(state.tool_R)))
         if force is not None and state is not None and force.seq != self._force_seq:
             self._force_seq = force.seq
             R = np.asarray(state.tool_R, dtype=float).reshape(3, 3)
-            f = (R @ np.asarray(force.f, dtype=float)).tolist()
-            c = (R @ np.asarray(force.c, dtype=float)).tolist() if self.moments else ZERO3
-            w = self.coords.wrench(f, c)
-            if math.sqrt(sum(x * x for x in w)) < self.deadband_n:
-                w = [0.0] * 6  # sensor noise: no contact, nothing to pay for
-            self._force.add(force.t_ns, w)
+            f = R @ np.asarray(force.f, dtype=float)
+            if float(np.linalg.norm(f)) < self.deadband_n:
+                f = np.zeros(3)  # sensor noise: no contact, nothing to pay for
+            self._force.add(force.t_ns, f.tolist())
+            # The moment in the rotational port's coordinates, with the same dead band there
+            # (1 N as 0.1 N·m).
+            c = port_moment((R @ np.asarray(force.c, dtype=float)).tolist())
+            if math.sqrt(sum(x * x for x in c)) < self.deadband_n:
+                c = [0.0, 0.0, 0.0]
+            self._moment.add(force.t_ns, c)
 
-    def _observe(self) -> list[float]:
-        """Observe the port at the newest instant both streams cover (wrench and motion at
-        that same time); returns the newest wrench (world, `self.coords`)."""
+    def _observe(self) -> tuple[np.ndarray, list[float]]:
+        """Observe the ports at the newest instant both streams cover (force and position at
+        that same time; the moment and the angles too, with a rotational port); returns the
+        newest force (world, N) and moment (the rotational port's coordinates)."""
         t_f, t_p = self._force.newest_ns, self._tool.newest_ns
         if t_f is None or t_p is None:
-            return [0.0] * 6
+            return np.zeros(3), [0.0, 0.0, 0.0]
         t = min(t_f, t_p)
         f = self._force.at(t)
         p = self._tool.at(t)
         assert f is not None and p is not None
         if t > self._paired_ns:
             self._paired_ns = t
-            supervised = math.sqrt(sum(x * x for x in f[:3])) > self.contact_n
+            supervised = math.sqrt(sum(x * x for x in f)) > self.contact_n
             self.pc.observe(f, p, supervised)
+            if self.rot is not None:
+                c, a = self._moment.at(t), self._angles.at(t)
+                assert c is not None and a is not None
+                self.rot.observe(c, a, supervised)
         f_new = self._force.at(t_f)
-        return list(f_new if f_new is not None else f)
+        c_new = self._moment.at(t_f)
+        return (
+            np.asarray(f_new if f_new is not None else f, dtype=float),
+            list(c_new) if c_new is not None else [0.0, 0.0, 0.0],
+        )
 
     def _publish(self, operator: tuple[str, int]) -> None:
         self._seq += 1
         self._pub.put(
-            passivity_state(
-                self._seq, operator[0], operator[1], "slave", self.pc, moments=self.moments
-            )
+            passivity_state(self._seq, operator[0], operator[1], "slave", self.pc, rot=self.rot)
         )
-
-
-def _spatial(R: M9, w_body: V3) -> V3:
-    """A rotation vector in the body frame of `R`, in the spatial frame: R·w."""
-    return mv9(R, w_body)

@@ -4,7 +4,10 @@
 the hand's motion, master frame), bounds the displayed force to what the reservoir can pay
 over the next tick, with the hand's own force in the prediction (`MasterPassivity`, limiter
 on, its damper's gain bounded: `BETA_MAX_NS_M`), and publishes the port's energies on
-`robot/passivity/master`; it reads the slave's on `robot/passivity/slave`. A new engagement
+`robot/passivity/master`; it reads the slave's on `robot/passivity/slave`. With moments
+shown (`[master] passivity_moments`), a second port of the same kind on the moment against
+the hand's rotation, with the device's rotational inertia and energies of its own
+(`services/control/passivity/rotation.py`). A new engagement
 starts a new count on both sides (no energy is in the channel then, so nothing jumps: the
 display also ramps in). Called by the master loop thread only.
 """
@@ -22,8 +25,8 @@ from services.control.master.config import DEVICE_INERTIA_KG_M2
 from services.control.master.devices import HandReading
 from services.control.master.feedback import DisplayWrench
 from services.control.passivity.controller import MasterPassivity
+from services.control.passivity.rotation import RotationTrack
 from services.control.passivity.wire import passivity_state
-from services.control.passivity.wrench import MasterWrenchPort, WrenchCoords
 
 RESERVE_J = 1e-4
 """The most the master port may ever owe the channel (J): see docs/passivity.md."""
@@ -63,24 +66,28 @@ once may be late again)."""
 
 
 def master_port(
-    device_mass_kg: float, enabled: bool = True, wrench: bool = False
+    device_mass_kg: float, enabled: bool = True, beta_max: float = BETA_MAX_NS_M
 ) -> MasterPassivity:
-    """The master port's controller as the service runs it (the constants above).
-
-    wrench: the six-vector port of force and moment, in `WrenchCoords.master` coordinates,
-    where the device has unit mass in every coordinate and the damper's gain `β` in N·s/m
-    is `β / m` (so its bound is the translational one's)."""
+    """The master port's controller as the service runs it (the constants above). The
+    rotational port is the same with the device's rotational inertia (kg·m²) for its mass
+    and `rotation_beta_max` for the damper's bound."""
     return MasterPassivity(
         enabled=enabled,
         limit=True,
-        mass_kg=1.0 if wrench else device_mass_kg,
+        mass_kg=device_mass_kg,
         reserve_j=RESERVE_J,
         hand_rate_n_s=HAND_RATE_N_S,
         rise=RISE,
         damp=True,
-        beta_max=BETA_MAX_NS_M / device_mass_kg if wrench else BETA_MAX_NS_M,
+        beta_max=beta_max,
         bound_current=BOUND_CURRENT,
     )
+
+
+def rotation_beta_max(device_mass_kg: float, device_inertia_kg_m2: float) -> float:
+    """The rotational damper's bound (N·m·s/rad): BETA_MAX_NS_M as a rate, β/m, the same for
+    the turn of the handle as for its motion (0.08 N·m·s/rad for 0.002 kg·m² and 0.5 kg)."""
+    return BETA_MAX_NS_M / device_mass_kg * device_inertia_kg_m2
 
 
 class MasterTdpa:
@@ -100,20 +107,20 @@ class MasterTdpa:
         """`device_mass_kg`: the device's moving mass the force limiter predicts with
         (`[master] passivity_device_mass_kg`; 0.5 kg is the simulated haptic master's).
         `force_scale`: the display's (`[master] force_scale`), to report the forces asked and
-        shown as newtons at the tool. `show_moments` (`[master] passivity_moments`): the port
-        is the whole wrench, force and moment against the hand's motion and rotation, with
-        `device_inertia_kg_m2` (`[master] passivity_device_inertia_kg_m2`) in the limiter's
-        prediction (`services/control/passivity/wrench.py`); otherwise it is the force alone
-        and no moment is shown (a device without one: the haptic masters)."""
+        shown as newtons at the tool. `show_moments` (`[master] passivity_moments`): the
+        moment is shown through a rotational port of its own (`rot`), against the hand's
+        rotation, with `device_inertia_kg_m2` (`[master] passivity_device_inertia_kg_m2`)
+        in its limiter; otherwise no moment is shown (a device without one: the haptic
+        masters)."""
         self.master_id = master_id
         self.force_scale = force_scale
         self.show_moments = show_moments
-        self.pc = master_port(device_mass_kg, enabled, wrench=show_moments)
-        self.wrench = (
-            MasterWrenchPort(self.pc, WrenchCoords.master(device_mass_kg, device_inertia_kg_m2))
-            if show_moments
-            else None
-        )
+        self.pc = master_port(device_mass_kg, enabled)
+        self.rot: MasterPassivity | None = None
+        if show_moments:
+            beta = rotation_beta_max(device_mass_kg, device_inertia_kg_m2)
+            self.rot = master_port(device_inertia_kg_m2, enabled, beta_max=beta)
+        self._turn = RotationTrack()
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)
         self._slave = node.latest(keys.PASSIVITY_SLAVE)
@@ -123,33 +130,34 @@ class MasterTdpa:
 
     def hook(self, wrench: DisplayWrench, hand: HandReading, dt_s: float) -> DisplayWrench:
         engage = self._engage()
+        rot = self.rot
         if engage != self._epoch:
             self._epoch = engage
-            if self.wrench is not None:
-                self.wrench.reset(engage)
-            else:
-                self.pc.reset(engage)
+            self.pc.reset(engage)
+            if rot is not None:
+                rot.reset(engage)
+                self._turn.reset()
         got = self._slave.read()
         if got is not None:
             msg = got[0]
             if msg.master == self.master_id and msg.side == "slave":
                 self.pc.remote.update(msg.engage, msg.e_in)
+                if rot is not None and msg.rot_e_in is not None:
+                    rot.remote.update(msg.engage, msg.rot_e_in)
         self._dts.append(dt_s)
-        self.pc.horizon_s = max(self._dts)
-        port = self.wrench
-        if port is None:
-            f = self.pc.step([float(x) for x in wrench.f], [float(x) for x in hand.hand_p], dt_s)
-            self._publish(engage)
-            return DisplayWrench(
-                np.asarray(f, dtype=float), np.zeros(3), wrench.force_saturated, False
-            )
-        f_out, c_out = port.step(wrench.f, wrench.c, hand.hand_p, hand.hand_R, dt_s)
+        horizon = max(self._dts)
+        self.pc.horizon_s = horizon
+        f = self.pc.step([float(x) for x in wrench.f], [float(x) for x in hand.hand_p], dt_s)
+        c = [0.0, 0.0, 0.0]
+        if rot is not None:
+            rot.horizon_s = horizon
+            c = rot.step([float(x) for x in wrench.c], self._turn.update(hand.hand_R), dt_s)
         self._publish(engage)
         return DisplayWrench(
-            np.asarray(f_out, dtype=float),
-            np.asarray(c_out, dtype=float),
+            np.asarray(f, dtype=float),
+            np.asarray(c, dtype=float),
             wrench.force_saturated,
-            wrench.torque_saturated,
+            wrench.torque_saturated and rot is not None,
         )
 
     def _publish(self, engage: int) -> None:
@@ -162,6 +170,6 @@ class MasterTdpa:
                 "master",
                 self.pc,
                 self.force_scale,
-                moments=self.show_moments,
+                rot=self.rot,
             )
         )

@@ -25,7 +25,15 @@ from typing import Any
 from services.control.passivity.controller import MasterPassivity, SlavePassivity
 from services.control.passivity.dynamics import Device, Operator, Path, Wall, press_hold_release
 from services.control.passivity.observer import dot
+from services.control.passivity.rotation import (
+    RotationTrack,
+    angles_of,
+    angles_towards,
+    port_angles,
+    port_moment,
+)
 from services.control.passivity.slave import SlavePort
+from services.geometry import M9, exp9
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,6 +88,41 @@ class Link:
 
 SLAVE_SPEED_M_S = 0.5
 """The simulated slave's speed limit: PumaConfig's `max_tool_speed_m_s` default."""
+SLAVE_ROT_SPEED_RAD_S = 1.5
+"""Its turning speed limit: PumaConfig's `max_tool_rot_speed_rad_s` default."""
+MAX_MOMENT_NM = 2.0
+"""The largest moment the simulated master displays (N·m)."""
+
+
+@dataclass(frozen=True, slots=True)
+class Twist:
+    """A turn against a torsional stop about the wall's normal, during the press: the hand
+    turns the handle (`inertia_kg_m2`, `damping_nms_rad`) towards `target_rad` past the stop
+    at `stop_rad`, as a torsional spring–damper (`operator_*`), and while pressing turns on
+    until it feels `goal_nm`. The stop resists with `stiffness_nm_rad` and
+    `stop_damping_nms_rad`, never pulling (a unilateral contact, as the wall). Each side
+    then runs a rotational port beside the force's, the master's with the handle's inertia,
+    the slave's the decision's (`SlavePort` in `port_angles` coordinates): docs/passivity.md,
+    "Rotations"."""
+
+    inertia_kg_m2: float = 0.002
+    damping_nms_rad: float = 0.008
+    stop_rad: float = 0.2
+    target_rad: float = 0.35
+    stiffness_nm_rad: float = 30.0
+    stop_damping_nms_rad: float = 0.03
+    operator_stiffness_nm_rad: float = 2.0
+    operator_damping_nms_rad: float = 0.04
+    goal_nm: float = 0.5
+    push_gain_rad_nms: float = 0.2
+    max_push_rad: float = 0.5
+
+    def moment(self, phi: float, omega: float) -> float:
+        """The stop's moment (N·m) about the axis on a tool turned to phi at omega."""
+        pen = phi - self.stop_rad
+        if pen <= 0.0:
+            return 0.0
+        return -max(self.stiffness_nm_rad * pen + self.stop_damping_nms_rad * omega, 0.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,6 +167,7 @@ class LoopSpec:
     approach_s: float = 1.0
     hold_s: float = 4.0
     release_s: float = 1.0
+    twist: Twist | None = None
 
 
 @dataclass(slots=True)
@@ -142,6 +186,11 @@ class LoopResult:
     master_out: list[float] = field(default_factory=list)
     slave_in: list[float] = field(default_factory=list)
     slave_out: list[float] = field(default_factory=list)
+    m_display: list[float] = field(default_factory=list)
+    m_contact: list[float] = field(default_factory=list)
+    twist_penetration: list[float] = field(default_factory=list)
+    """With `LoopSpec.twist`: the moment displayed and the stop's (N·m, against the turn)
+    and how far the tool is past the stop (rad)."""
     master_dissipated_j: float = 0.0
     slave_dissipated_j: float = 0.0
     master_active: int = 0
@@ -158,6 +207,9 @@ def simulate(spec: LoopSpec) -> LoopResult:
         raise ValueError("slave_speed_m_s must be ≥ 0 (0: no limit) and finite")
     if spec.slave_port and spec.slave_speed_m_s <= 0.0:
         raise ValueError("slave_port needs slave_speed_m_s > 0 (the arm chases its target)")
+    tw = spec.twist
+    if tw is not None and not (spec.slave_port and n == 3):
+        raise ValueError("twist needs dofs = 3 and slave_port (the services' ports)")
     rng = random.Random(spec.seed)
     one_way = LinkSpec(spec.round_trip_s / 2.0, spec.jitter, spec.loss)
     to_slave, to_master = Link(one_way, rng), Link(one_way, rng)
@@ -192,6 +244,7 @@ def simulate(spec: LoopSpec) -> LoopResult:
     )
     slave = SlavePassivity(enabled=spec.tdpa, drift_m_s=spec.drift_m_s, slack_m=spec.slack_m)
     port = SlavePort(enabled=spec.tdpa, drift_m_s=spec.drift_m_s, offset=[0.0] * n)
+    turn = _Turning(tw, spec, device.mass_kg, hold) if tw is not None else None
     use_port = spec.slave_port
     x_goal = [0.0] * n
     x_s = [0.0] * n
@@ -209,18 +262,21 @@ def simulate(spec: LoopSpec) -> LoopResult:
         back = to_master.receive(t)
         f_show = [0.0] * n
         if back is not None:
-            f_remote, e_in_s = back
+            f_remote, e_in_s = back[0], back[1]
             master.remote.update(0, e_in_s)
             f_show = _saturate([spec.force_scale * fi for fi in f_remote], spec.max_force_n)
         f_show = master.step(f_show, device.x, spec.dt_s)
         hand.feel(t, f_show, spec.dt_s)
         f_hand = hand.force(t, device.x, device.v)
         device.step([a + b for a, b in zip(f_hand, f_show, strict=True)], spec.dt_s)
-        to_slave.send(t, (list(device.x), master.observer.e_in))
+        up: tuple[Any, ...] = (list(device.x), master.observer.e_in)
+        if turn is not None:
+            up += (turn.master_step(t, back),)
+        to_slave.send(t, up)
         # --- slave side ---
         cmd = to_slave.receive(t)
         if cmd is not None and use_port:
-            x_goal, e_in_m = cmd
+            x_goal, e_in_m = cmd[0], cmd[1]
             port.remote.update(0, e_in_m)
             dx = [0.0] * n
         elif cmd is not None:
@@ -250,7 +306,10 @@ def simulate(spec: LoopSpec) -> LoopResult:
         x_s = [a + d for a, d in zip(x_s, dx, strict=True)]
         f_env = spec.wall.force(x_s, v_s)
         e_in_slave = port.observer.e_in if use_port else slave.observer.e_in
-        to_master.send(t, (list(f_env), e_in_slave))
+        down: tuple[Any, ...] = (list(f_env), e_in_slave)
+        if turn is not None:
+            down += (turn.slave_step(cmd),)
+        to_master.send(t, down)
         # --- traces ---
         res.t.append(t)
         res.f_display.append(-dot(f_show, normal))
@@ -267,7 +326,11 @@ def simulate(spec: LoopSpec) -> LoopResult:
         else:
             res.slave_in.append(slave.observer.e_in)
             res.slave_out.append(slave.observer.e_out)
-        if not all(math.isfinite(x) and abs(x) < 10.0 for x in device.x):
+        if turn is not None:
+            turn.trace(res)
+        if not all(math.isfinite(x) and abs(x) < 10.0 for x in device.x) or (
+            turn is not None and not abs(turn.handle.x[0]) < 100.0
+        ):
             res.diverged = True
             break
     res.master_dissipated_j = master.telemetry.dissipated_j
@@ -276,6 +339,130 @@ def simulate(spec: LoopSpec) -> LoopResult:
     res.master_active = master.telemetry.active_steps
     res.slave_active = sp.active_steps
     return res
+
+
+class _Turning:
+    """The twist task's rotational half (`Twist`) about the wall's normal, both sides, each
+    with a rotational port of its own beside the force's (as the services run them): the
+    handle and the hand turning it behind the master's port on moment × rotation, and the
+    tool turning against the stop behind the slave's (the decision's, in `port_angles`
+    coordinates). Angles about the axis are plain floats; the ports see
+    orientations (`exp(φ·axis)`) through their own `RotationTrack`."""
+
+    def __init__(
+        self, tw: Twist, spec: LoopSpec, mass_kg: float, hold: tuple[float, float]
+    ) -> None:
+        self.tw, self.spec = tw, spec
+        self.axis = spec.wall.normal
+        # The force's settings, the hand's force rate as fast in unit-mass coordinates.
+        self.master = MasterPassivity(
+            enabled=spec.tdpa,
+            limit=spec.limit,
+            mass_kg=tw.inertia_kg_m2 if spec.limit_mass else 0.0,
+            reserve_j=spec.reserve_j,
+            hand_rate_n_s=spec.hand_rate_n_s * math.sqrt(tw.inertia_kg_m2 / mass_kg),
+            bound_current=spec.bound_current,
+            damp=spec.damp,
+        )
+        self.port = SlavePort(enabled=spec.tdpa, drift_m_s=spec.drift_m_s)
+        self.handle = Device(mass_kg=tw.inertia_kg_m2, damping_ns_m=tw.damping_nms_rad)
+        self.hand = Operator(
+            press_hold_release(
+                [0.0],
+                [tw.target_rad],
+                approach_s=spec.approach_s,
+                hold_s=spec.hold_s,
+                release_s=spec.release_s,
+            ),
+            tw.operator_stiffness_nm_rad,
+            tw.operator_damping_nms_rad,
+            goal_force_n=tw.goal_nm,
+            gain_m_ns=tw.push_gain_rad_nms,
+            max_push_m=tw.max_push_rad,
+            pressing=lambda t: hold[0] <= t < hold[1],
+        )
+        self.master_track = RotationTrack()
+        self.track = RotationTrack()
+        self.phi_goal = 0.0
+        self.phi = 0.0
+        self.omega = 0.0
+        self.c_env = [0.0, 0.0, 0.0]
+        self.c_show = [0.0, 0.0, 0.0]
+
+    def _R(self, phi: float) -> M9:
+        a = self.axis
+        return exp9((phi * a[0], phi * a[1], phi * a[2]))
+
+    def master_step(self, t: float, back: Any) -> tuple[float, float]:
+        """The master's rotational port: the moment shown, the handle turned; returns what
+        goes to the slave (the handle's angle, the port's input energy)."""
+        spec, dt = self.spec, self.spec.dt_s
+        c_show = [0.0, 0.0, 0.0]
+        if back is not None:
+            c_remote, e_in_s = back[2]
+            self.master.remote.update(0, e_in_s)
+            c_show = _saturate([spec.force_scale * ci for ci in c_remote], MAX_MOMENT_NM)
+        theta = self.master_track.update(self._R(self.handle.x[0]))
+        self.c_show = self.master.step(c_show, theta, dt)
+        c_axis = dot(self.c_show, self.axis)
+        self.hand.feel(t, [c_axis], dt)
+        c_hand = self.hand.force(t, self.handle.x, self.handle.v)[0]
+        self.handle.step([c_hand + c_axis], dt)
+        return self.handle.x[0], self.master.observer.e_in
+
+    def slave_step(self, cmd: Any) -> tuple[list[float], float]:
+        """The slave's rotational port: the tool turned towards the master's angle as
+        corrected, at the arm's turning speed, against the stop; returns what goes to the
+        master (the stop's moment, the port's input energy)."""
+        dt, port = self.spec.dt_s, self.port
+        if cmd is not None:
+            self.phi_goal, e_in_m = cmd[2]
+            port.remote.update(0, e_in_m)
+        R_s = self._R(self.phi)
+        theta = self.track.update(R_s)
+        now = port_angles(theta)
+        c_env = port_moment(self.c_env)
+        port.observe(c_env, now)
+        goal = port_angles(angles_towards(theta, R_s, self._R(self.phi_goal)))
+        th_tgt = angles_of(port.correct(goal, now, c_env, dt))
+        ahead = dot([a - b for a, b in zip(th_tgt, theta, strict=True)], self.axis)
+        cap = SLAVE_ROT_SPEED_RAD_S * dt
+        step = min(max(ahead, -cap), cap)
+        self.phi += step
+        self.omega = step / dt
+        c = self.tw.moment(self.phi, self.omega)
+        self.c_env = [c * a for a in self.axis]
+        return list(self.c_env), port.observer.e_in
+
+    def trace(self, res: LoopResult) -> None:
+        """The moment's traces; the energies of both rotational ports added to the force's."""
+        res.m_display.append(-dot(self.c_show, self.axis))
+        res.m_contact.append(-dot(self.c_env, self.axis))
+        res.twist_penetration.append(max(self.phi - self.tw.stop_rad, 0.0))
+        res.master_in[-1] += self.master.observer.e_in
+        res.master_out[-1] += self.master.observer.e_out
+        res.slave_in[-1] += self.port.observer.e_in + self.port.recovered_j
+        res.slave_out[-1] += self.port.observer.e_out
+
+
+def twist_metrics(res: LoopResult, settle_s: float = 2.0) -> dict[str, float | bool]:
+    """`contact_metrics` of the twist task's moment (N·m in place of N, rad past the stop in
+    place of m: `penetration_mm` is then mrad); the energy balance is both ports'."""
+    moment = LoopResult(
+        res.spec,
+        t=res.t,
+        f_display=res.m_display,
+        f_contact=res.m_contact,
+        penetration=res.twist_penetration,
+        master_in=res.master_in,
+        master_out=res.master_out,
+        slave_in=res.slave_in,
+        slave_out=res.slave_out,
+        master_dissipated_j=res.master_dissipated_j,
+        slave_dissipated_j=res.slave_dissipated_j,
+        diverged=res.diverged,
+    )
+    return contact_metrics(moment, settle_s)
 
 
 def _chase(target: Sequence[float], x: Sequence[float], cap_m: float) -> list[float]:

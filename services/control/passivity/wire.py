@@ -17,13 +17,13 @@ def passivity_state(
     side: Literal["master", "slave"],
     pc: MasterPassivity | SlavePassivity | SlavePort,
     force_scale: float = 0.0,
-    moments: bool = False,
+    rot: MasterPassivity | SlavePort | None = None,
 ) -> PassivityState:
     """What the port at `side` has observed and done since `engage` began. force_scale: the
     master display's (operator N per tool N; > 0: the master's asked and shown forces go
     along, as newtons at the tool). The decision's port also sends what the workcell repaid
-    of its overdraws and what it forgave. moments: the port is the whole wrench (force and
-    moment; its energies count both), sent as `moments` only when true."""
+    of its overdraws and what it forgave. rot: the side's rotational port, when it runs
+    one (its energies go as `rot_e_in`, `rot_e_out`, `rot_dissipated_j`)."""
     t = pc.telemetry
     asked = shown = repaid = forgiven = None
     if isinstance(pc, MasterPassivity) and force_scale > 0.0:
@@ -46,5 +46,7 @@ def passivity_state(
         shown_n=shown,
         repaid_j=repaid,
         forgiven_j=forgiven,
-        moments=True if moments else None,
+        rot_e_in=None if rot is None else rot.observer.e_in,
+        rot_e_out=None if rot is None else rot.observer.e_out,
+        rot_dissipated_j=None if rot is None else rot.telemetry.dissipated_j,
     )

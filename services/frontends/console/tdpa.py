@@ -85,8 +85,9 @@ class PortFigures:
     forgiven_j: float | None = None
     """The slave's: what the workcell repaid of its overdraws, and what was forgiven (energy
     the channel created; None: the master, or not reported)."""
-    moments: bool = False
-    """The port is the whole wrench: its energies count moment × rotation too."""
+    rot_e_in_j: float | None = None
+    rot_e_out_j: float | None = None
+    """The side's rotational port (moment × rotation), when it runs one (None: it does not)."""
 
     @property
     def reservoir_j(self) -> float:
@@ -144,7 +145,8 @@ def tdpa_view(seen: Mapping[str, PortSeen], now_s: float) -> TdpaView:
                 shown_n=m.shown_n,
                 repaid_j=m.repaid_j,
                 forgiven_j=m.forgiven_j,
-                moments=bool(m.moments),
+                rot_e_in_j=m.rot_e_in,
+                rot_e_out_j=m.rot_e_out,
             )
         )
     return TdpaView(tuple(ports))

@@ -242,20 +242,22 @@ def _port_html(p: PortFigures) -> str:
         # An impact's overdraw: repaid by the workcell, or forgiven (created by the channel).
         cells.append(("overdraw repaid (J)", "tr-tdpa-repaid", _joules(p.repaid_j)))
         cells.append(("forgiven (J)", "tr-tdpa-forgiven", _joules(p.forgiven_j)))
+    if p.rot_e_in_j is not None and p.rot_e_out_j is not None:
+        # The rotational port's own energies (moment × rotation), beside the force's.
+        cells.append(("rotation in (J)", "tr-tdpa-rot-in", _joules(p.rot_e_in_j)))
+        cells.append(("rotation out (J)", "tr-tdpa-rot-out", _joules(p.rot_e_out_j)))
     rows = "".join(
         _row(label, f'<code class="{cls}" style="color:{color}">{_e(v)}</code>')
         for label, cls, v in cells
     )
     head = (
         f'<b>{_e(p.side)} port</b> <span style="color:#57606a">{_e(p.master)} #{p.engage}'
-        f"{'' if p.enabled else ', observing'}"
-        f"{', force and moment' if p.moments else ''}</span>"
+        f"{'' if p.enabled else ', observing'}</span>"
     )
     return (
         f'<div class="tr-tdpa-port" data-side="{_e(p.side)}" '
         f'data-acting="{str(p.acting and p.enabled).lower()}" '
-        f'data-reservoir="{p.reservoir_j!r}" data-gain="{p.gain!r}" '
-        f'data-moments="{str(p.moments).lower()}">{head}'
+        f'data-reservoir="{p.reservoir_j!r}" data-gain="{p.gain!r}">{head}'
         f'<table style="font-size:1em;width:100%">{rows}</table></div>'
     )
 

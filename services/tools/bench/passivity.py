@@ -14,7 +14,10 @@ One table,
 one JSON (keys `passivity_<delay_ms>_<on|off>_<measure>`), one plot per delay (contact force
 over time, off and on). "on" is both ports with the master's energy-bounding force limiter
 (`--no-master-limit`: the damper alone). `--seeds N` also runs seeds 1 … N (each its own
-jitter and losses) and sums them up per delay (`seeds`). docs/passivity.md.
+jitter and losses) and sums them up per delay (`seeds`). `--twist` adds a turn against a
+torsional stop to the press (3-DoF, the services' ports, a rotational port at each end): the
+same measures of the moment under `passivity_<delay_ms>_<on|off>_moment_<measure>` (N·m;
+`penetration_mm` is then mrad past the stop). docs/passivity.md.
 
 The link here is the simulation's own (seeded, deterministic, no processes). `--link` runs
 the same task through the real services over a real bad link instead (network namespaces,
@@ -36,8 +39,10 @@ from services.control.passivity.loop import (
     SLAVE_SPEED_M_S,
     LoopResult,
     LoopSpec,
+    Twist,
     contact_metrics,
     simulate,
+    twist_metrics,
 )
 
 DEFAULT_DELAYS_MS = (0, 50, 200, 700)
@@ -66,12 +71,18 @@ def run(
     master_limit: bool = True,
     slave_speed_m_s: float = SLAVE_SPEED_M_S,
     slave_port: bool = False,
+    twist: bool = False,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], LoopResult]]:
     """(the JSON document, the traces per (delay, tdpa)). slave_port: the slave side is the
-    decision service's own port (`LoopSpec.slave_port`), not the reference controller."""
+    decision service's own port (`LoopSpec.slave_port`), not the reference controller.
+    twist: the press with a turn against a torsional stop (`LoopSpec.twist`; 3-DoF and the
+    service's port, whatever `dofs` and `slave_port` say), the moment's measures too."""
     extra: dict[str, Any] = {}
+    if twist:
+        dofs, slave_port = 3, True
+        extra["twist"] = Twist()
     if dofs == 3:
-        extra = {"dofs": 3, "target_m": (0.02, 0.0, 0.08), "wall": Wall(normal=(0.0, 0.0, 1.0))}
+        extra |= {"dofs": 3, "target_m": (0.02, 0.0, 0.08), "wall": Wall(normal=(0.0, 0.0, 1.0))}
     doc: dict[str, Any] = {
         "settings": {
             "delays_ms": list(delays_ms),
@@ -81,6 +92,7 @@ def run(
             "master_limit": master_limit,
             "slave_speed_m_s": slave_speed_m_s,
             "slave_port": slave_port,
+            "twist": twist,
         },
     }
     results: dict[tuple[int, bool], LoopResult] = {}
@@ -99,9 +111,13 @@ def run(
             )
             res = simulate(spec)
             results[(delay, on)] = res
-            for name, value in contact_metrics(res).items():
-                key = f"passivity_{delay}_{'on' if on else 'off'}_{name}"
-                doc[key] = value if isinstance(value, bool) else round(float(value), 6)
+            parts = [("", contact_metrics(res))]
+            if twist:
+                parts.append(("moment_", twist_metrics(res)))
+            for part, metrics in parts:
+                for name, value in metrics.items():
+                    key = f"passivity_{delay}_{'on' if on else 'off'}_{part}{name}"
+                    doc[key] = value if isinstance(value, bool) else round(float(value), 6)
     return doc, results
 
 
@@ -128,22 +144,28 @@ def seeds(
     master_limit: bool = True,
     slave_speed_m_s: float = SLAVE_SPEED_M_S,
     slave_port: bool = False,
+    twist: bool = False,
 ) -> dict[str, Any]:
     """The same grid for seeds 1 … count (each its own jitter and losses), summed up as
     `passivity_<delay>_<on|off>_seeds_<figure>` keys (`SEED_FIGURES`): what one seed's
-    table cannot say (a late step in one seed of six)."""
-    runs: dict[tuple[int, str], list[dict[str, Any]]] = {}
+    table cannot say (a late step in one seed of six). With `twist`, the moment's too
+    (`passivity_<delay>_<on|off>_moment_seeds_<figure>`)."""
+    parts = ("", "moment_") if twist else ("",)
+    runs: dict[tuple[int, str, str], list[dict[str, Any]]] = {}
     for seed in range(1, count + 1):
-        doc, _ = run(delays_ms, jitter, loss, dofs, seed, master_limit, slave_speed_m_s, slave_port)
+        doc, _ = run(
+            delays_ms, jitter, loss, dofs, seed, master_limit, slave_speed_m_s, slave_port, twist
+        )
         for delay in delays_ms:
             for on in ("off", "on"):
-                k = f"passivity_{delay}_{on}_"
-                one = {m: doc[k + m] for m in MEASURES}
-                runs.setdefault((delay, on), []).append(one)
+                for part in parts:
+                    k = f"passivity_{delay}_{on}_{part}"
+                    one = {m: doc[k + m] for m in MEASURES}
+                    runs.setdefault((delay, on, part), []).append(one)
 
     out: dict[str, Any] = {}
-    for (delay, on), ms in runs.items():
-        k = f"passivity_{delay}_{on}_seeds_"
+    for (delay, on, part), ms in runs.items():
+        k = f"passivity_{delay}_{on}_{part}seeds_"
         out |= {k + name: value for name, value in seed_figures(ms).items()}
     return out
 
@@ -175,8 +197,9 @@ def seed_figures(runs: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     }
 
 
-def seeds_table(summary: dict[str, Any], delays_ms: tuple[int, ...], n: int) -> str:
-    """`seeds`' figures over seeds 1 … n, one row per delay and TDPA setting."""
+def seeds_table(summary: dict[str, Any], delays_ms: tuple[int, ...], n: int, part: str = "") -> str:
+    """`seeds`' figures over seeds 1 … n, one row per delay and TDPA setting (`part`:
+    "moment_" for the twist's moment)."""
     head = (
         f"{'RTT ms':>7} {'TDPA':>4} {'stable':>7} {'settled':>7} {'swing max %':>11} "
         f"{'RMS max %':>9} {'felt % of tool':>14} {'gen. max J':>10}"
@@ -184,7 +207,7 @@ def seeds_table(summary: dict[str, Any], delays_ms: tuple[int, ...], n: int) -> 
     lines = [f"seeds 1 … {n}:", head, "-" * len(head)]
     for delay in delays_ms:
         for on in ("off", "on"):
-            k = f"passivity_{delay}_{on}_seeds_"
+            k = f"passivity_{delay}_{on}_{part}seeds_"
             lo, hi = summary[k + "felt_min_pct"], summary[k + "felt_max_pct"]
             felt = "–" if lo is None or hi is None else f"{lo:.0f}–{hi:.0f}"
             lines.append(
@@ -205,8 +228,9 @@ def _yes_no(x: bool | None) -> str:
     return "–" if x is None else ("yes" if x else "NO")
 
 
-def table(doc: dict[str, Any]) -> str:
-    """The results as a fixed-width table, one row per delay and TDPA setting."""
+def table(doc: dict[str, Any], part: str = "") -> str:
+    """The results as a fixed-width table, one row per delay and TDPA setting (`part`:
+    "moment_" for the twist's moment: N·m in place of N, mrad in place of mm)."""
     head = (
         f"{'RTT ms':>7} {'TDPA':>4} {'peak N':>8} {'steady N':>9} {'felt N':>7} {'osc RMS N':>10} "
         f"{'swing N':>8} {'creep N/s':>9} {'pen mm':>7} {'gen. J':>8} {'stable':>6} "
@@ -215,7 +239,7 @@ def table(doc: dict[str, Any]) -> str:
     lines = [head, "-" * len(head)]
     for delay in doc["settings"]["delays_ms"]:
         for on in ("off", "on"):
-            k = f"passivity_{delay}_{on}_"
+            k = f"passivity_{delay}_{on}_{part}"
             lines.append(
                 f"{delay:>7} {on:>4} {_num(doc[k + 'peak_force_n'], 8, 1)} "
                 f"{_num(doc[k + 'steady_force_n'], 9, 2)} "
@@ -237,9 +261,10 @@ def off_on_plot(
     x_label: str,
     clip_n: float,
     path: Path,
+    y_label: str = "force (N)",
 ) -> Path:
-    """One PNG: force (N, clipped to 0 … clip_n) against time, TDPA off and on (OpenCV);
-    `curves[on]` = (t, f)."""
+    """One PNG: force (N, clipped to 0 … clip_n; or what `y_label` says) against time, TDPA
+    off and on (OpenCV); `curves[on]` = (t, f)."""
     import numpy as np
 
     from services.tools.record.plots import Series, panel, save_png
@@ -252,12 +277,14 @@ def off_on_plot(
         )
         for on in (False, True)
     ]
-    return save_png(path, panel(series, title, x_label, "force (N)", size=(900, 320)))
+    return save_png(path, panel(series, title, x_label, y_label, size=(900, 320)))
 
 
 def plots(results: dict[tuple[int, bool], LoopResult], out_dir: Path) -> list[Path]:
-    """One PNG per delay: contact force against time, TDPA off and on."""
-    return [
+    """One PNG per delay: contact force against time, TDPA off and on; with the twist, one
+    of the moment too."""
+    delays = sorted({d for d, _ in results})
+    drawn = [
         off_on_plot(
             {on: (results[(delay, on)].t, results[(delay, on)].f_contact) for on in (False, True)},
             f"contact force, {delay} ms round trip (clipped at 50 N)",  # off reaches hundreds
@@ -265,8 +292,24 @@ def plots(results: dict[tuple[int, bool], LoopResult], out_dir: Path) -> list[Pa
             50.0,
             out_dir / f"passivity_{delay}ms.png",
         )
-        for delay in sorted({d for d, _ in results})
+        for delay in delays
     ]
+    if all(results[key].m_contact for key in results):
+        drawn += [
+            off_on_plot(
+                {
+                    on: (results[(delay, on)].t, results[(delay, on)].m_contact)
+                    for on in (False, True)
+                },
+                f"contact moment, {delay} ms round trip (clipped at 3 N·m)",
+                "time (s)",
+                3.0,
+                out_dir / f"passivity_{delay}ms_moment.png",
+                "moment (N·m)",
+            )
+            for delay in delays
+        ]
+    return drawn
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -306,6 +349,12 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="the simulated slave side is the decision service's own passivity port "
         "(default: the reference controller)",
+    )
+    p.add_argument(
+        "--twist",
+        action="store_true",
+        help="the press with a turn against a torsional stop: a rotational port at each end "
+        "(3-DoF, the services' ports; the moment's measures too); simulation only",
     )
     p.add_argument(
         "--link",
@@ -387,6 +436,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--slave-speed is the simulation's (not --link) and within 0 … 10 m/s")
     if args.slave_port and (args.link or args.slave_speed == 0.0):
         p.error("--slave-port is the simulation's (not --link) and needs --slave-speed > 0")
+    if args.twist and (args.link or args.slave_speed == 0.0):
+        p.error("--twist is the simulation's (not --link) and needs --slave-speed > 0")
     if args.seeds and (args.link or not 1 <= args.seeds <= 100):
         p.error("--seeds is the simulation's (not --link) and within 1 … 100")
     summary: dict[str, Any] | None = None
@@ -420,7 +471,15 @@ def main(argv: list[str] | None = None) -> int:
         speed = SLAVE_SPEED_M_S if args.slave_speed is None else args.slave_speed
         limit = not args.no_master_limit
         doc, results = run(
-            delays, args.jitter, args.loss, args.dofs, args.seed, limit, speed, args.slave_port
+            delays,
+            args.jitter,
+            args.loss,
+            args.dofs,
+            args.seed,
+            limit,
+            speed,
+            args.slave_port,
+            args.twist,
         )
         if args.seeds:
             summary = seeds(
@@ -432,6 +491,7 @@ def main(argv: list[str] | None = None) -> int:
                 limit,
                 speed,
                 args.slave_port,
+                args.twist,
             )
             doc |= summary
             doc["settings"]["seeds"] = args.seeds
@@ -440,8 +500,14 @@ def main(argv: list[str] | None = None) -> int:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=2) + "\n")
     print(table(doc))
+    twisted = bool(doc["settings"].get("twist"))
+    if twisted:
+        print("\nthe moment (N·m in place of N, mrad past the stop in place of mm):")
+        print(table(doc, "moment_"))
     if summary is not None:
         print("\n" + seeds_table(summary, delays, args.seeds))
+        if twisted:
+            print("\nthe moment, " + seeds_table(summary, delays, args.seeds, "moment_"))
     print(f"\nJSON: {path}" + (f"  plots: {', '.join(str(x) for x in drawn)}" if drawn else ""))
     return 0
 

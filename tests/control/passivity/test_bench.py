@@ -129,3 +129,24 @@ def test_a_run_without_a_steady_force_is_left_out_of_the_percentages() -> None:
     summary = {f"passivity_0_{on}_seeds_{f}": v for on in ("off", "on") for f, v in none.items()}
     row = seeds_table(summary, (0,), 1).splitlines()[-1]
     assert row.split()[:2] == ["0", "on"] and row.count("–") == 3  # swing, RMS, felt
+
+
+def test_cli_twist_measures_the_moment_too(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit):
+        main(["--twist", "--link"])
+    out = tmp_path / "t.json"
+    assert (
+        main(["--delays-ms", "200", "--twist", "--json", str(out), "--plots", str(tmp_path)]) == 0
+    )
+    doc = json.loads(out.read_text())
+    assert doc["settings"]["twist"] is True and doc["settings"]["dofs"] == 3
+    for on in ("on", "off"):
+        for m in MEASURES:
+            assert f"passivity_200_{on}_moment_{m}" in doc
+    assert doc["passivity_200_on_moment_stable"] is True
+    assert doc["passivity_200_off_moment_stable"] is False
+    assert doc["passivity_200_on_stable"] is True  # the press holds beside the turn
+    assert (tmp_path / "passivity_200ms_moment.png").stat().st_size > 1000
+    assert "the moment (N·m" in capsys.readouterr().out

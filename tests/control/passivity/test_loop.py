@@ -18,11 +18,13 @@ from services.control.passivity.loop import (
     LinkSpec,
     LoopResult,
     LoopSpec,
+    Twist,
     contact_metrics,
     held,
     simulate,
     swing_rms,
     trend_n_s,
+    twist_metrics,
 )
 
 THREE_DOF = {"dofs": 3, "target_m": (0.02, 0.0, 0.08), "wall": Wall(normal=(0.0, 0.0, 1.0))}
@@ -293,3 +295,51 @@ def test_the_services_slave_port_needs_an_arm_that_chases_its_target() -> None:
 def test_a_bad_slave_speed_is_refused(speed: float) -> None:
     with pytest.raises(ValueError, match="slave_speed_m_s"):
         simulate(LoopSpec(slave_speed_m_s=speed))
+
+
+TWIST: dict[str, object] = {**THREE_DOF, "slave_port": True, "twist": Twist()}
+
+
+@pytest.mark.parametrize("rtt_s", [0.2, 0.7])
+def test_a_turn_against_a_stop_holds_with_a_rotational_port_at_each_end(rtt_s: float) -> None:
+    """The press with a turn against a torsional stop, the master showing the moment: a
+    rotational port at each end beside the force's. Both contacts press and hold in every
+    seed, neither oscillates, the channel creates no more than an impact's energy, and the
+    turn is let go at the release. (One port for the whole wrench lost both contacts at
+    200 ms, 0.05 N·m held for 0.5 N·m: docs/passivity.md, "Rotations".)"""
+    for seed in range(1, 4):
+        res = simulate(
+            LoopSpec(round_trip_s=rtt_s, jitter=0.1, loss=0.01, tdpa=True, seed=seed, **TWIST)
+        )  # type: ignore[arg-type]
+        force, moment = contact_metrics(res), twist_metrics(res)
+        assert force["stable"] and force["steady_force_n"] > 3.0, (seed, force)
+        assert moment["stable"] and moment["steady_force_n"] > 0.2, (seed, moment)
+        assert moment["peak_force_n"] < 1.0 and moment["penetration_mm"] < 40.0, seed
+        assert force["energy_generated_j"] < 0.005, seed
+        assert res.m_contact[-1] == 0.0 and res.f_contact[-1] == 0.0, seed
+
+
+def test_without_tdpa_the_turn_against_the_stop_bounces() -> None:
+    res = simulate(LoopSpec(round_trip_s=0.2, jitter=0.1, loss=0.01, tdpa=False, **TWIST))  # type: ignore[arg-type]
+    moment = twist_metrics(res)
+    assert not moment["stable"] and moment["peak_force_n"] > 3.0
+    assert moment["energy_generated_j"] > 1.0
+
+
+def test_without_delay_the_rotational_port_changes_nothing_the_operator_feels() -> None:
+    """At 0 ms the moment felt with both rotational ports is the moment felt without them,
+    within 5 %, and it is the stop's."""
+    on, off = (
+        twist_metrics(simulate(LoopSpec(tdpa=tdpa, **TWIST)))  # type: ignore[arg-type]
+        for tdpa in (True, False)
+    )
+    assert off["felt_force_n"] > 0.3
+    assert abs(on["felt_force_n"] - off["felt_force_n"]) < 0.05 * off["felt_force_n"]
+    assert on["felt_force_n"] == pytest.approx(on["steady_force_n"], rel=0.05)
+
+
+def test_the_twist_needs_the_services_ports_in_three_dofs() -> None:
+    with pytest.raises(ValueError, match="twist"):
+        simulate(LoopSpec(twist=Twist()))
+    with pytest.raises(ValueError, match="twist"):
+        simulate(LoopSpec(twist=Twist(), slave_port=True))

@@ -105,11 +105,12 @@ def test_master_hook_damps_until_the_slave_has_put_energy_in(net: Net) -> None:
     assert wait_until(lambda: seen[-1].e_out > 0.0)
 
 
-def test_the_master_shows_a_moment_only_through_the_wrench_port(net: Net) -> None:
-    """A master for a device without moments (`passivity_moments` off: the force's port)
-    shows none. With `passivity_moments`, the moment goes through the port with the force:
-    shown while nothing turns, withheld while the hand turns along it with nothing from the
-    slave, and the master's figures say its port counts moments."""
+def test_the_master_shows_a_moment_only_through_a_rotational_port(net: Net) -> None:
+    """A master for a device without moments (`passivity_moments` off) shows none. With
+    `passivity_moments`, the moment goes through a rotational port of its own: shown while
+    nothing turns, withheld while the hand turns along it with nothing from the slave (the
+    force, the hand still, shown in full all along), and the master's figures carry the
+    rotational port's energies; the slave's `rot_e_in` pays for the moment."""
     held = DisplayWrench(np.array([2.0, 0.0, 0.0]), np.array([0.0, 0.3, 0.0]), False, True)
     hidden = MasterTdpa(net.node("a"), "m1", lambda: 7).hook(held, hand(0.0), 0.001)
     assert hidden.c.tolist() == [0.0, 0.0, 0.0] and not hidden.torque_saturated
@@ -117,27 +118,35 @@ def test_the_master_shows_a_moment_only_through_the_wrench_port(net: Net) -> Non
     robot = net.node("robot")
     seen: list[PassivityState] = []
     robot.subscribe(keys.PASSIVITY_MASTER, seen.append)
+    slave_pub = robot.publisher(keys.PASSIVITY_SLAVE)
     tdpa = MasterTdpa(net.node("b"), "m2", lambda: 7, show_moments=True)
-    shown = tdpa.hook(held, hand(0.0), 0.001)
+
+    def turned(angle: float) -> DisplayWrench:
+        return tdpa.hook(held, HandReading(np.zeros(3), rot_y(angle), False), 0.001)
+
+    shown = turned(0.0)
     assert shown.c.tolist() == pytest.approx([0.0, 0.3, 0.0]) and shown.torque_saturated
-    assert shown.f[0] == pytest.approx(2.0)
-    turning = [
-        tdpa.hook(
-            held,
-            HandReading(hand_p=np.zeros(3), hand_R=rot_y(0.001 * k), clutch=False),
-            0.001,
-        ).c[1]
-        for k in range(1, 40)
-    ]
-    assert turning[-1] == pytest.approx(0.0, abs=1e-6)
-    assert tdpa.pc.observer.e_out > 0.0
+    turning = [turned(0.001 * k) for k in range(1, 40)]
+    assert turning[-1].c[1] == pytest.approx(0.0, abs=1e-6)
+    assert all(w.f[0] == pytest.approx(2.0) for w in turning)
+    assert tdpa.rot is not None and tdpa.rot.observer.e_out > 0.0
+    assert tdpa.pc.observer.e_out == 0.0  # the force's port: the hand did not move
 
     def published() -> bool:
-        tdpa.hook(held, HandReading(np.zeros(3), rot_y(0.039), False), 0.001)
-        return len(seen) > 0
+        turned(0.039)
+        return len(seen) > 0 and seen[-1].master == "m2"
 
     assert wait_until(published)
-    assert seen[-1].moments is True and seen[-1].master == "m2"
+    assert seen[-1].rot_e_out == pytest.approx(tdpa.rot.observer.e_out)
+    assert seen[-1].rot_e_in == 0.0
+    paid = dataclasses.replace(state("slave", 7, 0.0, master="m2"), rot_e_in=1.0)
+    slave_pub.put(paid)
+
+    def moment_back() -> bool:
+        return bool(turned(0.039).c[1] == pytest.approx(0.3))
+
+    assert wait_until(moment_back)
+    assert tdpa.pc.remote.e_in == 0.0  # the force's reservoir got nothing
 
 
 def test_the_master_reports_the_force_asked_and_shown_at_the_tool_and_the_slave_takes_its_own(
@@ -400,54 +409,72 @@ def turn_command(engage: int, angle_rad: float, seq: int = 1) -> OperatorCommand
 
 def test_decision_holds_back_a_turn_into_a_contact_moment_until_paid_for(net: Net) -> None:
     """The tool held still against a contact that resists turning about z with 2 N·m (a
-    carried block's edge on the table). The operator's master counts moments and has put
-    no energy in: a command to turn 0.01 rad into the moment (20 mJ) is held at the tool's
-    orientation, with the offset in rotation (0.01 rad as 1 mm at 0.1 m a radian). Paid
-    10 mJ, a turn of 0.005 rad is allowed: 2 N·m × 0.005 rad."""
+    carried block's edge on the table). The operator's master runs a rotational port and
+    has put no energy into it: a command to turn 0.01 rad into the moment (20 mJ) is held at
+    the tool's orientation, with the offset in rotation (0.01 rad as 1 mm at 0.1 m a
+    radian). Paid 10 mJ on the rotational port, a turn of 0.005 rad is allowed: 2 N·m ×
+    0.005 rad. The force's port is untouched throughout."""
     a, b = net.node("decision"), net.node("master")
     tdpa = SlaveTdpa(a, drift_m_s=0.0)
+    seen: list[PassivityState] = []
+    b.subscribe(keys.PASSIVITY_SLAVE, seen.append)
     master_pub = b.publisher(keys.PASSIVITY_MASTER)
     op = ("m1", 4)
     t0 = 1_000_000_000
     resist = ForceSample(seq=1, t_ns=t0, f=(0.0, 0.0, 0.0), c=(0.0, 0.0, -2.0))
     tick = {"k": 0}
+    arm = {"R": IDENTITY_R}
 
     def go(angle_rad: float) -> OperatorCommand:
+        """One tick, then an ideal arm: the tool turned to R0·dR at once (R0 = I)."""
         tick["k"] += 1
         k = tick["k"]
         t = t0 + k * 2_000_000
-        st = robot_state(seq=k, t_ns=t)
-        return tdpa.apply(
-            turn_command(9, angle_rad, seq=k), op, st, dataclasses.replace(resist, seq=k, t_ns=t), t
-        )
+        st = robot_state(tool_R=arm["R"], seq=k, t_ns=t)
+        f = dataclasses.replace(resist, seq=k, t_ns=t)  # about z: the same in either frame
+        out = tdpa.apply(turn_command(9, angle_rad, seq=k), op, st, f, t)
+        arm["R"] = out.dR
+        return out
 
-    announce = dataclasses.replace(state("master", 4, 0.0), moments=True)
+    def rot_state(e_in: float) -> PassivityState:
+        return dataclasses.replace(state("master", 4, 0.0), rot_e_in=e_in)
+
+    announce = rot_state(0.0)
 
     def counting_moments() -> bool:
         master_pub.put(announce)
         go(0.0)
-        return tdpa.moments
+        return tdpa.rot is not None
 
     assert wait_until(counting_moments)
     out = go(0.01)
     assert angle_between(np.asarray(out.dR).reshape(3, 3), np.eye(3)) == pytest.approx(
         0.0, abs=1e-9
     )
-    assert tdpa.pc.offset[5] == pytest.approx(-0.01 * 0.1)
-    master_pub.put(dataclasses.replace(state("master", 4, 0.01), moments=True))
+    assert tdpa.rot is not None and tdpa.rot.offset[2] == pytest.approx(-0.01 * 0.1)
+    master_pub.put(rot_state(0.01))
 
     def paid() -> bool:
-        go(0.0)
-        return tdpa.pc.remote.e_in == 0.01
+        go(0.01)  # the same turn again (no motion, no energy) until the payment arrives
+        return tdpa.rot is not None and tdpa.rot.remote.e_in == 0.01
 
     assert wait_until(paid)
     # The master turns on to 0.015 rad: the tool, 0.01 behind it, turns 0.005 and no more.
     for angle, allowed in ((0.015, 0.005), (0.02, 0.005)):
         out = go(angle)
         assert np.asarray(out.dR).reshape(3, 3) == pytest.approx(rot_z(allowed), abs=1e-9)
-    # A master that does not count moments: the turn passes unchanged, as before.
+    assert out.dp == (0.0, 0.0, 0.0)
+    assert tdpa.pc.telemetry.active_steps == 0 and tdpa.pc.observer.e_out == 0.0
+
+    def reported() -> bool:
+        go(0.02)
+        return len(seen) > 0 and seen[-1].rot_e_out is not None
+
+    assert wait_until(reported)
+    assert seen[-1].rot_e_out == pytest.approx(0.01, rel=1e-6)  # 2 N·m × 0.005 rad
+    # A master without a rotational port: the turn passes unchanged, as before.
     plain = SlaveTdpa(net.node("decision2"), drift_m_s=0.0)
     cmd = turn_command(9, 0.01)
     st = robot_state(seq=1, t_ns=t0)
     assert plain.apply(cmd, op, st, resist, t0).dR == cmd.dR
-    assert not plain.moments
+    assert plain.rot is None

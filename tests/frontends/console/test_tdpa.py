@@ -308,12 +308,13 @@ def test_no_nan_reaches_the_plot_rows() -> None:
     assert all(math.isfinite(x) for x in plot_row(v))
 
 
-def test_a_port_of_the_whole_wrench_says_so() -> None:
-    both = replace(fig("master", steps=1), moments=True)
+def test_a_port_with_a_rotational_port_shows_its_energies() -> None:
+    both = replace(fig("master", steps=1), rot_e_in=0.0125, rot_e_out=0.0031)
     v = tdpa_view({"master": PortSeen.first(both, 0.0)}, 0.1)
     m = v.port("master")
-    assert m is not None and m.moments
+    assert m is not None and (m.rot_e_in_j, m.rot_e_out_j) == (0.0125, 0.0031)
     out = passivity_html(v)
-    assert 'data-moments="true"' in out and "force and moment" in out
+    assert "rotation in (J)" in out and ">+0.0125<" in out
+    assert "rotation out (J)" in out and ">+0.0031<" in out
     plain = passivity_html(tdpa_view({"master": PortSeen.first(fig("master"), 0.0)}, 0.1))
-    assert 'data-moments="false"' in plain and "force and moment" not in plain
+    assert "tr-tdpa-rot-in" not in plain  # no rotational port: no rows
