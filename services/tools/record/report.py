@@ -165,6 +165,11 @@ class Traces:
         default_factory=dict
     )
     """side → (times, (e_in, e_out, dissipated_j) in J), from robot/passivity/<side>."""
+    passivity_rot: dict[str, tuple[list[float], list[tuple[float, float]]]] = field(
+        default_factory=dict
+    )
+    """side → (times, (rot_e_in, rot_e_out) in J): the side's rotational port, when it runs
+    one (docs/passivity.md, "Rotations")."""
 
 
 @dataclass
@@ -314,6 +319,10 @@ def analyze(paths: Sequence[str | Path], select: Callable[[str], bool] | None = 
                 ts, es = traces.passivity.setdefault(msg.side, ([], []))
                 ts.append(t_s)
                 es.append((msg.e_in, msg.e_out, msg.dissipated_j))
+                if msg.rot_e_in is not None and msg.rot_e_out is not None:
+                    rts, res_ = traces.passivity_rot.setdefault(msg.side, ([], []))
+                    rts.append(t_s)
+                    res_.append((msg.rot_e_in, msg.rot_e_out))
             elif isinstance(msg, Event):
                 events.append(EventRow(t_s, msg.source, msg.kind, msg.message, msg.data))
             elif isinstance(msg, OperatorCommand) and m.key in COMMAND_KEYS and msg.active:
@@ -436,7 +445,8 @@ def path_plot(report: Report) -> plots.Image:
 
 def passivity_plot(report: Report) -> plots.Image:
     """The passivity figures of each port over time (docs/passivity.md): energy in, out and
-    dissipated (J, cumulative within an engagement, so each falls to 0 at a new one)."""
+    dissipated (J, cumulative within an engagement, so each falls to 0 at a new one), and
+    the rotational port's in and out where a side runs one."""
     panels = []
     for side in ("master", "slave"):
         if side not in report.traces.passivity:
@@ -448,6 +458,14 @@ def passivity_plot(report: Report) -> plots.Image:
             plots.Series.of(label, t, e[:, i])
             for i, label in enumerate(("in", "out", "dissipated"))
         ]
+        if side in report.traces.passivity_rot:
+            rts, res_ = report.traces.passivity_rot[side]
+            r = np.asarray(res_, dtype=float).reshape(-1, 2)
+            rt = np.asarray(rts, dtype=float)
+            series += [
+                plots.Series.of(label, rt, r[:, i])
+                for i, label in enumerate(("rotation in", "rotation out"))
+            ]
         title = f"robot/passivity/{side}: {side} port energies"
         panels.append(plots.panel(series, title, "time (s)", "energy (J)"))
     return plots.stack(panels)

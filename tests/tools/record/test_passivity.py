@@ -28,8 +28,10 @@ SCHEMA = "telerobot.PassivityState"
 
 
 def figures(side: str, k: int) -> PassivityState:
-    """The k-th message of a side: energies that grow with k, the slave acting from k = 30."""
+    """The k-th message of a side: energies that grow with k, the slave acting from k = 30;
+    the master runs a rotational port too."""
     acting = side == "slave" and k >= 30
+    rot = side == "master"
     return PassivityState(
         seq=k,
         t_ns=time.time_ns(),
@@ -42,6 +44,8 @@ def figures(side: str, k: int) -> PassivityState:
         dissipated_j=0.001 * (k - 29) if acting else 0.0,
         gain=2.5e-4 if acting else 0.0,
         active_steps=k - 29 if acting else 0,
+        rot_e_in=0.004 * k if rot else None,
+        rot_e_out=0.001 * k if rot else None,
     )
 
 
@@ -119,6 +123,9 @@ def test_passivity_figures_are_recorded_with_their_schema_reported_and_replayed(
     assert master_r.senders == 1 and slave_r.senders == 1
     assert [len(report.traces.passivity[s][0]) for s in ("master", "slave")] == [39, 40]
     assert report.traces.passivity["slave"][1][-1] == pytest.approx((0.2, 0.08, 0.011))
+    # The master's rotational port, in its own trace; the slave runs none.
+    assert set(report.traces.passivity_rot) == {"master"}
+    assert report.traces.passivity_rot["master"][1][-1] == pytest.approx((0.16, 0.04))
     written = write_plots(report, tmp_path / "plots")
     assert [p.name for p in written] == ["force.png", "path.png", "passivity.png"]
     import cv2
