@@ -98,3 +98,50 @@ def test_master_damps_the_display_until_the_slave_pays(net: Net) -> None:
         stop.set()
         worker.join(timeout=2.0)
         station.close()
+
+
+def test_a_master_showing_moments_runs_a_rotational_port_from_its_config(net: Net) -> None:
+    """`passivity_moments` with `passivity_device_inertia_kg_m2`: the master service runs a
+    rotational port with that inertia beside the force's, shows the wrist's moment through
+    it (the hand does not turn: no work, shown in full) and sends its energies as
+    `rot_e_in` / `rot_e_out`."""
+    cfg = MasterConfig(
+        master_id="p2",
+        device="haptic_sim",
+        passivity=True,
+        passivity_moments=True,
+        passivity_device_inertia_kg_m2=0.004,
+        rate_hz=200.0,
+        force_ramp_s=0.0,
+    )
+    station = MasterService(net.node("master", instance="p2"), cfg)
+    robot = net.node("robot")
+    seen: list[PassivityState] = []
+    robot.subscribe(keys.PASSIVITY_MASTER, seen.append)
+    force_pub = robot.publisher(keys.FORCE)
+    state_pub = robot.publisher(keys.STATE)
+    stop = threading.Event()
+
+    def robot_side() -> None:
+        k = 0
+        while not stop.is_set():
+            k += 1
+            now = time.time_ns()
+            state_pub.put(moving_state(k, now))
+            force_pub.put(ForceSample(seq=k, t_ns=now, f=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.3)))
+            stop.wait(0.005)
+
+    worker = threading.Thread(target=robot_side, daemon=True)
+    worker.start()
+    try:
+        assert wait_until(lambda: station.passivity is not None and station.ticks > 50)
+        tdpa = station.passivity
+        assert tdpa is not None and tdpa.rot is not None
+        assert tdpa.rot.mass_kg == 0.004  # [master] passivity_device_inertia_kg_m2
+        assert wait_until(lambda: float(station.displayed.c[2]) == pytest.approx(0.3))
+        assert wait_until(lambda: bool(seen) and seen[-1].rot_e_in is not None)
+        assert seen[-1].master == "p2" and seen[-1].rot_e_out == 0.0
+    finally:
+        stop.set()
+        worker.join(timeout=2.0)
+        station.close()
