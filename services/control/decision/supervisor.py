@@ -55,6 +55,7 @@ from services.control.decision.taskrun import TaskRun, Tasks, run_tick
 from services.control.decision.tasks import TaskPlan
 from services.control.decision.watch import WATCH_PERIOD_NS, Watch, WatchStop, watch_step
 from services.control.decision.watchdogs import follow_deadline_ns, follow_problem, fresh
+from services.control.passivity.rotation import ROTATION_LENGTH_M
 from services.control.passivity.slave import DEADBAND_N
 
 
@@ -701,7 +702,12 @@ class Supervisor:
 
 
 def _touching(force: ForceSample | None) -> bool:
-    """A wrist force at or above the passivity dead band: the tool is in contact."""
+    """A wrist force at or above the passivity dead band, or a moment at or above the
+    rotational port's (the same band at ROTATION_LENGTH_M: 0.1 N·m): the tool is in
+    contact."""
     if force is None:
         return False
-    return sum(x * x for x in force.f) >= DEADBAND_N * DEADBAND_N
+    if sum(x * x for x in force.f) >= DEADBAND_N * DEADBAND_N:
+        return True
+    band_nm = DEADBAND_N * ROTATION_LENGTH_M
+    return sum(x * x for x in force.c) >= band_nm * band_nm

@@ -92,7 +92,8 @@ def test_next_wake_is_a_watchdog_deadline_a_hold_resend_or_nothing() -> None:
 def test_with_passivity_on_a_contact_re_sends_the_target_every_period() -> None:
     """The slave's passivity port corrects the target only when a command goes out: with it
     on, teleoperation ticks every period, and while the wrist feels a contact (|f| at or
-    above the port's dead band) each tick re-sends the target; in free space nothing."""
+    above the port's dead band, or a moment at or above the rotational port's, 0.1 N·m)
+    each tick re-sends the target; in free space nothing."""
     period_ns = int(CFG.period_s * 1e9)
     for passivity in (False, True):
         rig = Rig(DecisionConfig(passivity=passivity), scene=EMPTY)
@@ -107,6 +108,14 @@ def test_with_passivity_on_a_contact_re_sends_the_target_every_period() -> None:
         rig.push_w = np.array([0.0, 0.0, 0.9 * DEADBAND_N])  # below the dead band: noise
         rig.run(10)
         assert len(rig.outputs) == n
+        rig.push_c = np.array([0.0, 0.09, 0.0])  # a moment below the rotational band
+        rig.run(10)
+        assert len(rig.outputs) == n
+        rig.push_c = np.array([0.0, 0.3, 0.0])  # a contact by its moment alone
+        rig.run(5)
+        assert len(rig.outputs) == n + (5 if passivity else 0)
+        rig.push_c = np.zeros(3)
+        n = len(rig.outputs)
         rig.push_w = np.array([0.0, 0.0, 5.0])  # a contact
         rig.run(10)
         sent = rig.outputs[n:]
