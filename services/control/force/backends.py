@@ -51,6 +51,7 @@ def sensor_options(config: ForceConfig) -> dict[str, Any]:
         "bottle_mass_kg": config.bottle_mass_kg,
         "inertia": config.inertia,
         "carried_contact": config.carried_contact,
+        "torsion_nm_rad": config.torsion_nm_rad,
     }
 
 

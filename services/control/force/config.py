@@ -50,7 +50,8 @@ class ForceConfig:
     got a real-time policy. Sim only: `block_density_kg_m3` and `bottle_mass_kg` (empty;
     its liquid adds 1 g/ml) give a carried object's mass; `inertia` adds its inertial
     force from the tool's acceleration; `carried_contact` lets what it touches push on the
-    wrist through it.
+    wrist through it; `torsion_nm_rad` > 0 makes a contact resist a turn about its normal
+    (N·m/rad; 0, the default: a contact has no moment).
     """
 
     sensor: SensorKind = "sim"
@@ -84,6 +85,7 @@ class ForceConfig:
     bottle_mass_kg: float = 0.1
     inertia: bool = True
     carried_contact: bool = True
+    torsion_nm_rad: float = 0.0
     stale_after_periods: int = 5
     bias_samples: int = 16
     event_interval_s: float = 1.0
@@ -119,6 +121,7 @@ class ForceConfig:
             _bad("handoff", f"one of {list(HANDOFFS)}, got {self.handoff!r}")
         _num_in("block_density_kg_m3", self.block_density_kg_m3, 0.0, 25_000.0)
         _num_in("bottle_mass_kg", self.bottle_mass_kg, 0.0, 100.0)
+        _num_in("torsion_nm_rad", self.torsion_nm_rad, 0.0, 10_000.0)
         if not isinstance(self.inertia, bool):
             _bad("inertia", f"true or false, got {self.inertia!r}")
         if not isinstance(self.carried_contact, bool):

@@ -47,6 +47,7 @@ from services.control.force.world import (
     carried_mass_kg,
     surface_points,
 )
+from services.geometry import log9, mul9
 from services.world.workcell.messages import ObjectView
 from services.world.workcell.scene import Scene, default_scene
 
@@ -111,6 +112,13 @@ class SimSensor:
     `block_density_kg_m3` × a box's volume, or `bottle_mass_kg` plus the liquid left. With
     `carried_contact`, what it touches (a table, a block under it) pushes on the wrist
     through it, at its corners and base centre.
+
+    `torsion_nm_rad` > 0: the tool's contact resists a turn about its normal, as a tool
+    seated in a socket or a tip that does not slip: while the probe touches, the turn
+    about the contact normal since the touch began meets a moment −k·angle about that
+    normal (at the tool point); out of contact it is forgotten. 0 (default): a contact has
+    no moment, as above. What a rotational passivity port is measured against
+    (docs/passivity.md, "Rotations").
     """
 
     #: its data is computed, not streamed by a device: sampled slower while unused
@@ -130,12 +138,17 @@ class SimSensor:
         bottle_mass_kg: float = 0.1,
         inertia: bool = True,
         carried_contact: bool = True,
+        torsion_nm_rad: float = 0.0,
         on_event: EventSink = ignore_event,
     ) -> None:
         if not (noise_n >= 0.0 and noise_nm >= 0.0 and probe_radius_m >= 0.0):
             raise ValueError("noise_n, noise_nm and probe_radius_m must be ≥ 0")
         if not (block_density_kg_m3 >= 0.0 and bottle_mass_kg >= 0.0):
             raise ValueError("block_density_kg_m3 and bottle_mass_kg must be ≥ 0")
+        if not 0.0 <= torsion_nm_rad < math.inf:
+            raise ValueError("torsion_nm_rad must be ≥ 0 and finite")
+        self._torsion = torsion_nm_rad
+        self._seated: M3 | None = None  # the tool's orientation when the touch began
         self.on_event = on_event
         self._model = model or WristModel()
         self._kernel = WristKernel(self._model)
@@ -304,6 +317,9 @@ class SimSensor:
         (px, py, pz), (qx, qy, qz) = self._push
         f = (ft[0] + wf[0] + px, ft[1] + wf[1] + py, ft[2] + wf[2] + pz)
         c = (wc[0] + qx, wc[1] + qy, wc[2] + qz)
+        if self._torsion > 0.0:
+            tc = self._twist(fw, transpose(Rt))
+            c = (c[0] + tc[0], c[1] + tc[1], c[2] + tc[2])
         held = self._carried
         if held is None or not held.points_t:
             return f, c
@@ -334,6 +350,22 @@ class SimSensor:
             (f[0] + ct[0], f[1] + ct[1], f[2] + ct[2]),
             (c[0] + mt[0], c[1] + mt[1], c[2] + mt[2]),
         )
+
+    def _twist(self, fw: F3, R: M3) -> F3:
+        """The contact's moment against a turn about its normal (tool frame, N·m), or zero
+        out of contact; remembers the orientation at the touch (`torsion_nm_rad`)."""
+        norm = math.sqrt(fw[0] * fw[0] + fw[1] * fw[1] + fw[2] * fw[2])
+        if norm == 0.0:
+            self._seated = None
+            return ZERO3
+        if self._seated is None:
+            self._seated = R
+            return ZERO3
+        n = (fw[0] / norm, fw[1] / norm, fw[2] / norm)
+        # The turn since the touch, a spatial rotation vector: log(R·R_seatedᵀ).
+        w = log9(mul9(R, transpose(self._seated)))
+        k = -self._torsion * (w[0] * n[0] + w[1] * n[1] + w[2] * n[2])
+        return mul(transpose(R), k * n[0], k * n[1], k * n[2])
 
     def read(self) -> Reading | None:
         if not self._open:

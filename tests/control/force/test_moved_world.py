@@ -291,3 +291,40 @@ def test_a_forged_workcell_state_on_the_bus_is_reported_not_sensed(net: Net) -> 
         assert sensor.world.force(b2[0], b2[1], TOP + BLOCK_SIZE_M + R_PROBE - 0.002)[2] > 30.0
     finally:
         force.close()
+
+
+def test_a_contact_with_torsion_resists_a_turn_about_its_normal() -> None:
+    """`torsion_nm_rad` = 30: the tool pressed 1 mm into the table top and turned 0.02 rad
+    about the world's z (the contact normal) since the touch meets −0.6 N·m about z; a turn
+    about x (not the normal) meets nothing; lifted off and pressed again, the new touch
+    is the new zero. Without torsion (the default) a contact has no moment."""
+    from services.geometry import rot_x, rot_z
+
+    p = (0.5, -0.3, TOP + R_PROBE - 0.001)
+    for k_t in (30.0, 0.0):
+        sensor = SimSensor(noise_n=0.0, noise_nm=0.0, torsion_nm_rad=k_t)
+        sensor.open()
+        sensor.update_pose_checked(p, tuple(DOWN.reshape(9)))
+        w0 = sensor.wrench_t()  # the touch: its orientation is the zero
+        assert w0 is not None and np.allclose(w0[1], 0.0)
+        turned = rot_z(0.02) @ DOWN
+        sensor.update_pose_checked(p, tuple(turned.reshape(9)))
+        w = sensor.wrench_t()
+        assert w is not None
+        c_world = turned @ w[1]
+        np.testing.assert_allclose(c_world, (0.0, 0.0, -0.02 * k_t), atol=1e-9)
+        tilted = rot_x(0.02) @ DOWN
+        sensor.update_pose_checked(p, tuple(tilted.reshape(9)))
+        w = sensor.wrench_t()
+        assert w is not None and np.allclose(tilted @ w[1], 0.0, atol=1e-9)
+    sensor = SimSensor(noise_n=0.0, noise_nm=0.0, torsion_nm_rad=30.0)
+    sensor.open()
+    sensor.update_pose_checked(p, tuple(DOWN.reshape(9)))
+    sensor.wrench_t()
+    sensor.update_pose_checked((p[0], p[1], p[2] + 0.01), tuple((rot_z(0.1) @ DOWN).reshape(9)))
+    assert sensor.wrench_t() is not None  # lifted off: the touch is forgotten
+    sensor.update_pose_checked(p, tuple((rot_z(0.1) @ DOWN).reshape(9)))
+    w = sensor.wrench_t()
+    assert w is not None and np.allclose(w[1], 0.0)
+    with pytest.raises(ValueError, match="torsion_nm_rad"):
+        SimSensor(torsion_nm_rad=-1.0)
