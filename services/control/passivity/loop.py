@@ -114,7 +114,7 @@ class Twist:
     operator_stiffness_nm_rad: float = 2.0
     operator_damping_nms_rad: float = 0.04
     goal_nm: float = 0.5
-    push_gain_rad_nms: float = 0.2
+    push_gain_rad_nms: float = 1.0
     max_push_rad: float = 0.5
 
     def moment(self, phi: float, omega: float) -> float:

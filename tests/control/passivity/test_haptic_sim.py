@@ -44,3 +44,29 @@ def test_config_opens_it_engaged() -> None:
     assert not dev.read(0.01).clutch
     with pytest.raises(ValueError, match="depth_m"):
         SimHapticMaster(depth_m=0.0)
+
+
+def test_with_a_twist_the_hand_turns_the_handle_to_the_moment_meant() -> None:
+    """`twist_rad` 0.35: the handle turns about the master's z with the press; against a
+    torsional stop at 0.2 rad (30 N·m/rad) the hand turns on until it feels 0.5 N·m. The
+    hand's orientation is that turn. Without a twist the handle never turns, whatever
+    moment is shown."""
+    from services.geometry import rot_z
+
+    dev = SimHapticMaster(depth_m=0.05, approach_s=1.0, hold_s=4.0, twist_rad=0.35)
+    stop, k = 0.2, 30.0
+    moments = []
+    for _ in range(4500):
+        hand = dev.read(0.001)
+        phi = float(np.arctan2(hand.hand_R[1, 0], hand.hand_R[0, 0]))
+        assert hand.hand_R == pytest.approx(rot_z(phi))
+        c = -k * max(phi - stop, 0.0)
+        dev.display_force([0.0, 0.0, 0.0], [0.0, 0.0, c])
+        moments.append(-c)
+    settled = np.asarray(moments[3500:])
+    assert settled.mean() == pytest.approx(0.5, rel=0.1)
+    assert settled.std() < 0.05
+    still = SimHapticMaster(depth_m=0.05)
+    for _ in range(200):
+        still.display_force([0.0, 0.0, 0.0], [0.0, 0.0, 1.0])
+        assert np.array_equal(still.read(0.005).hand_R, np.eye(3))
