@@ -57,13 +57,22 @@ def operator_wrench(
     force_scale: float,
     max_force_n: float,
     max_torque_nm: float,
+    hand_R: ArrayLike | None = None,
 ) -> DisplayWrench:
     """The wrench to display on the operator's hand.
 
     world mode: f_m = s · Aᵀ · tool_R · f_tool (tool → world → master frame);
     tool mode:  f_m = s · Aᵀ · f_tool (the operator's axes are mapped onto the tool's);
-    the same for c; then |f_m| ≤ max_force_n and |c_m| ≤ max_torque_nm, direction kept.
-    Raises ValueError on non-finite input or a tool_R that is not a rotation.
+    either mode: c_m = s · M · c_tool, M = `hand_R` (the hand's orientation in the master
+    frame; None: the identity). The moment goes where the rotation commands come from:
+    eq. (5) turns the tool by the hand's own rotation, the hand's axes onto the tool's
+    (R = R0·M0ᵀ·M at scale_r = 1, no alignment, in either mode), so the moment about the
+    tool's axes is shown about the hand's as they stand, and the power it has against the
+    hand's turn is the tool moment's against the tool's turn. Shown about the world's axes
+    instead (as until 2026-11-27 in world mode), a tool pointing down turned the moment
+    about z over: it pushed the hand along its turn, not against it (docs/master.md).
+    Then |f_m| ≤ max_force_n and |c_m| ≤ max_torque_nm, direction kept.
+    Raises ValueError on non-finite input or a tool_R or hand_R that is not a rotation.
     """
     f = np.asarray(f_tool, dtype=float).reshape(3)
     c = np.asarray(c_tool, dtype=float).reshape(3)
@@ -79,8 +88,13 @@ def operator_wrench(
         to_master = A.T
     else:
         raise ValueError("frame must be 'world' or 'tool'")
+    if hand_R is not None:
+        M = np.asarray(hand_R, dtype=float).reshape(3, 3)
+        if not is_rotation(M):
+            raise ValueError("hand_R must be a rotation")
+        c = M @ c
     f_m, f_sat = saturate(force_scale * (to_master @ f), max_force_n)
-    c_m, c_sat = saturate(force_scale * (to_master @ c), max_torque_nm)
+    c_m, c_sat = saturate(force_scale * c, max_torque_nm)
     return DisplayWrench(f_m, c_m, f_sat, c_sat)
 
 
@@ -94,10 +108,16 @@ class ForceFeedback:
         self._max_torque_nm = config.max_torque_nm
 
     def compute(
-        self, f_tool: ArrayLike, c_tool: ArrayLike, tool_R: ArrayLike, frame: Frame
+        self,
+        f_tool: ArrayLike,
+        c_tool: ArrayLike,
+        tool_R: ArrayLike,
+        frame: Frame,
+        hand_R: ArrayLike | None = None,
     ) -> DisplayWrench:
         """The display wrench for a ForceSample (f, c) and RobotState.tool_R (9 or 3×3);
-        `frame` is the teleoperation frame in use (Teleop.frame)."""
+        `frame` is the teleoperation frame in use (Teleop.frame); `hand_R` the hand's
+        orientation now (the moment is shown about its axes)."""
         return operator_wrench(
             f_tool,
             c_tool,
@@ -107,6 +127,7 @@ class ForceFeedback:
             force_scale=self._force_scale,
             max_force_n=self._max_force_n,
             max_torque_nm=self._max_torque_nm,
+            hand_R=hand_R,
         )
 
     @staticmethod
@@ -176,7 +197,7 @@ class ForceDisplay:
             if self._fresh_since_s is None:
                 self._fresh_since_s = now_s
             try:
-                mapped = self.feedback.compute(*measured, frame)
+                mapped = self.feedback.compute(*measured, frame, hand.hand_R)
             except ValueError:
                 self.faults += 1
                 return ForceFeedback.zero()

@@ -10,7 +10,8 @@ is integrated in steps of at most `STEP_S` within each read.
 
 With `twist_rad` ≠ 0 the handle also turns about the master's z: a rotational inertia and
 damping, the hand a torsional spring–damper turning it towards `twist_rad` on the same
-timing as the press, and on, while holding, until the moment felt about z reaches
+timing as the press (or, with `twist_after_s`, over `twist_s` from that time on: turning
+what the press has seated), and on, while holding, until the moment felt about z reaches
 `goal_moment_nm`; the displayed moment acts on it. Without (the default) the handle never
 turns and a displayed moment is ignored, as before.
 """
@@ -52,6 +53,8 @@ class SimHapticMaster:
         hand_torsion_nm_rad: float = 2.0,
         hand_torsion_damping_nms_rad: float = 0.04,
         twist_gain_rad_nms: float = 1.0,
+        twist_after_s: float | None = None,
+        twist_s: float = 1.0,
     ) -> None:
         for key, value in (
             ("depth_m", depth_m),
@@ -87,17 +90,25 @@ class SimHapticMaster:
         self._f_display = [0.0, 0.0, 0.0]
         self._c_display = 0.0  # about the master's z
         self.turning = twist_rad != 0.0
+        turn_from = 0.0 if twist_after_s is None else twist_after_s
+        turn_s = approach_s if twist_after_s is None else twist_s
+        turn = press_hold_release(
+            [0.0],
+            [twist_rad],
+            approach_s=turn_s,
+            hold_s=max(approach_s + hold_s - turn_from - turn_s, 0.0),
+            release_s=release_s,
+        )
+        hold_turn = (turn_from + turn_s, approach_s + hold_s)
         self.wrist = Operator(
-            press_hold_release(
-                [0.0], [twist_rad], approach_s=approach_s, hold_s=hold_s, release_s=release_s
-            ),
+            lambda t: turn(t - turn_from) if t >= turn_from else [0.0],
             hand_torsion_nm_rad,
             hand_torsion_damping_nms_rad,
             press=(1.0 if twist_rad >= 0.0 else -1.0,),
             goal_force_n=goal_moment_nm,
             gain_m_ns=twist_gain_rad_nms,
             max_push_m=0.5,
-            pressing=lambda t: hold[0] <= t < hold[1],
+            pressing=lambda t: hold_turn[0] <= t < hold_turn[1],
         )
         self.handle = Device(inertia_kg_m2, rot_damping_nms_rad, [0.0], [0.0])
 

@@ -354,7 +354,8 @@ def main(argv: list[str] | None = None) -> int:
         "--twist",
         action="store_true",
         help="the press with a turn against a torsional stop: a rotational port at each end "
-        "(3-DoF, the services' ports; the moment's measures too); simulation only",
+        "(the moment's measures too; in the simulation 3-DoF and the services' ports; with "
+        "--link the contact resists a turn about its normal and the master shows moments)",
     )
     p.add_argument(
         "--link",
@@ -436,8 +437,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--slave-speed is the simulation's (not --link) and within 0 … 10 m/s")
     if args.slave_port and (args.link or args.slave_speed == 0.0):
         p.error("--slave-port is the simulation's (not --link) and needs --slave-speed > 0")
-    if args.twist and (args.link or args.slave_speed == 0.0):
-        p.error("--twist is the simulation's (not --link) and needs --slave-speed > 0")
+    if args.twist and args.slave_speed == 0.0:
+        p.error("--twist needs --slave-speed > 0")
     if args.seeds and (args.link or not 1 <= args.seeds <= 100):
         p.error("--seeds is the simulation's (not --link) and within 1 … 100")
     summary: dict[str, Any] | None = None
@@ -464,6 +465,7 @@ def main(argv: list[str] | None = None) -> int:
             ),
             hold_s=passivity_link.HOLD_S if args.hold_s is None else args.hold_s,
             yield_m_s_n=args.yield_m_s_n,
+            twist=args.twist,
         )
         path = Path(args.json or "artifacts/bench_passivity_link.json")
         drawn = passivity_link.plots(runs, Path(args.plots)) if args.plots else []

@@ -85,6 +85,14 @@ MASTER_RATE_HZ = 500.0
 At 100 Hz the force limiter lets the display rise only while the hand sinks at
 Ḟ·h²/(rise·m), 25 times faster than at 500 Hz, and the contact creeps on (docs/passivity.md)."""
 QUIET_S = 0.5
+TWIST_RAD = 0.15
+"""`--twist`: how far the operator turns the handle about the master's z once the press has
+seated the tool (rad, over TWIST_S from TWIST_AFTER_S; `SimHapticMaster.twist_rad`), and on
+until it feels 0.5 N·m."""
+TWIST_AFTER_S, TWIST_S = APPROACH_S + 1.0, 1.5
+TORSION_NM_RAD = 30.0
+"""`--twist`: the contact's resistance to a turn about its normal (`[force]
+torsion_nm_rad`), the simulated bench's stop (`loop.Twist`)."""
 """The robot side measures once the master's figures have not arrived for this long."""
 
 
@@ -118,6 +126,8 @@ class Trace:
     slave: list[PassivityState] = field(default_factory=list)
     master: list[PassivityState] = field(default_factory=list)
     felt: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, shown f_z up)
+    moments: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, world c_z)
+    felt_moments: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, shown c_z)
     puma_cmds: int = 0
     events: list[tuple[float, str]] = field(default_factory=list)  # (arrival, monotonic s; text)
     master_rx_s: float = 0.0
@@ -133,6 +143,7 @@ class Trace:
             fw = self._R @ np.asarray(f.f, dtype=float)
             self.forces.append((f.t_ns, float(fw[2])))
             self.force_norms.append(float(np.linalg.norm(fw)))
+            self.moments.append((f.t_ns, float((self._R @ np.asarray(f.c, dtype=float))[2])))
 
     def on_passivity(self, m: PassivityState) -> None:
         with self.lock:
@@ -144,6 +155,7 @@ class Trace:
         """The force the master displayed on the hand (master frame: its z is the press)."""
         with self.lock:
             self.felt.append((m.t_ns, float(m.f[2])))
+            self.felt_moments.append((m.t_ns, float(m.c[2])))
 
     def master_quiet_s(self) -> float:
         """Seconds since the master's last passivity figures arrived (inf: none yet)."""
@@ -193,16 +205,20 @@ def build_robot(
     node: Callable[..., Node],
     passivity: bool = True,
     start_gap_m: float = START_GAP_M,
+    torsion_nm_rad: float = 0.0,
     **decision: float,
 ) -> tuple[DecisionService, Trace, list[Callable[[], None]]]:
-    """puma (SimArm), force (sim wrist, 500 Hz), decision (`passivity` and `decision`
-    settings) and a recording console, each on a node from `node(name)`; the arm moved
-    through the decision server to `start_gap_m` above the table. Returns the decision, the
-    trace and the closers (in start order)."""
+    """puma (SimArm), force (sim wrist, 500 Hz; a contact resisting a turn about its normal
+    with `torsion_nm_rad`), decision (`passivity` and `decision` settings) and a recording
+    console, each on a node from `node(name)`; the arm moved through the decision server to
+    `start_gap_m` above the table. Returns the decision, the trace and the closers (in
+    start order)."""
     puma = PumaService(
         node("puma"), PumaConfig(sim_calibration_s=0.05), arm=SimArm(HOME_Q_RAD, calibration_s=0.05)
     )
-    force = ForceService(node("force"), ForceConfig(seed=7, period_ms=2.0))
+    force = ForceService(
+        node("force"), ForceConfig(seed=7, period_ms=2.0, torsion_nm_rad=torsion_nm_rad)
+    )
     dec = DecisionService(node("decision"), DecisionConfig(passivity=passivity, **decision))  # type: ignore[arg-type]
     closers: list[Callable[[], None]] = [puma.close, force.close, dec.close]
     console = node("console")
@@ -270,12 +286,40 @@ def metrics(
             1e3 * max(touch[1] - min(z_all, default=touch[1]), 0.0) if touch else math.nan
         ),
     }
+    with trace.lock:
+        moments = [((t - t0) / 1e9, c) for t, c in trace.moments if lo_ns <= t < hi_ns]
+        felt_c = [c for t, c in trace.felt_moments if lo_ns <= t < hi_ns]
+        peak_c = max((abs(c) for _, c in trace.moments), default=0.0)
+    # Against the turn: each with the sign it holds over the window (its median's; the
+    # moment at the tool about the world's z, the one shown about the hand's).
+    sign, felt_sign = _median_sign([c for _, c in moments]), _median_sign(felt_c)
+    cw = [sign * c for _, c in moments]
+    c_steady = sum(cw) / len(cw) if cw else 0.0
+    out |= {
+        "moment_peak_nm": peak_c,
+        "moment_steady_nm": c_steady,
+        "moment_felt_nm": felt_sign * sum(felt_c) / len(felt_c) if felt_c else 0.0,
+        "moment_rms_nm": (math.sqrt(sum((c - c_steady) ** 2 for c in cw) / len(cw)) if cw else 0.0),
+        "moment_swing_nm": swing_rms(cw),
+        "moment_held": held(cw, c_steady),
+        "moment_creep_nm_s": trend_n_s([(t, sign * c) for t, c in moments]),
+    }
     for name, m in (("slave", slave), ("master", master)):
         out[f"{name}_in_j"] = m.e_in if m else math.nan
         out[f"{name}_out_j"] = m.e_out if m else math.nan
         out[f"{name}_dissipated_j"] = m.dissipated_j if m else math.nan
         out[f"{name}_active"] = float(m.active_steps) if m else math.nan
+        rot_in = m.rot_e_in if m is not None else None
+        rot_out = m.rot_e_out if m is not None else None
+        out[f"{name}_rot_in_j"] = rot_in if rot_in is not None else math.nan
+        out[f"{name}_rot_out_j"] = rot_out if rot_out is not None else math.nan
     return out
+
+
+def _median_sign(xs: list[float]) -> float:
+    """−1 if the median of `xs` is negative, else 1."""
+    ordered = sorted(xs)
+    return -1.0 if ordered and ordered[len(ordered) // 2] < 0.0 else 1.0
 
 
 class RouterSide(Clients):
@@ -304,6 +348,7 @@ def robot(
     zone_m: float,
     hold_s: float,
     yield_m_s_n: float = 0.0,
+    torsion_nm_rad: float = 0.0,
 ) -> None:
     peers: Peers | RouterSide = (
         RouterSide(endpoint)
@@ -317,6 +362,7 @@ def robot(
             passivity=passivity,
             watchdog_ms=watchdog,
             state_stale_ms=watchdog,
+            torsion_nm_rad=torsion_nm_rad,
             approach_zone_m=zone_m,
             passivity_yield_m_s_n=yield_m_s_n,
         )
@@ -339,6 +385,8 @@ def robot(
             m["slave_excluded_j"] = tdpa.pc.excluded_j
             m["slave_forgiven_j"] = tdpa.pc.forgiven_j
             m["slave_yielded_mm"] = tdpa.pc.yielded_m * 1e3
+            if tdpa.rot is not None:
+                m["slave_rot_recovered_j"] = tdpa.rot.recovered_j
         events, after = trace.events_split()
         with trace.lock:
             m["puma_cmds"] = float(trace.puma_cmds)
@@ -357,7 +405,12 @@ def robot(
 
 
 def operator(
-    endpoint: str, passivity: bool, rate_hz: float, stale_ms: float, hold_s: float
+    endpoint: str,
+    passivity: bool,
+    rate_hz: float,
+    stale_ms: float,
+    hold_s: float,
+    twist_rad: float = 0.0,
 ) -> None:
     udp = endpoint.startswith("udp/")  # a client of the robot host's router, see RouterSide
     cfg = NodeConfig(mode="client" if udp else "peer", connect=(endpoint,), lease_ms=LEASE_MS)
@@ -371,9 +424,16 @@ def operator(
             passivity=passivity,
             rate_hz=rate_hz,
             force_stale_ms=stale_ms,
+            passivity_moments=twist_rad != 0.0,
         )
         device = SimHapticMaster(
-            depth_m=DEPTH_M, approach_s=APPROACH_S, hold_s=hold_s, release_s=RELEASE_S
+            depth_m=DEPTH_M,
+            approach_s=APPROACH_S,
+            hold_s=hold_s,
+            release_s=RELEASE_S,
+            twist_rad=twist_rad,
+            twist_after_s=TWIST_AFTER_S,
+            twist_s=TWIST_S,
         )
         t0 = time.time_ns()
         station = MasterService(node, mcfg, device=device)
@@ -389,6 +449,13 @@ def operator(
                     "master_out_j": tdpa.pc.observer.e_out,
                     "slave_in_seen_j": tdpa.pc.remote.e_in,
                 }
+                if tdpa.rot is not None:
+                    out |= {
+                        "master_rot_in_j": tdpa.rot.observer.e_in,
+                        "master_rot_out_j": tdpa.rot.observer.e_out,
+                        "slave_rot_in_seen_j": tdpa.rot.remote.e_in,
+                        "master_rot_limited": float(tdpa.rot.limited_steps),
+                    }
             print(json.dumps(out), flush=True)
         finally:
             station.close()
@@ -407,8 +474,10 @@ def run_over_link(
     rate_mbit: float = 0.0,
     hold_s: float = HOLD_S,
     yield_m_s_n: float = 0.0,
+    twist: bool = False,
 ) -> dict[str, Any]:
-    """One press–hold–release over a fresh link (`rate_mbit` > 0: its bandwidth each way,
+    """One press–hold–release over a fresh link (with `twist`, a turn against the
+    contact's torsion too: `TWIST_RAD`, `TORSION_NM_RAD`) (`rate_mbit` > 0: its bandwidth each way,
     a link the streams can saturate; the hold `hold_s` long; `yield_m_s_n`: the
     decision's `passivity_yield_m_s_n`): the robot side's metrics,
     the operator's own figures (keys `op_…`), the link's emulator, the last events and the
@@ -432,6 +501,7 @@ def run_over_link(
                 str(approach_zone_m),
                 str(hold_s),
                 str(yield_m_s_n),
+                str(TORSION_NM_RAD if twist else 0.0),
             ),
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
@@ -455,6 +525,7 @@ def run_over_link(
                         str(rate_hz),
                         wd,
                         str(hold_s),
+                        str(TWIST_RAD if twist else 0.0),
                     ),
                     capture_output=True,
                     text=True,
@@ -480,6 +551,7 @@ def run_over_link(
     m |= {"load1": os.getloadavg()[0], "emulator": emulator, "transport": transport}
     m["approach_zone_m"], m["rate_mbit"] = approach_zone_m, rate_mbit
     m["yield_m_s_n"] = yield_m_s_n
+    m["twist"] = twist
     m["events"] = out["events"]
     m["events_after"] = out.get("events_after", [])
     m["force"] = out["force"]
@@ -525,6 +597,37 @@ def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
     }
 
 
+def moment_measures(m: dict[str, Any]) -> dict[str, float | bool]:
+    """`bench_measures` of the turn's moment (`--twist`; N·m for N, no penetration): the
+    energy balance counts both ports; stable: the contact held and a swing below 10 % of
+    a steady moment above 0.1 N·m (the rotational port's dead band)."""
+    steady, rms = float(m["moment_steady_nm"]), float(m["moment_rms_nm"])
+    swing = float(m["moment_swing_nm"])
+    resting = steady > 0.1
+    nan = math.nan
+    if m["passivity"]:
+        out_j = sum(float(m.get(k, 0.0)) for k in ("master_rot_out_j", "slave_rot_out_j"))
+        in_j = sum(float(m.get(k, 0.0)) for k in ("master_rot_in_j", "slave_rot_in_j"))
+        in_j += float(m.get("slave_rot_recovered_j", 0.0))
+        generated = max(out_j - in_j, 0.0) if math.isfinite(out_j - in_j) else nan
+    else:
+        generated = nan
+    return {
+        "peak_force_n": float(m["moment_peak_nm"]),
+        "steady_force_n": steady,
+        "felt_force_n": float(m["moment_felt_nm"]),
+        "oscillation_rms_n": rms,
+        "swing_rms_n": swing,
+        "creep_n_s": float(m["moment_creep_nm_s"]),
+        "penetration_mm": nan,
+        "energy_generated_j": generated,
+        "master_dissipated_j": nan,
+        "slave_dissipated_j": nan,
+        "stable": resting and bool(m["moment_held"]) and swing < 0.1 * steady,
+        "settled": resting and rms < 0.1 * steady,
+    }
+
+
 def run_matrix(
     delays_ms: tuple[int, ...],
     jitter: float,
@@ -536,9 +639,11 @@ def run_matrix(
     master_rate_hz: float = MASTER_RATE_HZ,
     hold_s: float = HOLD_S,
     yield_m_s_n: float = 0.0,
+    twist: bool = False,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
     """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
-    simulated bench's keys, the runs)."""
+    simulated bench's keys, the runs). `twist`: the turn too, its moment under
+    `passivity_<delay>_<on|off>_moment_<measure>`."""
     doc: dict[str, Any] = {
         "settings": {
             "delays_ms": list(delays_ms),
@@ -552,6 +657,7 @@ def run_matrix(
             "hold_s": hold_s,
             "measured_s": min(MEASURE_S, hold_s),
             "yield_m_s_n": yield_m_s_n,
+            "twist": twist,
         },
     }
     runs: dict[tuple[int, bool], dict[str, Any]] = {}
@@ -569,15 +675,20 @@ def run_matrix(
                 rate_hz=master_rate_hz,
                 hold_s=hold_s,
                 yield_m_s_n=yield_m_s_n,
+                twist=twist,
             )
             runs[(delay, on)] = m
             doc["settings"]["emulator"] = m["emulator"]
-            for name, value in bench_measures(m).items():
-                key = f"passivity_{delay}_{'on' if on else 'off'}_{name}"
-                if isinstance(value, bool):
-                    doc[key] = value
-                else:  # not measured (TDPA off: no energies) is null, not NaN
-                    doc[key] = None if math.isnan(value) else round(float(value), 6)
+            parts = [("", bench_measures(m))]
+            if twist:
+                parts.append(("moment_", moment_measures(m)))
+            for part, measures in parts:
+                for name, value in measures.items():
+                    key = f"passivity_{delay}_{'on' if on else 'off'}_{part}{name}"
+                    if isinstance(value, bool):
+                        doc[key] = value
+                    else:  # not measured (TDPA off: no energies) is null, not NaN
+                        doc[key] = None if math.isnan(value) else round(float(value), 6)
     # What happened in each run, for when a figure needs explaining: the last events the
     # console saw (interventions, holds, the puma's motions) and the slave port's figures.
     doc["runs"] = {
@@ -590,6 +701,19 @@ def run_matrix(
             "slave_yielded_mm": m.get("slave_yielded_mm"),
             "master_out_j": m.get("op_master_out_j"),
             "master_in_j": m.get("op_master_in_j"),
+            "rotation": {
+                k: m.get(k)
+                for k in (
+                    "op_master_rot_in_j",
+                    "op_master_rot_out_j",
+                    "op_slave_rot_in_seen_j",
+                    "op_master_rot_limited",
+                    "slave_rot_in_j",
+                    "slave_rot_out_j",
+                    "slave_rot_recovered_j",
+                )
+                if k in m
+            },
             "load1": m.get("load1"),
         }
         for (delay, on), m in runs.items()
@@ -624,9 +748,24 @@ def plots(runs: dict[tuple[int, bool], dict[str, Any]], out_dir: Path) -> list[P
 def main(argv: list[str]) -> None:
     role, endpoint, passivity = argv[0], argv[1], argv[2] == "1"
     if role == "robot":
-        robot(endpoint, passivity, float(argv[3]), float(argv[4]), float(argv[5]), float(argv[6]))
+        robot(
+            endpoint,
+            passivity,
+            float(argv[3]),
+            float(argv[4]),
+            float(argv[5]),
+            float(argv[6]),
+            float(argv[7]) if len(argv) > 7 else 0.0,
+        )
     elif role == "operator":
-        operator(endpoint, passivity, float(argv[3]), float(argv[4]), float(argv[5]))
+        operator(
+            endpoint,
+            passivity,
+            float(argv[3]),
+            float(argv[4]),
+            float(argv[5]),
+            float(argv[6]) if len(argv) > 6 else 0.0,
+        )
     else:
         raise SystemExit(f"unknown role {role!r}")
 

@@ -21,7 +21,8 @@ from services.control.master.feedback import (
     ramp_gain,
     saturate,
 )
-from services.geometry import exp_so3, rot_x, rot_z
+from services.control.master.teleop import scaled_motion
+from services.geometry import exp_so3, log_so3, rot_x, rot_z
 
 
 def test_defaults_are_valid() -> None:
@@ -158,9 +159,70 @@ def test_world_mode_rotates_tool_wrench_to_world_then_to_master() -> None:
     out = wrench((1.0, 0, 0), (0, 0, 2.0), tool_R)
     np.testing.assert_allclose(out.f, [0, 1.0, 0], atol=1e-12)
     np.testing.assert_allclose(out.c, [0, 0, 2.0], atol=1e-12)
+    # The moment about the tool's axes, shown about the hand's: a tool pointing down
+    # (its z the world's −z) that the hand turns about +z meets a moment about the tool's
+    # −z, shown about the hand's −z: against the turn (about the world's axes it was +z).
+    down = rot_x(math.pi)
+    out = wrench((0, 0, 0), (0, 0, -2.0), down)
+    np.testing.assert_allclose(out.c, [0, 0, -2.0], atol=1e-12)
+    turned = operator_wrench(
+        (0, 0, 0),
+        (0, 0, -2.0),
+        down,
+        alignment=np.eye(3),
+        frame="world",
+        force_scale=1.0,
+        max_force_n=100.0,
+        max_torque_nm=100.0,
+        hand_R=rot_x(math.pi / 2),
+    )
+    np.testing.assert_allclose(turned.c, [0, 2.0, 0], atol=1e-12)  # the hand's z is now −y
     # Master x drives slave y (A = Rz(90°)): a push along world y is felt along master x.
     out = wrench((1.0, 0, 0), (0, 0, 0), tool_R, A=rot_z(math.pi / 2))
     np.testing.assert_allclose(out.f, [1.0, 0, 0], atol=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    c=st.lists(st.floats(-1e3, 1e3), min_size=3, max_size=3),
+    m0=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3),
+    r0=st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3),
+    turn=st.lists(st.floats(-0.5, 0.5), min_size=3, max_size=3),
+    step=st.lists(st.floats(-1e-4, 1e-4), min_size=3, max_size=3),
+    frame=st.sampled_from(["world", "tool"]),
+)
+def test_the_moment_shown_has_the_power_of_the_tool_moment_against_the_tools_turn(
+    c: list[float],
+    m0: list[float],
+    r0: list[float],
+    turn: list[float],
+    step: list[float],
+    frame: Frame,
+) -> None:
+    """The hand turns a small step; eq. (5) turns the tool by it. The moment shown on the
+    hand does the same work on the hand's step as the tool's moment on the tool's step,
+    whatever the hand's and the tool's orientations and the mode."""
+    M0, R0 = exp_so3(m0), exp_so3(r0)
+    M1 = M0 @ exp_so3(turn)
+    M2 = M1 @ exp_so3(step)
+    dR1 = scaled_motion(np.zeros(3), M0, np.zeros(3), M1, 1.0, 1.0).dR
+    dR2 = scaled_motion(np.zeros(3), M0, np.zeros(3), M2, 1.0, 1.0, near_rad=None).dR
+    tool_step = log_so3((R0 @ dR1).T @ (R0 @ dR2))  # the tool's turn, its own axes
+    hand_step = log_so3(M2 @ M1.T)  # the hand's turn, master frame
+    shown = operator_wrench(
+        (0.0, 0.0, 0.0),
+        c,
+        R0 @ dR1,
+        alignment=exp_so3(m0),
+        frame=frame,
+        force_scale=1.0,
+        max_force_n=1e9,
+        max_torque_nm=1e9,
+        hand_R=M1,
+    ).c
+    work_tool = float(np.dot(c, tool_step))
+    work_hand = float(np.dot(shown, hand_step))
+    assert work_hand == pytest.approx(work_tool, rel=1e-3, abs=1e-9 * (1.0 + np.linalg.norm(c)))
 
 
 def test_tool_mode_ignores_tool_orientation() -> None:
@@ -225,7 +287,7 @@ def test_displayed_wrench_never_exceeds_limits_and_keeps_direction(
     assert np.linalg.norm(out.f) <= fmax * (1 + 1e-12)
     assert np.linalg.norm(out.c) <= cmax * (1 + 1e-12)
     to_master = A.T @ tool_R if frame == "world" else A.T
-    for got, raw in ((out.f, to_master @ f), (out.c, to_master @ c)):
+    for got, raw in ((out.f, to_master @ f), (out.c, np.asarray(c))):  # c: the hand's axes
         if np.linalg.norm(raw) * scale > 1e-9:
             cos = float(got @ raw) / (np.linalg.norm(got) * np.linalg.norm(raw))
             assert cos > 1 - 1e-9

@@ -135,7 +135,7 @@ def test_cli_twist_measures_the_moment_too(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     with pytest.raises(SystemExit):
-        main(["--twist", "--link"])
+        main(["--twist", "--slave-speed", "0"])
     out = tmp_path / "t.json"
     assert (
         main(["--delays-ms", "200", "--twist", "--json", str(out), "--plots", str(tmp_path)]) == 0
