@@ -391,12 +391,15 @@ def robot(
         with trace.lock:
             m["puma_cmds"] = float(trace.puma_cmds)
             series = [((t - t0) / 1e9, f) for t, f in trace.forces if t >= t0]
+            turn = [((t - t0) / 1e9, c) for t, c in trace.moments if t >= t0]
         doc = {
             "metrics": m,
             "events": events[-20:],
             "events_after": after[-5:],
             "force": series[::2],
         }
+        if torsion_nm_rad > 0.0:
+            doc["moment"] = turn[::2]
         print(json.dumps(doc), flush=True)
     finally:
         for c in reversed(closers):
@@ -555,6 +558,8 @@ def run_over_link(
     m["events"] = out["events"]
     m["events_after"] = out.get("events_after", [])
     m["force"] = out["force"]
+    if "moment" in out:
+        m["moment"] = out["moment"]
     return m
 
 
@@ -723,25 +728,32 @@ def run_matrix(
 
 
 def plots(runs: dict[tuple[int, bool], dict[str, Any]], out_dir: Path) -> list[Path]:
-    """One PNG per delay: the wrist force (world z, up) against time, TDPA off and on."""
+    """One PNG per delay: the wrist force (world z, up) against time, TDPA off and on;
+    with the turn (`--twist`), one of the moment at the tool (its size) too."""
     from services.tools.bench.passivity import off_on_plot
 
     paths = []
     for delay in sorted({d for d, _ in runs}):
-        curves = {}
-        for on in (False, True):
-            pts = runs[(delay, on)]["force"]
-            curves[on] = ([p[0] for p in pts], [p[1] for p in pts])
         transport = str(runs[(delay, True)].get("transport", "tcp")).upper()
-        paths.append(
-            off_on_plot(
-                curves,
-                f"wrist force over the link, {delay} ms round trip (real services, {transport})",
-                "time since the operator started (s)",
-                120.0,
-                out_dir / f"passivity_link_{delay}ms.png",
+        kinds = [("force", "wrist force", 120.0, "force (N)", "")]
+        if all("moment" in runs[(delay, on)] for on in (False, True)):
+            kinds.append(("moment", "moment at the tool (size)", 3.0, "moment (N·m)", "_moment"))
+        for key, what, clip, y_label, suffix in kinds:
+            curves = {}
+            for on in (False, True):
+                pts = runs[(delay, on)][key]
+                ys = [p[1] if key == "force" else abs(p[1]) for p in pts]
+                curves[on] = ([p[0] for p in pts], ys)
+            paths.append(
+                off_on_plot(
+                    curves,
+                    f"{what} over the link, {delay} ms round trip (real services, {transport})",
+                    "time since the operator started (s)",
+                    clip,
+                    out_dir / f"passivity_link_{delay}ms{suffix}.png",
+                    y_label,
+                )
             )
-        )
     return paths
 
 
