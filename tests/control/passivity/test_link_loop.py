@@ -33,12 +33,14 @@ from services.tools.bench import passivity_link as pl
 pytestmark = [pytest.mark.system, pytest.mark.alone, pytest.mark.timeout(180)]
 
 
-def over_link(rtt_ms: float, passivity: bool, transport: str = "tcp") -> dict[str, Any]:
+def over_link(
+    rtt_ms: float, passivity: bool, transport: str = "tcp", twist: bool = False
+) -> dict[str, Any]:
     reason = pl.unavailable()
     if reason:
         pytest.skip(reason)
-    try:
-        return pl.run_over_link(rtt_ms, passivity, transport=transport)  # the bench's protocol
+    try:  # the bench's protocol
+        return pl.run_over_link(rtt_ms, passivity, transport=transport, twist=twist)
     except RuntimeError as e:
         if "Operation not permitted" in str(e) or "Permission denied" in str(e):
             pytest.skip(f"network namespace setup refused: {e}")
@@ -84,3 +86,28 @@ def test_whole_loop_over_a_bad_link_stays_passive_and_settles() -> None:
     measures = pl.bench_measures(m)
     assert measures["stable"] is True, measures
     assert m["felt_n"] > 4.0, m["felt_n"]
+
+
+def test_a_turn_over_a_bad_link_is_passive_and_felt() -> None:
+    """The same at 200 ms with a turn (`--link --twist`): the contact resists a turn about
+    its normal, the operator turns its handle once the press has seated the tool until it
+    feels 0.5 N·m, the master shows moments through its rotational port. Each rotational
+    port gives out no more than the other sent (plus the reserve, a late tick, and at the
+    slave what the workcell gave back); the moment contact is stable; and the hand feels
+    it. Shown about the world's axes (before 2026-11-27) the moment pushed the hand along
+    its turn, the master's port withheld it, and the hand felt 0.01–0.06 N·m."""
+    m = over_link(200.0, passivity=True, twist=True)
+    if link_lost_the_operator(m):
+        first = m["events"]
+        m = over_link(200.0, passivity=True, twist=True)
+        assert not link_lost_the_operator(m), ("the operator's session lapsed twice", first)
+    assert m["moment_peak_nm"] > 0.1 and len(m["moment"]) > 1000, m["moment_peak_nm"]
+    allowance = RESERVE_J + 0.01 + TOLERANCE_J
+    assert m["op_master_rot_out_j"] <= m["op_slave_rot_in_seen_j"] + allowance, m
+    recovered = m["slave_rot_recovered_j"]
+    assert m["slave_rot_out_j"] <= m["master_rot_in_j"] + recovered + 0.01, m
+    moment = pl.moment_measures(m)
+    assert moment["stable"] is True, moment
+    assert moment["energy_generated_j"] <= 0.01 + allowance, moment
+    assert m["moment_felt_nm"] > 0.3, m["moment_felt_nm"]
+    assert pl.bench_measures(m)["stable"] is True  # the press holds beside the turn
