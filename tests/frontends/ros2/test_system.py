@@ -407,7 +407,10 @@ def test_a_pose_target_drives_the_tool_through_the_decision(make_cell: Callable[
             )
 
     assert wait_until(released)
-    assert not cell.bridge.status()["engaged"]
+    # The lease may be released first: a bridge tick late past the decision's 100 ms
+    # watchdog on a loaded machine (fresh-clone CI, 2026-11-27), while its target is still
+    # fresh (0.5 s). The bridge disengages once the target is stale.
+    assert wait_until(lambda: not cell.bridge.status()["engaged"])
     rest = cell.history.tool_p()
     assert np.linalg.norm(rest - goal) < 0.002
 
