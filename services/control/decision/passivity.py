@@ -146,6 +146,7 @@ class SlaveTdpa:
                 if self.rot is None:  # the master's runs one: so does ours, from now on
                     self.rot = SlavePort(enabled=self._enabled, drift_m_s=self._drift_m_s)
                     self.rot.reset(operator[1])
+                    self._start_turning(state)
                 self.rot.remote.update(got[0].engage, got[0].rot_e_in)
         f_now, c_now = self._observe()
         if state is None:
@@ -180,12 +181,24 @@ class SlaveTdpa:
         R_out = rotate_towards(R_now, sub3(angles_of(target), theta))
         return tmul9(m9(self._R0), R_out)
 
+    def _start_turning(self, state: RobotState | None) -> None:
+        """The rotational port starts: its histories from now on, the tool's angles from its
+        orientation now (none are kept while no rotational port runs)."""
+        self._turn.reset()
+        self._angles.clear()
+        self._moment.clear()
+        if state is not None:
+            self._angles.add(state.t_ns, port_angles(self._turn.update(state.tool_R)))
+
     def _remember(self, state: RobotState | None, force: ForceSample | None) -> None:
-        """Keep the tool positions and the wrist forces (world frame) with their own times."""
+        """Keep the tool positions and the wrist forces (world frame) with their own times;
+        with a rotational port, the tool's angles and the wrist moments too."""
+        turning = self.rot is not None
         if state is not None and state.seq != self._state_seq:
             self._state_seq = state.seq
             self._tool.add(state.t_ns, state.tool_p)
-            self._angles.add(state.t_ns, port_angles(self._turn.update(state.tool_R)))
+            if turning:
+                self._angles.add(state.t_ns, port_angles(self._turn.update(state.tool_R)))
         if force is not None and state is not None and force.seq != self._force_seq:
             self._force_seq = force.seq
             R = np.asarray(state.tool_R, dtype=float).reshape(3, 3)
@@ -193,12 +206,13 @@ class SlaveTdpa:
             if float(np.linalg.norm(f)) < self.deadband_n:
                 f = np.zeros(3)  # sensor noise: no contact, nothing to pay for
             self._force.add(force.t_ns, f.tolist())
-            # The moment in the rotational port's coordinates, with the same dead band there
-            # (1 N as 0.1 N·m).
-            c = port_moment((R @ np.asarray(force.c, dtype=float)).tolist())
-            if math.sqrt(sum(x * x for x in c)) < self.deadband_n:
-                c = [0.0, 0.0, 0.0]
-            self._moment.add(force.t_ns, c)
+            if turning:
+                # The moment in the rotational port's coordinates, with the same dead band
+                # there (1 N as 0.1 N·m).
+                c = port_moment((R @ np.asarray(force.c, dtype=float)).tolist())
+                if math.sqrt(sum(x * x for x in c)) < self.deadband_n:
+                    c = [0.0, 0.0, 0.0]
+                self._moment.add(force.t_ns, c)
 
     def _observe(self) -> tuple[np.ndarray, list[float]]:
         """Observe the ports at the newest instant both streams cover (force and position at
@@ -215,9 +229,8 @@ class SlaveTdpa:
             self._paired_ns = t
             supervised = math.sqrt(sum(x * x for x in f)) > self.contact_n
             self.pc.observe(f, p, supervised)
-            if self.rot is not None:
-                c, a = self._moment.at(t), self._angles.at(t)
-                assert c is not None and a is not None
+            c, a = self._moment.at(t), self._angles.at(t)
+            if self.rot is not None and c is not None and a is not None:
                 self.rot.observe(c, a, supervised)
         f_new = self._force.at(t_f)
         c_new = self._moment.at(t_f)

@@ -104,12 +104,13 @@ class MasterConfig:
     passivity_device_mass_kg: the moving mass of the device (kg, at the hand) that the
         passivity force limiter predicts with; set it to your device's (a lighter device
         than assumed is accelerated more by a force step than predicted).
-    passivity_moments: with passivity on, display the wrist's moment too, passivated with
-        the force in one port (force and moment against the hand's motion and rotation).
-        False (default): the port is the force alone and no moment is shown, for a device
-        that shows none (the haptic masters; set it true for `serial_arm`).
+    passivity_moments: with passivity on, display the wrist's moment too, through a
+        rotational port of its own (the moment against the hand's rotation) beside the
+        force's. False (default): no moment is shown, for a device that shows none (the
+        haptic masters; set it true for `serial_arm`).
     passivity_device_inertia_kg_m2: with passivity_moments, the rotational inertia of the
-        device at the hand (kg·m²) the limiter predicts with, as the mass for the force.
+        device at the hand (kg·m²) the rotational port's limiter predicts with, as the
+        force's does with the mass.
     force_ramp_s: the displayed wrench ramps from zero to full over this time after each
         engagement (0 = at once); it is zero whenever the master is not engaged.
     force_stale_ms: no wrist force *received* for this long and nothing is displayed (the

@@ -114,7 +114,6 @@ class MasterTdpa:
         masters)."""
         self.master_id = master_id
         self.force_scale = force_scale
-        self.show_moments = show_moments
         self.pc = master_port(device_mass_kg, enabled)
         self.rot: MasterPassivity | None = None
         if show_moments:

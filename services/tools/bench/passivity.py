@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -114,11 +115,25 @@ def run(
             parts = [("", contact_metrics(res))]
             if twist:
                 parts.append(("moment_", twist_metrics(res)))
-            for part, metrics in parts:
-                for name, value in metrics.items():
-                    key = f"passivity_{delay}_{'on' if on else 'off'}_{part}{name}"
-                    doc[key] = value if isinstance(value, bool) else round(float(value), 6)
+            put_measures(doc, delay, on, parts)
     return doc, results
+
+
+def put_measures(
+    doc: dict[str, Any],
+    delay: int,
+    on: bool,
+    parts: Sequence[tuple[str, Mapping[str, float | bool]]],
+) -> None:
+    """Each measure of a run into `doc` as `passivity_<delay>_<on|off>_<part><name>`: a
+    verdict as it is, a figure rounded to 1e-6, one not measured (NaN) as null."""
+    for part, measures in parts:
+        for name, value in measures.items():
+            key = f"passivity_{delay}_{'on' if on else 'off'}_{part}{name}"
+            if isinstance(value, bool):
+                doc[key] = value
+            else:
+                doc[key] = None if math.isnan(value) else round(float(value), 6)
 
 
 SEED_FIGURES = (

@@ -54,6 +54,7 @@ from services.control.puma.config import HOME_Q_RAD, PumaConfig
 from services.control.puma.service import PumaService
 from services.control.puma.sim_arm import SimArm
 from services.tools.bench.netem import ROBOT_IP, LinkShape, in_ns, netem_link, unavailable
+from services.tools.bench.passivity import put_measures
 from services.tools.bench.procs import free_port
 from services.world.workcell.scene import TABLE
 
@@ -687,13 +688,8 @@ def run_matrix(
             parts = [("", bench_measures(m))]
             if twist:
                 parts.append(("moment_", moment_measures(m)))
-            for part, measures in parts:
-                for name, value in measures.items():
-                    key = f"passivity_{delay}_{'on' if on else 'off'}_{part}{name}"
-                    if isinstance(value, bool):
-                        doc[key] = value
-                    else:  # not measured (TDPA off: no energies) is null, not NaN
-                        doc[key] = None if math.isnan(value) else round(float(value), 6)
+            # Not measured (TDPA off: no energies) is null, not NaN.
+            put_measures(doc, delay, on, parts)
     # What happened in each run, for when a figure needs explaining: the last events the
     # console saw (interventions, holds, the puma's motions) and the slave port's figures.
     doc["runs"] = {
