@@ -237,7 +237,11 @@ class PassivityState(Message):
     of contact (energy the channel created: one tick's impact, sampled late). rot_e_in /
     rot_e_out / rot_dissipated_j (optional, both sides): the same for the side's rotational
     port (moment × rotation), when it runs one; the slave runs its own only while the
-    master's figures carry `rot_e_in`."""
+    master's figures carry `rot_e_in`. echo_t_ns / echo_age_ns (optional, both sides): the
+    `t_ns` of the other side's newest PassivityState this side had received, and how long
+    it had held it (ns, on this side's own clock) when it sent this one; the other side
+    takes its round trip from them, on its own clock alone. rtt_ms (optional, both sides):
+    the sender's round trip so measured, the median over its last 2 s."""
 
     name: ClassVar[str] = "PassivityState"
     seq: Count
@@ -258,6 +262,9 @@ class PassivityState(Message):
     rot_e_in: Joules | None = None
     rot_e_out: Joules | None = None
     rot_dissipated_j: Joules | None = None
+    echo_t_ns: Count | None = None
+    echo_age_ns: Annotated[int, Range(0, 60_000_000_000)] | None = None
+    rtt_ms: Annotated[float, Range(0.0, 60_000.0)] | None = None
 
 
 ALL_MESSAGES: tuple[type[Message], ...] = (

@@ -163,6 +163,9 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "rot_e_in": 0.015625,
         "rot_e_out": 0.0078125,
         "rot_dissipated_j": 0.00390625,
+        "echo_t_ns": 7,
+        "echo_age_ns": 2_000_000,
+        "rtt_ms": 201.5,
     },
 }
 
@@ -190,6 +193,9 @@ OPTIONAL: dict[type[Message], set[str]] = {
         "rot_e_in",
         "rot_e_out",
         "rot_dissipated_j",
+        "echo_t_ns",
+        "echo_age_ns",
+        "rtt_ms",
     },
 }
 

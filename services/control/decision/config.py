@@ -22,7 +22,14 @@ Vec3T = tuple[float, float, float]
 #: settings fixed at start-up: the `supervisor` method refuses to change them.
 #: (`passivity`: the slave port's energies are counted from the service's start.)
 STARTUP_ONLY: frozenset[str] = frozenset(
-    {"rate_hz", "rpc_timeout_s", "wait_timeout_s", "passivity", "passivity_yield_m_s_n"}
+    {
+        "rate_hz",
+        "rpc_timeout_s",
+        "wait_timeout_s",
+        "passivity",
+        "passivity_yield_m_s_n",
+        "passivity_yield_max_rtt_ms",
+    }
 )
 
 _POSITIVE = (
@@ -43,6 +50,7 @@ _POSITIVE = (
     "approach_speed_m_s",
     "arrive_tol_m",
     "event_interval_s",
+    "passivity_yield_max_rtt_ms",
 )
 _NON_NEGATIVE = (
     "admittance_m_per_n_s",
@@ -66,6 +74,7 @@ _KINDS: dict[str, str] = {
     "max_torque_nm": "torque_nm",
     "admittance_m_per_n_s": "admittance_m_n_s",
     "passivity_yield_m_s_n": "admittance_m_n_s",
+    "passivity_yield_max_rtt_ms": "watchdog_ms",
     "admittance_rad_per_nm_s": "admittance_rad_nm_s",
     "admittance_deadband_n": "force_n",
     "admittance_deadband_nm": "torque_nm",
@@ -105,7 +114,9 @@ class DecisionConfig:
         command's motion into a contact is bounded by the energy the operator put in.
       passivity_yield_m_s_n: with passivity on, the tool backs out of a contact at this
         many m/s per newton it presses harder than the master shows the operator (0: off;
-        5e-5 measured; for fast links only, docs/passivity.md "Yielding to the hand").
+        default 5e-5, the rate measured; docs/passivity.md "Yielding to the hand"), for a
+        contact that began while the link's round trip, measured from the master's
+        echoes, was at most passivity_yield_max_rtt_ms (default 250; 1 … 60 000).
       compliance: admittance on: the target yields to the wrist force,
         dp = admittance_m_per_n_s · f_world · dt, dθ = admittance_rad_per_nm_s · c_tool · dt,
         with deadbands admittance_deadband_n / admittance_deadband_nm.
@@ -163,7 +174,8 @@ class DecisionConfig:
     event_interval_s: float = 1.0
     estop_power_off: bool = False
     passivity: bool = False
-    passivity_yield_m_s_n: float = 0.0
+    passivity_yield_m_s_n: float = 5e-5  # the rate measured (passivity.slave.YIELD_M_S_N)
+    passivity_yield_max_rtt_ms: float = 250.0
 
     def __post_init__(self) -> None:
         for key in _POSITIVE:

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 import numpy as np
 
@@ -43,6 +44,7 @@ from services.control.passivity.rotation import (
     port_moment,
     rotate_towards,
 )
+from services.control.passivity.roundtrip import RoundTrip
 from services.control.passivity.slave import DEADBAND_N, SlavePort, TimedHistory
 from services.control.passivity.wire import passivity_state
 from services.geometry import m9, mul9, sub3, tmul9
@@ -55,8 +57,10 @@ class SlaveTdpa:
     """enabled: correct (true) or only observe and publish (false). drift_m_s: see
     `SlavePort`; deadband_n: see DEADBAND_N; contact_n: the supervisor's contact force
     limit (N): above it the supervisor moves the target itself (retraction), so the energy
-    its motion brings in is not the operator channel's (excluded). yield_m_s_n: see
-    `SlavePort` (0: off; `[decision] passivity_yield_m_s_n`)."""
+    its motion brings in is not the operator channel's (excluded). yield_m_s_n,
+    yield_max_rtt_s: see `SlavePort` (`[decision] passivity_yield_m_s_n`,
+    `passivity_yield_max_rtt_ms`); the round trip is measured from the master's echoes
+    (`link`, services/control/passivity/roundtrip.py)."""
 
     def __init__(
         self,
@@ -66,10 +70,18 @@ class SlaveTdpa:
         deadband_n: float = DEADBAND_N,
         contact_n: float = math.inf,
         yield_m_s_n: float = 0.0,
+        yield_max_rtt_s: float = math.inf,
     ) -> None:
         self.deadband_n = deadband_n
         self.contact_n = contact_n
-        self.pc = SlavePort(enabled=enabled, drift_m_s=drift_m_s, yield_m_s_n=yield_m_s_n)
+        self.pc = SlavePort(
+            enabled=enabled,
+            drift_m_s=drift_m_s,
+            yield_m_s_n=yield_m_s_n,
+            yield_max_rtt_s=yield_max_rtt_s,
+        )
+        self.link = RoundTrip()
+        """The round trip to the operator's master and back, from its echoes of ours."""
         self.rot: SlavePort | None = None
         """The rotational port, while the operator's master runs one (None: it does not)."""
         self._enabled, self._drift_m_s = enabled, drift_m_s
@@ -137,7 +149,9 @@ class SlaveTdpa:
         dt_s = min(max((now_ns - self._last_ns) * 1e-9, DT_MIN_S), DT_MAX_S)
         self._last_ns = now_ns
         got = self._master_energy.read()
+        mono = time.monotonic_ns()
         if got is not None and got[0].master == operator[0] and got[0].side == "master":
+            self.link.heard(got[0], got[1], time.time_ns(), mono)
             self.pc.remote.update(got[0].engage, got[0].e_in)
             ours = got[0].engage == operator[1]
             self.pc.asked_n = got[0].asked_n if ours else None
@@ -148,6 +162,7 @@ class SlaveTdpa:
                     self.rot.reset(operator[1])
                     self._start_turning(state)
                 self.rot.remote.update(got[0].engage, got[0].rot_e_in)
+        self.pc.rtt_s = self.link.rtt_s(mono)
         f_now, c_now = self._observe()
         if state is None:
             return cmd
@@ -241,6 +256,16 @@ class SlaveTdpa:
 
     def _publish(self, operator: tuple[str, int]) -> None:
         self._seq += 1
+        now = time.monotonic_ns()
         self._pub.put(
-            passivity_state(self._seq, operator[0], operator[1], "slave", self.pc, rot=self.rot)
+            passivity_state(
+                self._seq,
+                operator[0],
+                operator[1],
+                "slave",
+                self.pc,
+                rot=self.rot,
+                echo=self.link.echo(now),
+                rtt_s=self.pc.rtt_s,
+            )
         )

@@ -128,7 +128,12 @@ class DecisionService:
 
         self._pub = node.publisher(PUMA_CMD)
         self.passivity = (
-            SlaveTdpa(node, contact_n=config.max_force_n, yield_m_s_n=config.passivity_yield_m_s_n)
+            SlaveTdpa(
+                node,
+                contact_n=config.max_force_n,
+                yield_m_s_n=config.passivity_yield_m_s_n,
+                yield_max_rtt_s=config.passivity_yield_max_rtt_ms * 1e-3,
+            )
             if config.passivity
             else None
         )

@@ -14,6 +14,7 @@ display also ramps in). Called by the master loop thread only.
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from collections.abc import Callable
 
@@ -26,6 +27,7 @@ from services.control.master.devices import HandReading
 from services.control.master.feedback import DisplayWrench
 from services.control.passivity.controller import MasterPassivity
 from services.control.passivity.rotation import RotationTrack
+from services.control.passivity.roundtrip import RoundTrip
 from services.control.passivity.wire import passivity_state
 
 RESERVE_J = 1e-4
@@ -123,6 +125,8 @@ class MasterTdpa:
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)
         self._slave = node.latest(keys.PASSIVITY_SLAVE)
+        self.link = RoundTrip()
+        """The round trip to the decision and back, from its echoes of ours."""
         self._seq = 0
         self._epoch: int | None = None
         self._dts: deque[float] = deque(maxlen=HORIZON_TICKS)
@@ -140,6 +144,7 @@ class MasterTdpa:
         if got is not None:
             msg = got[0]
             if msg.master == self.master_id and msg.side == "slave":
+                self.link.heard(msg, got[1], time.time_ns(), time.monotonic_ns())
                 self.pc.remote.update(msg.engage, msg.e_in)
                 if rot is not None and msg.rot_e_in is not None:
                     rot.remote.update(msg.engage, msg.rot_e_in)
@@ -161,6 +166,7 @@ class MasterTdpa:
 
     def _publish(self, engage: int) -> None:
         self._seq += 1
+        now = time.monotonic_ns()
         self._pub.put(
             passivity_state(
                 self._seq,
@@ -170,5 +176,7 @@ class MasterTdpa:
                 self.pc,
                 self.force_scale,
                 rot=self.rot,
+                echo=self.link.echo(now),
+                rtt_s=self.link.rtt_s(now),
             )
         )

@@ -140,6 +140,10 @@ class SlavePort:
     `yield_m_s_n`: the yield to the hand (0: off); `asked_n` / `shown_n`: the master's
     last figures for this engagement (None: not known, no yield); `yielding`: the last
     `correct` yielded; `yielded_m`: how far the target was backed out so far.
+    `yield_max_rtt_s`: the yield runs only for a contact that began while the link's round
+    trip `rtt_s` (set by the owner; None: not measured) was at most this (inf: whatever the
+    link); whether it runs is decided out of contact and kept through the contact
+    (`yield_on`), so a round trip that changes mid-contact switches nothing.
     """
 
     enabled: bool = True
@@ -157,6 +161,9 @@ class SlavePort:
     shown_n: float | None = None
     yielding: bool = False
     yielded_m: float = 0.0
+    yield_max_rtt_s: float = math.inf
+    rtt_s: float | None = None
+    yield_on: bool | None = None
     _owing: bool = False
     _in_contact: bool = False
     _surface: tuple[tuple[float, ...], tuple[float, ...]] | None = None
@@ -185,6 +192,7 @@ class SlavePort:
         self.asked_n = self.shown_n = None
         self.yielding = False
         self.yielded_m = 0.0
+        self.yield_on = None
         self.rebase()
         self.telemetry.last_gain = 0.0
 
@@ -267,7 +275,9 @@ class SlavePort:
                 touch = tuple(float(x) for x in p_now)
                 self._surface = (touch, tuple(fi / f_n for fi in f))
         self._in_contact = ff > 0.0
-        yields = self.yield_m_s_n > 0.0
+        if ff == 0.0 or self.yield_on is None:
+            self.yield_on = self._link_allows_yield()
+        yields = self.yield_on
         excess = self.withheld_n(f_n)
         self.yielding = yields and excess >= YIELD_MIN_N
         comp = self._drift_step(dt_s, DRIFT_CONTACT_M_S if yields and ff > 0.0 else self.drift_m_s)
@@ -307,6 +317,16 @@ class SlavePort:
             want = self._yield(want, p_now, f, f_n, excess, dt_s)
         self.offset = [w - float(t) for w, t in zip(want, target, strict=True)]
         return want
+
+    def _link_allows_yield(self) -> bool:
+        """The yield is on and the round trip known to be short enough for it (or not
+        asked about): at 700 ms it pulled the force down towards what the hand had felt a
+        round trip before, and the operator pressed it back up (docs/passivity.md)."""
+        if self.yield_m_s_n <= 0.0:
+            return False
+        if self.yield_max_rtt_s == math.inf:
+            return True
+        return self.rtt_s is not None and self.rtt_s <= self.yield_max_rtt_s
 
     def withheld_n(self, f_n: float) -> float:
         """The force the tool presses with now (`f_n`, N) beyond what the operator feels:

@@ -18,12 +18,16 @@ def passivity_state(
     pc: MasterPassivity | SlavePassivity | SlavePort,
     force_scale: float = 0.0,
     rot: MasterPassivity | SlavePort | None = None,
+    echo: tuple[int, int] | None = None,
+    rtt_s: float | None = None,
 ) -> PassivityState:
     """What the port at `side` has observed and done since `engage` began. force_scale: the
     master display's (operator N per tool N; > 0: the master's asked and shown forces go
     along, as newtons at the tool). The decision's port also sends what the workcell repaid
     of its overdraws and what it forgave. rot: the side's rotational port, when it runs
-    one (its energies go as `rot_e_in`, `rot_e_out`, `rot_dissipated_j`)."""
+    one (its energies go as `rot_e_in`, `rot_e_out`, `rot_dissipated_j`). echo: the other
+    side's newest `t_ns` and how long it was held (`RoundTrip.echo`); rtt_s: the round trip
+    this side measured (s), sent as `rtt_ms`."""
     t = pc.telemetry
     asked = shown = repaid = forgiven = None
     if isinstance(pc, MasterPassivity) and force_scale > 0.0:
@@ -49,4 +53,7 @@ def passivity_state(
         rot_e_in=None if rot is None else rot.observer.e_in,
         rot_e_out=None if rot is None else rot.observer.e_out,
         rot_dissipated_j=None if rot is None else rot.telemetry.dissipated_j,
+        echo_t_ns=None if echo is None else echo[0],
+        echo_age_ns=None if echo is None else echo[1],
+        rtt_ms=None if rtt_s is None else min(rtt_s * 1e3, 60_000.0),
     )

@@ -88,6 +88,8 @@ class PortFigures:
     rot_e_in_j: float | None = None
     rot_e_out_j: float | None = None
     """The side's rotational port (moment × rotation), when it runs one (None: it does not)."""
+    rtt_ms: float | None = None
+    """The round trip this side measured to the other and back (ms; None: not measured)."""
 
     @property
     def reservoir_j(self) -> float:
@@ -147,6 +149,7 @@ def tdpa_view(seen: Mapping[str, PortSeen], now_s: float) -> TdpaView:
                 forgiven_j=m.forgiven_j,
                 rot_e_in_j=m.rot_e_in,
                 rot_e_out_j=m.rot_e_out,
+                rtt_ms=m.rtt_ms,
             )
         )
     return TdpaView(tuple(ports))

@@ -246,6 +246,9 @@ def _port_html(p: PortFigures) -> str:
         # The rotational port's own energies (moment × rotation), beside the force's.
         cells.append(("rotation in (J)", "tr-tdpa-rot-in", _joules(p.rot_e_in_j)))
         cells.append(("rotation out (J)", "tr-tdpa-rot-out", _joules(p.rot_e_out_j)))
+    if p.rtt_ms is not None:
+        # What the loop really waits for: the link and whatever queued on it.
+        cells.append(("round trip (ms)", "tr-tdpa-rtt", f"{p.rtt_ms:.1f}"))
     rows = "".join(
         _row(label, f'<code class="{cls}" style="color:{color}">{_e(v)}</code>')
         for label, cls, v in cells

@@ -418,10 +418,11 @@ def main(argv: list[str] | None = None) -> int:
         "--yield",
         dest="yield_m_s_n",
         type=float,
-        default=0.0,
+        default=None,
         metavar="M_S_N",
-        help="--link: the decision's passivity_yield_m_s_n (default 0: off; 5e-5 measured: "
-        "the tool backs out to the force the hand feels)",
+        help="--link: the decision's passivity_yield_m_s_n (default: the decision's, 5e-5: "
+        "the tool backs out to the force the hand feels while the round trip is at most "
+        "250 ms; 0: off)",
     )
     p.add_argument(
         "--json", default=None, metavar="FILE", help="default artifacts/bench_passivity[_link].json"
@@ -446,7 +447,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--master-rate-hz needs --link and a value within 10 … 1000")
     if args.hold_s is not None and not (args.link and 1.0 <= args.hold_s <= 60.0):
         p.error("--hold-s needs --link and a value within 1 … 60")
-    if args.yield_m_s_n and not (args.link and 0.0 < args.yield_m_s_n <= 1e-3):
+    if args.yield_m_s_n is not None and not (args.link and 0.0 <= args.yield_m_s_n <= 1e-3):
         p.error("--yield needs --link and a value within 0 … 0.001 m/(N·s)")
     if args.slave_speed is not None and (args.link or not 0.0 <= args.slave_speed <= 10.0):
         p.error("--slave-speed is the simulation's (not --link) and within 0 … 10 m/s")
@@ -479,7 +480,9 @@ def main(argv: list[str] | None = None) -> int:
                 else args.master_rate_hz
             ),
             hold_s=passivity_link.HOLD_S if args.hold_s is None else args.hold_s,
-            yield_m_s_n=args.yield_m_s_n,
+            yield_m_s_n=(
+                passivity_link.YIELD_DEFAULT if args.yield_m_s_n is None else args.yield_m_s_n
+            ),
             twist=args.twist,
         )
         path = Path(args.json or "artifacts/bench_passivity_link.json")

@@ -86,6 +86,7 @@ MASTER_RATE_HZ = 500.0
 At 100 Hz the force limiter lets the display rise only while the hand sinks at
 Ḟ·h²/(rise·m), 25 times faster than at 500 Hz, and the contact creeps on (docs/passivity.md)."""
 QUIET_S = 0.5
+"""The robot side measures once the master's figures have not arrived for this long."""
 TWIST_RAD = 0.15
 """`--twist`: how far the operator turns the handle about the master's z once the press has
 seated the tool (rad, over TWIST_S from TWIST_AFTER_S; `SimHapticMaster.twist_rad`), and on
@@ -94,7 +95,9 @@ TWIST_AFTER_S, TWIST_S = APPROACH_S + 1.0, 1.5
 TORSION_NM_RAD = 30.0
 """`--twist`: the contact's resistance to a turn about its normal (`[force]
 torsion_nm_rad`), the simulated bench's stop (`loop.Twist`)."""
-"""The robot side measures once the master's figures have not arrived for this long."""
+
+YIELD_DEFAULT = DecisionConfig().passivity_yield_m_s_n
+"""The decision's yield to the hand unless `--yield` says otherwise (docs/passivity.md)."""
 
 
 def watchdog_ms(rtt_ms: float) -> float:
@@ -129,6 +132,7 @@ class Trace:
     felt: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, shown f_z up)
     moments: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, world c_z)
     felt_moments: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, shown c_z)
+    uplink: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, ms on the way)
     puma_cmds: int = 0
     events: list[tuple[float, str]] = field(default_factory=list)  # (arrival, monotonic s; text)
     master_rx_s: float = 0.0
@@ -151,6 +155,8 @@ class Trace:
             (self.slave if m.side == "slave" else self.master).append(m)
             if m.side == "master":
                 self.master_rx_s = time.monotonic()
+                # One clock for both namespaces: the master's figures' time on the way.
+                self.uplink.append((m.t_ns, (time.time_ns() - m.t_ns) / 1e6))
 
     def on_feedback(self, m: MasterFeedback) -> None:
         """The force the master displayed on the hand (master frame: its z is the press)."""
@@ -305,6 +311,19 @@ def metrics(
         "moment_held": held(cw, c_steady),
         "moment_creep_nm_s": trend_n_s([(t, sign * c) for t, c in moments]),
     }
+    with trace.lock:
+        rtts = {
+            side: sorted(x.rtt_ms for x in seen if x.rtt_ms is not None and lo_ns <= x.t_ns < hi_ns)
+            for side, seen in (("slave", trace.slave), ("master", trace.master))
+        }
+        up = sorted(ms for t, ms in trace.uplink if lo_ns <= t < hi_ns)
+    for side, xs in rtts.items():
+        # The round trip each port measured from the other's echoes, over the window.
+        out[f"{side}_rtt_ms"] = xs[len(xs) // 2] if xs else math.nan
+    # The master's figures from its put to the robot side (median, p90): the link's one
+    # way and what queued ahead of them.
+    out["uplink_ms"] = up[len(up) // 2] if up else math.nan
+    out["uplink_p90_ms"] = up[int(len(up) * 0.9)] if up else math.nan
     for name, m in (("slave", slave), ("master", master)):
         out[f"{name}_in_j"] = m.e_in if m else math.nan
         out[f"{name}_out_j"] = m.e_out if m else math.nan
@@ -348,7 +367,7 @@ def robot(
     watchdog: float,
     zone_m: float,
     hold_s: float,
-    yield_m_s_n: float = 0.0,
+    yield_m_s_n: float = YIELD_DEFAULT,
     torsion_nm_rad: float = 0.0,
 ) -> None:
     peers: Peers | RouterSide = (
@@ -477,7 +496,7 @@ def run_over_link(
     approach_zone_m: float = APPROACH_ZONE_M,
     rate_mbit: float = 0.0,
     hold_s: float = HOLD_S,
-    yield_m_s_n: float = 0.0,
+    yield_m_s_n: float = YIELD_DEFAULT,
     twist: bool = False,
 ) -> dict[str, Any]:
     """One press–hold–release over a fresh link (with `twist`, a turn against the
@@ -644,7 +663,7 @@ def run_matrix(
     rate_mbit: float = 0.0,
     master_rate_hz: float = MASTER_RATE_HZ,
     hold_s: float = HOLD_S,
-    yield_m_s_n: float = 0.0,
+    yield_m_s_n: float = YIELD_DEFAULT,
     twist: bool = False,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
     """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
@@ -684,6 +703,12 @@ def run_matrix(
                 twist=twist,
             )
             runs[(delay, on)] = m
+            if on:
+                say(
+                    f"    round trip measured by the ports: decision {m['slave_rtt_ms']:.1f} ms, "
+                    f"master {m['master_rtt_ms']:.1f} ms; the master's figures on the way "
+                    f"{m['uplink_ms']:.1f} ms (p90 {m['uplink_p90_ms']:.1f})"
+                )
             doc["settings"]["emulator"] = m["emulator"]
             parts = [("", bench_measures(m))]
             if twist:
@@ -702,6 +727,10 @@ def run_matrix(
             "slave_yielded_mm": m.get("slave_yielded_mm"),
             "master_out_j": m.get("op_master_out_j"),
             "master_in_j": m.get("op_master_in_j"),
+            "measured_rtt_ms": {
+                side: None if math.isnan(m.get(f"{key}_rtt_ms", math.nan)) else m[f"{key}_rtt_ms"]
+                for side, key in (("decision", "slave"), ("master", "master"))
+            },
             "rotation": {
                 k: m.get(k)
                 for k in (

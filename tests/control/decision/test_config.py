@@ -10,6 +10,7 @@ from services.bus.config import section
 from services.bus.errors import ConfigError
 from services.control.decision.__main__ import main
 from services.control.decision.config import DecisionConfig
+from services.control.passivity.slave import YIELD_M_S_N
 from services.world.workcell.scene import TABLE
 
 
@@ -44,6 +45,9 @@ def test_defaults_keep_the_tool_out_of_the_table() -> None:
         ({"approach_zone_m": 5.0}, "decision.approach_zone_m"),
         ({"passivity_yield_m_s_n": -1e-5}, "decision.passivity_yield_m_s_n"),
         ({"passivity_yield_m_s_n": 2.0}, "decision.passivity_yield_m_s_n"),
+        ({"passivity_yield_max_rtt_ms": 0.0}, "decision.passivity_yield_max_rtt_ms"),
+        ({"passivity_yield_max_rtt_ms": 1e9}, "decision.passivity_yield_max_rtt_ms"),
+        ({"passivity_yield_max_rtt_ms": float("nan")}, "decision.passivity_yield_max_rtt_ms"),
         ({"approach_speed_m_s": 0.0}, "decision.approach_speed_m_s"),
         ({"approach_speed_m_s": 0.3}, "decision.approach_speed_m_s"),
     ],
@@ -78,3 +82,10 @@ def test_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
     bad.write_text("[decision]\nmax_force_n = -3\n")
     assert main(["--config", str(bad)]) == 2
     assert "'decision.max_force_n'" in capsys.readouterr().err
+
+
+def test_the_yield_to_the_hand_is_on_for_short_round_trips_by_default() -> None:
+    """The measured rate (the port's own constant), up to 250 ms of round trip."""
+    cfg = DecisionConfig()
+    assert cfg.passivity_yield_m_s_n == YIELD_M_S_N
+    assert cfg.passivity_yield_max_rtt_ms == 250.0

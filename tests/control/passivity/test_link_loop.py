@@ -86,6 +86,10 @@ def test_whole_loop_over_a_bad_link_stays_passive_and_settles() -> None:
     measures = pl.bench_measures(m)
     assert measures["stable"] is True, measures
     assert m["felt_n"] > 4.0, m["felt_n"]
+    # Each port measured the round trip from the other's echoes, across the two namespaces:
+    # at least the link's own 200 ms (less its jitter), more where TCP queued behind a loss.
+    assert 180.0 <= m["slave_rtt_ms"] <= 5000.0, m["slave_rtt_ms"]
+    assert 180.0 <= m["master_rtt_ms"] <= 5000.0, m["master_rtt_ms"]
 
 
 def test_a_turn_over_a_bad_link_is_passive_and_felt() -> None:

@@ -383,3 +383,55 @@ def test_the_sent_target_never_jumps_at_a_rebase(
     assert sp.offset == [0.0, 0.0, 0.0]
     again = sp.correct(sent, sent, (0.0, 0.0, 0.0), 0.01)
     assert again == pytest.approx(sent)
+
+
+def test_the_yield_runs_only_for_a_contact_begun_on_a_short_round_trip() -> None:
+    """yield_max_rtt_s = 0.25: decided out of contact, kept through the contact."""
+    tool, free, press = (0.0, 0.0, -0.001), (0.0, 0.0, 0.0), (0.0, 0.0, 12.0)
+
+    def port(rtt_s: float | None) -> SlavePort:
+        sp = SlavePort(drift_m_s=0.0, yield_m_s_n=5e-5, yield_max_rtt_s=0.25, rtt_s=rtt_s)
+        sp.remote.update(0, 1.0)
+        sp.asked_n, sp.shown_n = 12.0, 8.0
+        return sp
+
+    unknown = port(None)  # nothing measured yet: no yield
+    unknown.correct(tool, tool, press, 0.01)
+    assert unknown.yield_on is False and not unknown.yielding
+    slow = port(0.4)
+    slow.correct(tool, tool, free, 0.01)
+    slow.correct(tool, tool, press, 0.01)
+    assert not slow.yielding and slow.yielded_m == 0.0
+    fast = port(0.2)
+    fast.correct(tool, tool, free, 0.01)  # out of contact: decided, on
+    assert fast.yield_on is True
+    fast.correct(tool, tool, press, 0.01)
+    assert fast.yielding
+    fast.rtt_s = 3.0  # the link slows mid-contact: nothing switches
+    fast.correct(tool, tool, press, 0.01)
+    assert fast.yielding
+    fast.correct(tool, tool, free, 0.01)  # out of contact: decided again, off
+    fast.correct(tool, tool, press, 0.01)
+    assert fast.yield_on is False and not fast.yielding
+    # Without a bound (inf, the port's default) it yields whatever the link.
+    anyway = SlavePort(drift_m_s=0.0, yield_m_s_n=5e-5)
+    anyway.remote.update(0, 1.0)
+    anyway.asked_n, anyway.shown_n = 12.0, 8.0
+    anyway.correct(tool, tool, press, 0.01)
+    assert anyway.yielding and anyway.yield_max_rtt_s == math.inf
+
+
+def test_a_new_engagement_decides_the_yield_afresh() -> None:
+    tool, press = (0.0, 0.0, -0.001), (0.0, 0.0, 12.0)
+    sp = SlavePort(drift_m_s=0.0, yield_m_s_n=5e-5, yield_max_rtt_s=0.25, rtt_s=0.1)
+    sp.remote.update(0, 1.0)
+    sp.asked_n, sp.shown_n = 12.0, 8.0
+    sp.correct(tool, tool, press, 0.01)  # begins in contact, the round trip short: on
+    assert sp.yielding
+    sp.reset(1)
+    assert sp.yield_on is None
+    sp.rtt_s = 0.5
+    sp.remote.update(1, 1.0)
+    sp.asked_n, sp.shown_n = 12.0, 8.0
+    sp.correct(tool, tool, press, 0.01)
+    assert sp.yield_on is False and not sp.yielding

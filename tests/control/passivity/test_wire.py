@@ -195,6 +195,47 @@ def test_the_master_reports_the_force_asked_and_shown_at_the_tool_and_the_slave_
     assert seen[-1].asked_n is None and seen[-1].shown_n is None
 
 
+def test_each_side_measures_the_round_trip_from_the_others_echo_and_the_decision_yields_on_it(
+    net: Net,
+) -> None:
+    """The master and the decision exchange figures over loopback: each echoes the other's
+    newest stamp, each measures the round trip (well under a second here) and sends it as
+    `rtt_ms`; the decision's port takes it, and a short one lets it yield."""
+    a, b = net.node("master"), net.node("robot")
+    tdpa = MasterTdpa(a, "m1", lambda: 7, force_scale=1.0)
+    at_robot: list[PassivityState] = []
+    at_master: list[PassivityState] = []
+    b.subscribe(keys.PASSIVITY_MASTER, at_robot.append)
+    a.subscribe(keys.PASSIVITY_SLAVE, at_master.append)
+    slave = SlaveTdpa(b, drift_m_s=0.0, yield_m_s_n=5e-5, yield_max_rtt_s=0.25)
+    st = robot_state()
+    push = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
+
+    def exchanged() -> bool:
+        tdpa.hook(wrench(-8.0), hand(0.0), 0.002)
+        slave.apply(command(1, 0.0), ("m1", 7), st, push, 0)
+        return slave.pc.rtt_s is not None and tdpa.link.rtt_s(time.monotonic_ns()) is not None
+
+    assert wait_until(exchanged)
+    rtt = slave.pc.rtt_s
+    assert rtt is not None and 0.0 <= rtt < 1.0
+    assert wait_until(lambda: any(m.rtt_ms is not None for m in at_master))
+    assert wait_until(lambda: any(m.rtt_ms is not None for m in at_robot))
+    echoed = [m for m in at_robot if m.echo_t_ns is not None]
+    sent = {m.t_ns for m in at_master}
+    assert echoed and all(m.echo_t_ns in sent for m in echoed)  # ours, stamp for stamp
+    assert all(m.echo_age_ns is not None and m.echo_age_ns >= 0 for m in echoed)
+    assert slave.link.ignored == 0 and tdpa.link.ignored == 0
+    # The contact began before any round trip was known: no yield for it; the next one,
+    # begun on this short round trip, yields.
+    assert slave.pc.yield_on is False
+    free = dataclasses.replace(push, seq=2, t_ns=time.time_ns(), f=(0.0, 0.0, 0.0))
+    slave.apply(command(1, 0.0), ("m1", 7), st, free, 0)
+    again = dataclasses.replace(push, seq=3, t_ns=time.time_ns())
+    slave.apply(command(1, 0.0), ("m1", 7), st, again, 0)
+    assert slave.pc.yield_on is True
+
+
 def robot_state(
     tool_R: tuple[float, ...] = IDENTITY_R,
     tool_p: tuple[float, ...] = (0.5, 0.0, 0.5),

@@ -318,3 +318,14 @@ def test_a_port_with_a_rotational_port_shows_its_energies() -> None:
     assert "rotation out (J)" in out and ">+0.0031<" in out
     plain = passivity_html(tdpa_view({"master": PortSeen.first(fig("master"), 0.0)}, 0.1))
     assert "tr-tdpa-rot-in" not in plain  # no rotational port: no rows
+
+
+def test_a_side_that_measured_the_round_trip_shows_it() -> None:
+    timed = replace(fig("slave", steps=1), rtt_ms=412.25)
+    v = tdpa_view({"slave": PortSeen.first(timed, 0.0)}, 0.1)
+    s = v.port("slave")
+    assert s is not None and s.rtt_ms == 412.25
+    out = passivity_html(v)
+    assert "round trip (ms)" in out and 'class="tr-tdpa-rtt"' in out and ">412.2<" in out
+    plain = passivity_html(tdpa_view({"slave": PortSeen.first(fig("slave"), 0.0)}, 0.1))
+    assert "tr-tdpa-rtt" not in plain  # nothing measured yet: no row

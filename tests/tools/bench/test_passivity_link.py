@@ -39,6 +39,10 @@ def fake_run(rtt_ms: float, on: bool, *_: object, **__: object) -> dict[str, Any
         "slave_recovered_j": 0.25,
         "master_dissipated_j": 0.01 if on else nan,
         "slave_dissipated_j": 0.02 if on else nan,
+        "slave_rtt_ms": 1.5 * rtt_ms + 1.0 if on else nan,
+        "master_rtt_ms": 1.5 * rtt_ms + 2.0 if on else nan,
+        "uplink_ms": 0.75 * rtt_ms if on else nan,
+        "uplink_p90_ms": rtt_ms if on else nan,
     }
     return m
 
@@ -86,7 +90,9 @@ def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.Monkey
     said: list[str] = []
     doc, runs = passivity_link.run_matrix((0, 700), 0.1, 0.01, said.append, transport="udp")
     assert sorted(runs) == [(0, False), (0, True), (700, False), (700, True)]
-    assert len(said) == 4
+    assert len(said) == 6  # each run, and what the ports measured in each with TDPA on
+    assert "decision 1051.0 ms, master 1052.0 ms" in said[5]
+    assert "on the way 525.0 ms (p90 700.0)" in said[5]
     for delay in (0, 700):
         for on in ("off", "on"):
             for name in passivity.MEASURES:
@@ -99,6 +105,8 @@ def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.Monkey
     assert doc["settings"]["transport"] == "udp"
     assert sorted(doc["runs"]) == ["0_off", "0_on", "700_off", "700_on"]
     assert doc["runs"]["700_on"]["events"] == ["decision/limit: x"]
+    assert doc["runs"]["700_on"]["measured_rtt_ms"] == {"decision": 1051.0, "master": 1052.0}
+    assert doc["runs"]["700_off"]["measured_rtt_ms"] == {"decision": None, "master": None}
     json.loads(json.dumps(doc, allow_nan=False))  # strict JSON
     text = passivity.table(doc)
     assert len(text.splitlines()) == 2 + 4
@@ -152,7 +160,7 @@ def _runs_told(monkeypatch: pytest.MonkeyPatch, keyword: str) -> list[object]:
         ("--rate-mbit", "rate_mbit", 0.5, 0.0, None),
         ("--master-rate-hz", "master_rate_hz", 200.0, passivity_link.MASTER_RATE_HZ, "rate_hz"),
         ("--hold-s", "hold_s", 4.0, passivity_link.HOLD_S, None),
-        ("--yield", "yield_m_s_n", 5e-5, 0.0, None),
+        ("--yield", "yield_m_s_n", 0.0, passivity_link.YIELD_DEFAULT, None),
     ],
 )
 def test_a_link_setting_reaches_every_run_and_the_document(
@@ -194,6 +202,7 @@ def test_a_link_setting_reaches_every_run_and_the_document(
         ["--yield", "5e-5"],
         ["--link", "--yield", "-1e-5"],
         ["--link", "--yield", "0.5"],
+        ["--link", "--yield", "nan"],
     ],
 )
 def test_a_bad_link_setting_is_refused_by_name(
