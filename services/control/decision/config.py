@@ -116,7 +116,7 @@ class DecisionConfig:
         many m/s per newton it presses harder than the master shows the operator (0: off;
         default 5e-5, the rate measured; docs/passivity.md "Yielding to the hand"), for a
         contact that began while the link's round trip, measured from the master's
-        echoes, was at most passivity_yield_max_rtt_ms (default 250; 1 … 60 000).
+        echoes, was at most passivity_yield_max_rtt_ms (default 500; 1 … 60 000).
       compliance: admittance on: the target yields to the wrist force,
         dp = admittance_m_per_n_s · f_world · dt, dθ = admittance_rad_per_nm_s · c_tool · dt,
         with deadbands admittance_deadband_n / admittance_deadband_nm.
@@ -175,7 +175,7 @@ class DecisionConfig:
     estop_power_off: bool = False
     passivity: bool = False
     passivity_yield_m_s_n: float = 5e-5  # the rate measured (passivity.slave.YIELD_M_S_N)
-    passivity_yield_max_rtt_ms: float = 250.0
+    passivity_yield_max_rtt_ms: float = 500.0
 
     def __post_init__(self) -> None:
         for key in _POSITIVE:

@@ -422,7 +422,7 @@ def main(argv: list[str] | None = None) -> int:
         metavar="M_S_N",
         help="--link: the decision's passivity_yield_m_s_n (default: the decision's, 5e-5: "
         "the tool backs out to the force the hand feels while the round trip is at most "
-        "250 ms; 0: off)",
+        "500 ms; 0: off)",
     )
     p.add_argument(
         "--json", default=None, metavar="FILE", help="default artifacts/bench_passivity[_link].json"
