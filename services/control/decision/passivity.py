@@ -151,7 +151,7 @@ class SlaveTdpa:
         got = self._master_energy.read()
         mono = time.monotonic_ns()
         if got is not None and got[0].master == operator[0] and got[0].side == "master":
-            self.link.heard(got[0], got[1], time.time_ns(), mono)
+            self.link.heard(got[0], time.time_ns(), mono)
             self.pc.remote.update(got[0].engage, got[0].e_in)
             ours = got[0].engage == operator[1]
             self.pc.asked_n = got[0].asked_n if ours else None

@@ -144,7 +144,7 @@ class MasterTdpa:
         if got is not None:
             msg = got[0]
             if msg.master == self.master_id and msg.side == "slave":
-                self.link.heard(msg, got[1], time.time_ns(), time.monotonic_ns())
+                self.link.heard(msg, time.time_ns(), time.monotonic_ns())
                 self.pc.remote.update(msg.engage, msg.e_in)
                 if rot is not None and msg.rot_e_in is not None:
                     rot.remote.update(msg.engage, msg.rot_e_in)

@@ -6,7 +6,11 @@ other side (`echo_t_ns`) and how long it had held it (`echo_age_ns`). When the e
 of this side's own messages comes back, the round trip is the time since this side sent
 it, less the other side's hold: `arrival − echo_t_ns − echo_age_ns`. Both differences are
 taken on one clock each (this side's wall clock for its own send and the arrival, the
-other side's monotonic clock for its hold), so the two hosts' clocks need not agree.
+other side's monotonic clock for its hold), so the two hosts' clocks need not agree. A
+message arrives, for this count, when a side first reads it (each reads the other's newest
+figures once a period, from Zenoh's ring of one: no Python runs per message), so the round
+trip includes how late each side read (at most a period of each: 2 ms at 500 Hz), never
+less than the link's.
 
 The estimate is the median of the round trips of the last `window_s`, one kept every
 `SAMPLE_NS` at most: over TCP a lost packet holds the stream behind it for a retransmission
@@ -39,34 +43,30 @@ class RoundTrip:
     def __init__(self, window_s: float = WINDOW_S) -> None:
         self._window_ns = int(window_s * 1e9)
         self._heard: tuple[int, int] | None = None  # (their t_ns, its arrival, monotonic)
-        self._last: tuple[int, int] | None = None  # (their seq, their echo) measured last
+        self._heard_key: tuple[int, int] | None = None  # (their seq, their t_ns)
         self._samples: deque[tuple[int, float]] = deque()  # (arrival, rtt s)
         self._median: float | None = None
         self._stale = False
         self.measured = 0
         self.ignored = 0
 
-    def heard(
-        self, msg: PassivityState, arrival_mono_ns: int, now_wall_ns: int, now_mono_ns: int
-    ) -> None:
-        """The other side's newest message, arrived at `arrival_mono_ns` (monotonic): kept to
-        echo, and, if it echoes one of ours not measured yet, a round trip."""
-        self._heard = (msg.t_ns, arrival_mono_ns)
+    def heard(self, msg: PassivityState, now_wall_ns: int, now_mono_ns: int) -> None:
+        """The other side's newest message, read now: kept to echo if new (arrived now), and,
+        if it echoes one of ours not measured yet, a round trip."""
+        if self._heard is not None and self._heard_key == (msg.seq, msg.t_ns):
+            return  # the same message read again: it arrived when first read
+        self._heard_key = (msg.seq, msg.t_ns)
+        self._heard = (msg.t_ns, now_mono_ns)
         if msg.echo_t_ns is None or msg.echo_age_ns is None:
             return
-        key = (msg.seq, msg.echo_t_ns)
-        if key == self._last:  # the same message read again
-            return
-        self._last = key
-        arrival_wall_ns = now_wall_ns - (now_mono_ns - arrival_mono_ns)
-        rtt_ns = arrival_wall_ns - msg.echo_t_ns - msg.echo_age_ns
+        rtt_ns = now_wall_ns - msg.echo_t_ns - msg.echo_age_ns
         if not 0 <= rtt_ns <= MAX_RTT_NS:
             self.ignored += 1
             return
         self.measured += 1
-        if self._samples and arrival_mono_ns - self._samples[-1][0] < SAMPLE_NS:
+        if self._samples and now_mono_ns - self._samples[-1][0] < SAMPLE_NS:
             return
-        self._samples.append((arrival_mono_ns, rtt_ns * 1e-9))
+        self._samples.append((now_mono_ns, rtt_ns * 1e-9))
         self._stale = True
 
     def echo(self, now_mono_ns: int) -> tuple[int, int] | None:

@@ -85,7 +85,8 @@ def test_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
 
 
 def test_the_yield_to_the_hand_is_on_for_short_round_trips_by_default() -> None:
-    """The measured rate (the port's own constant), up to 500 ms of round trip (measured: docs/passivity.md)."""
+    """The measured rate (the port's own constant), up to 500 ms of round trip
+    (docs/passivity.md, "The round trip")."""
     cfg = DecisionConfig()
     assert cfg.passivity_yield_m_s_n == YIELD_M_S_N
     assert cfg.passivity_yield_max_rtt_ms == 500.0
