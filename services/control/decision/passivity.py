@@ -256,7 +256,7 @@ class SlaveTdpa:
 
     def _publish(self, operator: tuple[str, int]) -> None:
         self._seq += 1
-        now = time.monotonic_ns()
+        echo, rtt_s = self.link.carry(time.monotonic_ns())
         self._pub.put(
             passivity_state(
                 self._seq,
@@ -265,7 +265,7 @@ class SlaveTdpa:
                 "slave",
                 self.pc,
                 rot=self.rot,
-                echo=self.link.echo(now),
-                rtt_s=self.pc.rtt_s,
+                echo=echo,
+                rtt_s=rtt_s,
             )
         )

@@ -166,7 +166,7 @@ class MasterTdpa:
 
     def _publish(self, engage: int) -> None:
         self._seq += 1
-        now = time.monotonic_ns()
+        echo, rtt_s = self.link.carry(time.monotonic_ns())
         self._pub.put(
             passivity_state(
                 self._seq,
@@ -176,7 +176,7 @@ class MasterTdpa:
                 self.pc,
                 self.force_scale,
                 rot=self.rot,
-                echo=self.link.echo(now),
-                rtt_s=self.link.rtt_s(now),
+                echo=echo,
+                rtt_s=rtt_s,
             )
         )

@@ -10,7 +10,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from services.bus.messages import PassivityState
-from services.control.passivity.roundtrip import MAX_RTT_NS, SAMPLE_NS, WINDOW_S, RoundTrip
+from services.control.passivity.roundtrip import (
+    ECHO_EVERY_NS,
+    MAX_RTT_NS,
+    SAMPLE_NS,
+    WINDOW_S,
+    RoundTrip,
+)
 
 MS = 1_000_000
 
@@ -140,3 +146,16 @@ def test_a_message_without_an_echo_still_updates_what_we_echo() -> None:
     rt.heard(theirs(1, 100, None), 10**12, 1 * MS)
     rt.heard(dataclasses.replace(theirs(2, 200, None)), 10**12, 3 * MS)
     assert rt.echo(4 * MS) == (200, 1 * MS)
+
+
+def test_the_echo_and_the_round_trip_ride_on_one_message_in_each_interval() -> None:
+    """52 bytes a message: carried at most every ECHO_EVERY_NS, not on every one."""
+    rt = RoundTrip()
+    assert rt.carry(0) == (None, None)  # nothing heard yet: nothing to carry
+    sent = 10_000 * MS
+    rt.heard(theirs(1, 42, (sent, 0)), sent + 100 * MS, 1_000 * MS)
+    echo, rtt = rt.carry(1_001 * MS)
+    assert echo == (42, 1 * MS) and rtt == pytest.approx(0.100)
+    assert rt.carry(1_001 * MS + ECHO_EVERY_NS - 1) == (None, None)
+    echo, rtt = rt.carry(1_001 * MS + ECHO_EVERY_NS)
+    assert echo == (42, 1 * MS + ECHO_EVERY_NS) and rtt == pytest.approx(0.100)

@@ -219,8 +219,9 @@ def test_each_side_measures_the_round_trip_from_the_others_echo_and_the_decision
     assert wait_until(exchanged)
     rtt = slave.pc.rtt_s
     assert rtt is not None and 0.0 <= rtt < 1.0
-    assert wait_until(lambda: any(m.rtt_ms is not None for m in at_master))
-    assert wait_until(lambda: any(m.rtt_ms is not None for m in at_robot))
+    # The round trip rides on a message every 20 ms at most: the exchange goes on meanwhile.
+    assert wait_until(lambda: exchanged() and any(m.rtt_ms is not None for m in at_master))
+    assert wait_until(lambda: exchanged() and any(m.rtt_ms is not None for m in at_robot))
     echoed = [m for m in at_robot if m.echo_t_ns is not None]
     sent = {m.t_ns for m in at_master}
     assert echoed and all(m.echo_t_ns in sent for m in echoed)  # ours, stamp for stamp
