@@ -265,10 +265,13 @@ class Node:
         self._decls.append(self.session.declare_subscriber(topic.key, intake.on_sample))
         return intake
 
-    def latest(self, topic: Topic[M], watch: bool = True) -> Latest[M]:
+    def latest(
+        self, topic: Topic[M], watch: bool = True, each: Callable[[M], None] | None = None
+    ) -> Latest[M]:
         """The newest message of `topic`, decoded when read (see `Latest`); `watch=False`:
-        not subscribed until `watch(True)`."""
-        handle = Latest(self, topic, watch)
+        not subscribed until `watch(True)`; `each`: every message queued since the previous
+        read is handed to it when read."""
+        handle = Latest(self, topic, watch, each)
         self._decls.append(handle)
         return handle
 

@@ -142,11 +142,26 @@ class Latest(Generic[M]):
     nothing, a publisher following its matching status stops sending); `read()` then keeps
     returning the last message, ageing. `watch(True)` subscribes again. Call it from the
     reader's thread (or under the reader's lock).
+
+    `each`: a reader that must see every message, not only the newest (a field only some
+    messages carry: the passivity ports' echoes), gets a ring of `depth` instead of one;
+    `read()` then decodes every message queued since the previous read and hands each valid
+    one to `each` in arrival order (at most `depth` of them: older ones are Zenoh's to drop),
+    on the reader's thread, before returning the newest.
     """
 
-    def __init__(self, node: Node, topic: Topic[M], watch: bool = True) -> None:
+    def __init__(
+        self,
+        node: Node,
+        topic: Topic[M],
+        watch: bool = True,
+        each: Callable[[M], None] | None = None,
+        depth: int = 64,
+    ) -> None:
         self.topic = topic
         self._node = node
+        self._each = each
+        self._depth = depth if each is not None else 1
         self._sub: Any = None
         if watch:
             self.watch(True)
@@ -164,7 +179,7 @@ class Latest(Generic[M]):
         """Subscribe (on) or drop the subscription (off); no-op if already so."""
         if on and self._sub is None:
             self._sub = self._node.session.declare_subscriber(
-                self.topic.key, zenoh.handlers.RingChannel(1)
+                self.topic.key, zenoh.handlers.RingChannel(self._depth)
             )
         elif not on and self._sub is not None:
             sub, self._sub = self._sub, None
@@ -174,14 +189,21 @@ class Latest(Generic[M]):
     def read(self) -> tuple[M, int] | None:
         """(newest message, its arrival on time.monotonic_ns()) or None if none yet."""
         sub = self._sub
+        samples = []
         try:
-            sample = sub.try_recv() if sub is not None else None
+            while sub is not None:
+                sample = sub.try_recv()
+                if sample is None:
+                    break
+                samples.append(sample)
+                if self._each is None:
+                    break  # a ring of one
         except zenoh.ZError:  # the session is closing
-            sample = None
+            pass
         now_mono = time.monotonic_ns()
         previous, self._read_ns = self._read_ns, now_mono
-        if sample is not None:
-            now_wall = time.time_ns()
+        now_wall = time.time_ns() if samples else 0
+        for sample in samples:
             try:
                 msg = codec.decode(
                     self.topic.type, payload_bytes(sample.payload, self.topic.max_bytes)
@@ -189,11 +211,13 @@ class Latest(Generic[M]):
             except ProtocolError as e:
                 self.rejected += 1
                 self._node.report_rejected(str(sample.key_expr), str(e))
-            else:
-                self.received += 1
-                if newer(msg, self._msg):
-                    age_ns = min(max(now_wall - int(getattr(msg, "t_ns", now_wall)), 0), 10**12)
-                    self._msg, self._rx_ns = msg, max(previous, now_mono - age_ns)
+                continue
+            self.received += 1
+            if self._each is not None:
+                self._each(msg)
+            if newer(msg, self._msg):
+                age_ns = min(max(now_wall - int(getattr(msg, "t_ns", now_wall)), 0), 10**12)
+                self._msg, self._rx_ns = msg, max(previous, now_mono - age_ns)
         return None if self._msg is None else (self._msg, self._rx_ns)
 
 

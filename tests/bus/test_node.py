@@ -154,6 +154,26 @@ def test_latest_reads_the_newest_sample_without_a_callback_per_sample(net: Net) 
     assert b.rejected[keys.FORCE.key] == 1
 
 
+def test_latest_with_each_hands_every_queued_message_over_in_order_then_the_newest(
+    net: Net,
+) -> None:
+    """A reader of a field only some messages carry: `each` sees all 40 sent (a bad one
+    among them counted and skipped), in order; `read()` still returns the newest."""
+    a, b = net.node("force"), net.node("decision")
+    seen: list[int] = []
+    latest = b.latest(keys.FORCE, each=lambda m: seen.append(m.seq))
+    pub = a.publisher(keys.FORCE)
+    wait_matched(pub)
+    for i in range(1, 21):
+        pub.put(force(i))
+    a.session.put(keys.FORCE.key, b"\xc1 garbage")
+    for i in range(21, 41):
+        pub.put(force(i))
+    assert wait_until(lambda: (r := latest.read()) is not None and r[0].seq == 40)
+    assert seen == list(range(1, 41))
+    assert latest.rejected == 1 and latest.received == 40
+
+
 def test_latest_unwatched_is_no_subscription_and_keeps_its_last_message(net: Net) -> None:
     """`watch(False)` undeclares: the publisher's matching status drops (a service that
     follows it stops sending); the last message stays readable; `watch(True)` resumes."""

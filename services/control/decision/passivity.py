@@ -34,7 +34,7 @@ import time
 import numpy as np
 
 from services.bus import keys
-from services.bus.messages import ForceSample, OperatorCommand, RobotState
+from services.bus.messages import ForceSample, OperatorCommand, PassivityState, RobotState
 from services.bus.node import Node
 from services.control.passivity.rotation import (
     RotationTrack,
@@ -81,7 +81,8 @@ class SlaveTdpa:
             yield_max_rtt_s=yield_max_rtt_s,
         )
         self.link = RoundTrip()
-        """The round trip to the operator's master and back, from its echoes of ours."""
+        """The round trip to the operator's master and back, from its echoes of ours (which
+        ride on one message in many: every message is read, not only the newest)."""
         self.rot: SlavePort | None = None
         """The rotational port, while the operator's master runs one (None: it does not)."""
         self._enabled, self._drift_m_s = enabled, drift_m_s
@@ -89,7 +90,7 @@ class SlaveTdpa:
         self._angles = TimedHistory()
         self._moment = TimedHistory()
         self._pub = node.publisher(keys.PASSIVITY_SLAVE)
-        self._master_energy = node.latest(keys.PASSIVITY_MASTER)
+        self._master_energy = node.latest(keys.PASSIVITY_MASTER, each=self._heard)
         self._seq = 0
         self._operator: tuple[str, int] | None = None
         self._arm_engage: int | None = None
@@ -151,7 +152,6 @@ class SlaveTdpa:
         got = self._master_energy.read()
         mono = time.monotonic_ns()
         if got is not None and got[0].master == operator[0] and got[0].side == "master":
-            self.link.heard(got[0], time.time_ns(), mono)
             self.pc.remote.update(got[0].engage, got[0].e_in)
             ours = got[0].engage == operator[1]
             self.pc.asked_n = got[0].asked_n if ours else None
@@ -178,6 +178,11 @@ class SlaveTdpa:
             if dR is None
             else dataclasses.replace(cmd, dp=dp, dR=dR)
         )
+
+    def _heard(self, msg: PassivityState) -> None:
+        """Each of the operator's master's figures as read (in `apply`): its echo of ours."""
+        if self._operator is not None and (msg.master, msg.side) == (self._operator[0], "master"):
+            self.link.heard(msg, time.time_ns(), time.monotonic_ns())
 
     def _turned(
         self, cmd: OperatorCommand, state: RobotState, c_now: list[float], dt_s: float

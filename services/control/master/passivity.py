@@ -21,6 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from services.bus import keys
+from services.bus.messages import PassivityState
 from services.bus.node import Node
 from services.control.master.config import DEVICE_INERTIA_KG_M2
 from services.control.master.devices import HandReading
@@ -124,9 +125,10 @@ class MasterTdpa:
         self._turn = RotationTrack()
         self._engage = engage
         self._pub = node.publisher(keys.PASSIVITY_MASTER)
-        self._slave = node.latest(keys.PASSIVITY_SLAVE)
         self.link = RoundTrip()
-        """The round trip to the decision and back, from its echoes of ours."""
+        """The round trip to the decision and back, from its echoes of ours (which ride on
+        one message in many: every message is read, not only the newest)."""
+        self._slave = node.latest(keys.PASSIVITY_SLAVE, each=self._heard)
         self._seq = 0
         self._epoch: int | None = None
         self._dts: deque[float] = deque(maxlen=HORIZON_TICKS)
@@ -144,7 +146,6 @@ class MasterTdpa:
         if got is not None:
             msg = got[0]
             if msg.master == self.master_id and msg.side == "slave":
-                self.link.heard(msg, time.time_ns(), time.monotonic_ns())
                 self.pc.remote.update(msg.engage, msg.e_in)
                 if rot is not None and msg.rot_e_in is not None:
                     rot.remote.update(msg.engage, msg.rot_e_in)
@@ -163,6 +164,11 @@ class MasterTdpa:
             wrench.force_saturated,
             wrench.torque_saturated and rot is not None,
         )
+
+    def _heard(self, msg: PassivityState) -> None:
+        """Each of the decision's figures as read (the loop's thread): its echo of ours."""
+        if msg.master == self.master_id and msg.side == "slave":
+            self.link.heard(msg, time.time_ns(), time.monotonic_ns())
 
     def _publish(self, engage: int) -> None:
         self._seq += 1
