@@ -7,10 +7,10 @@ of this side's own messages comes back, the round trip is the time since this si
 it, less the other side's hold: `arrival − echo_t_ns − echo_age_ns`. Both differences are
 taken on one clock each (this side's wall clock for its own send and the arrival, the
 other side's monotonic clock for its hold), so the two hosts' clocks need not agree. A
-message arrives, for this count, when a side first reads it (each reads the other's newest
-figures once a period, from Zenoh's ring of one: no Python runs per message), so the round
-trip includes how late each side read (at most a period of each: 2 ms at 500 Hz), never
-less than the link's.
+message arrives, for this count, when a side first reads it (each reads, once a period,
+every message of the other's queued since its last read: `Latest(each=…)`, as the echo rides
+on one message in many), so the round trip includes how late each side read (at most a
+period of each: 2 ms at 500 Hz), never less than the link's.
 
 The estimate is the median of the round trips of the last `window_s`, one kept every
 `SAMPLE_NS` at most: over TCP a lost packet holds the stream behind it for a retransmission
