@@ -50,7 +50,6 @@ class RoundTrip:
     def __init__(self, window_s: float = WINDOW_S) -> None:
         self._window_ns = int(window_s * 1e9)
         self._heard: tuple[int, int] | None = None  # (their t_ns, its arrival, monotonic)
-        self._heard_key: tuple[int, int] | None = None  # (their seq, their t_ns)
         self._samples: deque[tuple[int, float]] = deque()  # (arrival, rtt s)
         self._median: float | None = None
         self._stale = False
@@ -59,11 +58,8 @@ class RoundTrip:
         self.ignored = 0
 
     def heard(self, msg: PassivityState, now_wall_ns: int, now_mono_ns: int) -> None:
-        """The other side's newest message, read now: kept to echo if new (arrived now), and,
-        if it echoes one of ours not measured yet, a round trip."""
-        if self._heard is not None and self._heard_key == (msg.seq, msg.t_ns):
-            return  # the same message read again: it arrived when first read
-        self._heard_key = (msg.seq, msg.t_ns)
+        """Each message of the other side, once, as it is read (`Latest(each=…)`): kept to
+        echo (it arrived now), and, if it echoes one of ours, a round trip."""
         self._heard = (msg.t_ns, now_mono_ns)
         if msg.echo_t_ns is None or msg.echo_age_ns is None:
             return
