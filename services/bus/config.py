@@ -1,7 +1,7 @@
 """Configuration from one place: the Zenoh flags every service shares, and the deployment TOML.
 
 A deployment is one TOML file (see `deploy/*.toml`): a `[zenoh]` table for the node and
-one table per service (`[puma]`, `[force]`, …). `section()` reads a table into the
+one table per service (`[arm]`, `[force]`, …). `section()` reads a table into the
 service's frozen dataclass, so a misspelt key or a bad value fails at start-up with the key
 named. Command-line flags override the file.
 """

@@ -85,7 +85,7 @@ TOPICS: tuple[Topic[Any], ...] = (
 )
 TOPIC_BY_KEY: dict[str, Topic[Any]] = {t.key: t for t in TOPICS}
 
-SERVICES = ("puma", "force", "decision", "master", "vision", "console")
+SERVICES = ("arm", "force", "decision", "master", "vision", "console")
 
 ALIVE_PREFIX = "alive"
 ENCODING = "application/msgpack"

@@ -107,16 +107,16 @@ class RobotState(Message):
     grip: Unit | None = None
     manipulability: float | None = None
     cmd_rx_ns: Count | None = None
-    """Extension: time.time_ns() when the puma received command `cmd_seq`."""
+    """Extension: time.time_ns() when the arm received command `cmd_seq`."""
     setpoint_ns: Count | None = None
     """Extension: time.time_ns() when the first arm setpoint computed from command `cmd_seq`
     went to the arm (absent until one has)."""
     cmd_origin_t_ns: Count | None = None
     """Extension: the `origin_t_ns` that command `cmd_seq` carried (the operator's send
-    time), so master→puma and master→setpoint are timed on one clock."""
+    time), so master→arm and master→setpoint are timed on one clock."""
     tool_p_cmd: Vec3 | None = None
     """Extension: the tool position (world) of the setpoint the arm is following; the pose
-    the puma takes as a new engagement's start (`tool_p` is measured, and trails it by the
+    the arm takes as a new engagement's start (`tool_p` is measured, and trails it by the
     servo's error). Left out when the two agree (at rest)."""
 
 

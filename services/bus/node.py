@@ -459,7 +459,7 @@ class Node:
         """Send a call and return at once; `result()` waits for the reply (as `call`).
 
         Calls started one after the other run concurrently: the decision's `status` asks
-        puma and force at the same time.
+        arm and force at the same time.
         """
         deadline = time.monotonic() + timeout_s
         if not self.alive.wait(service, timeout_s):

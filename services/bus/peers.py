@@ -2,7 +2,7 @@
 (`Peers`), or all are clients of one router (`Clients`).
 
 For in-process systems (the headless tasks, the link bench's robot side) that want their
-services on separate nodes, as in deployment, without a router: `Peers().node("puma")`.
+services on separate nodes, as in deployment, without a router: `Peers().node("arm")`.
 Multicast scouting stays off (`NodeConfig`'s default); by default the endpoint is a free
 port on loopback.
 """

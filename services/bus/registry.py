@@ -21,7 +21,7 @@ R = TypeVar("R")
 class BackendRegistry(Generic[R]):
     """Backend name → `"module:Class"` (any callable returning an `R`) for one role.
 
-    `key` is the configuration key that chooses the backend (e.g. "puma.arm"); `what` names
+    `key` is the configuration key that chooses the backend (e.g. "arm.driver"); `what` names
     the role in errors ("arm").
     """
 

@@ -1,2 +1,2 @@
-"""The control services: the processes of the teleoperation loop (puma, force,
+"""The control services: the processes of the teleoperation loop (arm, force,
 decision, master, vision) and the passivity controllers they share."""

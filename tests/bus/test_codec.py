@@ -91,7 +91,7 @@ VALID: dict[type[Message], dict[str, Any]] = {
     Event: {
         "seq": 1,
         "t_ns": 10,
-        "source": "puma",
+        "source": "arm",
         "kind": "status",
         "message": "ready",
         "data": {"a": 1},

@@ -99,12 +99,12 @@ GOLDEN: list[tuple[Message, str]] = [
         Event(
             seq=5,
             t_ns=1_700_000_000_000_000_005,
-            source="puma",
+            source="arm",
             kind="status",
             message="ready → moving",
             data={"from": "ready", "to": "moving", "n": 2},
         ),
-        "86a373657105a4745f6e73cf17979cfe362a0005a6736f75726365a470756d61a46b696e64a673746174"
+        "86a373657105a4745f6e73cf17979cfe362a0005a6736f75726365a361726da46b696e64a673746174"
         "7573a76d657373616765b0726561647920e28692206d6f76696e67a46461746183a466726f6da5726561"
         "6479a2746fa66d6f76696e67a16e02",
     ),

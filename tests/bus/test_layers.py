@@ -58,7 +58,7 @@ PLANTED = [
     # bus at the bottom imports nothing above it
     (
         "services/bus/planted.py",
-        "import services.control.puma.config",
+        "import services.control.arm.config",
         "services.bus is not allowed",
     ),
     # a service never imports a tool (what seven mains did with cli.introspect)
@@ -75,9 +75,9 @@ PLANTED = [
     ),
     # a model under the services does not reach up into one, not even lazily
     (
-        "services/control/puma/planted.py",
+        "services/control/arm/planted.py",
         "def f() -> None:\n    from services.control.vision import config",
-        "services.control.puma is not allowed to import services.control.vision",
+        "services.control.arm is not allowed to import services.control.vision",
     ),
     # the services never import the tests' helpers
     (

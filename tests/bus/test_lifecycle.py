@@ -23,7 +23,7 @@ MAINS = [
     *(
         f"services.{name}.__main__"
         for name in (
-            "control.puma",
+            "control.arm",
             "control.force",
             "control.decision",
             "control.master",

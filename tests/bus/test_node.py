@@ -212,13 +212,13 @@ def test_latest_wins_accepts_a_restarted_publisher(net: Net) -> None:
 
 
 def test_events_are_not_latest_wins(net: Net) -> None:
-    a, b = net.node("puma"), net.node("watch")
+    a, b = net.node("arm"), net.node("watch")
     seen: list[int] = []
     sub = b.subscribe(keys.EVENTS, lambda e: seen.append(e.seq))
     pub = a.publisher(keys.EVENTS)
     wait_matched(pub)
     for seq in (3, 2, 1):
-        pub.put(Event(seq=seq, t_ns=1, source="puma", kind="status", message="x"))
+        pub.put(Event(seq=seq, t_ns=1, source="arm", kind="status", message="x"))
     assert sub.wait_count(3, DEADLINE_S) and wait_until(lambda: len(seen) == 3)
     assert seen == [3, 2, 1] and sub.latest is not None and sub.latest.seq == 1
 
@@ -260,7 +260,7 @@ def test_closing_the_node_stops_the_intake_thread(net: Net) -> None:
 
 
 def test_rejected_payload_is_counted_and_reported(net: Net) -> None:
-    watcher, a, b = net.node("console"), net.node("force"), net.node("puma")
+    watcher, a, b = net.node("console"), net.node("force"), net.node("arm")
     events = Events(watcher, b)
     sub = b.subscribe(keys.FORCE)
     pub = a.publisher(keys.FORCE)
@@ -277,7 +277,7 @@ def test_rejected_payload_is_counted_and_reported(net: Net) -> None:
     assert b.rejected == {"robot/force": 2}
 
     ev = events.wait(lambda e: e.kind == "rejected")
-    assert ev.source == "puma" and "robot/force" in ev.message
+    assert ev.source == "arm" and "robot/force" in ev.message
     assert ev.data is not None and ev.data["key"] == "robot/force" and ev.data["count"] == 1
     assert ev.data["reason"].startswith("payload: ")
     # Reports are rate-limited per key (1/s): the second rejection is counted, not reported.
@@ -285,7 +285,7 @@ def test_rejected_payload_is_counted_and_reported(net: Net) -> None:
 
 
 def test_a_failing_on_message_handler_reports_and_the_stream_flows(net: Net) -> None:
-    watcher, a, b = net.node("console"), net.node("force"), net.node("puma")
+    watcher, a, b = net.node("console"), net.node("force"), net.node("arm")
     events = Events(watcher, b)
     got: list[int] = []
 
@@ -302,7 +302,7 @@ def test_a_failing_on_message_handler_reports_and_the_stream_flows(net: Net) -> 
     assert sub.wait_count(3, DEADLINE_S)
     assert wait_until(lambda: got == [1, 3])
     ev = events.wait(lambda e: e.kind == "error")
-    assert ev.source == "puma" and "robot/force" in ev.message
+    assert ev.source == "arm" and "robot/force" in ev.message
     assert ev.data is not None and "handler bug" in ev.data["traceback"]
 
 
@@ -318,9 +318,9 @@ class Puma:
 
 
 @pytest.fixture
-def puma(net: Net) -> Iterator[Puma]:
-    """A client, a 'puma' service with a few methods, and the client's event log."""
-    client, service = net.node("console"), net.node("puma")
+def arm(net: Net) -> Iterator[Puma]:
+    """A client, a 'arm' service with a few methods, and the client's event log."""
+    client, service = net.node("console"), net.node("arm")
     release = threading.Event()
 
     def status(args: dict[str, Any]) -> dict[str, Any]:
@@ -341,7 +341,7 @@ def puma(net: Net) -> Iterator[Puma]:
         return {"done": True}
 
     service.serve(
-        "puma",
+        "arm",
         {"status": status, "move_joints": move_joints, "limit": limit, "boom": boom, "slow": slow},
     )
     service.announce()
@@ -432,78 +432,78 @@ def test_calls_started_together_run_concurrently(net: Net) -> None:
         client.call_start("nobody", "status", {}, 0.2)
 
 
-def test_call_success_reply(puma: Puma) -> None:
-    client = puma.client
-    assert client.call("puma", "status") == {"status": "ready", "q": [0.0] * 6, "echo": {}}
-    assert client.call("puma", "status", {"x": [1, 2]})["echo"] == {"x": [1, 2]}
-    reply = client.call("puma", "move_joints", {"q": [0, 1, 2, 3, 4, 5]})
+def test_call_success_reply(arm: Puma) -> None:
+    client = arm.client
+    assert client.call("arm", "status") == {"status": "ready", "q": [0.0] * 6, "echo": {}}
+    assert client.call("arm", "status", {"x": [1, 2]})["echo"] == {"x": [1, 2]}
+    reply = client.call("arm", "move_joints", {"q": [0, 1, 2, 3, 4, 5]})
     assert reply == {"accepted": True, "q": [0.0, 1.0, 2.0, 3.0, 4.0, 5.0]}
 
 
-def test_call_error_reply_keeps_code_and_message(puma: Puma) -> None:
-    client = puma.client
+def test_call_error_reply_keeps_code_and_message(arm: Puma) -> None:
+    client = arm.client
     with pytest.raises(RpcError) as info:
-        client.call("puma", "limit")
+        client.call("arm", "limit")
     assert info.value.code == "limit" and info.value.message == "joint 3 beyond 45°"
 
 
-def test_a_handler_bug_is_internal_and_an_error_event(puma: Puma) -> None:
-    client, events = puma.client, puma.events
+def test_a_handler_bug_is_internal_and_an_error_event(arm: Puma) -> None:
+    client, events = arm.client, arm.events
     with pytest.raises(RpcError) as info:
-        client.call("puma", "boom")
+        client.call("arm", "boom")
     assert info.value.code == "internal" and "kaboom" in info.value.message
     ev = events.wait(lambda e: e.kind == "error")
-    assert ev.source == "puma" and "puma.boom failed" in ev.message
+    assert ev.source == "arm" and "arm.boom failed" in ev.message
     assert ev.data is not None and ev.data["method"] == "boom"
     # The service is still serving.
-    assert client.call("puma", "status")["status"] == "ready"
+    assert client.call("arm", "status")["status"] == "ready"
 
 
-def test_bad_arguments_are_bad_request(puma: Puma) -> None:
-    client, events = puma.client, puma.events
+def test_bad_arguments_are_bad_request(arm: Puma) -> None:
+    client, events = arm.client, arm.events
     with pytest.raises(RpcError) as info:
-        client.call("puma", "move_joints", {"q": [0.0, 0.0]})
+        client.call("arm", "move_joints", {"q": [0.0, 0.0]})
     assert info.value.code == "bad_request" and info.value.message.startswith("q: ")
     with pytest.raises(RpcError) as info:
-        client.call("puma", "move_joints", {})
+        client.call("arm", "move_joints", {})
     assert info.value.code == "bad_request" and info.value.message == "q: missing"
     ev = events.wait(lambda e: e.kind == "rejected")
-    assert ev.source == "puma" and ev.data is not None
-    assert ev.data["key"] == "robot/puma/rpc/move_joints"
+    assert ev.source == "arm" and ev.data is not None
+    assert ev.data["key"] == "robot/arm/rpc/move_joints"
 
 
-def test_non_map_arguments_are_bad_request(puma: Puma) -> None:
+def test_non_map_arguments_are_bad_request(arm: Puma) -> None:
     """A raw `get` from a tool that sends a list instead of a map."""
-    client = puma.client
-    assert client.alive.wait("puma", DEADLINE_S)
+    client = arm.client
+    assert client.alive.wait("arm", DEADLINE_S)
     for payload in (codec.pack([1, 2, 3]), b"\xc1"):
         replies = list(
-            client.session.get(keys.rpc_key("puma", "status"), payload=payload, timeout=5.0)
+            client.session.get(keys.rpc_key("arm", "status"), payload=payload, timeout=5.0)
         )
         assert len(replies) == 1 and replies[0].err is not None
         body = msgpack.unpackb(replies[0].err.payload.to_bytes())
         assert body["error"] == "bad_request"
 
 
-def test_an_unknown_method_is_bad_request(puma: Puma) -> None:
-    client = puma.client
+def test_an_unknown_method_is_bad_request(arm: Puma) -> None:
+    client = arm.client
     with pytest.raises(RpcError) as info:
-        client.call("puma", "fly")
+        client.call("arm", "fly")
     assert info.value.code == "bad_request"
     assert "'fly'" in info.value.message and "move_joints" in info.value.message
 
 
-def test_a_slow_method_does_not_block_others(puma: Puma) -> None:
+def test_a_slow_method_does_not_block_others(arm: Puma) -> None:
     """Handlers run on workers, so a `"wait": true` motion leaves `status` answering."""
-    client = puma.client
+    client = arm.client
     result: dict[str, Any] = {}
-    t = threading.Thread(target=lambda: result.update(client.call("puma", "slow", timeout_s=10)))
+    t = threading.Thread(target=lambda: result.update(client.call("arm", "slow", timeout_s=10)))
     t.start()
     try:
-        assert client.call("puma", "status")["status"] == "ready"
+        assert client.call("arm", "status")["status"] == "ready"
         assert result == {}
     finally:
-        puma.release.set()
+        arm.release.set()
         t.join(DEADLINE_S)
     assert result == {"done": True}
 
@@ -645,9 +645,9 @@ def test_alive_set_sees_a_node_appear_and_disappear(net: Net) -> None:
 
 
 def test_alive_set_sees_tokens_declared_before_it(net: Net) -> None:
-    service, watcher = net.node("puma"), net.node("console")
+    service, watcher = net.node("arm"), net.node("console")
     service.announce()
-    assert watcher.alive.wait("puma", DEADLINE_S)
+    assert watcher.alive.wait("arm", DEADLINE_S)
 
 
 def test_a_failing_alive_listener_does_not_stop_others(net: Net) -> None:
@@ -673,7 +673,7 @@ def test_opened_always_closes(net: Net) -> None:
 
 
 def test_a_closed_node_drops_events_quietly(net: Net) -> None:
-    n = net.node("puma")
+    n = net.node("arm")
     n.close()
     ev = n.event("status", "after close")
     assert ev.kind == "status" and ev.seq == 1
@@ -797,25 +797,25 @@ def test_an_oversized_payload_is_refused_unread_and_never_echoed(net: Net) -> No
     assert "AAAA" not in ev.message
 
 
-def test_a_huge_argument_gets_a_short_error_and_a_short_event(puma: Puma) -> None:
-    client, events = puma.client, puma.events
+def test_a_huge_argument_gets_a_short_error_and_a_short_event(arm: Puma) -> None:
+    client, events = arm.client, arm.events
     with pytest.raises(RpcError) as info:
-        client.call("puma", "move_joints", {"q": "x" * 10_000_000}, timeout_s=DEADLINE_S)
+        client.call("arm", "move_joints", {"q": "x" * 10_000_000}, timeout_s=DEADLINE_S)
     assert info.value.code == "bad_request" and len(info.value.message) < 400
     with pytest.raises(RpcError) as info:  # just under the cap: decoded, then refused short
-        client.call("puma", "move_joints", {"q": "y" * 60_000}, timeout_s=DEADLINE_S)
+        client.call("arm", "move_joints", {"q": "y" * 60_000}, timeout_s=DEADLINE_S)
     assert info.value.code == "bad_request" and len(info.value.message) < 400
     ev = events.wait(lambda e: e.kind == "rejected")
     assert len(codec.pack(codec.to_fields(ev))) < 2_000
 
 
 def test_a_flood_of_unknown_methods_is_a_trickle_of_events_in_bounded_memory(
-    puma: Puma,
+    arm: Puma,
 ) -> None:
-    client, service, events = puma.client, puma.service, puma.events
+    client, service, events = arm.client, arm.service, arm.events
     for i in range(600):
         with pytest.raises(RpcError):
-            client.call("puma", f"no_such_method_{i}", {}, timeout_s=DEADLINE_S)
+            client.call("arm", f"no_such_method_{i}", {}, timeout_s=DEADLINE_S)
     rejected = [e for e in events.seen if e.kind == "rejected"]
     assert 1 <= len(rejected) <= 5 * 10  # ≤ REJECT_EVENTS_PER_S for each second it took
     assert len(service.rejected) <= 257 and sum(service.rejected.values()) == 600

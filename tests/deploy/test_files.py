@@ -21,10 +21,10 @@ import zenoh
 
 from services.bus.config import NodeConfig, control_qos_rules, load_deploy, section
 from services.bus.router import router_config
+from services.control.arm.config import ArmConfig
 from services.control.decision.config import DecisionConfig
 from services.control.force.config import ForceConfig
 from services.control.master.config import MasterConfig
-from services.control.puma.config import PumaConfig
 from services.control.vision.config import VisionConfig
 from services.frontends.console.config import ConsoleConfig
 from services.tools.cli.launcher import UpConfig
@@ -94,7 +94,7 @@ def test_router_files_deny_by_default_with_consistent_rules(path: Path) -> None:
     for rule in rules.values():
         assert rule["permission"] == "allow", "deny-by-default: every rule allows"
         assert set(rule["messages"]) <= ALL_MESSAGES
-    # Only the robot host's own login, on loopback, gets robot/puma/** and the puma and
+    # Only the robot host's own login, on loopback, gets robot/arm/** and the arm and
     # force methods; everyone else's rules never name them.
     robot = next(s for s in acl["subjects"] if s["id"] == "robot-host")
     assert robot["interfaces"] == ["lo"] and robot["usernames"] == ["robot"]
@@ -105,8 +105,8 @@ def test_router_files_deny_by_default_with_consistent_rules(path: Path) -> None:
             for ke in rules[rid]["key_exprs"]:
                 assert ke != "**" and not ke.startswith("@"), (rid, ke)
                 if "put" in rules[rid]["messages"] and "ingress" in rules[rid]["flows"]:
-                    assert not ke.startswith("robot/puma"), (rid, ke)
-                assert not ke.startswith(("robot/puma/rpc", "robot/force/rpc")), (rid, ke)
+                    assert not ke.startswith("robot/arm"), (rid, ke)
+                assert not ke.startswith(("robot/arm/rpc", "robot/force/rpc")), (rid, ke)
     assert cfg["transport"]["auth"]["usrpwd"]["dictionary_file"] == "/etc/telerobot/zenoh/users.txt"
     assert cfg["listen"]["endpoints"] == ["tcp/0.0.0.0:7447", "tls/0.0.0.0:7448"]
 
@@ -184,7 +184,7 @@ def test_profiles_parse_into_every_service_config(tmp_path: Path) -> None:
     cell = install(tmp_path)
     robot = load_deploy(cell.profile("robot"))
     operator = load_deploy(cell.profile("operator"))
-    PumaConfig.from_mapping(robot["puma"])
+    ArmConfig.from_mapping(robot["arm"])
     section(ForceConfig, robot["force"], "force")
     section(DecisionConfig, robot.get("decision"), "decision")
     VisionConfig.from_mapping(robot["vision"])
@@ -321,7 +321,7 @@ def test_compose_files_use_the_shipped_paths_and_commands() -> None:
     for text in (robot, operator):
         assert "dockerfile: deploy/Dockerfile" in text and "context: ../.." in text
         assert "network_mode: host" in text
-    for svc in ("puma", "force", "decision", "vision"):
+    for svc in ("arm", "force", "decision", "vision"):
         assert f'command: ["{svc}", "--config", "/etc/telerobot/robot.toml"]' in robot
     assert 'command: ["up", "/etc/telerobot/operator.toml"]' in operator
 

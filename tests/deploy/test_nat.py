@@ -7,7 +7,7 @@ Three namespaces of our own, with addresses that exist only inside them:
 
 The robot namespace has no route to 10.202.0.0/24 and the nat lets no connection in from the
 robot side, so only the operator can open connections, as behind a home or campus NAT; no
-namespace routes anywhere else. The robot namespace runs the router and puma, force and
+namespace routes anywhere else. The robot namespace runs the router and arm, force and
 decision from deploy/robot.toml (simulated arm and sensor via flags); the operator namespace
 runs the scripted master from deploy/operator.toml and a probe session that logs in as the
 operator, calls the decision server to connect and initialize the arm, and then watches
@@ -74,7 +74,7 @@ with Node("probe", cfg) as node:
     state = node.subscribe(keys.STATE)
     force = node.subscribe(keys.FORCE)
     node.subscribe(keys.PUMA_CMD, count)
-    assert node.alive.wait("puma", 30) and node.alive.wait("force", 30), node.alive.names()
+    assert node.alive.wait("arm", 30) and node.alive.wait("force", 30), node.alive.names()
     print("connect", json.dumps(node.call("decision", "connect", {}, 10)), flush=True)
     print("initialize", json.dumps(node.call("decision", "initialize", {}, 10)), flush=True)
     s = state.wait_for(lambda m: m.status == "ready", 30)
@@ -231,7 +231,7 @@ def test_scripted_master_drives_the_arm_through_a_nat_over_tls(tmp_path: Path) -
         router = start(telerobot_in(ns.robot, "router", "--config", robot_profile))
         line = router.expect("router up", STEP_S)
         assert "tls/0.0.0.0:7448" in line, line
-        start(telerobot_in(ns.robot, "puma", "--config", robot_profile, "--arm", "sim"))
+        start(telerobot_in(ns.robot, "arm", "--config", robot_profile, "--driver", "sim"))
         start(
             telerobot_in(
                 ns.robot,

@@ -25,7 +25,7 @@ pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
 
 DEADLINE_S = 45.0
 STOP_S = 30.0
-ROBOT_SERVICES = {"puma", "force", "decision", "vision"}
+ROBOT_SERVICES = {"arm", "force", "decision", "vision"}
 STATION = {"master/station1", "console", "master/console"}
 
 
@@ -40,7 +40,7 @@ def edit(path: Path, *pairs: tuple[str, str]) -> None:
 def without_hardware(cell: Cell) -> None:
     edit(
         cell.profile("robot"),
-        ('arm = "serial"', 'arm = "sim"'),
+        ('driver = "serial"', 'driver = "sim"'),
         ('sensor = "serial"', 'sensor = "sim"'),
         # SCHED_FIFO on a shared 2-core test machine is not ours to take
         ('priority = "highest"', 'priority = "normal"'),

@@ -163,20 +163,20 @@ def mtls_router(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Router]:
 
 
 class RobotSide:
-    """The robot host's decision and puma stand-ins: subscribers of robot/cmd and
+    """The robot host's decision and arm stand-ins: subscribers of robot/cmd and
     robot/puma/cmd, `status` methods that count their calls, and liveliness tokens."""
 
     def __init__(self, stack: ExitStack, router: Router) -> None:
         self.cmd, self.puma_cmd = Senders(), Senders()
-        self.calls: dict[str, int] = {"decision": 0, "puma": 0}
+        self.calls: dict[str, int] = {"decision": 0, "arm": 0}
         self.node = stack.enter_context(router.robot("decision"))
         self.node.subscribe(keys.CMD, self.cmd)
         self.node.subscribe(keys.PUMA_CMD, self.puma_cmd)
         self.node.serve("decision", {"status": self._status("decision")})
         self.node.announce()
-        puma = stack.enter_context(router.robot("puma"))
-        puma.serve("puma", {"status": self._status("puma")})
-        puma.announce()
+        arm = stack.enter_context(router.robot("arm"))
+        arm.serve("arm", {"status": self._status("arm")})
+        arm.announce()
 
     def _status(self, who: str) -> Callable[[dict[str, Any]], dict[str, Any]]:
         def status(args: dict[str, Any]) -> dict[str, Any]:
@@ -192,7 +192,7 @@ def denied_call(node: Node, service: str) -> None:
         node.call(service, "status", {}, 1.0)
 
 
-def test_operator_commands_through_decision_but_never_the_puma_directly(router: Router) -> None:
+def test_operator_commands_through_decision_but_never_the_arm_directly(router: Router) -> None:
     with ExitStack() as stack:
         side = RobotSide(stack, router)
         robot, cmd, puma_cmd = side.node, side.cmd, side.puma_cmd
@@ -201,7 +201,7 @@ def test_operator_commands_through_decision_but_never_the_puma_directly(router: 
         )
         assert op.alive.wait("decision", DEADLINE_S), "the operator sees the robot's services"
         assert robot.alive.wait("master/op1", DEADLINE_S), "the robot sees the operator's token"
-        rounds = interleave((op, "operator", cmd), [(op, keys.PUMA_CMD.key, "op-to-puma")])
+        rounds = interleave((op, "operator", cmd), [(op, keys.PUMA_CMD.key, "op-to-arm")])
         assert rounds >= DELIVERED
         assert puma_cmd.by_master == {}, "a put to robot/puma/cmd from off the robot host"
 
@@ -213,12 +213,12 @@ def test_operator_commands_through_decision_but_never_the_puma_directly(router: 
         assert wait_until(lambda: puma_cmd.count("decision") == 5, DEADLINE_S)
         assert set(puma_cmd.by_master) == {"decision"}
 
-        # Methods: the decision server answers the operator; the puma's methods do not,
-        # although the puma is up and answers the robot host itself.
+        # Methods: the decision server answers the operator; the arm's methods do not,
+        # although the arm is up and answers the robot host itself.
         assert op.call("decision", "status", {}, DEADLINE_S) == {"who": "decision"}
-        assert robot.call("puma", "status", {}, DEADLINE_S) == {"who": "puma"}
-        denied_call(op, "puma")
-        assert side.calls == {"decision": 1, "puma": 1}
+        assert robot.call("arm", "status", {}, DEADLINE_S) == {"who": "arm"}
+        denied_call(op, "arm")
+        assert side.calls == {"decision": 1, "arm": 1}
 
 
 def test_observer_may_watch_but_not_command(router: Router) -> None:
@@ -252,7 +252,7 @@ def test_observer_may_watch_but_not_command(router: Router) -> None:
         # …and they call nothing, not even the decision server.
         for _, watcher in watchers:
             denied_call(watcher, "decision")
-        assert side.calls == {"decision": 0, "puma": 0}
+        assert side.calls == {"decision": 0, "arm": 0}
 
 
 def test_operator_login_over_plain_tcp_commands_nothing(router: Router) -> None:

@@ -3,7 +3,7 @@
 The demo runs in a network namespace this test creates (`unshare -rn`: a user namespace
 and a network namespace with only `lo`, brought up here), with the real sim profile, its
 ports 7447 and 8080 included (the namespace has ports of its own). It must come up, run a
-task through the whole system (master → decision → puma, workcell), listen on loopback
+task through the whole system (master → decision → arm, workcell), listen on loopback
 only, stop cleanly on Ctrl-C, and print few lines, each child's with its `[service]`
 prefix. `make demo` is `telerobot demo` with task 2; task 1 is used here because it is
 shorter and crosses the same services.
@@ -35,7 +35,7 @@ TASK_S = 120.0
 WINDOW_S = 7.5  # scaled to DEMO_S below: half the wait, the same bound on lines per minute
 DEMO_S = 60.0
 MAX_LINES = 200
-SERVICES = ("router", "puma", "force", "decision", "vision", "workcell", "console", "ros2")
+SERVICES = ("router", "arm", "force", "decision", "vision", "workcell", "console", "ros2")
 PREFIX = re.compile(rf"^\[({'|'.join((*SERVICES, 'demo', 'up'))})\] ")
 LOG_RECORD = re.compile(r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3} (DEBUG|INFO|WARNING|ERROR)")
 INNER_PREFIX = re.compile(rf".\[({'|'.join(SERVICES)})\] ")

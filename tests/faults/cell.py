@@ -1,4 +1,4 @@
-"""The simulated cell of the fault suite: router, puma, force, decision and a scripted
+"""The simulated cell of the fault suite: router, arm, force, decision and a scripted
 master, each a separate process, with an in-process observer connected throughout.
 
 The master plays a long generated circle (radius 5 cm, 4 s a turn, ~8 cm/s at the tool), so
@@ -45,7 +45,7 @@ class FaultCell:
         except BaseException:
             self.cell.close()
             raise
-        self.cell.add("puma", "puma", "--autostart")
+        self.cell.add("arm", "arm", "--autostart")
         self.cell.add("force", "force")
         self.cell.add("decision", "decision")
         self.cell.add("master", "master", "--device", "script", "--script", str(script))
@@ -135,10 +135,10 @@ class FaultCell:
         if not self.router.alive:
             self.cell.start_router()
             self.expected_down.discard("router")
-        for name in ("puma", "force", "decision"):
+        for name in ("arm", "force", "decision"):
             if not self.cell[name].alive:
                 self.start(name)
-        for name in ("puma", "force", "decision"):
+        for name in ("arm", "force", "decision"):
             assert self.obs.node.alive.wait(name, START_TIMEOUT_S), (
                 f"{name} never came up\n{self.diagnose()}"
             )

@@ -106,14 +106,14 @@ def tool_steps(
     bunches states in time, never steps). An arm whose joints are read more slowly than
     states are sent (a serial controller's cycle) moves in steps of one reading: each change
     of position is allowed `sample_period_s` of motion at least. A state is stamped when it
-    is sent, but its joints were read up to `read_age_s` before (the puma reads them once per
+    is sent, but its joints were read up to `read_age_s` before (the arm reads them once per
     control tick): the readings of two states may be that much further apart than their
     stamps, so an arm at its speed limit is allowed that much more motion. A step above what
     is allowed plus STEP_EPS_M is a jump."""
     worst, ratio, jumps, n = 0.0, 0.0, 0, 0
     for a, b in itertools.pairwise(states):
         if b.seq <= a.seq:
-            continue  # a restarted puma counts from 1: not a step of one motion
+            continue  # a restarted arm counts from 1: not a step of one motion
         step = float(np.linalg.norm(np.subtract(b.tool_p, a.tool_p)))
         dt_s = max((b.t_ns - a.t_ns) / 1e9, (b.seq - a.seq) * state_period_s, sample_period_s)
         allowed = max_speed_m_s * (dt_s + read_age_s) + STEP_EPS_M

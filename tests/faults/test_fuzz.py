@@ -1,8 +1,8 @@
 """Bad input everywhere: random payloads on every subscribed stream, random arguments to every
-method of puma, force and decision. Nothing crashes, nothing moves, every rejection is
+method of arm, force and decision. Nothing crashes, nothing moves, every rejection is
 counted and reported.
 
-These run IN-PROCESS for speed: the real PumaService (sim arm), ForceService (sim sensor),
+These run IN-PROCESS for speed: the real ArmService (sim arm), ForceService (sim sensor),
 DecisionService, a MasterService (virtual device, never engaged) and the console's BusMirror,
 each on a Zenoh node of its own on a private `net`, exactly as the processes would wire them;
 the fuzzer is one more node. Per-node counters (`Subscription.rejected`, `Node.rejected`,
@@ -36,14 +36,14 @@ from services.bus.messages import (
     RobotState,
 )
 from services.bus.node import REJECT_REPORT_INTERVAL_S, Node
+from services.control.arm.config import HOME_Q_RAD, ArmConfig
+from services.control.arm.service import MOTIONS, ArmService
 from services.control.decision.config import DecisionConfig
-from services.control.decision.service import FORCE_METHODS, PUMA_METHODS, DecisionService
+from services.control.decision.service import ARM_METHODS, FORCE_METHODS, DecisionService
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
 from services.control.master.config import MasterConfig
 from services.control.master.service import MasterService
-from services.control.puma.config import HOME_Q_RAD, PumaConfig
-from services.control.puma.service import MOTIONS, PumaService
 from services.frontends.console.mirror import BusMirror
 from tests.conftest import Net, wait_until
 from tests.faults.observe import REST_TOL_RAD, record
@@ -81,7 +81,7 @@ PUMA_RPC: tuple[str, ...] = (
 )
 FORCE_RPC: tuple[str, ...] = (*FORCE_METHODS, "set_tool")
 DECISION_RPC: tuple[str, ...] = (
-    *PUMA_METHODS,
+    *ARM_METHODS,
     *FORCE_METHODS,
     "status",
     "supervisor",
@@ -90,7 +90,7 @@ DECISION_RPC: tuple[str, ...] = (
     "task",
 )
 METHODS: dict[str, tuple[str, ...]] = {
-    "puma": PUMA_RPC,
+    "arm": PUMA_RPC,
     "force": FORCE_RPC,
     "decision": DECISION_RPC,
 }
@@ -243,7 +243,7 @@ ARGS = st.dictionaries(st.sampled_from(ARG_NAMES) | st.text(max_size=10), ARG_VA
 @dataclass
 class System:
     net: Net
-    puma: PumaService
+    arm: ArmService
     force: ForceService
     decision: DecisionService
     master: MasterService
@@ -257,7 +257,7 @@ class System:
     def nodes(self) -> dict[str, Node]:
         """The service nodes under test (not the fuzzer's or the watcher's)."""
         return {
-            "puma": self.puma.node,
+            "arm": self.arm.node,
             "force": self.force.node,
             "decision": self.decision.node,
             "master": self.master.node,
@@ -279,13 +279,13 @@ class System:
 
     def settle(self, timeout_s: float = 30.0) -> np.ndarray:
         """Bring the arm to rest (stop any motion) and return where it rests."""
-        self.puma.proxy.rpc_stop({})
+        self.arm.proxy.rpc_stop({})
         deadline = time.monotonic() + timeout_s
         q = self.fresh_q()
         while time.monotonic() < deadline:
             self.state.wait_count(self.state.received + 25, 1.0)
             q2 = self.q()
-            if self.puma.proxy.status != "moving" and np.max(np.abs(q2 - q)) <= REST_TOL_RAD:
+            if self.arm.proxy.status != "moving" and np.max(np.abs(q2 - q)) <= REST_TOL_RAD:
                 return q2
             q = q2
         raise AssertionError("the arm did not come to rest")
@@ -314,8 +314,8 @@ class System:
 def system(net: Net) -> Iterator[System]:
     closers: list[Callable[[], None]] = []
     try:
-        puma = PumaService(net.node("puma"), PumaConfig(sim_calibration_s=0.05))
-        closers.append(puma.close)
+        arm = ArmService(net.node("arm"), ArmConfig(sim_calibration_s=0.05))
+        closers.append(arm.close)
         force = ForceService(net.node("force"), ForceConfig(seed=1))
         closers.append(force.close)
         decision = DecisionService(net.node("decision"), DecisionConfig())
@@ -326,7 +326,7 @@ def system(net: Net) -> Iterator[System]:
         console = net.node("console")
         BusMirror(console, events=256, force_capacity=64)
         watcher = net.node("watcher")
-        sys_ = System(net, puma, force, decision, master, net.node("fuzzer"), watcher, None)
+        sys_ = System(net, arm, force, decision, master, net.node("fuzzer"), watcher, None)
         sys_._console = console
 
         def on_event(ev: Event) -> None:
@@ -335,10 +335,10 @@ def system(net: Net) -> Iterator[System]:
 
         watcher.subscribe(keys.EVENTS, on_event)
         sys_.state = watcher.subscribe(keys.STATE)
-        watcher.call("puma", "connect", {}, 30.0)
-        watcher.call("puma", "initialize", {}, 30.0)
+        watcher.call("arm", "connect", {}, 30.0)
+        watcher.call("arm", "initialize", {}, 30.0)
         assert sys_.state.wait_for(lambda s: s.status == "ready", 30.0) is not None
-        for name in ("puma", "force", "decision", "master/master"):
+        for name in ("arm", "force", "decision", "master/master"):
             assert watcher.alive.wait(name, 30.0)
         yield sys_
     finally:
@@ -348,11 +348,11 @@ def system(net: Net) -> Iterator[System]:
 
 def _answers_status(s: System) -> None:
     """Every service still answers, and its loop threads still run."""
-    assert s.watcher.call("puma", "status", {}, CALL_TIMEOUT_S)["status"]
+    assert s.watcher.call("arm", "status", {}, CALL_TIMEOUT_S)["status"]
     assert "running" in s.watcher.call("force", "sensor_status", {}, CALL_TIMEOUT_S)
     assert s.watcher.call("decision", "status", {}, CALL_TIMEOUT_S)["service"] == "decision"
     assert s.watcher.call("master/master", "status", {}, CALL_TIMEOUT_S)["master"] == "master"
-    assert s.puma._thread.is_alive() and s.decision._thread.is_alive()
+    assert s.arm._thread.is_alive() and s.decision._thread.is_alive()
     assert s.master._thread.is_alive()
 
 
@@ -377,7 +377,7 @@ def test_random_payloads_on_every_stream_are_rejected_counted_reported_and_move_
         sent[topic.key] += 1
 
     fuzz()
-    # Dangerous but well-formed commands on robot/puma/cmd: |dp| beyond max_dp_m. The puma
+    # Dangerous but well-formed commands on robot/puma/cmd: |dp| beyond max_dp_m. The arm
     # must refuse them itself (the decision server is bypassed here).
     far = [
         codec.encode(
@@ -387,14 +387,14 @@ def test_random_payloads_on_every_stream_are_rejected_counted_reported_and_move_
         )
         for i, dp in enumerate([(3.0, 0.0, 0.0), (0.0, 0.0, -1e9), (1.5, 1.5, 0.0)])
     ]
-    puma_rejected0 = s.puma.proxy.counters["rejected"]
+    arm_rejected0 = s.arm.proxy.counters["rejected"]
     for i, p in enumerate(far):
         # robot/puma/cmd is latest-wins: the control loop applies only the newest command
         # of each tick, so each one is sent once the previous one has been dealt with.
         pubs[keys.PUMA_CMD.key].put_bytes(p)
         deadline = time.monotonic() + 5.0
-        while s.puma.proxy.counters["rejected"] - puma_rejected0 <= i:
-            assert time.monotonic() < deadline, "the puma never refused the command"
+        while s.arm.proxy.counters["rejected"] - arm_rejected0 <= i:
+            assert time.monotonic() < deadline, "the arm never refused the command"
             s.state.wait_count(s.state.received + 1, 0.1)
 
     def delivered() -> bool:
@@ -402,7 +402,7 @@ def test_random_payloads_on_every_stream_are_rejected_counted_reported_and_move_
             n - before[t.key].get(name, 0) >= sent[t.key]
             for t in FUZZED_TOPICS
             for name, n in s.rejected_on_subs(t.key).items()
-        ) and (s.puma.proxy.counters["rejected"] - puma_rejected0 >= len(far))
+        ) and (s.arm.proxy.counters["rejected"] - arm_rejected0 >= len(far))
 
     deadline = time.monotonic() + 20.0
     while not delivered() and time.monotonic() < deadline:
@@ -443,13 +443,13 @@ def test_random_payloads_on_every_stream_are_rejected_counted_reported_and_move_
         payloads_sent=dict(sent),
         rejected_per_subscriber=counted,
         rejected_reported=reported,
-        puma_refused_far_commands=s.puma.proxy.counters["rejected"] - puma_rejected0,
+        arm_refused_far_commands=s.arm.proxy.counters["rejected"] - arm_rejected0,
         joint_motion_rad=moved,
     )
     for t in FUZZED_TOPICS:
         for name, n in counted[t.key].items():
             assert n == sent[t.key] - 1, f"{name} on {t.key}: {n} of {sent[t.key] - 1}"
-    assert s.puma.proxy.counters["rejected"] - puma_rejected0 == len(far)
+    assert s.arm.proxy.counters["rejected"] - arm_rejected0 == len(far)
     assert final_counts_reported(), f"reported {reported}, counted {expected}"
     assert moved <= REST_TOL_RAD, f"the arm moved by {moved} rad"
 
@@ -492,7 +492,7 @@ def _raw_call(node: Node, service: str, method: str, payload: bytes) -> str:
 RAW_ARGS = st.binary(max_size=64) | st.builds(codec.pack, VALUES)
 
 
-@pytest.mark.parametrize("service", ["puma", "force", "decision"])
+@pytest.mark.parametrize("service", ["arm", "force", "decision"])
 def test_random_arguments_to_every_method_never_crash_and_move_nothing_unasked(
     system: System, service: str
 ) -> None:
@@ -540,9 +540,9 @@ def test_random_arguments_to_every_method_never_crash_and_move_nothing_unasked(
     # Put things back (an e-stop or a stopped sensor may have been asked for) and check that
     # every service still answers.
     s.watcher.call("decision", "reset", {}, CALL_TIMEOUT_S)
-    if s.puma.proxy.status == "error":
-        s.watcher.call("puma", "connect", {}, CALL_TIMEOUT_S)
-        s.watcher.call("puma", "initialize", {}, CALL_TIMEOUT_S)
+    if s.arm.proxy.status == "error":
+        s.watcher.call("arm", "connect", {}, CALL_TIMEOUT_S)
+        s.watcher.call("arm", "initialize", {}, CALL_TIMEOUT_S)
     _answers_status(s)
     prefix = keys.rpc_key(service, "")
     counted = {k: n for k, n in s.nodes[service].rejected.items() if k.startswith(prefix)}

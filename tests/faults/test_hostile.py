@@ -1,7 +1,7 @@
 """Hostile input through the wire, against the real processes on a router: inputs that are
 well-formed but absurd (1e308, 10 MB strings, a thousand nested lists, floods of names).
 
-One cell for the module (router, puma, force, decision as separate processes; an in-process
+One cell for the module (router, arm, force, decision as separate processes; an in-process
 observer and an attacker): every case must be refused with a contract error, move no joint
 by more than 1e-6 rad, leave every process alive and answering, and keep the decision's
 holds going out. The soak at the end sends the whole corpus three times and bounds each
@@ -38,7 +38,7 @@ STILL_RAD = 1e-6
 MAX_REPLY_CHARS = 400
 MAX_EVENT_BYTES = 2_000
 RSS_GROWTH_MB = 50.0
-SERVICES = ("puma", "force", "decision")
+SERVICES = ("arm", "force", "decision")
 
 
 class Attacker:
@@ -47,7 +47,7 @@ class Attacker:
     def __init__(self, endpoint: str) -> None:
         self.node = Node("attacker", NodeConfig(connect=(endpoint,), listen=(LOOPBACK_LISTEN,)))
         self.cmd = self.node.publisher(keys.CMD)
-        self.puma_cmds = self.node.subscribe(keys.PUMA_CMD)
+        self.arm_cmds = self.node.subscribe(keys.PUMA_CMD)
         self.seq = time.time_ns() // 1000
         self.engage = time.time_ns() // 1_000_000
 
@@ -85,7 +85,7 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Cell, Obser
     try:
         c.start_router()
         obs = Observer(c.endpoint, name="hostile-observer")
-        c.add("puma", "puma", "--autostart").start()
+        c.add("arm", "arm", "--autostart").start()
         c.add("force", "force").start()
         c.add("decision", "decision").start()
         attacker = Attacker(c.endpoint)
@@ -114,7 +114,7 @@ def joints(obs: Observer) -> np.ndarray:
 
 def alive_and_answering(c: Cell, attacker: Attacker) -> None:
     assert not c.crashed(), c.logs()
-    for service, method in (("puma", "status"), ("force", "sensor_status"), ("decision", "status")):
+    for service, method in (("arm", "status"), ("force", "sensor_status"), ("decision", "status")):
         reply = attacker.call(service, method, {})
         assert isinstance(reply, dict), f"{service}.{method}: {reply}"
 
@@ -156,7 +156,7 @@ def test_absurd_commands_never_move_the_arm_and_the_holds_go_on(
 
         assert wait_until(leads, 10.0, 0.01, what="the evil master to lead")
         q0 = joints(obs)
-        holds0 = attacker.puma_cmds.received
+        holds0 = attacker.arm_cmds.received
         for _ in range(20):  # then the absurd one, 20 times at 100 Hz
             attacker.command(dp, frame)
             time.sleep(0.01)
@@ -167,9 +167,9 @@ def test_absurd_commands_never_move_the_arm_and_the_holds_go_on(
         status = attacker.call("decision", "status", {})
         assert isinstance(status, dict) and status["mode"] == "hold" and status["lease"] is None
         assert status["loop"]["publish_errors"] == 0 and status["loop"]["errors"] == 0
-        holds = attacker.puma_cmds.received - holds0
+        holds = attacker.arm_cmds.received - holds0
         assert holds >= 3, "the decision stopped publishing its hold"
-        latest = attacker.puma_cmds.get()
+        latest = attacker.arm_cmds.get()
         assert latest is not None and not latest.active
         record(f"hostile_cmd_{frame}_{dp[0]:g}", moved_rad=moved, holds=holds)
     alive_and_answering(c, attacker)
@@ -183,16 +183,16 @@ def test_estop_latches_whatever_its_call_carries_and_initialize_waits(
     status = attacker.call("decision", "status", {})
     assert isinstance(status, dict) and status["estop"] is True
     assert isinstance(attacker.call("decision", "reset", {}), dict)
-    # The puma's own e-stop (powers the arm off) with garbage: it halts, then recovers with
+    # The arm's own e-stop (powers the arm off) with garbage: it halts, then recovers with
     # connect and a waiting initialize, which replies when the arm is ready.
-    attacker.call("puma", "estop", {"x": "y" * 60_000, "z": deep(500)})
+    attacker.call("arm", "estop", {"x": "y" * 60_000, "z": deep(500)})
     assert wait_until(lambda: (st := obs.latest_state()) is not None and st.status == "error", 10.0)
-    assert isinstance(attacker.call("puma", "connect", {}), dict)
-    reply = attacker.call("puma", "initialize", {"wait": True, "timeout_s": 30.0})
+    assert isinstance(attacker.call("arm", "connect", {}), dict)
+    reply = attacker.call("arm", "initialize", {"wait": True, "timeout_s": 30.0})
     assert reply == {"status": "ready"}, reply
     moved = short_error(
         attacker.call(
-            "puma",
+            "arm",
             "move_relative",
             {"dp": [0, 0, 0.001], "wait": True, "timeout_s": 1e10, "supervised_by": "decision"},
         )
@@ -205,9 +205,9 @@ def test_a_call_that_fails_starts_no_motion(cell: tuple[Cell, Observer, Attacker
     c, obs, attacker = cell
     q0 = joints(obs)
     target = [float(x) + 0.05 for x in q0]
-    short_error(attacker.call("puma", "move_joints", {"q": target}), "busy")  # unsupervised
-    for service, extra in (("decision", {}), ("puma", {"supervised_by": "decision"})):
-        # the attacker forges the decision's mark: the puma still refuses absurd arguments
+    short_error(attacker.call("arm", "move_joints", {"q": target}), "busy")  # unsupervised
+    for service, extra in (("decision", {}), ("arm", {"supervised_by": "decision"})):
+        # the attacker forges the decision's mark: the arm still refuses absurd arguments
         err = short_error(
             attacker.call(
                 service, "move_joints", {"q": target, "wait": True, "timeout_s": 1e10, **extra}
@@ -241,7 +241,7 @@ def test_huge_inputs_get_short_replies_and_short_events(
     for service, method in (
         ("decision", "supervisor"),
         ("decision", "move_relative"),
-        ("puma", "set_tool"),
+        ("arm", "set_tool"),
         ("force", "sensor_config"),
     ):
         short_error(attacker.call(service, method, {"dp": big, "p": big, "period_ms": big}))
@@ -311,7 +311,7 @@ def corpus(attacker: Attacker) -> None:
     """One round of everything hostile, with large inputs to every service."""
     big = "q" * 8_000_000
     for service, methods in (
-        ("puma", ("set_tool", "move_joints", "fk", "ik", "status")),
+        ("arm", ("set_tool", "move_joints", "fk", "ik", "status")),
         ("force", ("sensor_config", "set_tool", "sensor_compliance")),
         ("decision", ("supervisor", "task", "move_pose", "sensor_config")),
     ):

@@ -77,9 +77,9 @@ def test_joints_read_before_the_stamp_allow_one_read_age_more() -> None:
 
 
 def test_event_seqs_restart_at_one_and_gaps_are_counted() -> None:
-    evs = [_event("puma", s) for s in (1, 2, 3, 1, 2, 5, 6)] + [_event("force", 1)]
+    evs = [_event("arm", s) for s in (1, 2, 3, 1, 2, 5, 6)] + [_event("force", 1)]
     c = event_continuity(evs)
-    assert c["puma"].segments == 2 and c["puma"].lost == 2 and c["puma"].disorder == 0
+    assert c["arm"].segments == 2 and c["arm"].lost == 2 and c["arm"].disorder == 0
     assert c["force"].received == 1 and c["force"].lost == 0
     late = event_continuity([_event("decision", 4), _event("decision", 3)])
     assert late["decision"].lost == 3 and late["decision"].disorder == 1

@@ -1,6 +1,6 @@
 """Faults against the REAL services in simulation, each a separate process (issue 11).
 
-One cell for the module (tests/faults/cell.py): a router, puma (sim arm), force (sim
+One cell for the module (tests/faults/cell.py): a router, arm (sim arm), force (sim
 sensor), decision and a scripted master, spawned with subprocess; the observer is an
 in-process peer connected throughout. The tests run in file order, and each first brings the
 cell back to "every service up, the master's engagement followed, the arm moving", so a
@@ -23,8 +23,8 @@ import pytest
 
 from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import RobotState
-from services.control.puma.config import HOME_Q_RAD, PumaConfig
-from services.control.puma.fake_controller import FakeController
+from services.control.arm.config import HOME_Q_RAD, ArmConfig
+from services.control.arm.fake_controller import FakeController
 from tests.conftest import wait_until
 from tests.faults.cell import MASTER_ID, FaultCell, path_length
 from tests.faults.observe import (
@@ -40,7 +40,7 @@ from tests.faults.rogue import MARK
 
 pytestmark = [pytest.mark.faults, pytest.mark.alone, pytest.mark.timeout(180)]
 
-PUMA = PumaConfig()
+PUMA = ArmConfig()
 MAX_TOOL_SPEED_M_S = PUMA.max_tool_speed_m_s
 STATE_PERIOD_S = 1.0 / PUMA.state_rate_hz
 READ_AGE_S = 1.0 / PUMA.control_rate_hz
@@ -365,7 +365,7 @@ def test_router_restart_every_service_reconnects_and_streams_resume(cell: FaultC
     # A client sees only what the router routes: everything it sees came back through it.
     probe = Observer(cell.cell.endpoint, name="probe", mode="client")
     try:
-        wanted = {"puma", "force", "decision", f"master/{MASTER_ID}"}
+        wanted = {"arm", "force", "decision", f"master/{MASTER_ID}"}
         back = wait_until(lambda: wanted <= probe.node.alive.names(), 30.0)
         tokens_ms = (time.monotonic() - t_restart) * 1e3
         probe.wait_states(1, 0, 15.0)
@@ -394,8 +394,8 @@ def test_router_restart_every_service_reconnects_and_streams_resume(cell: FaultC
     assert outage_states >= 250 and outage_force >= 500
     assert back, f"not every service's token came back through the router: {wanted}"
     assert states >= 250 and force >= 1000
-    assert sorted(reply["alive"]) == sorted(["decision", "force", "puma", f"master/{MASTER_ID}"])
-    assert sessions >= 5, "puma, force, decision, master and the observer reconnect"
+    assert sorted(reply["alive"]) == sorted(["decision", "force", "arm", f"master/{MASTER_ID}"])
+    assert sessions >= 5, "arm, force, decision, master and the observer reconnect"
     cell.assert_no_crash()
 
 
@@ -409,14 +409,14 @@ def _router_sessions(probe: Observer) -> int:
     return -1
 
 
-def test_kill_puma_is_reported_calls_are_unavailable_and_nothing_else_crashes(
+def test_kill_arm_is_reported_calls_are_unavailable_and_nothing_else_crashes(
     cell: FaultCell,
 ) -> None:
     cell.ensure_following()
     obs = cell.obs
     ev0 = obs.n_events()
     t_kill = time.time_ns()
-    cell.kill("puma")
+    cell.kill("arm")
     lost = obs.wait_event(
         lambda e: e.source == "decision" and e.kind == "watchdog", ev0, HOLD_DEADLINE_S
     )
@@ -429,24 +429,24 @@ def test_kill_puma_is_reported_calls_are_unavailable_and_nothing_else_crashes(
     master_status = obs.node.call(f"master/{MASTER_ID}", "status", {}, 3.0)
     alive = {n: cell[n].alive for n in ("force", "decision", MASTER_ID)}
     record(
-        "kill_puma",
+        "kill_arm",
         decision_event=lost.message,
         decision_event_ms=round(event_ms, 1),
         alive_in_status=status["alive"],
-        puma_in_status=status["puma"],
+        arm_in_status=status["arm"],
         limits_error=err.value.code,
         move_error=err_move.value.code,
         other_processes_alive=alive,
     )
-    assert "puma" not in status["alive"]
-    assert status["puma"].get("error") == "unavailable"
+    assert "arm" not in status["alive"]
+    assert status["arm"].get("error") == "unavailable"
     assert err.value.code == "unavailable"
     assert err_move.value.code == "unavailable"
     assert master_status["master"] == MASTER_ID
     assert all(alive.values()) and cell.router.alive
-    cell.start("puma")
+    cell.start("arm")
     cell.wait_ready()
-    assert obs.node.alive.wait("puma", 30.0)
+    assert obs.node.alive.wait("arm", 30.0)
     cell.assert_no_crash()
 
 
@@ -474,14 +474,14 @@ def test_serial_controller_garbles_and_drops_bytes_error_reconnect_no_jump(
 ) -> None:
     with FakeController(q_init=HOME_Q_RAD, calibration_s=0.2) as fake:
         cell.ensure_following()
-        cell.replace("puma", "puma", "--arm", "serial", "--port", fake.url, "--autostart")
-        cell.start("puma")
+        cell.replace("arm", "arm", "--driver", "serial", "--port", fake.url, "--autostart")
+        cell.start("arm")
         try:
             _garble_and_drop(cell, fake)
         finally:
             # Back to the simulated arm before the fake controller goes away.
-            cell.replace("puma", "puma", "--autostart")
-    cell.start("puma")
+            cell.replace("arm", "arm", "--autostart")
+    cell.start("arm")
     cell.wait_ready()
     cell.assert_no_crash()
 
@@ -500,7 +500,7 @@ def _garble_and_drop(cell: FaultCell, fake: FakeController) -> None:
         t0 = time.monotonic()
         inject()
         err = obs.wait_event(
-            lambda e: e.source == "puma" and e.kind == "error", ev0, HOLD_DEADLINE_S
+            lambda e: e.source == "arm" and e.kind == "error", ev0, HOLD_DEADLINE_S
         )
         error_ms = (time.monotonic() - t0) * 1e3
         said = obs.wait_state(lambda s: s.status == "error", k, 5.0)
@@ -519,7 +519,7 @@ def _garble_and_drop(cell: FaultCell, fake: FakeController) -> None:
         )
         record(
             f"serial_{name}",
-            puma_error=err.message,
+            arm_error=err.message,
             error_reported_ms=round(error_ms, 1),
             ready_q_offset_rad=offset,
             max_setpoint_jump_rad=round(fake.max_setpoint_jump_rad, 5),
@@ -552,7 +552,7 @@ def test_no_event_was_lost_during_all_the_faults(cell: FaultCell) -> None:
         disorder=sum(v.disorder for v in per_source.values()),
         cell_recoveries=cell.recoveries,
     )
-    assert {"puma", "force", "decision"} <= set(per_source)
+    assert {"arm", "force", "decision"} <= set(per_source)
     for source, v in per_source.items():
         assert v.lost == 0 and v.disorder == 0, f"{source}: {v}"
     cell.assert_no_crash()

@@ -1,4 +1,4 @@
-"""`telerobot decision`: the DecisionServer, supervisor between the masters and the puma.
+"""`telerobot decision`: the DecisionServer, supervisor between the masters and the arm.
 
 Settings come from the deployment TOML's `[decision]` table (`--config`); the flags below
 override it. See docs/decision.md.

@@ -103,10 +103,10 @@ class DecisionConfig:
 
     Loop and watchdogs:
       rate_hz: the supervisory loop rate (≥ 500 Hz by design; every tick publishes one
-        command to the puma while teleoperation or a task runs).
+        command to the arm while teleoperation or a task runs).
       watchdog_ms: no fresh command from the lease holder for this long → hold.
       stale_ms: with compliance on, no force sample for this long → hold.
-      state_stale_ms: no robot/state for this long → hold (the puma is gone or frozen).
+      state_stale_ms: no robot/state for this long → hold (the arm is gone or frozen).
 
     Supervision (§2.1.4's "active compliance … as supervisory functions"):
       max_force_n, max_torque_nm: above these the motion into the contact is removed.
@@ -141,8 +141,8 @@ class DecisionConfig:
       grip_time_s: how long a task waits for the gripper to open or close.
       event_interval_s: an intervention's event is sent at most once per this interval per
         reason (and per master for refusals).
-      estop_power_off: `estop` also powers the arm off through puma's `estop` extension
-        (recovery then needs `connect` and `initialize`); default: puma `stop` (brake, hold).
+      estop_power_off: `estop` also powers the arm off through arm's `estop` extension
+        (recovery then needs `connect` and `initialize`); default: arm `stop` (brake, hold).
     """
 
     rate_hz: float = 500.0

@@ -11,7 +11,7 @@ target itself: the energy that brings in is not the channel's (excluded).
 
 Engagements: a new operator engagement (master, engage) starts a new count, as the master
 does; a new engagement of the arm (the supervisor's own `engage`, e.g. after a hold) takes
-the tool pose then as (p0, R0) and the offset restarts at zero (the puma records its start
+the tool pose then as (p0, R0) and the offset restarts at zero (the arm records its start
 pose at that command, so the offset is already in it: nothing jumps). A hold (inactive
 command) passes unchanged and is not observed. The correction only shortens motion into a
 contact or backs it out along the contact force (at most 2 mm past the tool); the
@@ -111,7 +111,7 @@ class SlaveTdpa:
         force: ForceSample | None,
         now_ns: int,
     ) -> OperatorCommand:
-        """The command to send to the puma in place of `cmd`.
+        """The command to send to the arm in place of `cmd`.
 
         operator: (master id, engage) of the operator command being carried out, or None
         (no lease); force: None when there is none fresh. Energies are counted per operator
@@ -136,9 +136,9 @@ class SlaveTdpa:
             if self.rot is not None:
                 self.rot.rebase()
             if state is not None:
-                # The puma starts the engagement from its setpoint's pose, not the measured
+                # The arm starts the engagement from its setpoint's pose, not the measured
                 # one, which trails it by the servo's error: with the measured pose every
-                # target was that far off what the puma aimed at (0.13 mm after the move to
+                # target was that far off what the arm aimed at (0.13 mm after the move to
                 # the start pose), and the port, holding its target "at the tool", pressed
                 # the tool in by that much at each correction (docs/passivity.md).
                 p0 = state.tool_p_cmd if state.tool_p_cmd is not None else state.tool_p

@@ -1,7 +1,7 @@
 """The other services' status as the decision's `status` shows it: kept, refreshed behind.
 
 `status` is the operator's one look at the whole system (the console asks twice a second).
-Asking the puma and the force service each time put two round trips, and their handlers,
+Asking the arm and the force service each time put two round trips, and their handlers,
 inside every call (4–7 ms against a 1 ms floor). A `Peek` keeps the last reply of one
 nested call: a service that is not alive is reported at once (`unavailable`, from
 liveliness); a reply younger than `max_age_s` is returned as it is, with `age_ms`, and one

@@ -1,11 +1,11 @@
 """The decision service on the bus: the operator's single entry point (IDecisionServer).
 
 It serves `robot/decision/rpc/…` (every IProxyRobot and IForceSensor method forwarded to the
-puma and force services, plus `status`, `supervisor`, `estop`, `reset`, `task`), and
+arm and force services, plus `status`, `supervisor`, `estop`, `reset`, `task`), and
 supervises `robot/cmd` into `robot/puma/cmd`.
 
 Reactive: an operator command is supervised and its result published in the Zenoh callback
-that delivers it, so the puma has it one hop later; a lost service is handled the same way.
+that delivers it, so the arm has it one hop later; a lost service is handled the same way.
 Between inputs a timer thread sleeps until the supervisor's next deadline (a watchdog, the
 20 Hz hold re-send, a task's or a catching-up target's next step): an idle decision server
 does nothing. robot/state and robot/force are not decoded per sample: Zenoh keeps the newest
@@ -53,8 +53,8 @@ from services.control.decision.watchdogs import fresh
 log = logging.getLogger("telerobot.decision")
 
 SERVICE = "decision"
-#: IProxyRobot (PROTOCOL §4) forwarded to robot/puma/rpc/…; puma's `status` is part of ours.
-PUMA_METHODS: tuple[str, ...] = (
+#: IProxyRobot (PROTOCOL §4) forwarded to robot/arm/rpc/…; arm's `status` is part of ours.
+ARM_METHODS: tuple[str, ...] = (
     "connect",
     "initialize",
     "set_tool",
@@ -84,7 +84,7 @@ FORCE_METHODS: tuple[str, ...] = (
 MOTION_METHODS: frozenset[str] = frozenset({"move_joints", "move_pose", "move_relative", "home"})
 SUPERVISED_BY = "supervised_by"
 """The argument the decision adds to the motion calls it forwards (its service name): while a
-decision server is alive, the puma refuses motion calls without it."""
+decision server is alive, the arm refuses motion calls without it."""
 ALIVE_WAIT_S = 0.5
 """How long a forwarded call waits for the target's liveliness token before `unavailable`."""
 STATUS_CALL_TIMEOUT_S = 1.0
@@ -97,7 +97,7 @@ IDLE_WAIT_S = 1.0
 class DecisionService:
     """The DecisionServer: declares its streams and methods, starts the loop, announces.
 
-    `close()` holds the arm (an inactive command, then puma `stop`) and stops the loop; it
+    `close()` holds the arm (an inactive command, then arm `stop`) and stops the loop; it
     does not close the node.
     """
 
@@ -107,7 +107,7 @@ class DecisionService:
         self._cond = threading.Condition(self._lock)
         wall = time.time_ns()
         # Counters seeded from the wall clock, like the masters': a restarted decision server
-        # still counts upwards, so the puma never ignores it as stale.
+        # still counts upwards, so the arm never ignores it as stale.
         self.supervisor = Supervisor(
             config, seq_start=wall // 1_000, engage_start=wall // 1_000_000
         )
@@ -150,7 +150,7 @@ class DecisionService:
         self._peeks = tuple(
             Peek(node, service, method, STATUS_CALL_TIMEOUT_S)
             for service, method in (
-                ("puma", "status"),
+                ("arm", "status"),
                 ("force", "sensor_status"),
                 ("force", "sensor_read"),
             )
@@ -250,7 +250,7 @@ class DecisionService:
                 )
             self._put(cmd)
         if res.stop_arm:
-            self._stop_puma_soon()
+            self._stop_arm_soon()
         self._watch_force()
         return res.notices
 
@@ -270,13 +270,13 @@ class DecisionService:
             return None
         return inp.force
 
-    def _stop_puma_soon(self) -> None:
-        """A watched motion broke a limit: the puma's `stop`, from a worker (never from the
+    def _stop_arm_soon(self) -> None:
+        """A watched motion broke a limit: the arm's `stop`, from a worker (never from the
         tick, which holds the lock)."""
 
         def stop() -> None:
             try:
-                self._forward("puma", "stop", {})
+                self._forward("arm", "stop", {})
             except RpcError as e:
                 log.warning("could not stop a forwarded motion: %s", e.message)
 
@@ -324,8 +324,8 @@ class DecisionService:
     # --- methods ---------------------------------------------------------------------------
     def _methods(self) -> dict[str, Callable[[dict[str, Any]], dict[str, Any]]]:
         methods: dict[str, Callable[[dict[str, Any]], dict[str, Any]]] = {}
-        for name in PUMA_METHODS:
-            methods[name] = partial(self._puma_method, name)
+        for name in ARM_METHODS:
+            methods[name] = partial(self._arm_method, name)
         for name in FORCE_METHODS:
             methods[name] = partial(self._forward, "force", name)
         methods.update(
@@ -361,7 +361,7 @@ class DecisionService:
         except Unavailable as e:
             raise RpcError("unavailable", f"{service}.{method}: {e}") from None
 
-    def _puma_method(self, method: str, args: dict[str, Any]) -> dict[str, Any]:
+    def _arm_method(self, method: str, args: dict[str, Any]) -> dict[str, Any]:
         # `stop` held already, before its arguments were read (`_hold_first`).
         if method in MOTION_METHODS:
             self._check_target(method, args)
@@ -370,7 +370,7 @@ class DecisionService:
                 self._watch_force()  # the watch stops the motion on a contact
                 self._cond.notify_all()  # the timer watches the motion
             try:
-                return self._forward("puma", method, {**args, SUPERVISED_BY: SERVICE})
+                return self._forward("arm", method, {**args, SUPERVISED_BY: SERVICE})
             except RpcError:
                 with self._cond:
                     self.supervisor.end_watch()
@@ -379,24 +379,24 @@ class DecisionService:
             with self._cond:
                 if self.supervisor.mode in (Mode.FOLLOW, Mode.TASK):
                     raise RpcError("busy", "set_tool refused: the supervisor is commanding the arm")
-        return self._forward("puma", method, args)
+        return self._forward("arm", method, args)
 
     def _check_target(self, method: str, args: Mapping[str, Any]) -> None:
         """Refuse (`limit`) a forwarded motion whose target tool point lies outside the
-        workspace box (watch.forwarded_target; what the puma would refuse is left to it)."""
+        workspace box (watch.forwarded_target; what the arm would refuse is left to it)."""
 
         def newest_state() -> RobotState | None:
             with self._cond:
                 read = self._state.read()
             return None if read is None else read[0]
 
-        def ask_puma(puma_method: str, puma_args: dict[str, Any]) -> dict[str, Any] | None:
+        def ask_arm(arm_method: str, arm_args: dict[str, Any]) -> dict[str, Any] | None:
             try:
-                return self._forward("puma", puma_method, puma_args)
+                return self._forward("arm", arm_method, arm_args)
             except RpcError:
-                return None  # the puma will refuse the call for the same reason
+                return None  # the arm will refuse the call for the same reason
 
-        p = forwarded_target(method, args, newest_state, ask_puma)
+        p = forwarded_target(method, args, newest_state, ask_arm)
         if p is None:
             return
         with self._cond:
@@ -405,7 +405,7 @@ class DecisionService:
             raise RpcError("limit", why)
 
     def rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
-        """The superset status: robot (robot/state and puma's `status`), sensor (robot/force
+        """The superset status: robot (robot/state and arm's `status`), sensor (robot/force
         and `sensor_status`), supervisor (mode, lease, task, settings), alive services and the
         intervention counters."""
         out = self._status(wait=True)
@@ -418,8 +418,8 @@ class DecisionService:
         return self._status(wait=False)
 
     def _status(self, wait: bool) -> dict[str, Any] | None:
-        puma, sensor = self._peeks[0].get(wait), self._peeks[1].get(wait)
-        if puma is None or sensor is None:
+        arm, sensor = self._peeks[0].get(wait), self._peeks[1].get(wait)
+        if arm is None or sensor is None:
             return None
         with self._cond:
             watching = self._force.watching
@@ -443,7 +443,7 @@ class DecisionService:
             "interventions": interventions,
             "robot": stamped(state, now),
             "force": stamped(force, now) if read is None else read_sample(read),
-            "puma": puma,
+            "arm": arm,
             "sensor": sensor,
             "alive": sorted(self.node.alive.names()),
             "loop": {
@@ -526,15 +526,15 @@ class DecisionService:
 
     def rpc_estop(self, args: dict[str, Any]) -> dict[str, Any]:
         """Latch the emergency stop (done before this runs, whatever the arguments: see
-        `_latch_estop`), pre-empt any task, stop the puma; everything that moves is refused
+        `_latch_estop`), pre-empt any task, stop the arm; everything that moves is refused
         until `reset`. An optional `reason` (str) is echoed back, shortened."""
         reason = args.get("reason")
         method = "estop" if self.config.estop_power_off else "stop"
         try:
-            puma: dict[str, Any] = self._forward("puma", method, {})
+            arm: dict[str, Any] = self._forward("arm", method, {})
         except RpcError as e:
-            puma = {"error": e.code, "message": e.message}
-        out: dict[str, Any] = {"estop": True, "puma": puma}
+            arm = {"error": e.code, "message": e.message}
+        out: dict[str, Any] = {"estop": True, "arm": arm}
         if isinstance(reason, str):
             out["reason"] = short(reason)
         return out
@@ -560,7 +560,7 @@ class DecisionService:
                 run = self.supervisor.cancel_task(now)
             self._react()
             if run is not None and run.external:
-                self._forward("puma", "stop", {})
+                self._forward("arm", "stop", {})
             return {"cancelled": run.name if run is not None else None}
         if name == "home":
             return self._home_task(args, now)
@@ -602,7 +602,7 @@ class DecisionService:
             error: tuple[ErrorCode, str] | None = None
             try:
                 reply = self._forward(
-                    "puma",
+                    "arm",
                     "home",
                     {"wait": True, SUPERVISED_BY: SERVICE},
                     self.config.wait_timeout_s,
@@ -622,7 +622,7 @@ class DecisionService:
 
     # --- shutdown --------------------------------------------------------------------------
     def close(self) -> None:
-        """Hold the arm (inactive command, puma `stop`), stop the loop. Idempotent."""
+        """Hold the arm (inactive command, arm `stop`), stop the loop. Idempotent."""
         if self._closed:
             return
         with self._cond:
@@ -635,12 +635,12 @@ class DecisionService:
             self._cond.notify_all()
             for cmd in final:
                 self._put(cmd)
-        if self.node.closed or not self.node.alive.is_alive("puma"):
+        if self.node.closed or not self.node.alive.is_alive("arm"):
             return
         try:
-            self.node.call("puma", "stop", {}, self.config.rpc_timeout_s)
+            self.node.call("arm", "stop", {}, self.config.rpc_timeout_s)
         except (RpcError, Unavailable) as e:
-            log.info("puma stop at close: %s", e)
+            log.info("arm stop at close: %s", e)
 
 
 def _outcome(run: TaskRun) -> dict[str, Any]:
@@ -649,4 +649,4 @@ def _outcome(run: TaskRun) -> dict[str, Any]:
     return dict(run.result or {"task": run.name, "done": run.done})
 
 
-__all__ = ["FORCE_METHODS", "INTERVENTIONS", "PUMA_METHODS", "DecisionService"]
+__all__ = ["ARM_METHODS", "FORCE_METHODS", "INTERVENTIONS", "DecisionService"]

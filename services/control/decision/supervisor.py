@@ -1,12 +1,12 @@
 """The supervisory logic, free of I/O: one `tick()` per input, and per timer wake-up.
 
-The decision server stands between the masters (`robot/cmd`) and the puma (`robot/puma/cmd`).
-It keeps its own engagement towards the puma (`engage_out`, its own `seq`, master id
+The decision server stands between the masters (`robot/cmd`) and the arm (`robot/puma/cmd`).
+It keeps its own engagement towards the arm (`engage_out`, its own `seq`, master id
 "decision"). When the lease holder's engagement starts, it records the tool pose (p0, R0)
 from the newest robot/state and starts a new `engage_out`; each tick it maps the newest
 command to the operator's desired tool pose (PROTOCOL §2) and moves the SUPERVISED target
 towards it through the filters: (a) contact, (b) active compliance, (c) tool speed,
-(d) workspace box. It sends the puma `dp = p_sup − p0`, `dR = R0ᵀ·R_sup` in the world frame,
+(d) workspace box. It sends the arm `dp = p_sup − p0`, `dR = R0ᵀ·R_sup` in the world frame,
 so whatever a filter held back stays an offset of the target: it never turns into a jump.
 
 Motion the filters remove (into a contact, out of the workspace) is dropped for good: it is
@@ -85,7 +85,7 @@ class Inputs:
     their arrival times state_rx_ns, force_rx_ns on the monotonic clock.
     commands: the robot/cmd messages received since the last tick, in arrival order (already
     validated by the codec). lost: liveliness names gone since the last tick ("master/<id>",
-    "puma", "force"). force_warming: the service has just subscribed to robot/force for an
+    "arm", "force"). force_warming: the service has just subscribed to robot/force for an
     engagement and no sample is in yet: a new engagement is deferred (not refused).
     """
 
@@ -109,7 +109,7 @@ class TickResult:
     notices: tuple[Notice, ...]
     finished: tuple[TaskRun, ...]
     stop_arm: bool = False
-    """A forwarded motion broke a limit: the service must call the puma's `stop` now."""
+    """A forwarded motion broke a limit: the service must call the arm's `stop` now."""
 
 
 class Supervisor:
@@ -234,7 +234,7 @@ class Supervisor:
         return None
 
     def _streaming(self) -> bool:
-        """A streamed task runs (the supervisor steps it; `home` runs in the puma)."""
+        """A streamed task runs (the supervisor steps it; `home` runs in the arm)."""
         run = self.tasks.current
         return self.mode is Mode.TASK and run is not None and not run.external
 
@@ -286,11 +286,11 @@ class Supervisor:
                 # Keep the record: if the token comes back while the master still streams
                 # the same engagement (a network cut), that engagement must not resume.
                 rec.block(rec.engage)
-        elif name == "puma" and self.mode in (Mode.FOLLOW, Mode.TASK):
+        elif name == "arm" and self.mode in (Mode.FOLLOW, Mode.TASK):
             self._hold(
                 "watchdog",
-                "puma_lost",
-                "the puma service is gone: holding",
+                "arm_lost",
+                "the arm service is gone: holding",
                 task_error="unavailable",
             )
         elif name == "force":
@@ -431,7 +431,7 @@ class Supervisor:
         self.hold_reason = None
 
     def _begin_out(self, state: RobotState) -> None:
-        """Start a new engagement towards the puma, rebased on the current tool pose."""
+        """Start a new engagement towards the arm, rebased on the current tool pose."""
         self.target.begin(state, self._now_ns, self._cfg.period_s)
         self.notices.clear_edges()
         self._force_flowing = False
@@ -509,7 +509,7 @@ class Supervisor:
             )
             return None
         if not (self._fresh or self.target.lagging or cfg.compliance or self._contact):
-            return None  # nothing new: the puma already has this target
+            return None  # nothing new: the arm already has this target
         cmd = self._cmd
         if not self.target.follow(cmd, self._sensed(inp, force_ok)):
             # Unreachable with bounded inputs; if it ever happens the target keeps its
@@ -568,7 +568,7 @@ class Supervisor:
 
     def claim(self, method: str, now_ns: int | None = None) -> None:
         """Before forwarding a motion method: refuse it while the supervisor commands the
-        arm, otherwise stop re-sending the hold so the puma's own motion is not disturbed,
+        arm, otherwise stop re-sending the hold so the arm's own motion is not disturbed,
         and watch the motion (contact, workspace) until it is over."""
         if now_ns is not None:
             self._now_ns = now_ns
@@ -584,7 +584,7 @@ class Supervisor:
 
     def _watch_step(self, inp: Inputs, state_ok: bool, force_ok: bool) -> None:
         """A forwarded motion: over once the robot shows it ended; stopped (the service
-        calls the puma's `stop`) at a contact above max_force_n or outside the box."""
+        calls the arm's `stop`) at a contact above max_force_n or outside the box."""
         watch = self.watch
         state = inp.state
         if watch is None or self.mode is not Mode.IDLE:

@@ -1,10 +1,10 @@
-"""The supervised target: the tool pose the decision server commands the puma to, shaped
+"""The supervised target: the tool pose the decision server commands the arm to, shaped
 from the operator's (or a task's) goal through the filters, and the commands that carry it.
 
 Each outgoing engagement (`engage_out`, its own `seq_out`, master id "decision") starts
-from the tool pose (p0, R0) then (the setpoint's position, as the puma's start, when
+from the tool pose (p0, R0) then (the setpoint's position, as the arm's start, when
 robot/state carries it). The target (p_sup, R_sup) moves towards the goal
-through (a) contact, (b) active compliance, (c) tool speed, (d) workspace box; the puma is
+through (a) contact, (b) active compliance, (c) tool speed, (d) workspace box; the arm is
 sent `dp = p_sup − p0`, `dR = R0ᵀ·R_sup` in the world frame, so whatever a filter held back
 stays an offset of the target (off_p, off_R): it never turns into a jump.
 
@@ -68,7 +68,7 @@ as slow as 10 Hz is followed at full speed; after a longer silence (a stream sta
 lost TCP segment over a WAN, where the watchdogs are set to seconds) the target does not
 leap by the whole silence's worth of speed: it moves on at the limit speed, on the timer."""
 HOLD_RESEND_NS = 50_000_000
-"""A hold is re-sent this often (20 Hz): one lost packet must not matter, and the puma needs
+"""A hold is re-sent this often (20 Hz): one lost packet must not matter, and the arm needs
 nothing more while nothing changes."""
 _ZERO: V3 = (0.0, 0.0, 0.0)
 
@@ -163,8 +163,8 @@ class SupervisedTarget:
         self.last_adv_ns = now_ns
 
     def begin(self, state: RobotState, now_ns: int, period_s: float) -> None:
-        """Start a new engagement towards the puma, rebased on the current tool pose: the
-        setpoint's (`tool_p_cmd`), which the puma records as its start, when the state
+        """Start a new engagement towards the arm, rebased on the current tool pose: the
+        setpoint's (`tool_p_cmd`), which the arm records as its start, when the state
         carries it; the measured one trails it by the servo's error."""
         self.engage_out = max(self.engage_out, state.engage) + 1
         start = state.tool_p_cmd if state.tool_p_cmd is not None else state.tool_p

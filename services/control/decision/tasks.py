@@ -4,7 +4,7 @@ A streamed task is a plan of steps that the supervisor executes tick by tick thr
 same filters as teleoperation (contact, workspace, speed): `MoveTo` (a straight move of the
 tool point), `GuardedMove` (move along a direction until the force changes by more than a
 threshold) and `Grip` (set the gripper, wait). `guarded_move` and `pick_place` are built
-from them here; `home` is forwarded to the puma and `cancel` stops the running task (see
+from them here; `home` is forwarded to the arm and `cancel` stops the running task (see
 service.py). Positions in m (world), forces in N, speeds in m/s.
 """
 

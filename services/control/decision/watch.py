@@ -1,9 +1,9 @@
-"""Forwarded motions (`move_*`, `home`): the puma plans and executes them, the decision
+"""Forwarded motions (`move_*`, `home`): the arm plans and executes them, the decision
 server watches them and has them stopped at a contact or at the workspace's edge.
 
 `forwarded_target` tells where a forwarded motion goes (the service refuses one outside
 the workspace box). Pure: `watch_step` judges one tick's robot state and force; the
-supervisor counts and reports what it returns and asks the service to call the puma's
+supervisor counts and reports what it returns and asks the service to call the arm's
 `stop`.
 """
 
@@ -65,13 +65,13 @@ def forwarded_target(
     method: str,
     args: Mapping[str, Any],
     newest_state: Callable[[], RobotState | None],
-    ask_puma: Callable[[str, dict[str, Any]], dict[str, Any] | None],
+    ask_arm: Callable[[str, dict[str, Any]], dict[str, Any] | None],
 ) -> list[float] | None:
     """The tool point (m, world) a forwarded motion goes to, or None when it cannot be told
-    or the puma will refuse the call anyway (absurd or malformed arguments: `bad_request`
-    is the puma's to give). `move_pose`: its `p`; `move_relative`: p + R_f·dp from the
-    newest robot/state (R_f of its frame, PROTOCOL §4, the puma's `set_frame` default when
-    absent); `move_joints`: the puma's `fk` of `q`. `ask_puma(method, args)` is None on an
+    or the arm will refuse the call anyway (absurd or malformed arguments: `bad_request`
+    is the arm's to give). `move_pose`: its `p`; `move_relative`: p + R_f·dp from the
+    newest robot/state (R_f of its frame, PROTOCOL §4, the arm's `set_frame` default when
+    absent); `move_joints`: the arm's `fk` of `q`. `ask_arm(method, args)` is None on an
     error reply."""
     if method == "move_pose":
         p = _floats3(args.get("p"))
@@ -85,7 +85,7 @@ def forwarded_target(
             return None
         frame = args.get("frame")
         if frame is None:
-            frame = (ask_puma("status", {}) or {}).get("frame", "world")
+            frame = (ask_arm("status", {}) or {}).get("frame", "world")
         if frame == "world":
             R_f = np.eye(3)
         elif frame == "wrist":
@@ -103,7 +103,7 @@ def forwarded_target(
             and all(_number(x) for x in q)
             and each_out_of_bounds("q", [float(x) for x in q], "joint_rad") is None
         ):
-            return _floats3((ask_puma("fk", {"q": q}) or {}).get("tool_p"))
+            return _floats3((ask_arm("fk", {"q": q}) or {}).get("tool_p"))
     return None
 
 
@@ -127,7 +127,7 @@ def watch_step(
 ) -> WatchStop | Watch | None:
     """One check of a watched motion, given a fresh robot/state and the force sample (None
     if stale): the watch itself while the motion goes on, None once the robot shows it
-    ended (ready, or error: the puma already holds), or why it must stop (a contact above
+    ended (ready, or error: the arm already holds), or why it must stop (a contact above
     max_force_n, the tool outside the box by more than WATCH_BOX_TOL_M)."""
     if state.status == "moving":
         watch.moving = True

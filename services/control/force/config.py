@@ -37,7 +37,7 @@ class ForceConfig:
     - `sensor_p_m`, `sensor_R`: the sensor frame R_s at rest in the flange frame R_e (eMs;
       the paper's R_s ≡ R_e is the identity default);
     - `tool_p_m`, `tool_R`: the tool placement in the flange frame (eMt), PROTOCOL.md's
-      default (0, 0, 0.2), identity; updated live from puma's set_tool;
+      default (0, 0, 0.2), identity; updated live from arm's set_tool;
     - `tool_com_m`: the tool's centre of mass in the tool frame, from the tool point.
 
     `calibration`: "identity" or 36 row-major floats mapping the six sensing signals to

@@ -185,7 +185,7 @@ class ForceCore:
             self._sampler.close()
             self._sensor.close()
 
-    # --- from robot/state and puma's set_tool -------------------------------------------
+    # --- from robot/state and arm's set_tool -------------------------------------------
 
     def update_robot_state(
         self,
@@ -200,7 +200,7 @@ class ForceCore:
         The tool orientation drives gravity compensation; a simulated sensor also senses
         at this pose (and, with the state's `t_ns`, estimates the tool's acceleration). With
         the flange pose too, the tool placement eMt = flange⁻¹·tool is derived, and a
-        changed placement (puma's set_tool) updates the model. Validates its input; a
+        changed placement (arm's set_tool) updates the model. Validates its input; a
         decoded RobotState (already validated) may use `update_robot_state_checked`.
         """
         p = np.asarray(tool_p, dtype=float).reshape(3)
@@ -278,7 +278,7 @@ class ForceCore:
         self._last_world = (state.held, state.objects)
 
     def set_tool(self, p: ArrayLike, R: ArrayLike) -> None:
-        """The tool placement eMt in the flange frame (m; R flange←tool), as puma's set_tool."""
+        """The tool placement eMt in the flange frame (m; R flange←tool), as arm's set_tool."""
         p_et = np.asarray(p, dtype=float).reshape(3)
         if not np.all(np.isfinite(p_et)):
             raise ProtocolError("p", "not finite")

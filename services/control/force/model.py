@@ -9,7 +9,7 @@ Frames and names (SE3 names say their frames, as in Pinocchio: `eMs` is R_s in R
 
 - `eMs = (R_es, p_es)`: the sensor frame at rest, in the flange frame. The paper has
   R_s ≡ R_e at rest (the plates are thin): the default is the identity.
-- `eMt = (R_et, p_et)`: the tool placement in the flange frame, as puma's `set_tool`.
+- `eMt = (R_et, p_et)`: the tool placement in the flange frame, as arm's `set_tool`.
 - `sMt = eMs⁻¹ · eMt = (R_st, p_st)`: the tool in the sensor frame; R_st = M_s^t and
   p_st = M_s^t T_t, the tool point seen from the sensor origin.
 - The calibration reports the plate motion (ΔS, ΔM) in R_s at rest; with the paper's

@@ -89,7 +89,7 @@ class PoseAwareSensor(Protocol):
         ...
 
     def set_tool(self, p_et: ArrayLike, R_et: ArrayLike) -> None:
-        """The tool placement in the flange frame (eMt), as puma's `set_tool`."""
+        """The tool placement in the flange frame (eMt), as arm's `set_tool`."""
         ...
 
 

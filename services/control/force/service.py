@@ -3,7 +3,7 @@
 Each sample is encoded by a dedicated ForceSample encoder (wire.py, byte-identical to the
 codec) and put on the bus from the sampling thread itself (`handoff = "inline"`, the
 default): no queue and no thread wake-up per sample. The arm's pose from `robot/state`
-drives gravity compensation and the sim sensor's contact, and follows the puma's
+drives gravity compensation and the sim sensor's contact, and follows the arm's
 `set_tool`; with the sim sensor, `workcell/state` moves the objects it touches and puts
 the carried one's weight on the wrist.
 
@@ -123,9 +123,9 @@ class ForceService:
             self.node.report_rejected(WORKCELL_STATE.key, str(e))
 
     def _rpc_set_tool(self, args: dict[str, Any]) -> dict[str, Any]:
-        """The tool placement eMt (as puma's `set_tool {p, R}`); also followed from robot/state."""
+        """The tool placement eMt (as arm's `set_tool {p, R}`); also followed from robot/state."""
         p = codec.arg(args, "p", Vec3)
-        check_norm("p", p, "tool_offset_m")  # as the puma's set_tool: a tool within 1 m
+        check_norm("p", p, "tool_offset_m")  # as the arm's set_tool: a tool within 1 m
         self.core.set_tool(p, codec.arg(args, "R", Rot, IDENTITY_R))
         return self._rpc_sensor_status({})
 

@@ -5,7 +5,7 @@ towards an intended path (down `depth_m` along the master's −z over `approach_
 `hold_s`, back up over `release_s`), and while holding the operator presses until the force
 felt reaches `goal_force_n` (`services.control.passivity.dynamics`). The force the master service
 displays acts on the device from the next read on, so the whole loop — hand → master →
-decision → puma → contact → force → master → hand — runs with the real services. Physics
+decision → arm → contact → force → master → hand — runs with the real services. Physics
 is integrated in steps of at most `STEP_S` within each read.
 
 With `twist_rad` ≠ 0 the handle also turns about the master's z: a rotational inertia and

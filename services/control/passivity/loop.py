@@ -87,9 +87,9 @@ class Link:
 
 
 SLAVE_SPEED_M_S = 0.5
-"""The simulated slave's speed limit: PumaConfig's `max_tool_speed_m_s` default."""
+"""The simulated slave's speed limit: ArmConfig's `max_tool_speed_m_s` default."""
 SLAVE_ROT_SPEED_RAD_S = 1.5
-"""Its turning speed limit: PumaConfig's `max_tool_rot_speed_rad_s` default."""
+"""Its turning speed limit: ArmConfig's `max_tool_rot_speed_rad_s` default."""
 MAX_MOMENT_NM = 2.0
 """The largest moment the simulated master displays (N·m)."""
 
@@ -129,7 +129,7 @@ class Twist:
 class LoopSpec:
     """The simulated contact task. Defaults: 1 kHz, 1-DoF, a 5 kN/m wall 5 cm away, the hand
     aiming 3 cm past it. `slave_speed_m_s`: the slave arm chases its target at most this fast
-    (PumaConfig.max_tool_speed_m_s, 0.5 m/s); 0: it jumps to each target in one tick (over a
+    (ArmConfig.max_tool_speed_m_s, 0.5 m/s); 0: it jumps to each target in one tick (over a
     jittery link the positions arrive in bunches, and the jumps are impacts faster than the
     slave's controller can see: docs/passivity.md). `slave_port`: the slave side is the
     decision service's own port (`SlavePort`: it corrects the target against the measured

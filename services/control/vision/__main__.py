@@ -14,7 +14,7 @@ from services.control.vision.config import VisionConfig
 
 def vision_node_config(cfg: NodeConfig, config: VisionConfig) -> NodeConfig:
     """The vision session: the simulator draws the arm from `robot/state` at most twice a
-    frame, so Zenoh hands it no more than that (the puma publishes at ≥ 100 Hz)."""
+    frame, so Zenoh hands it no more than that (the arm publishes at ≥ 100 Hz)."""
     if config.camera != "sim":
         return cfg
     return replace(cfg, downsampling=(*cfg.downsampling, (keys.STATE.key, 2.0 * config.fps)))

@@ -52,7 +52,7 @@ class VisionService:
             self.camera, config, self._publish, self._emit, watched=False
         )
         if isinstance(self.camera, SimStereoCamera):
-            from services.control.puma.kinematics import Puma560
+            from services.control.arm.kinematics import Puma560
 
             self._kin = Puma560()
             node.subscribe(keys.STATE, self._on_state)

@@ -37,7 +37,7 @@ import viser
 from services.bus.messages import Event, RobotState, mat3
 from services.bus.node import Node
 from services.bus.rate import RateLoop
-from services.control.puma.kinematics import Puma560
+from services.control.arm.kinematics import Puma560
 from services.frontends.console.actions import DECISION, Actions
 from services.frontends.console.config import ConsoleConfig
 from services.frontends.console.geometry import Mat, Vec

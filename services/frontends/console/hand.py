@@ -2,7 +2,7 @@
 
 The gizmo is the operator's hand: its pose (world) is sent as the hand pose of master
 `<id>` (`robot/master/<id>/rpc/set_hand`, docs/protocol-extensions.md), which then runs the
-same pipeline as a physical device (eq. 5, master-shift, robot/cmd → decision → puma).
+same pipeline as a physical device (eq. 5, master-shift, robot/cmd → decision → arm).
 
 Re-synchronising ("snap") is the physical operator's gesture: press the master-shift, put
 the hand where the tool is, keep it pressed. The hand is then `parked` on the tool, and the

@@ -34,7 +34,7 @@ log = logging.getLogger("telerobot.console")
 
 ROBOT_ACTIONS = ("Connect", "Initialize", "Home", "Stop")
 ROBOT_HINT = (
-    "Connect: puma connect. Initialize: connect if needed, then calibrate (ready follows). "
+    "Connect: arm connect. Initialize: connect if needed, then calibrate (ready follows). "
     "Home: clutch the master, move home. Stop: hold teleoperation, cancel a task."
 )
 _WORKSPACE_COLOR = (30, 160, 90)

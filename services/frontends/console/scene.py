@@ -12,7 +12,7 @@ import viser
 from services.bus.errors import ProtocolError
 from services.bus.messages import RobotState, mat3
 from services.bus.node import Node
-from services.control.puma.kinematics import Puma560
+from services.control.arm.kinematics import Puma560
 from services.control.vision.objects import LIQUID_BGR, SPILL_BGR, Spills
 from services.frontends.console.config import ConsoleConfig
 from services.frontends.console.geometry import cylinder_pose, force_arrow, link_segments

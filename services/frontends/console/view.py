@@ -18,7 +18,7 @@ from services.bus.messages import Event, MasterState, RobotState
 from services.frontends.console.tdpa import PortFigures, TdpaView
 
 #: services the console expects on a complete system (alive/<name>)
-EXPECTED_SERVICES: tuple[str, ...] = ("puma", "force", "decision", "vision")
+EXPECTED_SERVICES: tuple[str, ...] = ("arm", "force", "decision", "vision")
 
 _STATUS_COLOR = {
     "ready": "#1a7f37",

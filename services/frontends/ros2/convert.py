@@ -1,7 +1,7 @@
 """Telerobot messages → ROS 2 messages, pure functions on plain floats (they run per sample).
 
 Frames: the world is the DH base frame; `link<i>` is DH frame i−1 turned by q_i and `flange`
-DH frame 6, exactly as in the URDF of services/control/puma/urdf.py, so /tf drives RViz's robot
+DH frame 6, exactly as in the URDF of services/control/arm/urdf.py, so /tf drives RViz's robot
 model with nothing else running; `tool` is placed in the flange by the live tool placement
 (eMt = oMe⁻¹·oMt from each RobotState). Quaternions are ROS's (x, y, z, w).
 """
@@ -13,8 +13,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from services.bus.messages import ForceSample, RobotState, StereoFrame
-from services.control.puma.kinematics import PUMA560_DH, DHLink
-from services.control.puma.urdf import UrdfFrames
+from services.control.arm.kinematics import PUMA560_DH, DHLink
+from services.control.arm.urdf import UrdfFrames
 from services.frontends.rosmsg import msgs
 from services.frontends.rosmsg.msgs import Header, Quat, Vec3
 from services.geometry import quat_of_rotation, quat_of_rx_rz, rotation_of_quat

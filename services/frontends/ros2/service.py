@@ -38,7 +38,7 @@ from services.bus.keys import Topic, alive_key, with_ns
 from services.bus.messages import ForceSample, OperatorCommand, RobotState, StereoFrame
 from services.bus.node import Node
 from services.bus.rate import RateLoop
-from services.control.puma.urdf import DEFAULT_TOOL_P, IDENTITY_R, UrdfFrames, puma_urdf
+from services.control.arm.urdf import DEFAULT_TOOL_P, IDENTITY_R, UrdfFrames, puma_urdf
 from services.frontends.ros2 import convert, rmw
 from services.frontends.ros2.config import Ros2Config
 from services.frontends.ros2.graph import RosNode, RosPublisher
@@ -287,7 +287,7 @@ class Ros2Service:
         self._maybe_republish_description(st)
 
     def _maybe_republish_description(self, st: RobotState) -> None:
-        """A tool change (puma `set_tool`) republishes the URDF, so a late joiner gets the
+        """A tool change (arm `set_tool`) republishes the URDF, so a late joiner gets the
         tool that is really mounted."""
         p_et, R_et = self.converter.tool_placement(st)
         placement = (*p_et, *R_et)

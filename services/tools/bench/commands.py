@@ -1,17 +1,17 @@
 """The command phases: the bench as a master streams `robot/cmd` through the decision to the
-puma, and times the operator's path.
+arm, and times the operator's path.
 
 Two ways to time it, chosen per figure by what the running services send:
 
 - **the contract-extension fields** (docs/protocol-extensions.md): the decision's
   `robot/puma/cmd` carries `origin_t_ns` (the `t_ns` of the bench command it carries out) and
   `robot/state` carries `cmd_rx_ns`, `setpoint_ns` and `cmd_origin_t_ns` for its `cmd_seq`.
-  Commands reaching the puma = distinct bench `t_ns` seen as `origin_t_ns`; master → puma =
+  Commands reaching the arm = distinct bench `t_ns` seen as `origin_t_ns`; master → arm =
   `cmd_rx_ns − cmd_origin_t_ns`; master → setpoint = `setpoint_ns − cmd_origin_t_ns`, over the
   commands `robot/state` showed (a sample: states run slower than a 1 kHz master);
 - **dp matching**, the fallback for services that do not send those fields: the bench encodes
   its command index k in `dp` (k · step), decodes it back from the decision's commands, and
-  takes the arrival at the bench of the first puma command carrying k as "master → puma" and
+  takes the arrival at the bench of the first arm command carrying k as "master → arm" and
   the `t_ns` of the first `robot/state` showing it applied as "master → setpoint".
 
 Each phase records which way each figure was timed (`*_method`) and says so in a note.
@@ -65,7 +65,7 @@ def state_fields(m: RobotState) -> tuple[Any, ...]:
 
 class HoldWatch:
     """Tells the command driver when the decision stopped following the bench's current
-    engagement: an inactive puma command of the engagement it was following (a hold), or
+    engagement: an inactive arm command of the engagement it was following (a hold), or
     no active one at all `refused_after_s` after the engagement began (a refusal).
 
     `newest()` gives the newest robot/puma/cmd record `(rx_ns, puma_cmd_fields(m))`."""
@@ -105,7 +105,7 @@ def step_for(rate_hz: float, duration_s: float, sign: float) -> float:
 def decision_active(
     fwd_rec: Sequence[Record], run: CommandRun, step_m: float
 ) -> list[tuple[int, int, int]]:
-    """(rx_ns, seq, k) of the decision's active puma commands since the bench's first
+    """(rx_ns, seq, k) of the decision's active arm commands since the bench's first
     command, k decoded from dp within the bench engagement the decision engagement follows
     (dp matching)."""
     if not run.sent:
@@ -138,8 +138,8 @@ def command_figures(
 
     `fwd_rec`: `(rx_ns, puma_cmd_fields)` per robot/puma/cmd; `st_rec`: `(rx_ns,
     state_fields)` per robot/state, both in arrival order. Each headline figure —
-    `reached_rate_hz`, `puma_ms`, `setpoint_ms` — comes from the extension fields when the
-    services send them and from dp matching otherwise (`reached_method`, `puma_method`,
+    `reached_rate_hz`, `arm_ms`, `setpoint_ms` — comes from the extension fields when the
+    services send them and from dp matching otherwise (`reached_method`, `arm_method`,
     `setpoint_method`); the dp-matching figures are kept beside them whatever the path.
     `na` names, for a headline figure left empty, why.
     """
@@ -162,11 +162,11 @@ def command_figures(
         {int(f[F_SEQ]): int(f[F_T]) for _, f in fwd_rec if f[F_ORIGIN] is not None},
     )  # fmt: skip
     reached = stamped.reached if has_origin else m.forwarded_distinct
-    puma_ms = stamped.puma_ms if has_rx else m.forward_ms
+    arm_ms = stamped.arm_ms if has_rx else m.forward_ms
     setpoint_ms = stamped.setpoint_ms if has_setpoint else m.applied_ms
     na: dict[str, str] = {}
-    if puma_ms.size == 0:
-        na["puma_ms"] = (
+    if arm_ms.size == 0:
+        na["arm_ms"] = (
             "robot/state showed none of the bench's commands (cmd_origin_t_ns)"
             if has_rx
             else "no robot/puma/cmd carried a bench command (dp matching found none)"
@@ -186,19 +186,19 @@ def command_figures(
         "reached_distinct": reached,
         "reached_rate_hz": stats.rate_hz(reached, duration_s),
         "reached_method": "origin_t_ns" if has_origin else "dp",
-        "puma_ms": stats.summarize(puma_ms).as_dict(),
-        "puma_method": "cmd_rx_ns" if has_rx else "bench_arrival",
+        "arm_ms": stats.summarize(arm_ms).as_dict(),
+        "arm_method": "cmd_rx_ns" if has_rx else "bench_arrival",
         "setpoint_ms": stats.summarize(setpoint_ms).as_dict(),
         "setpoint_method": "setpoint_ns" if has_setpoint else "state_t_ns",
         "stamped_sampled": stamped.sampled,
         "hops_ms": {
             "decision": stats.summarize(stamped.decision_ms).as_dict(),
-            "to_puma": stats.summarize(stamped.to_puma_ms).as_dict(),
+            "to_arm": stats.summarize(stamped.to_arm_ms).as_dict(),
             "apply": stats.summarize(stamped.apply_ms).as_dict(),
         },
         "forwarded_distinct": m.forwarded_distinct,
         "forwarded_rate_hz": stats.rate_hz(m.forwarded_distinct, duration_s),
-        "puma_cmd_rate_hz": stats.rate_from_times(fwd_rx),
+        "arm_cmd_rate_hz": stats.rate_from_times(fwd_rx),
         "matched": m.matched,
         "unforwarded": m.unforwarded,
         "forward_ms": stats.summarize(m.forward_ms).as_dict(),
@@ -211,10 +211,10 @@ def command_figures(
 
 def method_note(key: str, fig: dict[str, Any]) -> str:
     """How a command phase was timed, in words (one note per phase)."""
-    if fig["puma_method"] == "cmd_rx_ns":
+    if fig["arm_method"] == "cmd_rx_ns":
         how = (
-            f"timed from the extension fields: commands reaching the puma by origin_t_ns "
-            f"({fig['reached_method']}), master→puma = cmd_rx_ns − cmd_origin_t_ns, "
+            f"timed from the extension fields: commands reaching the arm by origin_t_ns "
+            f"({fig['reached_method']}), master→arm = cmd_rx_ns − cmd_origin_t_ns, "
             f"master→setpoint = setpoint_ns − cmd_origin_t_ns ({fig['setpoint_method']}), over "
             f"the {fig['stamped_sampled']} of {fig['sent']} commands robot/state showed (a "
             "sample: the state stream is slower than the master)"
@@ -222,8 +222,8 @@ def method_note(key: str, fig: dict[str, Any]) -> str:
     else:
         how = (
             "the services send no cmd_rx_ns/cmd_origin_t_ns yet: fallback dp matching — "
-            f"commands reaching the puma by the k decoded from dp ({fig['reached_method']}), "
-            "master→puma = arrival at the bench of the first robot/puma/cmd carrying the "
+            f"commands reaching the arm by the k decoded from dp ({fig['reached_method']}), "
+            "master→arm = arrival at the bench of the first robot/puma/cmd carrying the "
             f"command, master→setpoint = t_ns of the first robot/state showing it applied "
             f"({fig['setpoint_method']})"
         )
@@ -252,7 +252,7 @@ def stream(
 ) -> Streamed:
     """Stream `robot/cmd` at `rate_hz` for `duration_s` with robot/puma/cmd, robot/state and
     robot/events recorded, engaging again after a hold (HoldWatch); then wait (with a
-    deadline) until the puma reports the last forwarded command applied. `mark("start")`
+    deadline) until the arm reports the last forwarded command applied. `mark("start")`
     and `mark("end")` are called right around the stream itself (a CPU window)."""
     step = step_for(rate_hz, duration_s, sign)
     fwd = StreamProbe(node, PUMA_CMD, puma_cmd_fields).start()
@@ -289,20 +289,20 @@ def phase_commands(
     node: Node, driver: CommandDriver, rate_hz: float, sign: float, duration_s: float, say: Say
 ) -> tuple[dict[str, Any], list[str]]:
     """One command phase: its figures (command_figures, plus the decision's interventions and
-    events and the puma's own command counter around it) and its notes."""
+    events and the arm's own command counter around it) and its notes."""
     key = f"commands_{rate_hz:.0f}hz"
-    say(f"[{key}] robot/cmd at {rate_hz:g} Hz through decision to puma for {duration_s:g} s …")
+    say(f"[{key}] robot/cmd at {rate_hz:g} Hz through decision to arm for {duration_s:g} s …")
     before = decision_counters(node)
-    puma_before, t_before = puma_commands_counter(node), time.monotonic()
+    arm_before, t_before = arm_commands_counter(node), time.monotonic()
     s = stream(node, driver, rate_hz, duration_s, sign)
-    puma_after, t_after = puma_commands_counter(node), time.monotonic()
+    arm_after, t_after = arm_commands_counter(node), time.monotonic()
     after = decision_counters(node)
     fig = command_figures(rate_hz, s.run, s.step_m, s.fwd_rec, s.st_rec)
     t_first = s.run.sent[0][1] if s.run.sent else 0
     ev = [e for rx, e in s.ev_rec if rx >= t_first and e[0] == "decision"]
-    fig["puma_counter"] = counter_delta(puma_before, puma_after, t_after - t_before)
-    if fig["puma_counter"] is None:
-        fig["na"]["puma_counter"] = "puma status has no counters.commands"
+    fig["arm_counter"] = counter_delta(arm_before, arm_after, t_after - t_before)
+    if fig["arm_counter"] is None:
+        fig["na"]["arm_counter"] = "arm status has no counters.commands"
     fig["decision_events"] = dict(Counter(e[1] for e in ev))
     fig["decision_interventions"], fig["decision_intake"] = (
         (changed_counters(before[0], after[0]), changed_counters(before[1], after[1]))
@@ -318,16 +318,16 @@ def phase_commands(
             f"{held[0] if held else 'none reported'}); the bench engaged "
             f"{len(s.run.starts)} time(s), as an operator engages again after a hold."
         )
-    counter = fig["puma_counter"]
+    counter = fig["arm_counter"]
     say(
         f"    sent {fig['sent']} ({fig['sent_rate_hz']:.0f} Hz) in {len(s.run.starts)} "
-        f"engagement(s), {fig['reached_distinct']} reached the puma "
+        f"engagement(s), {fig['reached_distinct']} reached the arm "
         f"({fig['reached_rate_hz']:.0f} Hz, {fig['reached_method']}"
-        + (f"; puma counted {counter['rate_hz']:.0f}/s" if counter else "")
-        + f"); master→puma p50 {ms_text(fig['puma_ms']['p50'])} p99 "
-        f"{ms_text(fig['puma_ms']['p99'])}; master→setpoint p50 "
+        + (f"; arm counted {counter['rate_hz']:.0f}/s" if counter else "")
+        + f"); master→arm p50 {ms_text(fig['arm_ms']['p50'])} p99 "
+        f"{ms_text(fig['arm_ms']['p99'])}; master→setpoint p50 "
         f"{ms_text(fig['setpoint_ms']['p50'])} p99 {ms_text(fig['setpoint_ms']['p99'])} "
-        f"({fig['puma_method']}, {fig['setpoint_method']})" + intake_text(fig["decision_intake"])
+        f"({fig['arm_method']}, {fig['setpoint_method']})" + intake_text(fig["decision_intake"])
     )
     return fig, notes
 
@@ -346,8 +346,8 @@ def intake_text(intake: dict[str, int] | None) -> str:
 def counter_delta(
     before: int | None, after: int | None, window_s: float
 ) -> dict[str, float | int] | None:
-    """The puma's command counter over a window: `{commands, window_s, rate_hz}` (None when
-    either reading is missing). It counts every command the puma received, holds included."""
+    """The arm's command counter over a window: `{commands, window_s, rate_hz}` (None when
+    either reading is missing). It counts every command the arm received, holds included."""
     if before is None or after is None:
         return None
     delta = after - before
@@ -358,10 +358,10 @@ def counter_delta(
     }
 
 
-def puma_commands_counter(node: Node) -> int | None:
-    """`counters.commands` of puma's `status` (None when absent or unanswered)."""
+def arm_commands_counter(node: Node) -> int | None:
+    """`counters.commands` of arm's `status` (None when absent or unanswered)."""
     try:
-        got = node.call("puma", "status", {}, CALL_TIMEOUT_S).get("counters")
+        got = node.call("arm", "status", {}, CALL_TIMEOUT_S).get("counters")
     except (Unavailable, RpcError):
         return None
     value = got.get("commands") if isinstance(got, dict) else None

@@ -8,9 +8,9 @@
 - relay: a minimal process takes the same bytes on `FLOOR_RELAY_IN` and puts them, untouched
   and inline in Zenoh's callback, on `FLOOR_RELAY_OUT` (robot/force's QoS both ways). The
   bench sends at 100 Hz and 1 kHz and receives them back: two hops through the router, as
-  master → decision → puma, and the floor under that path's latency.
+  master → decision → arm, and the floor under that path's latency.
 - get→reply: a minimal queryable in a process of the same kind replies inline in Zenoh's
-  callback with a fixed msgpack map (puma's own `status` map) to plain `get`s from the bench's
+  callback with a fixed msgpack map (arm's own `status` map) to plain `get`s from the bench's
   session: the floor under every method call.
 
 The publisher waits until Zenoh reports a matching subscriber before its first sample (no

@@ -1,7 +1,7 @@
 """`telerobot bench passivity --link`: the contact task through the real services over a real
 bad link, TDPA off and on.
 
-The robot side (puma with the simulated arm, force with the simulated wrist at 500 Hz in the
+The robot side (arm with the simulated arm, force with the simulated wrist at 500 Hz in the
 simulated workcell, decision, a recording console) runs in one network namespace, the master
 station with the simulated haptic operator (`device = "haptic_sim"`, 100 Hz) in another,
 each a process of its own, Zenoh peers over TCP across `services.tools.bench.netem`'s link
@@ -42,6 +42,9 @@ from services.bus.config import NodeConfig
 from services.bus.messages import Event, ForceSample, MasterFeedback, PassivityState, RobotState
 from services.bus.node import Node
 from services.bus.peers import Clients, Peers
+from services.control.arm.config import HOME_Q_RAD, ArmConfig
+from services.control.arm.service import ArmService
+from services.control.arm.sim_arm import SimArm
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
@@ -50,9 +53,6 @@ from services.control.master.config import MasterConfig
 from services.control.master.haptic_sim import SimHapticMaster
 from services.control.master.service import MasterService
 from services.control.passivity.loop import held, swing_rms, trend_n_s
-from services.control.puma.config import HOME_Q_RAD, PumaConfig
-from services.control.puma.service import PumaService
-from services.control.puma.sim_arm import SimArm
 from services.tools.bench.netem import ROBOT_IP, LinkShape, in_ns, netem_link, unavailable
 from services.tools.bench.passivity import put_measures
 from services.tools.bench.procs import free_port
@@ -133,7 +133,7 @@ class Trace:
     moments: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, world c_z)
     felt_moments: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, shown c_z)
     uplink: list[tuple[int, float]] = field(default_factory=list)  # (t_ns, ms on the way)
-    puma_cmds: int = 0
+    arm_cmds: int = 0
     events: list[tuple[float, str]] = field(default_factory=list)  # (arrival, monotonic s; text)
     master_rx_s: float = 0.0
     _R: np.ndarray = field(default_factory=lambda: np.eye(3))
@@ -185,7 +185,7 @@ class Trace:
 
     def on_cmd(self, _: object) -> None:
         with self.lock:
-            self.puma_cmds += 1
+            self.arm_cmds += 1
 
     def force_between(self, t0_ns: int, t1_ns: int) -> list[tuple[int, float]]:
         """(t_ns, world f_z) of the forces received in [t0_ns, t1_ns)."""
@@ -215,19 +215,19 @@ def build_robot(
     torsion_nm_rad: float = 0.0,
     **decision: float,
 ) -> tuple[DecisionService, Trace, list[Callable[[], None]]]:
-    """puma (SimArm), force (sim wrist, 500 Hz; a contact resisting a turn about its normal
+    """arm (SimArm), force (sim wrist, 500 Hz; a contact resisting a turn about its normal
     with `torsion_nm_rad`), decision (`passivity` and `decision` settings) and a recording
     console, each on a node from `node(name)`; the arm moved through the decision server to
     `start_gap_m` above the table. Returns the decision, the trace and the closers (in
     start order)."""
-    puma = PumaService(
-        node("puma"), PumaConfig(sim_calibration_s=0.05), arm=SimArm(HOME_Q_RAD, calibration_s=0.05)
+    arm = ArmService(
+        node("arm"), ArmConfig(sim_calibration_s=0.05), arm=SimArm(HOME_Q_RAD, calibration_s=0.05)
     )
     force = ForceService(
         node("force"), ForceConfig(seed=7, period_ms=2.0, torsion_nm_rad=torsion_nm_rad)
     )
     dec = DecisionService(node("decision"), DecisionConfig(passivity=passivity, **decision))  # type: ignore[arg-type]
-    closers: list[Callable[[], None]] = [puma.close, force.close, dec.close]
+    closers: list[Callable[[], None]] = [arm.close, force.close, dec.close]
     console = node("console")
     trace = Trace()
     console.subscribe(keys.STATE, trace.on_state)
@@ -409,7 +409,7 @@ def robot(
                 m["slave_rot_recovered_j"] = tdpa.rot.recovered_j
         events, after = trace.events_split()
         with trace.lock:
-            m["puma_cmds"] = float(trace.puma_cmds)
+            m["arm_cmds"] = float(trace.arm_cmds)
             series = [((t - t0) / 1e9, f) for t, f in trace.forces if t >= t0]
             turn = [((t - t0) / 1e9, c) for t, c in trace.moments if t >= t0]
         doc = {
@@ -716,11 +716,11 @@ def run_matrix(
             # Not measured (TDPA off: no energies) is null, not NaN.
             put_measures(doc, delay, on, parts)
     # What happened in each run, for when a figure needs explaining: the last events the
-    # console saw (interventions, holds, the puma's motions) and the slave port's figures.
+    # console saw (interventions, holds, the arm's motions) and the slave port's figures.
     doc["runs"] = {
         f"{delay}_{'on' if on else 'off'}": {
             "events": list(m.get("events", []))[-20:],
-            "puma_cmds": m.get("puma_cmds"),
+            "arm_cmds": m.get("arm_cmds"),
             "slave_recovered_j": m.get("slave_recovered_j"),
             "slave_excluded_j": m.get("slave_excluded_j"),
             "slave_forgiven_j": m.get("slave_forgiven_j"),

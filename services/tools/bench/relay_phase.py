@@ -1,10 +1,10 @@
 """The two-hop floor: the bench → router → a bare relay → router → the bench, at each command
 rate, in the same run as the command phases.
 
-master → puma crosses the router twice with a Python process between (the decision); the
+master → arm crosses the router twice with a Python process between (the decision); the
 one-hop floor (`baseline_zenoh`) is not its floor. Here a minimal relay process
 (services.tools.bench.floor `relay`) puts each sample on again inline in Zenoh's callback, so
-what master → puma costs above this is ours: the decision's and the puma's own Python.
+what master → arm costs above this is ours: the decision's and the arm's own Python.
 
 The relay takes robot/force and robot/state the way the decision does while it follows
 (Zenoh keeps the newest in a ring of one, no Python per sample): its link carries what the

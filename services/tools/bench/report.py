@@ -37,7 +37,7 @@ PAL frame (720×576), the capture cards of the time. Either reading gives its 0.
 
 #: Issue 16's "Done when" (on a quiet machine, through the router, separate processes).
 TARGETS: dict[str, float] = {
-    "idle_core_pct": 25.0,  # router + puma + force + decision, % of one core
+    "idle_core_pct": 25.0,  # router + arm + force + decision, % of one core
     "idle_sim_pct": 60.0,  # the whole sim system without a browser
     "force_alone_hz": 995.0,
     "force_alone_lost": 0.0,
@@ -45,10 +45,10 @@ TARGETS: dict[str, float] = {
     "force_in_flight_vga_hz": 990.0,  # while a VGA pair is in flight
     "force_vga_p99_ms": 1.0,  # with VGA stereo at 30 fps
     "cmd_1khz_reach_hz": 990.0,
-    "cmd_1khz_puma_p50_ms": 0.5,
+    "cmd_1khz_arm_p50_ms": 0.5,
     "cmd_1khz_setpoint_p50_ms": 1.0,
     "cmd_1khz_setpoint_p99_ms": 3.0,
-    "puma_status_p50_ms": 0.4,
+    "arm_status_p50_ms": 0.4,
     "decision_status_p50_ms": 1.0,
     "ik_per_s": 20_000.0,  # all 8 analytic branches per pose
     "stereo_vga_p50_ms": 15.0,  # capture → decoded at 640×480
@@ -56,7 +56,7 @@ TARGETS: dict[str, float] = {
 
 #: The services of the sim profile (deploy/sim.toml) whose CPU the bench reports, and the
 #: two sums the issue budgets.
-CORE_SERVICES: tuple[str, ...] = ("router", "puma", "force", "decision")
+CORE_SERVICES: tuple[str, ...] = ("router", "arm", "force", "decision")
 SIM_SERVICES: tuple[str, ...] = (*CORE_SERVICES, "vision", "workcell", "console")
 
 Better = Literal["higher", "lower"]
@@ -213,7 +213,7 @@ def _get_floor(stat: str) -> tuple[str, str]:
 
 def _cpu_specs(phase: str, what: str, targets: bool) -> list[Spec]:
     specs = [
-        Spec(f"{phase}_core", f"{what} CPU: router + puma + force + decision", "%",
+        Spec(f"{phase}_core", f"{what} CPU: router + arm + force + decision", "%",
              f"{phase}.core_pct", "lower", target="idle_core_pct" if targets else None),
         Spec(f"{phase}_sim", f"{what} CPU: whole sim system (+ vision, workcell, console)", "%",
              f"{phase}.sim_pct", "lower", target="idle_sim_pct" if targets else None),
@@ -265,16 +265,16 @@ def _command_specs(rate: int) -> list[Spec]:
     phase = f"commands_{rate}hz"
     fast = rate == 1000
     return [
-        Spec(f"cmd_rate_{rate}", f"commands reaching the puma, sent at {name}", "Hz",
+        Spec(f"cmd_rate_{rate}", f"commands reaching the arm, sent at {name}", "Hz",
              f"{phase}.reached_rate_hz", "higher", paper="command_rate_hz",
              target="cmd_1khz_reach_hz" if fast else None),
-        Spec(f"cmd_puma_counter_{rate}",
-             f"commands the puma counted per s, sent at {name} (holds included)", "Hz",
-             f"{phase}.puma_counter.rate_hz", "higher"),
-        Spec(f"cmd_forward_{rate}_p50", f"master→puma p50, {name}", "ms", f"{phase}.puma_ms.p50",
+        Spec(f"cmd_arm_counter_{rate}",
+             f"commands the arm counted per s, sent at {name} (holds included)", "Hz",
+             f"{phase}.arm_counter.rate_hz", "higher"),
+        Spec(f"cmd_forward_{rate}_p50", f"master→arm p50, {name}", "ms", f"{phase}.arm_ms.p50",
              "lower", floor=_relay_floor(rate, "p50"),
-             target="cmd_1khz_puma_p50_ms" if fast else None),
-        Spec(f"cmd_forward_{rate}_p99", f"master→puma p99, {name}", "ms", f"{phase}.puma_ms.p99",
+             target="cmd_1khz_arm_p50_ms" if fast else None),
+        Spec(f"cmd_forward_{rate}_p99", f"master→arm p99, {name}", "ms", f"{phase}.arm_ms.p99",
              "lower", floor=_relay_floor(rate, "p99")),
         Spec(f"cmd_setpoint_{rate}_p50", f"master→setpoint p50, {name}", "ms",
              f"{phase}.setpoint_ms.p50", "lower", floor=_relay_floor(rate, "p50"),
@@ -284,9 +284,9 @@ def _command_specs(rate: int) -> list[Spec]:
              target="cmd_1khz_setpoint_p99_ms" if fast else None),
         Spec(f"cmd_hop_decision_{rate}_p50", f"hop: master→decision's tick p50, {name}", "ms",
              f"{phase}.hops_ms.decision.p50", "lower"),
-        Spec(f"cmd_hop_to_puma_{rate}_p50", f"hop: decision's tick→puma p50, {name}", "ms",
-             f"{phase}.hops_ms.to_puma.p50", "lower"),
-        Spec(f"cmd_hop_apply_{rate}_p50", f"hop: puma→setpoint p50, {name}", "ms",
+        Spec(f"cmd_hop_to_arm_{rate}_p50", f"hop: decision's tick→arm p50, {name}", "ms",
+             f"{phase}.hops_ms.to_arm.p50", "lower"),
+        Spec(f"cmd_hop_apply_{rate}_p50", f"hop: arm→setpoint p50, {name}", "ms",
              f"{phase}.hops_ms.apply.p50", "lower"),
     ]  # fmt: skip
 
@@ -358,13 +358,13 @@ SPECS: tuple[Spec, ...] = (
     Spec("rpc_decision_supervisor_p99", "call decision supervisor p99", "ms",
          "rpc_decision_supervisor.p99", "lower",
          baseline=("baseline_xmlrpc.latency_ms.p99", XMLRPC), floor=_get_floor("p99")),
-    Spec("rpc_puma_status_p50", "call puma status p50 (direct)", "ms", "rpc_puma_status.p50",
+    Spec("rpc_arm_status_p50", "call arm status p50 (direct)", "ms", "rpc_arm_status.p50",
          "lower", baseline=("baseline_xmlrpc.latency_ms.p50", XMLRPC), floor=_get_floor("p50"),
-         paper="command_round_trip_ms", target="puma_status_p50_ms"),
-    Spec("rpc_puma_status_p99", "call puma status p99 (direct)", "ms", "rpc_puma_status.p99",
+         paper="command_round_trip_ms", target="arm_status_p50_ms"),
+    Spec("rpc_arm_status_p99", "call arm status p99 (direct)", "ms", "rpc_arm_status.p99",
          "lower", baseline=("baseline_xmlrpc.latency_ms.p99", XMLRPC), floor=_get_floor("p99")),
-    Spec("rpc_puma_status_vs_xmlrpc", "call puma status p50, faster than XML-RPC", "ms",
-         "rpc_puma_status.p50", "lower", target_run=XMLRPC_P50),
+    Spec("rpc_arm_status_vs_xmlrpc", "call arm status p50, faster than XML-RPC", "ms",
+         "rpc_arm_status.p50", "lower", target_run=XMLRPC_P50),
     Spec("ik_analytic_per_s", "IK solves/s, analytic (8 branches)", "1/s",
          "ik.analytic_ik_per_s", "higher", target="ik_per_s"),
     Spec("ik_dls_per_s", "IK steps/s, damped least squares", "1/s", "ik.dls_steps_per_s",
@@ -384,7 +384,7 @@ PHASE_KEYS: tuple[str, ...] = (
     "commands_1000hz",
     "rpc_decision_status",
     "rpc_decision_supervisor",
-    "rpc_puma_status",
+    "rpc_arm_status",
     "ik",
     "baseline_tcp",
     "baseline_xmlrpc",

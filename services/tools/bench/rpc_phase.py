@@ -1,5 +1,5 @@
-"""The method-call phase: decision and puma calls over the bus, the bare-Zenoh get→reply
-floor and the XML-RPC baseline, all replying with puma's status map."""
+"""The method-call phase: decision and arm calls over the bus, the bare-Zenoh get→reply
+floor and the XML-RPC baseline, all replying with arm's status map."""
 
 from __future__ import annotations
 
@@ -17,12 +17,12 @@ from services.tools.bench.procs import Children, wait_log
 from services.tools.bench.report import ms_text
 
 
-def _puma_status(node: Node, attempts: int = 3) -> dict[str, Any]:
-    """Puma's status map (the XML-RPC baseline replies with it), retried on a lost reply."""
-    lost = Unavailable("puma status: no attempt made")
+def _arm_status(node: Node, attempts: int = 3) -> dict[str, Any]:
+    """The arm's status map (the XML-RPC baseline replies with it), retried on a lost reply."""
+    lost = Unavailable("arm status: no attempt made")
     for _ in range(attempts):
         try:
-            return node.call("puma", "status", {}, CALL_TIMEOUT_S)
+            return node.call("arm", "status", {}, CALL_TIMEOUT_S)
         except Unavailable as e:
             lost = e
     raise lost
@@ -38,7 +38,7 @@ def phase_rpc(
     for key, service, method in (
         ("rpc_decision_status", "decision", "status"),
         ("rpc_decision_supervisor", "decision", "supervisor"),
-        ("rpc_puma_status", "puma", "status"),
+        ("rpc_arm_status", "arm", "status"),
     ):
         say(f"[{key}] {n} calls of robot/{service}/rpc/{method} …")
         times = time_calls(node, service, method, n)
@@ -53,8 +53,8 @@ def phase_rpc(
                 f"{key}: {failed} of {n} calls failed ({times.failures}); only the answered "
                 "ones are timed."
             )
-    reply = _puma_status(node)
-    say(f"[baseline_zenoh_query] {n} bare-Zenoh gets of a queryable replying puma's status map …")
+    reply = _arm_status(node)
+    say(f"[baseline_zenoh_query] {n} bare-Zenoh gets of a queryable replying arm's status map …")
     reply_file = opts.logs_dir / "floor-reply.msgpack"
     reply_file.write_bytes(codec.pack(reply))
     server = kids.spawn("zenoh-floor-rpc", floor.serve_argv(endpoint, reply_file))
@@ -71,7 +71,7 @@ def phase_rpc(
     }
     lat = res.phases["baseline_zenoh_query"]["latency_ms"]
     say(f"    p50 {ms_text(lat['p50'])} p99 {ms_text(lat['p99'])}")
-    say(f"[baseline_xmlrpc] {n} XML-RPC calls returning puma's status map …")
+    say(f"[baseline_xmlrpc] {n} XML-RPC calls returning arm's status map …")
     rtt = xmlrpc_round_trips(reply, n)
     res.phases["baseline_xmlrpc"] = {"latency_ms": stats.summarize(rtt).as_dict(), "calls": n}
     lat = res.phases["baseline_xmlrpc"]["latency_ms"]

@@ -1,6 +1,6 @@
 """One bench run: start the deployed topology, measure each phase, stop everything.
 
-Topology (as deploy/robot.toml runs it): the embedded router on 127.0.0.1:PORT, and puma
+Topology (as deploy/robot.toml runs it): the embedded router on 127.0.0.1:PORT, and arm
 (sim arm, autostart), force (sim sensor, 1 kHz), decision, a master station (virtual
 device, not engaged) and, in the video phases, vision — each a separate process in client
 mode connected to the router. The bench itself is one more client: the operator's side.
@@ -107,7 +107,7 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
 
     log = CpuLog()
     say(f"IK throughput over {opts.ik_n} poses …")
-    from services.control.puma.kinematics import bench_ik
+    from services.control.arm.kinematics import bench_ik
 
     with log.phase("ik"):
         res.phases["ik"] = bench_ik(opts.ik_n)
@@ -117,7 +117,7 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
         log.kids = kids
         router = kids.spawn("router", telerobot_argv("router", "--listen", endpoint))
         wait_log(router, "router up", opts.startup_timeout_s)
-        say(f"router up on {endpoint}; starting puma, force, decision, master …")
+        say(f"router up on {endpoint}; starting arm, force, decision, master …")
         node = Node("master", NodeConfig(mode="client", connect=(endpoint,)), instance=MASTER_ID)
         try:
             node.announce()  # alive/master/bench: the bench commands as a master
@@ -183,11 +183,11 @@ def _start_services(
     station.write_text(
         f'[master]\ndevice = "virtual"\nmaster_id = "{STATION_ID}"\nengage_on_start = false\n'
     )
-    kids.spawn("puma", telerobot_argv("puma", "--autostart", *zargs))
+    kids.spawn("arm", telerobot_argv("arm", "--autostart", *zargs))
     kids.spawn("force", telerobot_argv("force", "--priority", opts.force_priority, *zargs))
     kids.spawn("decision", telerobot_argv("decision", *zargs))
     kids.spawn("master", telerobot_argv("master", "--config", str(station), *zargs))
-    for name in ("puma", "force", "decision", f"master/{STATION_ID}"):
+    for name in ("arm", "force", "decision", f"master/{STATION_ID}"):
         wait_alive(kids, node.alive.wait, name, opts.startup_timeout_s)
     status = StreamProbe(node, STATE, lambda m: (m.status,)).start()
     try:
@@ -195,12 +195,12 @@ def _start_services(
         while (newest := status.newest()) is None or newest[1][0] != "ready":
             kids.check()
             if time.monotonic() > deadline:
-                raise TimeoutError("the puma never reported ready on robot/state")
+                raise TimeoutError("the arm never reported ready on robot/state")
             time.sleep(0.05)
     finally:
         # Undeclared at once: a subscriber left running would load the bench all along.
         status.stop()
-    say("puma ready, force streaming, decision and master up")
+    say("arm ready, force streaming, decision and master up")
 
 
 def _force_priority(node: Node) -> dict[str, Any] | None:

@@ -246,13 +246,13 @@ class CommandLatencies:
     """Per operator command: how long until the arm had it (or a newer one).
 
     forward_ms: bench `t_ns` → the first `robot/puma/cmd` carrying this command or a newer
-      one arrives at the bench (master → decision → puma's input, through the router);
+      one arrives at the bench (master → decision → arm's input, through the router);
     applied_ms: bench `t_ns` → `t_ns` of the first `robot/state` whose `cmd_seq` shows that
-      puma command (or a later one) applied — the puma's own stamp;
+      arm command (or a later one) applied — the arm's own stamp;
     seen_ms: bench `t_ns` → that `robot/state` arrives back at the bench (the full loop).
-    matched: commands with all three; unforwarded: commands no puma command carried (the
+    matched: commands with all three; unforwarded: commands no arm command carried (the
     tail of a run, or commands the decision superseded before its next tick and never
-    followed by a newer one); forwarded_distinct: distinct commands the puma stream carried.
+    followed by a newer one); forwarded_distinct: distinct commands the arm stream carried.
     """
 
     forward_ms: np.ndarray
@@ -269,7 +269,7 @@ def match_commands(
     forwarded: Sequence[tuple[int, int, int]],
     states: Sequence[tuple[int, int, int]],
 ) -> CommandLatencies:
-    """Match the bench's commands to the decision's commands and the puma's states.
+    """Match the bench's commands to the decision's commands and the arm's states.
 
     sent: (k, t_ns) per bench command, k its index in the engagement (0, 1, …), which the
       bench encodes in `dp` so that it survives the decision's re-sequencing;
@@ -277,8 +277,8 @@ def match_commands(
     states: (rx_ns, t_ns, cmd_seq) per `robot/state` in arrival order.
 
     The decision sends the newest command each tick, so a command may be carried only by a
-    later one: command k counts as forwarded by the first puma command with index ≥ k, and
-    applied by the first state with `cmd_seq` ≥ that puma command's seq.
+    later one: command k counts as forwarded by the first arm command with index ≥ k, and
+    applied by the first state with `cmd_seq` ≥ that arm command's seq.
     """
     if not sent:
         empty = np.zeros(0)
@@ -293,7 +293,7 @@ def match_commands(
     s_cmd = np.array([s[2] for s in states], dtype=np.int64)
 
     # Running maxima make "first with index ≥ k" a binary search, and a late duplicate of
-    # an old puma command or state cannot make a newer command look older.
+    # an old arm command or state cannot make a newer command look older.
     fi = _first_at_least(f_k, ks)
     seq_needed = np.where(fi >= 0, f_seq[np.maximum(fi, 0)] if f_seq.size else 0, -1)
     si = _first_at_least(s_cmd, seq_needed)
@@ -330,7 +330,7 @@ def assign_engagements(
     """Which of the bench's engagements each decision engagement follows.
 
     starts_ns: when each bench engagement's first command was sent, in order;
-    first_seen_ns: decision `engage` → arrival of its first active puma command.
+    first_seen_ns: decision `engage` → arrival of its first active arm command.
     A decision engagement starts only in answer to a bench engagement's first command, so it
     follows the latest bench engagement started before it was first seen (an engagement the
     decision refused simply gets none). Decision engagements seen before any bench
@@ -357,8 +357,8 @@ class StampedCommands:
     every figure on the machine's one clock.
 
     reached: distinct bench commands (by `t_ns`) that a `robot/puma/cmd` carried as its
-      `origin_t_ns`: what the puma was given;
-    puma_ms: per command `robot/state` showed, `cmd_rx_ns − cmd_origin_t_ns`: master → puma;
+      `origin_t_ns`: what the arm was given;
+    arm_ms: per command `robot/state` showed, `cmd_rx_ns − cmd_origin_t_ns`: master → arm;
     setpoint_ms: per command `robot/state` showed with a `setpoint_ns`, `setpoint_ns −
       cmd_origin_t_ns`: master → the first arm setpoint computed from it;
     sampled: commands `robot/state` showed (a sample: the state stream runs slower than a
@@ -367,26 +367,26 @@ class StampedCommands:
     The same path hop by hop, where the decision's send stamps are known (`sent_at`):
     decision_ms: per reached command, the `t_ns` of the first `robot/puma/cmd` carrying it
       (the decision's tick) − `origin_t_ns`: master → decision, through the router;
-    to_puma_ms: per command shown, `cmd_rx_ns` − that `t_ns`: the decision's tick → the
-      puma's receipt (the supervision, the put, the router);
-    apply_ms: per command shown with both, `setpoint_ns − cmd_rx_ns`: the puma's receipt →
+    to_arm_ms: per command shown, `cmd_rx_ns` − that `t_ns`: the decision's tick → the
+      arm's receipt (the supervision, the put, the router);
+    apply_ms: per command shown with both, `setpoint_ns − cmd_rx_ns`: the arm's receipt →
       the setpoint (its control thread waking, IK and the checks, the tick).
     """
 
     reached: int
-    puma_ms: np.ndarray
+    arm_ms: np.ndarray
     setpoint_ms: np.ndarray
     sampled: int
     decision_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    to_puma_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    to_arm_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
     apply_ms: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
-def first_carriers(puma_cmds: Sequence[tuple[int, int | None]]) -> dict[int, int]:
+def first_carriers(arm_cmds: Sequence[tuple[int, int | None]]) -> dict[int, int]:
     """`origin_t_ns` → the lowest `robot/puma/cmd` seq that carried it, from `(seq,
     origin_t_ns)` records (those without an origin, holds and task steps, are left out)."""
     out: dict[int, int] = {}
-    for seq, origin in puma_cmds:
+    for seq, origin in arm_cmds:
         if origin is not None and (origin not in out or seq < out[origin]):
             out[origin] = seq
     return out
@@ -394,27 +394,27 @@ def first_carriers(puma_cmds: Sequence[tuple[int, int | None]]) -> dict[int, int
 
 def stamped_commands(
     sent_t_ns: Collection[int],
-    puma_cmds: Sequence[tuple[int, int | None]],
+    arm_cmds: Sequence[tuple[int, int | None]],
     states: Sequence[tuple[int, int | None, int | None, int | None]],
     sent_at: Mapping[int, int] | None = None,
 ) -> StampedCommands:
     """The operator's path from the extension fields.
 
     sent_t_ns: the `t_ns` of every command the bench sent in the phase;
-    puma_cmds: `(seq, origin_t_ns)` per `robot/puma/cmd` seen (any order);
+    arm_cmds: `(seq, origin_t_ns)` per `robot/puma/cmd` seen (any order);
     states: `(cmd_seq, cmd_rx_ns, setpoint_ns, cmd_origin_t_ns)` per `robot/state`, in
       arrival order;
     sent_at: `robot/puma/cmd` seq → its `t_ns` (the decision's tick), for the hops.
 
-    Each bench command counts once, through the first puma command that carried it: a later
-    puma command carrying the same origin (a re-send) arrived later than the operator's
-    command did, so its receive time would overstate the path. Where the puma commands
-    were not seen (an empty `puma_cmds`), every state whose origin is ours counts, by its
-    first `cmd_seq`. The first state with `cmd_rx_ns` gives master → puma, the first with
+    Each bench command counts once, through the first arm command that carried it: a later
+    arm command carrying the same origin (a re-send) arrived later than the operator's
+    command did, so its receive time would overstate the path. Where the arm commands
+    were not seen (an empty `arm_cmds`), every state whose origin is ours counts, by its
+    first `cmd_seq`. The first state with `cmd_rx_ns` gives master → arm, the first with
     `setpoint_ns` gives master → setpoint (it may come a state later than the receive).
     """
     ours = set(sent_t_ns)
-    carriers = first_carriers(puma_cmds)
+    carriers = first_carriers(arm_cmds)
     reached = sum(1 for origin in carriers if origin in ours)
     rx: dict[int, int] = {}
     setpoint: dict[int, int] = {}
@@ -438,10 +438,10 @@ def stamped_commands(
 
     return StampedCommands(
         reached=reached,
-        puma_ms=ms((o, rx[o]) for o in sorted(rx)),
+        arm_ms=ms((o, rx[o]) for o in sorted(rx)),
         setpoint_ms=ms((o, setpoint[o]) for o in sorted(setpoint)),
         sampled=len(shown),
         decision_ms=ms((o, tick[o]) for o in sorted(tick)),
-        to_puma_ms=ms((tick[o], rx[o]) for o in sorted(rx) if o in tick),
+        to_arm_ms=ms((tick[o], rx[o]) for o in sorted(rx) if o in tick),
         apply_ms=ms((rx[o], setpoint[o]) for o in sorted(rx) if o in setpoint),
     )

@@ -1,6 +1,6 @@
 """The CPU phases: what each service of the sim profile costs, idle and during teleoperation.
 
-They run last, on the set `telerobot up sim` runs (deploy/sim.toml): router, puma (sim,
+They run last, on the set `telerobot up sim` runs (deploy/sim.toml): router, arm (sim,
 autostart), force (sim), decision, vision (sim camera, 640×480 at 30 fps), workcell and the
 console with its in-process virtual master and no browser. The bench's own master station
 (which the sim profile does not have) is stopped first; nothing is measured after these
@@ -46,7 +46,7 @@ def cpu_figures(
     before: Mapping[str, float], after: Mapping[str, float], bench_s: float, wall_s: float
 ) -> dict[str, Any]:
     """One CPU window's figures from the per-service CPU seconds at both ends: each
-    service's % of one core (`services`), the budgeted sums (`core_pct`: router + puma +
+    service's % of one core (`services`), the budgeted sums (`core_pct`: router + arm +
     force + decision; `sim_pct`: the whole sim profile), the bench process's own %
     (`bench_pct`, from its CPU seconds `bench_s` over the window) and, for a sum that could
     not be made, why (`na`)."""
@@ -110,7 +110,7 @@ class SimRun:
         measured, with the reason, and the rest of the run intact."""
         w, h = self.vga_size
         notes = [
-            "CPU phases: the sim profile's processes (router, puma, force, decision, vision "
+            "CPU phases: the sim profile's processes (router, arm, force, decision, vision "
             f"{w}×{h}@{self.vga_fps:g}, workcell, console without a browser, with its virtual "
             "master), run after every other phase with the bench's station master stopped; "
             f"{settle_s:g} s to settle, then {window_s:g} s idle (nobody operating, nobody "

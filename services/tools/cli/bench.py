@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
         "bare-Zenoh floor sends the same bytes from a minimal zenoh-python process through "
         "the same router to the same probe.",
         "ours/floor: one-way latencies against the bare-Zenoh pub/sub floor's same "
-        "percentile, master→puma and master→setpoint against the two-hop bare relay's at "
+        "percentile, master→arm and master→setpoint against the two-hop bare relay's at "
         "the same rate, calls against the get→reply floor; CPU in % of one core.",
     ]
     doc = document(res.phases, machine(), res.settings, notes)

@@ -1,6 +1,6 @@
 """`telerobot demo`: the whole system in simulation with an embedded router, and the console.
 
-Starts the `sim` profile (router, puma, force, decision, vision, console) as child
+Starts the `sim` profile (router, arm, force, decision, vision, console) as child
 processes, waits until the console is up and prints its URL. Then it runs one of the
 paper's three tasks (`--task 1|2|3`, default 2: stacking; `--task none`: no task): a
 scripted operator at a master of its own (id `operator`) drives the arm through the

@@ -413,7 +413,7 @@ def add_parsers(sub: Any) -> None:
         "with one live instance may be named by its role: `call master status` calls "
         "master/<id>. Exit 0: reply; 1: error reply or bad arguments; 2: no reply.",
     )
-    p.add_argument("service", help="service name: decision, puma, force, master, master/<id>, …")
+    p.add_argument("service", help="service name: decision, arm, force, master, master/<id>, …")
     p.add_argument("method", help="method name, e.g. status")
     p.add_argument("args", nargs="?", default="{}", help="arguments as a JSON object ({})")
     p.add_argument(

@@ -3,7 +3,7 @@
 A profile is a deployment TOML with an `[up]` table:
 
     [up]
-    services = ["router", "puma", "force"]     # telerobot subcommands, started in order
+    services = ["router", "arm", "force"]     # telerobot subcommands, started in order
     [up.args]                                  # extra arguments per service
     master = ["--device", "script"]
     [up.commands]                              # any other command, by name
@@ -300,7 +300,7 @@ def run(
             stop.wait(0.05)
     finally:
         # Stop in reverse start order, each before the next: the master and the decision
-        # server leave the arm holding while the puma and the router are still there.
+        # server leave the arm holding while the arm and the router are still there.
         for c in reversed(children):
             c.signal(signal.SIGTERM)
             deadline = time.monotonic() + cfg.stop_timeout_s

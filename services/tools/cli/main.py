@@ -1,6 +1,6 @@
 """`telerobot`: one command for the router, the launcher, every service and introspection.
 
-Service subcommands (`telerobot puma …`) are dispatched to `services.<name>.__main__` and
+Service subcommands (`telerobot arm …`) are dispatched to `services.<name>.__main__` and
 imported only when used; the introspection commands import Zenoh only once their arguments
 are parsed and checked, so `--help`, `--version` and a bad `call` argument answer at once.
 """
@@ -18,7 +18,10 @@ from services.bus.errors import ConfigError
 COMMANDS: dict[str, tuple[str, str]] = {
     "router": ("services.bus.router", "the embedded Zenoh router"),
     "up": ("services.tools.cli.launcher", "start a profile's services as child processes"),
-    "puma": ("services.control.puma.__main__", "the PUMA 560 proxy service"),
+    "arm": (
+        "services.control.arm.__main__",
+        "the arm service (PUMA 560 by default)",
+    ),
     "force": ("services.control.force.__main__", "the force sensor service"),
     "decision": ("services.control.decision.__main__", "the DecisionServer (supervisor)"),
     "master": ("services.control.master.__main__", "the master station"),

@@ -33,7 +33,7 @@ from mcap.writer import CompressionType, Writer
 from services.bus import keys
 from services.bus.errors import ConfigError, ProtocolError
 from services.bus.node import Node
-from services.control.puma.urdf import puma_urdf
+from services.control.arm.urdf import puma_urdf
 from services.tools.record import schemas, world
 
 log = logging.getLogger("telerobot.record")

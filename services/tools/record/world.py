@@ -4,7 +4,7 @@ Derived from the recorded streams by the recorder's writer thread (docs/record.m
 in 3D"), as Foxglove's well-known JSON schemas:
 
 - `/tf` (`foxglove.FrameTransforms`), one message per `robot/state`: the frame tree of the
-  URDF `services.control.puma.urdf.puma_urdf` generates from the contract's DH table, world →
+  URDF `services.control.arm.urdf.puma_urdf` generates from the contract's DH table, world →
   link1 … link6 → flange → tool. Joint i's transform is the URDF's fixed origin F_{i−1}
   followed by Rz(q_i), so world → flange is the DH forward kinematics of the recorded q;
   flange → tool is the recorded tool pose seen from the recorded flange pose, so world →
@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from services.control.puma.kinematics import PUMA560_DH, DHLink
-from services.control.puma.urdf import (
+from services.control.arm.kinematics import PUMA560_DH, DHLink
+from services.control.arm.urdf import (
     JOINT_LENGTH_M,
     JOINT_RADIUS_M,
     LINK_RADIUS_M,

@@ -31,7 +31,7 @@ Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
 
 TOOL_DOWN: Mat = np.diag([-1.0, 1.0, -1.0])
-"""The tool z axis pointing down (the puma's home orientation)."""
+"""The tool z axis pointing down (the arm's home orientation)."""
 UP = np.array([0.0, 0.0, 1.0])
 
 TASK1_GOAL_P: Vec = np.array([0.68, 0.18, 0.52])

@@ -1,7 +1,7 @@
 """Running a task: the robot side in simulation, the operator's station, and one run.
 
 - `SimCell`: the robot side in one process, each service on a node of its own as separate
-  processes would be: puma (simulated arm, at home), force (simulated wrist), decision and
+  processes would be: arm (simulated arm, at home), force (simulated wrist), decision and
   workcell. Used by the tests and by `python -m services.tools.tasks --headless`.
 - `Station`: the operator's side: a master service with a virtual device (id `operator`),
   the scripted person at it, and what they see.
@@ -23,6 +23,8 @@ from services.bus.config import NodeConfig
 from services.bus.errors import RpcError, Unavailable
 from services.bus.node import Node
 from services.bus.peers import Peers
+from services.control.arm.config import ArmConfig
+from services.control.arm.service import ArmService
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
@@ -30,8 +32,6 @@ from services.control.force.service import ForceService
 from services.control.master.config import MasterConfig
 from services.control.master.service import MasterService
 from services.control.master.virtual import VirtualMaster
-from services.control.puma.config import PumaConfig
-from services.control.puma.service import PumaService
 from services.tools.tasks.metrics import RunRecorder, TaskReport
 from services.tools.tasks.operator import (
     READY,
@@ -64,15 +64,15 @@ class SimCell:
         self,
         make_node: NodeFactory,
         *,
-        puma: PumaConfig | None = None,
+        arm: ArmConfig | None = None,
         force: ForceConfig | None = None,
         decision: DecisionConfig | None = None,
         workcell: WorkcellConfig | None = None,
     ) -> None:
         self._closers: list[Callable[[], None]] = []
         try:
-            self.puma = PumaService(make_node("puma", None), puma or PumaConfig())
-            self._closers.append(self.puma.close)
+            self.arm = ArmService(make_node("arm", None), arm or ArmConfig())
+            self._closers.append(self.arm.close)
             self.force = ForceService(make_node("force", None), force or ForceConfig())
             self._closers.append(self.force.close)
             self.decision = DecisionService(
@@ -88,8 +88,8 @@ class SimCell:
             raise
 
     def start(self, timeout_s: float = READY_TIMEOUT_S) -> None:
-        """Connect and initialize the arm (as `puma --autostart` does), wait until ready."""
-        proxy = self.puma.proxy
+        """Connect and initialize the arm (as `arm --autostart` does), wait until ready."""
+        proxy = self.arm.proxy
         proxy.rpc_connect({})
         proxy.rpc_initialize({})
         deadline = time.monotonic() + timeout_s
@@ -110,7 +110,7 @@ def light_cell(make_node: NodeFactory) -> SimCell:
     watchdogs that catch a service that is really gone rather than a busy CPU."""
     return SimCell(
         make_node,
-        puma=PumaConfig(sim_calibration_s=0.05),
+        arm=ArmConfig(sim_calibration_s=0.05),
         force=ForceConfig(seed=7, period_ms=2.0),
         decision=DecisionConfig(watchdog_ms=500.0, state_stale_ms=1000.0, stale_ms=500.0),
     )

@@ -1,6 +1,6 @@
 """The `workcell` service: the simulated workcell's physics on the bus.
 
-It follows `robot/state` (the tool pose and the gripper command the puma reports), steps
+It follows `robot/state` (the tool pose and the gripper command the arm reports), steps
 `WorkcellSim` at `rate_hz` on a thread of its own, publishes `workcell/state` (extension,
 docs/tasks.md) and reports grasps, releases, landings, collisions and spills as Events of
 kind `workcell` (`data.action` says which). Methods at `robot/workcell/rpc/…`: `status`

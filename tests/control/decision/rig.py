@@ -2,7 +2,7 @@
 
 `Rig.step()` runs one tick: it feeds the supervisor the current robot state and force (the
 slave's tool pose; the sim table pushes on a probe sphere around the tool point), applies the
-published command to the slave like the puma does (records its pose at the first active
+published command to the slave like the arm does (records its pose at the first active
 command of a new engagement, then goes to p0 + dp, R0·dR at once) and records everything.
 """
 
@@ -21,7 +21,7 @@ from services.control.decision.supervisor import Inputs, Supervisor, TickResult
 from services.world.workcell.scene import Scene, default_scene
 
 TOOL_DOWN: NDArray[np.float64] = np.diag([-1.0, 1.0, -1.0])
-"""The home orientation of the puma config: tool z axis pointing down."""
+"""The home orientation of the arm config: tool z axis pointing down."""
 I3 = np.eye(3)
 TICK_NS = 2_000_000
 PROBE_RADIUS_M = 0.005
@@ -158,7 +158,7 @@ class Rig:
             self.step(cmds, **kw)
 
     def _slave(self, c: OperatorCommand) -> None:
-        """PROTOCOL §2 as the puma applies it (ideal tracking)."""
+        """PROTOCOL §2 as the arm applies it (ideal tracking)."""
         if c.seq <= self.slave_seq or (
             self.slave_engage is not None and c.engage < self.slave_engage
         ):

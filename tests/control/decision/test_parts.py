@@ -145,17 +145,17 @@ def test_masters_stay_bounded_and_keep_the_lease_holder() -> None:
     assert list(masters)[-1] == f"m{5 * MAX_MASTERS - 1}"
 
 
-def test_an_engagement_starts_where_the_puma_starts_it() -> None:
-    """The puma records the setpoint's pose as an engagement's start; the measured tool
+def test_an_engagement_starts_where_the_arm_starts_it() -> None:
+    """The arm records the setpoint's pose as an engagement's start; the measured tool
     trails it (0.13 mm here). The supervised target starts there too, so `dp = 0` is "stay
-    where the puma aims", and the checks see the target the puma will reach."""
+    where the arm aims", and the checks see the target the arm will reach."""
     measured = state("moving")
     setpoint = (0.6, 0.0, 0.6 - 1.3e-4)
     target = SupervisedTarget(0, 0, 0.002)
     target.begin(dataclasses.replace(measured, tool_p_cmd=setpoint), 0, 0.002)
     assert target.p0 is not None and np.array_equal(target.p0, setpoint)
     assert np.array_equal(target.p_sup, setpoint)
-    target.begin(measured, 1, 0.002)  # a puma that does not say: the measured pose
+    target.begin(measured, 1, 0.002)  # a arm that does not say: the measured pose
     assert target.p0 is not None and np.array_equal(target.p0, measured.tool_p)
 
 
@@ -190,7 +190,7 @@ def test_a_forwarded_motion_s_target_point_by_method_and_frame() -> None:
     st_ = state("ready")  # tool at (0.6, 0, 0.6), tool and flange z down: diag(−1, 1, −1)
     asked: list[tuple[str, dict[str, object]]] = []
 
-    def puma(reply: dict[str, object] | None) -> Ask:
+    def arm(reply: dict[str, object] | None) -> Ask:
         def ask(method: str, args: dict[str, object]) -> dict[str, object] | None:
             asked.append((method, args))
             return reply
@@ -200,29 +200,29 @@ def test_a_forwarded_motion_s_target_point_by_method_and_frame() -> None:
     def target(
         method: str, args: dict[str, object], reply: dict[str, object] | None = None
     ) -> list[float] | None:
-        return forwarded_target(method, args, lambda: st_, puma(reply))
+        return forwarded_target(method, args, lambda: st_, arm(reply))
 
     assert target("move_pose", {"p": [0.5, 0.1, 0.4]}) == [0.5, 0.1, 0.4]
-    assert target("move_pose", {"p": [1e9, 0.0, 0.0]}) is None  # absurd: the puma refuses it
+    assert target("move_pose", {"p": [1e9, 0.0, 0.0]}) is None  # absurd: the arm refuses it
     assert target("move_pose", {"p": "here"}) is None
     dp = [0.01, 0.02, 0.03]
     assert np.allclose(target("move_relative", {"dp": dp, "frame": "world"}), [0.61, 0.02, 0.63])
     assert np.allclose(target("move_relative", {"dp": dp, "frame": "tool"}), [0.59, 0.02, 0.57])
     assert np.allclose(target("move_relative", {"dp": dp, "frame": "wrist"}), [0.59, 0.02, 0.57])
     assert asked == []
-    # no frame: the puma's own (`set_frame`), asked; world if it cannot say
+    # no frame: the arm's own (`set_frame`), asked; world if it cannot say
     assert np.allclose(target("move_relative", {"dp": dp}, {"frame": "tool"}), [0.59, 0.02, 0.57])
     assert np.allclose(target("move_relative", {"dp": dp}, None), [0.61, 0.02, 0.63])
     assert [m for m, _ in asked] == ["status", "status"]
     assert target("move_relative", {"dp": dp, "frame": "elsewhere"}) is None
     assert (
-        forwarded_target("move_relative", {"dp": dp, "frame": "world"}, lambda: None, puma(None))
+        forwarded_target("move_relative", {"dp": dp, "frame": "world"}, lambda: None, arm(None))
         is None
     )
     asked.clear()
     q = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5]
     assert target("move_joints", {"q": q}, {"tool_p": [0.1, 0.2, 0.3]}) == [0.1, 0.2, 0.3]
-    assert target("move_joints", {"q": q}, None) is None  # the puma refused fk
+    assert target("move_joints", {"q": q}, None) is None  # the arm refused fk
     assert target("move_joints", {"q": q[:5]}) is None
     assert asked == [("fk", {"q": q}), ("fk", {"q": q})]
     assert target("home", {}) is None

@@ -27,7 +27,7 @@ class FakeNode:
         return self.up
 
     def call(self, service: str, method: str, args: dict[str, Any], timeout_s: float) -> Any:
-        assert (service, method, args) == ("puma", "status", {})
+        assert (service, method, args) == ("arm", "status", {})
         self.gate.wait(5.0)
         if self.fail is not None:
             raise self.fail
@@ -37,7 +37,7 @@ class FakeNode:
 
 
 def peek(node: FakeNode, **kw: float) -> Peek:
-    return Peek(cast(Node, node), "puma", "status", 1.0, **kw)
+    return Peek(cast(Node, node), "arm", "status", 1.0, **kw)
 
 
 def test_kept_while_young_refreshed_behind_when_older() -> None:
@@ -66,7 +66,7 @@ def test_a_service_not_alive_is_reported_at_once_and_forgotten() -> None:
     p = peek(node, refresh_s=3600.0, max_age_s=3600.0)
     assert p.get()["n"] == 1
     node.up = False
-    assert p.get() == {"error": "unavailable", "message": "the puma service is not running"}
+    assert p.get() == {"error": "unavailable", "message": "the arm service is not running"}
     node.up = True
     assert p.get()["n"] == 2  # nothing kept from before
 
@@ -94,5 +94,5 @@ def test_without_waiting_a_peek_answers_only_from_what_it_keeps() -> None:
     node.up = False
     assert p.get(wait=False) == {
         "error": "unavailable",
-        "message": "the puma service is not running",
+        "message": "the arm service is not running",
     }

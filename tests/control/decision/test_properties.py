@@ -93,7 +93,7 @@ event = st.one_of(
     st.tuples(st.just("cmd"), raw_cmd),
     st.tuples(st.just("ticks"), st.integers(1, 25)),
     st.tuples(st.just("ticks"), st.integers(1, 60)),
-    st.tuples(st.just("lost"), st.sampled_from(["master/a", "master/b", "puma", "force"])),
+    st.tuples(st.just("lost"), st.sampled_from(["master/a", "master/b", "arm", "force"])),
     st.tuples(st.just("push"), st.lists(st.floats(-200, 200), min_size=3, max_size=3)),
     st.tuples(st.just("estop"), st.booleans()),
     st.tuples(st.just("task"), st.lists(st.floats(-1, 1), min_size=3, max_size=3)),

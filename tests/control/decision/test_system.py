@@ -1,6 +1,6 @@
-"""Every intervention over Zenoh with the REAL puma and force services in simulation.
+"""Every intervention over Zenoh with the REAL arm and force services in simulation.
 
-One private network per test: the puma (sim arm starting at home: tool at (0.55, 0, 0.65),
+One private network per test: the arm (sim arm starting at home: tool at (0.55, 0, 0.65),
 pointing down), the force service (sim wrist in the sim workcell), the decision server, an
 operator's console and masters streaming robot/cmd at 100 Hz, each on a node of its own as
 separate processes would be. Assertions are on events, states and counts; waits have
@@ -23,14 +23,14 @@ from services.bus import keys
 from services.bus.errors import RpcError
 from services.bus.messages import IDENTITY_R, Event, OperatorCommand, RobotState, vec
 from services.bus.node import Node
+from services.control.arm.config import HOME_Q_RAD, ArmConfig
+from services.control.arm.driver import QN_RAD
+from services.control.arm.service import ArmService
+from services.control.arm.sim_arm import SimArm
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
-from services.control.puma.arm import QN_RAD
-from services.control.puma.config import HOME_Q_RAD, PumaConfig
-from services.control.puma.service import PumaService
-from services.control.puma.sim_arm import SimArm
 from services.world.workcell.scene import TABLE
 from tests.conftest import Net, wait_until
 
@@ -110,7 +110,7 @@ class Recorder:
         with self._cond:
             while len(self.items) < n + more:
                 left = deadline - time.monotonic()
-                assert left > 0, f"only {len(self.items) - n} of {more} puma commands"
+                assert left > 0, f"only {len(self.items) - n} of {more} arm commands"
                 self._cond.wait(left)
             return self.items[n:]
 
@@ -185,7 +185,7 @@ class Cell:
     net: Net
     console: Node
     events: Events
-    puma_cmds: Recorder
+    arm_cmds: Recorder
     decision: DecisionService
     force: ForceService
     force_node: Node
@@ -220,10 +220,10 @@ def make_cell(net: Net) -> Iterator[Callable[..., Cell]]:
     made: list[Cell] = []
 
     def make(**decision: object) -> Cell:
-        puma_node = net.node("puma")
-        puma = PumaService(
-            puma_node,
-            PumaConfig(sim_calibration_s=0.05),
+        arm_node = net.node("arm")
+        arm = ArmService(
+            arm_node,
+            ArmConfig(sim_calibration_s=0.05),
             arm=SimArm(HOME_Q_RAD, calibration_s=0.05),
         )
         force_node = net.node("force")
@@ -242,7 +242,7 @@ def make_cell(net: Net) -> Iterator[Callable[..., Cell]]:
             force_node,
             console.subscribe(keys.STATE),
         )
-        cell.closers += [dec.close, force.close, puma.close]
+        cell.closers += [dec.close, force.close, arm.close]
         made.append(cell)
         cell.call("connect")
         cell.call("initialize")
@@ -274,9 +274,9 @@ def test_facade_forwards_and_status_is_a_superset(make_cell: Callable[..., Cell]
     cell = make_cell()
     st = cell.call("status")
     assert st["mode"] == "idle" and st["lease"] is None and st["estop"] is False
-    assert st["robot"]["status"] == "ready" and st["puma"]["status"] == "ready"
+    assert st["robot"]["status"] == "ready" and st["arm"]["status"] == "ready"
     assert st["force"] is not None and st["sensor"]["running"] is True
-    assert {"puma", "force", "decision"} <= set(st["alive"])
+    assert {"arm", "force", "decision"} <= set(st["alive"])
     assert set(st["interventions"]) >= {
         "watchdog",
         "lease",
@@ -289,17 +289,17 @@ def test_facade_forwards_and_status_is_a_superset(make_cell: Callable[..., Cell]
     assert np.allclose(fk["tool_p"], HOME_P, atol=1e-5)
     assert cell.call("limits")["max_tool_speed_m_s"] > 0
     assert cell.call("sensor_read")["seq"] > 0
-    # same arguments, same error codes as the puma itself
+    # same arguments, same error codes as the arm itself
     bad = {"q": [10.0, 0, 0, 0, 0, 0]}
     with pytest.raises(RpcError) as direct:
-        cell.console.call("puma", "move_joints", {**bad, "supervised_by": "decision"}, 5.0)
+        cell.console.call("arm", "move_joints", {**bad, "supervised_by": "decision"}, 5.0)
     with pytest.raises(RpcError) as forwarded:
         cell.call("move_joints", bad)
     assert forwarded.value.code == direct.value.code
     # a forwarded motion with "wait": true replies on completion
     reply = cell.call("move_joints", {"q": list(QN_RAD), "speed": 1.0, "wait": True}, 30.0)
     assert reply["completed"] is True
-    # the `home` task is the puma's home, replied on completion
+    # the `home` task is the arm's home, replied on completion
     reply = cell.call("task", {"name": "home"}, 30.0)
     assert reply["task"] == "home" and reply["completed"] is True
     cell.robot(lambda s: bool(np.allclose(s.tool_p, HOME_P, atol=1e-4)))  # the arm settles
@@ -320,14 +320,14 @@ def test_command_watchdog_holds_until_a_new_engagement(make_cell: Callable[..., 
     m.pause()  # the master's link stalls
     ev = cell.events.wait(lambda e: e.kind == "watchdog" and e.source == "decision")
     assert ev.data is not None and ev.data["reason"] == "command_timeout"
-    assert cell.puma_cmds.held_after(cell.puma_cmds.count())
+    assert cell.arm_cmds.held_after(cell.arm_cmds.count())
     # the same engagement comes back: it must not move the arm
     m._dp_fn = ramp((0.0, -0.05, 0.0), 1.0)
     m.resume()
     cell.events.wait(
         lambda e: e.kind == "lease" and (e.data or {}).get("reason") == "engagement_held"
     )
-    assert cell.puma_cmds.held_after(cell.puma_cmds.count())
+    assert cell.arm_cmds.held_after(cell.arm_cmds.count())
     # a new engagement moves again, from where the tool is
     m.engage_new(ramp((0.0, -0.03, 0.0), 0.1))
     cell.robot(lambda s: abs(s.tool_p[1] - 0.0) < 5e-4, 5.0)
@@ -371,8 +371,8 @@ def test_a_second_master_is_refused(make_cell: Callable[..., Cell]) -> None:
     m2.engage_new(ramp((0.05, 0.0, 0.0), 0.2))
     ev = cell.events.wait(lambda e: e.kind == "lease" and (e.data or {}).get("master") == "m2")
     assert "m1" in ev.message
-    n = cell.puma_cmds.count()
-    cell.puma_cmds.wait_more(n, 100)  # 0.2 s more of both masters streaming
+    n = cell.arm_cmds.count()
+    cell.arm_cmds.wait_more(n, 100)  # 0.2 s more of both masters streaming
     assert cell.tool_p()[0] == pytest.approx(0.55, abs=5e-4)  # m2 moved nothing
     st = cell.call("status")
     holds = [e.message for e in cell.events.of("lease") + cell.events.of("watchdog")]
@@ -392,7 +392,7 @@ def test_master_liveliness_lost_holds_at_once(make_cell: Callable[..., Cell]) ->
     token.close()  # the master's process is gone; its commands still flow
     ev = cell.events.wait(lambda e: e.kind == "watchdog" and e.source == "decision")
     assert ev.data is not None and ev.data["reason"] == "master_lost"
-    assert cell.puma_cmds.held_after(cell.puma_cmds.count())
+    assert cell.arm_cmds.held_after(cell.arm_cmds.count())
     assert not [
         e for e in cell.events.of("watchdog") if (e.data or {}).get("reason") == "command_timeout"
     ]
@@ -413,12 +413,12 @@ def test_contact_with_the_table_stops_the_motion(make_cell: Callable[..., Cell])
     assert ev.data is not None and ev.data["force_n"] > 40.0
     # The arm trails its setpoint by a servo lag (up to 0.8 mm at 5 cm/s on a loaded
     # machine): "stopped" is measured once it has caught up with the held target.
-    n = cell.puma_cmds.count()
-    cell.puma_cmds.wait_more(n, 50, 10.0)
+    n = cell.arm_cmds.count()
+    cell.arm_cmds.wait_more(n, 50, 10.0)
     first = cell.robot(lambda s: True)
     assert TOP < first.tool_p[2] < TOP + 0.005
-    n = cell.puma_cmds.count()
-    cell.puma_cmds.wait_more(n, 250, 10.0)  # 0.5 s of the master pushing on
+    n = cell.arm_cmds.count()
+    cell.arm_cmds.wait_more(n, 250, 10.0)  # 0.5 s of the master pushing on
     later = cell.robot(lambda s: s.seq > first.seq)
     assert TOP < later.tool_p[2] < TOP + 0.005  # touching: the probe has a 5 mm radius
     assert later.tool_p[2] == pytest.approx(first.tool_p[2], abs=5e-4)  # stopped
@@ -490,10 +490,10 @@ def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) 
     )
     assert ev.data is not None and ev.data["max"][1] == 0.05
     cell.robot(lambda s: abs(s.tool_p[1] - 0.05) < 5e-4, 5.0)
-    n = cell.puma_cmds.count()
-    cell.puma_cmds.wait_more(n, 200)
+    n = cell.arm_cmds.count()
+    cell.arm_cmds.wait_more(n, 200)
     assert cell.tool_p()[1] == pytest.approx(0.05, abs=5e-4)
-    assert max(y0 + c.dp[1] for c in cell.puma_cmds.since(0)) <= 0.05 + 1e-9
+    assert max(y0 + c.dp[1] for c in cell.arm_cmds.since(0)) <= 0.05 + 1e-9
 
 
 def test_estop_latches_until_reset(make_cell: Callable[..., Cell]) -> None:
@@ -506,11 +506,11 @@ def test_estop_latches_until_reset(make_cell: Callable[..., Cell]) -> None:
     m.engage_new(ramp((0.0, 0.02, 0.0), 0.1))
     cell.robot(lambda s: abs(s.tool_p[1] - 0.02) < 5e-4, 5.0)
     reply = cell.call("estop")
-    assert reply["estop"] is True and "error" not in reply["puma"]
+    assert reply["estop"] is True and "error" not in reply["arm"]
     cell.events.wait(lambda e: e.kind == "estop" and (e.data or {}).get("latched") is True)
     m.engage_new(ramp((0.0, -0.05, 0.0), 0.2))  # a new engagement during the latch
     cell.events.wait(lambda e: e.kind == "estop" and (e.data or {}).get("master") == "m1")
-    assert cell.puma_cmds.held_after(cell.puma_cmds.count())
+    assert cell.arm_cmds.held_after(cell.arm_cmds.count())
     for method, args in (
         ("move_joints", {"q": list(HOME_Q_RAD)}),
         ("home", {}),
@@ -521,12 +521,12 @@ def test_estop_latches_until_reset(make_cell: Callable[..., Cell]) -> None:
         assert e.value.code == "estop", method
     assert cell.call("status")["estop"] is True
     assert cell.call("reset")["was_latched"] is True
-    assert cell.puma_cmds.held_after(cell.puma_cmds.count())  # still that engagement
+    assert cell.arm_cmds.held_after(cell.arm_cmds.count())  # still that engagement
     m.engage_new(ramp((0.0, -0.02, 0.0), 0.1))
     cell.robot(lambda s: abs(s.tool_p[1] - 0.0) < 5e-4, 5.0)
 
 
-def test_bad_commands_never_reach_the_puma(make_cell: Callable[..., Cell]) -> None:
+def test_bad_commands_never_reach_the_arm(make_cell: Callable[..., Cell]) -> None:
     cell = make_cell()
     good = {
         "seq": 1,
@@ -551,7 +551,7 @@ def test_bad_commands_never_reach_the_puma(make_cell: Callable[..., Cell]) -> No
     deadline = time.monotonic() + 5.0
     while cell.call("status")["interventions"]["rejected"] < 4:
         assert time.monotonic() < deadline, "not every bad command was counted"
-    assert cell.puma_cmds.count() == 0  # nothing was ever sent to the puma
+    assert cell.arm_cmds.count() == 0  # nothing was ever sent to the arm
     st = cell.call("status")
     assert st["mode"] == "idle" and st["supervisor"]["stats"]["commands"] == 0
 

@@ -6,7 +6,7 @@ Not a test (pytest does not collect it). Run from a worktree:
 
 This process runs `ForceService` (sim sensor, 1 kHz, the default config) on a Zenoh peer
 listening on a free loopback port; a child process connects to it, publishes `robot/state`
-at 100 Hz (an idle puma's rate: the arm at qn) and subscribes to `robot/force`, so every
+at 100 Hz (an idle arm's rate: the arm at qn) and subscribes to `robot/force`, so every
 sample is really sent. Reported:
 
 - `sample_cpu_us`: CPU time of the sampling thread (/proc/self/task/<tid>/stat) per sample;
@@ -43,7 +43,7 @@ from services.bus import keys
 from services.bus.config import NodeConfig
 from services.bus.messages import RobotState, vec
 from services.bus.node import Node
-from services.control.puma.kinematics import DEFAULT_eMt, Puma560, qn
+from services.control.arm.kinematics import DEFAULT_eMt, Puma560, qn
 
 endpoint, seconds = sys.argv[1], float(sys.argv[2])
 kin = Puma560()

@@ -266,7 +266,7 @@ def test_tool_placement_follows_robot_state(sim: tuple[ForceCore, Published, Eve
     core, _, ev = sim
     flange_R = DOWN
     flange_p = np.array([0.6, 0.0, 0.8])
-    # puma's set_tool gave a 0.3 m tool: robot/state's tool pose is flange · eMt.
+    # arm's set_tool gave a 0.3 m tool: robot/state's tool pose is flange · eMt.
     tool_p = flange_p + flange_R @ np.array([0.0, 0.0, 0.3])
     core.update_robot_state(tool_p, flange_R, flange_p, flange_R)
     assert_allclose(core._model.p_et, [0, 0, 0.3], atol=1e-12)

@@ -122,10 +122,10 @@ def test_the_carried_objects_inertia_adds_to_its_weight() -> None:
 
 
 class Driver:
-    """Publishes robot/state at 100 Hz as the puma would (the pose and grip set last)."""
+    """Publishes robot/state at 100 Hz as the arm would (the pose and grip set last)."""
 
     def __init__(self, net: Net) -> None:
-        self.pub = net.node("puma").publisher(keys.STATE)
+        self.pub = net.node("arm").publisher(keys.STATE)
         self.p = (0.5, -0.2, TOP + 0.3)
         self.grip = 0.0
         self._stop = threading.Event()

@@ -10,9 +10,9 @@ import pytest
 from services.bus import keys
 from services.bus.errors import RpcError
 from services.bus.messages import ForceSample, RobotState, vec
+from services.control.arm.kinematics import DEFAULT_eMt, Puma560, qn
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
-from services.control.puma.kinematics import DEFAULT_eMt, Puma560, qn
 from tests.conftest import Net, wait_until
 
 # A 1 kHz stream over Zenoh, checked for gaps: run alone in `make pytest`'s second pass.
@@ -20,7 +20,7 @@ pytestmark = [pytest.mark.system, pytest.mark.alone]
 
 
 def _publish_pose(node, svc: ForceService) -> None:  # type: ignore[no-untyped-def]
-    """Put the arm's pose until the service has sampled (as the puma does, at ≥ 100 Hz): one
+    """Put the arm's pose until the service has sampled (as the arm does, at ≥ 100 Hz): one
     put could go out before the service's subscription reached this peer, and the simulated
     sensor gives nothing without a pose (fresh-clone CI, twice: 0 samples in 30 s)."""
     pub = node.publisher(keys.STATE)

@@ -151,7 +151,7 @@ def test_holding_a_moves_the_tool_by_the_scaled_aligned_motion_and_releasing_hol
 @dataclass
 class ForceSource:
     """Publishes a constant tool force and a robot state with tool_R = I, like the force
-    and puma services would, until stopped."""
+    and arm services would, until stopped."""
 
     net: Net
     force_n: tuple[float, float, float]

@@ -14,14 +14,14 @@ from services.bus import keys
 from services.bus.errors import TelerobotError
 from services.bus.messages import Event, RobotState
 from services.bus.node import Node, Subscription
+from services.control.arm.config import ArmConfig
+from services.control.arm.service import ArmService
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
 from services.control.master.fake_haply import FakeInverseService, HandPose
 from services.control.master.service import MasterService
-from services.control.puma.config import PumaConfig
-from services.control.puma.service import PumaService
 from tests.conftest import Net, Waited, wait_until
 from tests.control.master.test_haply_service import ALIGN, HOME, SCALE_T, haply_master
 
@@ -69,7 +69,7 @@ def cell(net: Net) -> Iterator[Cell]:
     services: list[object] = []
     with FakeInverseService(pose=HandPose(cursor_m=HOME)) as fake:
         try:
-            services.append(PumaService(net.node("puma"), PumaConfig(sim_calibration_s=0.05)))
+            services.append(ArmService(net.node("arm"), ArmConfig(sim_calibration_s=0.05)))
             # 500 Hz without the final spin, and watchdogs widened: other suites may share the
             # two cores, and a late tick must not hold the engagement under test.
             force = ForceConfig(seed=7, period_ms=2.0)

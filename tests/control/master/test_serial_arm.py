@@ -114,7 +114,7 @@ def test_splitter_handles_fragments_and_noise() -> None:
 # --- kinematics -------------------------------------------------------------------------------
 
 
-def test_dh_convention_matches_the_puma_qz_pose() -> None:
+def test_dh_convention_matches_the_arm_qz_pose() -> None:
     # PROTOCOL §1 table at qz: flange at (a2 + a3, −d3, d1 + d4) with identity orientation.
     p, R = forward_kinematics(np.zeros(6), PUMA_DH)
     np.testing.assert_allclose(p, [0.4521, -0.15005, 1.10363], atol=1e-12)

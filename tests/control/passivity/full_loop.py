@@ -1,7 +1,7 @@
 """The whole bilateral loop through the real services, in-process on loopback (a helper for
 the system tests and for measuring; not a test module).
 
-puma (SimArm), force (sim wrist in the sim workcell), decision (`passivity` on or off) and,
+arm (SimArm), force (sim wrist in the sim workcell), decision (`passivity` on or off) and,
 when asked, a master with the simulated haptic operator (`SimHapticMaster`, `passivity` on
 or off), each on a node of its own. The arm is first moved (through the decision server)
 to `start_gap_m` above the table, then the operator presses down onto it, holds and

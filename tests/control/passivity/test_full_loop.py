@@ -1,4 +1,4 @@
-"""The slave port through the real services (puma, force, decision with passivity on), in
+"""The slave port through the real services (arm, force, decision with passivity on), in
 process on loopback: a master that sends no energy pushes the tool down onto the table;
 the tool stops at the first touch and stays there, and the slave port's balance holds.
 Assertions are on counts and values (touches, energies, positions), never on timing."""

@@ -1,4 +1,4 @@
-"""The whole bilateral loop through the real services over a bad link: the robot side (puma,
+"""The whole bilateral loop through the real services over a bad link: the robot side (arm,
 force, decision with `passivity` on) in one network namespace, the master station with the
 simulated haptic operator in another, joined by the link of services/tools/bench/netem.py
 (kernel netem where it exists, the userspace delay line otherwise): 200 ms round trip over

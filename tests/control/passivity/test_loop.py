@@ -232,7 +232,7 @@ def test_the_slave_arm_chases_its_target_within_its_speed_and_creates_no_energy(
     seed: int,
 ) -> None:
     """The simulated slave moves as the PUMA's safety filter lets it (0.5 m/s at the tool,
-    PumaConfig.max_tool_speed_m_s). At 700 ms with 10 % jitter the latest-wins link delivers
+    ArmConfig.max_tool_speed_m_s). At 700 ms with 10 % jitter the latest-wins link delivers
     the master's positions in bunches: a slave that jumps to each one steps over a
     millisecond's worth of the wall (seed 4: 1.7 mm in one tick, 9 mJ out of a channel
     that had been given none). Chasing it at the arm's speed, every impact is a few ticks

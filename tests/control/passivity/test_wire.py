@@ -284,7 +284,7 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
     clock = {"k": 0}
 
     def go(engage: int, dz: float) -> float:
-        """One tick: the command through the slave port, then an ideal arm (the puma: start
+        """One tick: the command through the slave port, then an ideal arm (the arm: start
         pose at a new engagement, then p0 + dp at once)."""
         clock["k"] += 1
         k = clock["k"]
@@ -332,11 +332,11 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
     assert tdpa.apply(hold, op, st, push_up, 0) is hold
 
 
-def test_decision_starts_from_the_pose_the_puma_starts_from(net: Net) -> None:
-    """The puma maps an engagement onto its setpoint's pose; the measured tool trails it
+def test_decision_starts_from_the_pose_the_arm_starts_from(net: Net) -> None:
+    """The arm maps an engagement onto its setpoint's pose; the measured tool trails it
     (here still 0.13 mm above it, settling after a move). In contact, with no energy from
-    the operator, the port holds the target the puma aims at on the measured tool: the dp
-    it sends puts the puma's target there, not 0.13 mm into the wall (which it did while it
+    the operator, the port holds the target the arm aims at on the measured tool: the dp
+    it sends puts the arm's target there, not 0.13 mm into the wall (which it did while it
     took the measured pose as the start)."""
     tdpa = SlaveTdpa(net.node("decision"), drift_m_s=0.0)
     op = ("m1", 1)
@@ -346,7 +346,7 @@ def test_decision_starts_from_the_pose_the_puma_starts_from(net: Net) -> None:
     st = robot_state(tool_p=tool, seq=1, t_ns=t0, tool_p_cmd=setpoint)
     out = tdpa.apply(command(1, 0.0), op, st, push, t0)
     assert setpoint[2] + out.dp[2] == pytest.approx(tool[2], abs=1e-12)
-    # Without the setpoint's pose in robot/state (an older puma), the measured one.
+    # Without the setpoint's pose in robot/state (an older arm), the measured one.
     old = SlaveTdpa(net.node("decision2"), drift_m_s=0.0)
     out = old.apply(command(1, 0.0), op, robot_state(tool_p=tool, seq=1, t_ns=t0), push, t0)
     assert out.dp[2] == pytest.approx(0.0, abs=1e-12)

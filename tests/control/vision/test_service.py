@@ -11,7 +11,7 @@ import pytest
 
 from services.bus import codec, keys
 from services.bus.messages import RobotState, StereoFrame, vec
-from services.control.puma.kinematics import DEFAULT_eMt, Puma560, qn
+from services.control.arm.kinematics import DEFAULT_eMt, Puma560, qn
 from services.control.vision.config import VisionConfig
 from services.control.vision.service import VisionService
 from services.control.vision.sim_camera import SimStereoCamera
@@ -60,13 +60,13 @@ def test_sim_camera_draws_the_newest_robot_state_once_watched(net) -> None:
     """While nobody watches, robot/state is only stored; the first viewer's first pair
     shows the arm where the newest state puts it."""
     vision_node = net.node("vision")
-    puma = net.node("puma")
+    arm = net.node("arm")
     viewer = net.node("viewer")
     svc = VisionService(vision_node, VisionConfig(width=160, height=120, fps=20.0))
     kin = Puma560()
     oMt = kin.fk_tool(qn, DEFAULT_eMt)
     oMe = kin.fk_flange(qn)
-    pub = puma.publisher(keys.STATE)
+    pub = arm.publisher(keys.STATE)
     camera = svc.camera
     assert isinstance(camera, SimStereoCamera)
     try:

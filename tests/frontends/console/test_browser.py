@@ -1,4 +1,4 @@
-"""The console's REAL page in headless Chromium, against puma, force, decision, vision and the
+"""The console's REAL page in headless Chromium, against arm, force, decision, vision and the
 console's virtual master, all in simulation on a private Zenoh network.
 
 The page loads and mirrors the arm (the pedestal is drawn where the model puts it), the
@@ -25,14 +25,14 @@ import pytest
 from services.bus import keys
 from services.bus.messages import Event, RobotState
 from services.bus.node import Node, Subscription
+from services.control.arm.config import ArmConfig
+from services.control.arm.service import ArmService
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
 from services.control.master.config import MasterConfig
 from services.control.master.service import MasterService
-from services.control.puma.config import PumaConfig
-from services.control.puma.service import PumaService
 from services.control.vision.config import VisionConfig
 from services.control.vision.service import VisionService
 from services.frontends.console.app import Console
@@ -88,9 +88,9 @@ def system(net: Any) -> Iterator[System]:
     closers: list[Any] = []
     try:
         closers.append(
-            PumaService(
-                net.node("puma"),
-                PumaConfig(sim_calibration_s=0.05, control_rate_hz=200.0, state_rate_hz=100.0),
+            ArmService(
+                net.node("arm"),
+                ArmConfig(sim_calibration_s=0.05, control_rate_hz=200.0, state_rate_hz=100.0),
             )
         )
         closers.append(ForceService(net.node("force"), ForceConfig(period_ms=5.0)))

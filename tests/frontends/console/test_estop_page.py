@@ -57,7 +57,7 @@ def page(net: Any) -> Iterator[Page]:
         ConsoleConfig(port=0, shadows=False, gui_rate_hz=20.0, status_period_s=0.1),
     )
     try:
-        yield Page(console, Decision(net.node("decision")), net.node("puma"))
+        yield Page(console, Decision(net.node("decision")), net.node("arm"))
     finally:
         console.close()
 

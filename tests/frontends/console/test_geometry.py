@@ -8,8 +8,8 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from services.control.arm.kinematics import Puma560
 from services.control.master.teleop import scaled_motion
-from services.control.puma.kinematics import Puma560
 from services.frontends.console.geometry import (
     box_edges,
     cylinder_pose,
@@ -43,7 +43,7 @@ def test_rotation_z_to_straight_down() -> None:
     assert np.allclose(rotation_z_to([0, 0, -2.0]) @ [0, 0, 1], [0, 0, -1])
 
 
-def test_links_of_the_puma_at_qz() -> None:
+def test_links_of_the_arm_at_qz() -> None:
     arm = Puma560()
     q = np.zeros(6)
     origins = arm.link_origins(q)

@@ -1,4 +1,4 @@
-"""The gizmo → virtual master link against the real master, decision and sim puma over Zenoh
+"""The gizmo → virtual master link against the real master, decision and sim arm over Zenoh
 (no browser): parking on the tool moves nothing, the first motion engages there, the tool
 follows the gizmo, the master-shift decouples them, and a master that engaged before the
 console arrived never jumps."""
@@ -16,12 +16,12 @@ import pytest
 from services.bus import keys
 from services.bus.messages import Event, RobotState, mat3
 from services.bus.node import Node
+from services.control.arm.config import ArmConfig
+from services.control.arm.service import ArmService
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.master.config import MasterConfig
 from services.control.master.service import MasterService
-from services.control.puma.config import PumaConfig
-from services.control.puma.service import PumaService
 from services.frontends.console.geometry import Mat, Vec
 from services.frontends.console.hand import HandLink, ToolPose
 from services.frontends.console.mirror import BusMirror
@@ -98,7 +98,7 @@ class Rig:
 def rig(net: Any) -> Iterator[Rig]:
     closers: list[Any] = []
     try:
-        closers.append(PumaService(net.node("puma"), PumaConfig(sim_calibration_s=0.05)))
+        closers.append(ArmService(net.node("arm"), ArmConfig(sim_calibration_s=0.05)))
         # The default watchdogs (100 ms command, 200 ms state), as deployed.
         closers.append(DecisionService(net.node("decision"), DecisionConfig()))
         closers.append(
@@ -167,7 +167,7 @@ def test_park_engage_follow_and_master_shift(rig: Rig) -> None:
         # Master-shift: the gizmo moves alone.
         link.set_shift(True)
         assert rig.mirror.wait_master("console", lambda m: not m.active, 5.0)
-        # The arm settles on the last target (the puma ends its motion: ready), then holds.
+        # The arm settles on the last target (the arm ends its motion: ready), then holds.
         assert rig.mirror.state.wait_for(lambda s: s.status == "ready", 10.0) is not None
         rig.settle(10)
         rig.drift.reset(rig.tool_p())

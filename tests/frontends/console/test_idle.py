@@ -116,7 +116,7 @@ def test_the_last_browser_leaving_clutches_an_engaged_hand(net: Any) -> None:
     closes, and parked on the tool (not engaged) when a page comes back."""
     closers: list[Any] = []
     try:
-        puma = net.node("puma")
+        arm = net.node("arm")
         closers.append(
             MasterService(
                 net.node("master", instance="console"),
@@ -125,7 +125,7 @@ def test_the_last_browser_leaving_clutches_an_engaged_hand(net: Any) -> None:
         )
         console = Console(net.node("console"), ConsoleConfig(port=0, shadows=False))
         closers.append(console)
-        puma.publisher(keys.STATE).put(ready_state(1, TOOL_P))
+        arm.publisher(keys.STATE).put(ready_state(1, TOOL_P))
         assert console.mirror.state.wait_for(lambda s: True, 10.0) is not None
         hand = console.hand
         with FakeBrowser(console.port):

@@ -59,7 +59,7 @@ def _cmd(seq: int, engage: int, dp: tuple[float, float, float]) -> OperatorComma
 
 
 def test_mirror_over_the_bus(net: Any) -> None:
-    pub_node = net.node("puma")
+    pub_node = net.node("arm")
     mirror_node = net.node("console")
     mirror = BusMirror(mirror_node, events=3, force_capacity=100)
     mirror.watch_page(True)  # robot/puma/cmd is subscribed to while a page is shown

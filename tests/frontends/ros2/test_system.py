@@ -1,6 +1,6 @@
 """The Done-when of issue 20: a "ROS 2 machine" made of plain Zenoh reads Telerobot.
 
-One private network per test, the real puma (sim arm), force and decision services and the
+One private network per test, the real arm (sim arm), force and decision services and the
 bridge, each on its own node, as separate processes would be; a vision stand-in publishes
 JPEG StereoFrames by the contract. The observer knows nothing of our code: it builds the
 exact rmw_zenoh keys from literal type names and the published RIHS01 hashes, decodes with
@@ -29,14 +29,14 @@ from services.bus import keys
 from services.bus.config import NodeConfig
 from services.bus.messages import Event, ForceSample, RobotState, StereoFrame
 from services.bus.node import Node
+from services.control.arm.config import HOME_Q_RAD, ArmConfig
+from services.control.arm.kinematics import Puma560
+from services.control.arm.service import ArmService
+from services.control.arm.sim_arm import SimArm
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
-from services.control.puma.config import HOME_Q_RAD, PumaConfig
-from services.control.puma.kinematics import Puma560
-from services.control.puma.service import PumaService
-from services.control.puma.sim_arm import SimArm
 from services.frontends.ros2.config import Ros2Config
 from services.frontends.ros2.service import Ros2Service, bridge_node_config
 from tests.conftest import Net, wait_until
@@ -177,10 +177,10 @@ def make_cell(make_net: Callable[..., Net]) -> Iterator[Callable[..., Cell]]:
 
     def make(ns: str = "", **ros2: Any) -> Cell:
         net = make_net(ns)
-        puma_node = net.node("puma")
-        puma = PumaService(
-            puma_node,
-            PumaConfig(sim_calibration_s=0.05),
+        arm_node = net.node("arm")
+        arm = ArmService(
+            arm_node,
+            ArmConfig(sim_calibration_s=0.05),
             arm=SimArm(HOME_Q_RAD, calibration_s=0.05),
         )
         force = ForceService(net.node("force"), ForceConfig(seed=7, period_ms=2.0))
@@ -199,7 +199,7 @@ def make_cell(make_net: Callable[..., Net]) -> Iterator[Callable[..., Cell]]:
             bridge,
             bridge_node,
             observer,
-            [observer.close, bridge.close, vision.close, decision.close, force.close, puma.close],
+            [observer.close, bridge.close, vision.close, decision.close, force.close, arm.close],
         )
         made.append(cell)
         console.call("decision", "connect", {}, 10.0)

@@ -32,7 +32,7 @@ def _run() -> CommandRun:
 
 def _records(fields: bool, setpoint: bool = True) -> tuple[list[Any], list[Any]]:
     """The decision forwards every other command (its tick carries the newest) from a tick
-    0.1 ms after it was sent, and the bench sees that 0.5 ms after it was sent; the puma
+    0.1 ms after it was sent, and the bench sees that 0.5 ms after it was sent; the arm
     receives it 0.3 ms after it was sent, has its setpoint 0.8 ms after, and publishes a
     state 1 ms after — but only for every fourth command (states run slower)."""
     fwd, states = [], []
@@ -49,10 +49,10 @@ def _records(fields: bool, setpoint: bool = True) -> tuple[list[Any], list[Any]]
     return fwd, states
 
 
-def test_the_extension_fields_time_the_path_on_the_puma_clock() -> None:
+def test_the_extension_fields_time_the_path_on_the_arm_clock() -> None:
     fwd, states = _records(fields=True)
     f = command_figures(1000.0, _run(), STEP, fwd, states)
-    assert (f["reached_method"], f["puma_method"], f["setpoint_method"]) == (
+    assert (f["reached_method"], f["arm_method"], f["setpoint_method"]) == (
         "origin_t_ns",
         "cmd_rx_ns",
         "setpoint_ns",
@@ -60,15 +60,15 @@ def test_the_extension_fields_time_the_path_on_the_puma_clock() -> None:
     assert f["sent"] == N and f["reached_distinct"] == 5  # k = 0, 2, 4, 6, 8
     assert f["reached_rate_hz"] == pytest.approx(5 / 0.009)  # over first → last sent
     assert f["stamped_sampled"] == 3  # the states showed k = 0, 4, 8
-    assert f["puma_ms"]["n"] == 3 and f["puma_ms"]["p50"] == pytest.approx(0.3)
+    assert f["arm_ms"]["n"] == 3 and f["arm_ms"]["p50"] == pytest.approx(0.3)
     assert f["setpoint_ms"]["n"] == 3 and f["setpoint_ms"]["p50"] == pytest.approx(0.8)
     assert f["na"] == {}
     # hop by hop: master → the decision's tick for all 5 it carried, then, for the 3 shown,
-    # the tick → the puma's receipt and the receipt → the setpoint; they add up.
+    # the tick → the arm's receipt and the receipt → the setpoint; they add up.
     hops = f["hops_ms"]
-    assert (hops["decision"]["n"], hops["to_puma"]["n"], hops["apply"]["n"]) == (5, 3, 3)
+    assert (hops["decision"]["n"], hops["to_arm"]["n"], hops["apply"]["n"]) == (5, 3, 3)
     assert hops["decision"]["p50"] == pytest.approx(0.1)
-    assert hops["to_puma"]["p50"] == pytest.approx(0.2)
+    assert hops["to_arm"]["p50"] == pytest.approx(0.2)
     assert hops["apply"]["p50"] == pytest.approx(0.5)
     # the dp-matching figures are kept beside them
     assert f["forwarded_distinct"] == 5 and f["forward_ms"]["p50"] == pytest.approx(0.5)
@@ -79,16 +79,16 @@ def test_the_extension_fields_time_the_path_on_the_puma_clock() -> None:
 def test_without_the_fields_dp_matching_stands_in() -> None:
     fwd, states = _records(fields=False)
     f = command_figures(1000.0, _run(), STEP, fwd, states)
-    assert (f["reached_method"], f["puma_method"], f["setpoint_method"]) == (
+    assert (f["reached_method"], f["arm_method"], f["setpoint_method"]) == (
         "dp",
         "bench_arrival",
         "state_t_ns",
     )
     assert f["reached_distinct"] == f["forwarded_distinct"] == 5
-    # master→puma: arrival at the bench of the first puma command carrying k or a newer one
+    # master→arm: arrival at the bench of the first arm command carrying k or a newer one
     # (k odd waits for k + 1's: 1.5 ms; k even 0.5 ms); k = 9 was never carried.
-    assert f["puma_ms"]["n"] == 9 and f["unforwarded"] == 1
-    assert f["puma_ms"]["min"] == pytest.approx(0.5) and f["puma_ms"]["max"] == pytest.approx(1.5)
+    assert f["arm_ms"]["n"] == 9 and f["unforwarded"] == 1
+    assert f["arm_ms"]["min"] == pytest.approx(0.5) and f["arm_ms"]["max"] == pytest.approx(1.5)
     # master→setpoint: t_ns of the first state showing the carrying command (or a later one)
     # applied: k = 0 by its own state 1 ms later, k = 1 … 8 by the states of k = 4 and 8
     assert f["setpoint_ms"]["n"] == 9 and f["setpoint_ms"]["min"] == pytest.approx(1.0)
@@ -97,18 +97,18 @@ def test_without_the_fields_dp_matching_stands_in() -> None:
     assert "fallback dp matching" in method_note("commands_1000hz", f)
 
 
-def test_a_puma_without_setpoint_ns_falls_back_for_that_figure_only() -> None:
+def test_a_arm_without_setpoint_ns_falls_back_for_that_figure_only() -> None:
     fwd, states = _records(fields=True, setpoint=False)
     f = command_figures(100.0, _run(), STEP, fwd, states)
-    assert (f["puma_method"], f["setpoint_method"]) == ("cmd_rx_ns", "state_t_ns")
+    assert (f["arm_method"], f["setpoint_method"]) == ("cmd_rx_ns", "state_t_ns")
     assert f["setpoint_ms"]["n"] == 9
 
 
 def test_nothing_forwarded_says_why() -> None:
     f = command_figures(100.0, _run(), STEP, [], [])
-    assert f["reached_distinct"] == 0 and f["puma_ms"]["n"] == 0
-    assert set(f["na"]) == {"puma_ms", "setpoint_ms"}
-    assert "dp matching found none" in f["na"]["puma_ms"]
+    assert f["reached_distinct"] == 0 and f["arm_ms"]["n"] == 0
+    assert set(f["na"]) == {"arm_ms", "setpoint_ms"}
+    assert "dp matching found none" in f["na"]["arm_ms"]
     empty = command_figures(100.0, CommandRun([], []), STEP, [], [])
     assert empty["sent"] == 0 and empty["reached_rate_hz"] == 0.0
 

@@ -114,7 +114,7 @@ def test_percent_of_core_and_budget_sum() -> None:
 
 
 def test_cpu_figures_budget_sums_and_missing_services() -> None:
-    names = ("router", "puma", "force", "decision", "vision", "workcell", "console")
+    names = ("router", "arm", "force", "decision", "vision", "workcell", "console")
     before = dict.fromkeys(names, 100.0)
     after = {n: 100.0 + 0.1 * (i + 1) for i, n in enumerate(names)}  # 10 %, 20 %, … over 10 s
     fig = cpu_figures(before, after, bench_s=0.5, wall_s=10.0)

@@ -65,7 +65,7 @@ def _cpu(**pct: float) -> dict[str, Any]:
     return cpu_figures(before, after, bench_s=0.25, wall_s=5.0)
 
 
-IDLE = {"router": 3.0, "puma": 4.0, "force": 9.0, "decision": 2.0}
+IDLE = {"router": 3.0, "arm": 4.0, "force": 9.0, "decision": 2.0}
 IDLE_SIM = {**IDLE, "vision": 1.0, "workcell": 5.0, "console": 6.0}
 
 
@@ -84,29 +84,29 @@ def full_phases() -> dict[str, Any]:
         "video_vga": vv,
         "commands_100hz": {
             "reached_rate_hz": 98.0,
-            "puma_counter": {"commands": 490, "window_s": 5.0, "rate_hz": 98.0},
-            "puma_ms": _summary(0.8, 2.0),
+            "arm_counter": {"commands": 490, "window_s": 5.0, "rate_hz": 98.0},
+            "arm_ms": _summary(0.8, 2.0),
             "setpoint_ms": _summary(3.0, 6.0),
             "hops_ms": {
                 "decision": _summary(0.4, 1.0),
-                "to_puma": _summary(0.4, 1.0),
+                "to_arm": _summary(0.4, 1.0),
                 "apply": _summary(2.2, 4.0),
             },
         },
         "commands_1000hz": {
             "reached_rate_hz": 480.0,
-            "puma_counter": {"commands": 2500, "window_s": 5.0, "rate_hz": 500.0},
-            "puma_ms": _summary(0.7, 2.5),
+            "arm_counter": {"commands": 2500, "window_s": 5.0, "rate_hz": 500.0},
+            "arm_ms": _summary(0.7, 2.5),
             "setpoint_ms": _summary(3.1, 7.0),
             "hops_ms": {
                 "decision": _summary(0.3, 1.2),
-                "to_puma": _summary(0.4, 1.3),
+                "to_arm": _summary(0.4, 1.3),
                 "apply": _summary(2.4, 4.5),
             },
         },
         "rpc_decision_status": _summary(2.0, 5.0),
         "rpc_decision_supervisor": _summary(0.6, 1.5),
-        "rpc_puma_status": _summary(0.5, 1.2),
+        "rpc_arm_status": _summary(0.5, 1.2),
         "ik": {"n": 10.0, "analytic_ik_per_s": 3000.0, "dls_steps_per_s": 26000.0},
         "baseline_tcp": {
             "rate_hz": 999.0,
@@ -191,7 +191,7 @@ def test_every_target_of_issue_16_has_a_row() -> None:
     assert used == set(TARGETS)
     assert {s.key for s in SPECS if s.target_run is not None} == {
         "rpc_decision_status_vs_xmlrpc",
-        "rpc_puma_status_vs_xmlrpc",
+        "rpc_arm_status_vs_xmlrpc",
     }
 
 
@@ -211,17 +211,17 @@ def test_figures_compare_with_paper_floor_baseline_and_target() -> None:
     assert rows["force_rate_stereo_vga"].verdict == "meets"  # 998 Hz > 250
     assert rows["force_latency_stereo_vga_p99"].target_verdict == "meets"  # 1.0 ≤ 1 ms
     assert rows["force_lost_stereo_vga"].ours == 2.0
-    assert rows["rpc_puma_status_p50"].vs_baseline == pytest.approx(0.5 / 0.35)
-    assert rows["rpc_puma_status_p50"].vs_floor == pytest.approx(0.5 / 0.25)
-    assert rows["rpc_puma_status_p50"].target_verdict == "MISSES"  # 0.5 > 0.4
-    assert rows["rpc_puma_status_vs_xmlrpc"].target == 0.35
-    assert rows["rpc_puma_status_vs_xmlrpc"].target_verdict == "MISSES"  # 0.5 > 0.35
+    assert rows["rpc_arm_status_p50"].vs_baseline == pytest.approx(0.5 / 0.35)
+    assert rows["rpc_arm_status_p50"].vs_floor == pytest.approx(0.5 / 0.25)
+    assert rows["rpc_arm_status_p50"].target_verdict == "MISSES"  # 0.5 > 0.4
+    assert rows["rpc_arm_status_vs_xmlrpc"].target == 0.35
+    assert rows["rpc_arm_status_vs_xmlrpc"].target_verdict == "MISSES"  # 0.5 > 0.35
     assert rows["rpc_decision_status_p50"].verdict == "MISSES"  # 2 ms > ~1 ms
     assert rows["rpc_decision_supervisor_p50"].verdict == "meets"
     assert rows["cmd_rate_100"].verdict == "meets"  # 98 ≥ 50
     assert rows["cmd_rate_100"].target_verdict == "n/a"  # the target is at 1 kHz
     assert rows["cmd_rate_1000"].target_verdict == "MISSES"  # 480 < 990
-    assert rows["cmd_puma_counter_1000"].ours == 500.0
+    assert rows["cmd_arm_counter_1000"].ours == 500.0
     assert rows["cmd_setpoint_1000_p99"].target == 3.0
     # commands against the two-hop relay at their own rate; the relay against one hop
     assert rows["cmd_setpoint_1000_p99"].vs_floor == pytest.approx(7.0 / 0.7)
@@ -279,11 +279,11 @@ def test_table_lists_every_figure_and_says_plainly_what_misses() -> None:
         "paper's 76 Hz (21 % short)." in text
     )
     assert (
-        "MISSES THE TARGET: commands reaching the puma, sent at 1 kHz: ours 480 vs 990 Hz "
+        "MISSES THE TARGET: commands reaching the arm, sent at 1 kHz: ours 480 vs 990 Hz "
         "(issue 16; 52 % short)." in text
     )
     assert (
-        "MISSES THE TARGET: call puma status p50, faster than XML-RPC: ours 0.5 vs 0.35 ms "
+        "MISSES THE TARGET: call arm status p50, faster than XML-RPC: ours 0.5 vs 0.35 ms "
         "(XML-RPC p50, same run; 1.43× the target)." in text
     )
     assert (
@@ -319,7 +319,7 @@ def test_table_lists_every_figure_and_says_plainly_what_misses() -> None:
     )
     row = next(line for line in text.splitlines() if line.startswith("| idle CPU: router"))
     assert row == (
-        "| idle CPU: router + puma + force + decision | 18.0 % |  |  |  |  |  |  |  | ≤ 25.0 "
+        "| idle CPU: router + arm + force + decision | 18.0 % |  |  |  |  |  |  |  | ≤ 25.0 "
         "| meets |"
     )
 
@@ -329,9 +329,9 @@ def test_a_run_that_meets_everything_says_so() -> None:
     phases["force_stereo_paper"]["in_flight"]["rate_hz"] = 500.0
     phases["force_stereo_vga"] = {**_force(1000.0, 0.3), "in_flight": {"rate_hz": 995.0}}
     phases["rpc_decision_status"] = _summary(0.3, 2.0)
-    phases["rpc_puma_status"] = _summary(0.3, 1.0)
+    phases["rpc_arm_status"] = _summary(0.3, 1.0)
     phases["commands_1000hz"]["reached_rate_hz"] = 999.0
-    phases["commands_1000hz"]["puma_ms"] = _summary(0.3, 0.9)
+    phases["commands_1000hz"]["arm_ms"] = _summary(0.3, 0.9)
     phases["commands_1000hz"]["setpoint_ms"] = _summary(0.8, 2.5)
     phases["ik"]["analytic_ik_per_s"] = 25_000.0
     text = table(document(phases, machine(), SETTINGS))

@@ -35,10 +35,10 @@ def test_quick_run_writes_every_figure(tmp_path: Path) -> None:
     assert doc["phases"]["force_alone"]["received"] > 0
     assert doc["phases"]["video_paper"]["frames_l"] > 0
     assert doc["phases"]["commands_100hz"]["reached_distinct"] > 0
-    assert doc["phases"]["commands_100hz"]["puma_ms"]["n"] > 0
+    assert doc["phases"]["commands_100hz"]["arm_ms"]["n"] > 0
     assert doc["phases"]["baseline_zenoh"]["received"] > 0
     assert doc["phases"]["baseline_zenoh_query"]["latency_ms"]["n"] > 0
     for key in ("cpu_idle", "cpu_teleop"):
-        assert set(doc["phases"][key]["services"]) >= {"router", "puma", "force", "console"}
+        assert set(doc["phases"][key]["services"]) >= {"router", "arm", "force", "console"}
         assert doc["phases"][key]["sim_pct"] is not None
     assert doc["phases"]["cpu_teleop"]["video"]["frames_l"] > 0

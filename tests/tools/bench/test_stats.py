@@ -168,7 +168,7 @@ def _reference(
     forwarded: list[tuple[int, int, int]],
     states: list[tuple[int, int, int]],
 ) -> tuple[list[int], list[int]]:
-    """Brute force: for each command, the first puma command whose running max index ≥ k,
+    """Brute force: for each command, the first arm command whose running max index ≥ k,
     then the first state whose running max cmd_seq ≥ that command's seq."""
     fwd_lat, app_lat = [], []
     for k, t in sent:
@@ -236,7 +236,7 @@ def test_stamped_commands_hand_worked() -> None:
     sent = [_ms(1), _ms(2), _ms(3), _ms(4)]
     # Puma commands (seq, origin): 20 carries 1 ms, 21 carries 2 ms, 22 re-sends 2 ms, 23 is a
     # hold, 24 carries 4 ms; 3 ms was superseded before the decision sent it; 9 ms is not ours.
-    puma = [(20, _ms(1)), (21, _ms(2)), (22, _ms(2)), (23, None), (24, _ms(4)), (25, _ms(9))]
+    arm = [(20, _ms(1)), (21, _ms(2)), (22, _ms(2)), (23, None), (24, _ms(4)), (25, _ms(9))]
     states = [
         (20, _ms(1.3), None, _ms(1)),  # received, no setpoint yet
         (20, _ms(1.3), _ms(1.9), _ms(1)),  # its setpoint, one state later
@@ -247,32 +247,32 @@ def test_stamped_commands_hand_worked() -> None:
     ]
     # The decision's ticks: 20 at 1.1 ms, 21 at 2.1, 22 at 2.6 (the re-send), 24 at 4.05.
     ticks = {20: _ms(1.1), 21: _ms(2.1), 22: _ms(2.6), 24: _ms(4.05), 25: _ms(9.1)}
-    got = stats.stamped_commands(sent, puma, states, ticks)
+    got = stats.stamped_commands(sent, arm, states, ticks)
     assert got.reached == 3  # 1, 2 and 4 ms
     assert got.sampled == 2  # 1 and 4 ms: 2 ms was only shown through its re-send
-    np.testing.assert_allclose(got.puma_ms, [0.3, 0.2])
+    np.testing.assert_allclose(got.arm_ms, [0.3, 0.2])
     np.testing.assert_allclose(got.setpoint_ms, [0.9, 0.6])
     # hops: master → tick for the three reached (through each one's first carrier), tick →
     # receipt and receipt → setpoint for the two shown
     np.testing.assert_allclose(got.decision_ms, [0.1, 0.1, 0.05])
-    np.testing.assert_allclose(got.to_puma_ms, [0.2, 0.15])
+    np.testing.assert_allclose(got.to_arm_ms, [0.2, 0.15])
     np.testing.assert_allclose(got.apply_ms, [0.6, 0.4])
-    without = stats.stamped_commands(sent, puma, states)  # no send stamps: no hops
-    assert without.decision_ms.size == without.to_puma_ms.size == 0
+    without = stats.stamped_commands(sent, arm, states)  # no send stamps: no hops
+    assert without.decision_ms.size == without.to_arm_ms.size == 0
     np.testing.assert_allclose(without.apply_ms, [0.6, 0.4])
 
 
-def test_stamped_commands_without_the_puma_stream_takes_each_origins_first_state() -> None:
+def test_stamped_commands_without_the_arm_stream_takes_each_origins_first_state() -> None:
     states = [(5, _ms(1.5), None, _ms(1)), (6, _ms(1.8), _ms(2.0), _ms(1)), (7, None, None, None)]
     got = stats.stamped_commands([_ms(1)], [], states)
     assert (got.reached, got.sampled) == (0, 1)
-    np.testing.assert_allclose(got.puma_ms, [0.5])  # seq 5, the first to show it
+    np.testing.assert_allclose(got.arm_ms, [0.5])  # seq 5, the first to show it
     assert got.setpoint_ms.size == 0  # seq 5 never showed a setpoint; 6 is a later carrier
 
 
 def test_stamped_commands_of_services_without_the_fields_is_empty() -> None:
     got = stats.stamped_commands([1, 2], [(1, None)], [(1, None, None, None)])
-    assert (got.reached, got.sampled, got.puma_ms.size, got.setpoint_ms.size) == (0, 0, 0, 0)
+    assert (got.reached, got.sampled, got.arm_ms.size, got.setpoint_ms.size) == (0, 0, 0, 0)
 
 
 def test_sent_stream_counts_only_the_timed_samples_and_their_loss() -> None:

@@ -84,7 +84,7 @@ def test_version_loads_no_heavy_module() -> None:
     [("{not json", "arguments: Expecting property name"), ("[1, 2]", "must be a JSON object")],
 )
 def test_a_bad_call_argument_fails_before_zenoh(args: str, message: str) -> None:
-    r = probe(["call", "puma", "move_relative", args])
+    r = probe(["call", "arm", "move_relative", args])
     assert r["code"] == 1 and r["heavy"] == []
     reply = json.loads(r["out"])
     assert reply["error"] == "bad_request" and reply["message"].find(message) >= 0
@@ -128,8 +128,8 @@ def run(net: Net, *args: str) -> tuple[int, list[Any], list[str]]:
 
 @pytest.fixture
 def service(net: Net) -> Node:
-    node = net.node("puma")
-    node.serve("puma", {"status": lambda args: {"status": "ready"}})
+    node = net.node("arm")
+    node.serve("arm", {"status": lambda args: {"status": "ready"}})
     node.announce()
     return node
 
@@ -201,11 +201,11 @@ def test_call_a_role_with_several_instances_names_them(net: Net, service: Node) 
 def test_call_an_absent_service_lists_who_is_alive(net: Net, service: Node) -> None:
     code, rows, _ = run(net, "call", "decision", "status", "--timeout", "1")
     assert code == 2 and rows[0]["error"] == "unavailable"
-    assert rows[0]["message"].endswith("alive: puma")
+    assert rows[0]["message"].endswith("alive: arm")
 
 
 def test_call_that_times_out_says_the_request_may_be_running(net: Net) -> None:
-    node = net.node("puma")
+    node = net.node("arm")
     release = threading.Event()
     started = threading.Event()
 
@@ -214,10 +214,10 @@ def test_call_that_times_out_says_the_request_may_be_running(net: Net) -> None:
         release.wait(DEADLINE_S)
         return {}
 
-    node.serve("puma", {"move_joints": slow})
+    node.serve("arm", {"move_joints": slow})
     node.announce()
     try:
-        code, rows, _ = run(net, "call", "puma", "move_joints", "--timeout", "1")
+        code, rows, _ = run(net, "call", "arm", "move_joints", "--timeout", "1")
     finally:
         release.set()
     assert started.is_set() and code == 2 and len(rows) == 1

@@ -53,8 +53,8 @@ class Streamer:
 
 @pytest.fixture
 def service(net: Net) -> Iterator[Node]:
-    """The in-process 'puma' service every CLI run connects to."""
-    node = net.node("puma")
+    """The in-process 'arm' service every CLI run connects to."""
+    node = net.node("arm")
 
     def status(args: dict[str, Any]) -> dict[str, Any]:
         return {"status": "ready", "q": [0.0, 1.5, -1.5, 0.0, 0.0, 0.0], "args": args}
@@ -62,7 +62,7 @@ def service(net: Net) -> Iterator[Node]:
     def limit(args: dict[str, Any]) -> dict[str, Any]:
         raise RpcError("limit", "joint 3 beyond 45°")
 
-    node.serve("puma", {"status": status, "limit": limit})
+    node.serve("arm", {"status": status, "limit": limit})
     node.announce()
     yield node
 
@@ -169,7 +169,7 @@ def test_topic_list_shows_keys_with_their_types(net: Net, service: Node) -> None
 
 
 def test_call_prints_the_reply(net: Net, service: Node) -> None:
-    code, rows = run_cli(net, "call", "puma", "status", '{"verbose": true}', "--timeout", "10")
+    code, rows = run_cli(net, "call", "arm", "status", '{"verbose": true}', "--timeout", "10")
     assert code == 0
     assert rows == [
         {"status": "ready", "q": [0.0, 1.5, -1.5, 0.0, 0.0, 0.0], "args": {"verbose": True}}
@@ -177,12 +177,12 @@ def test_call_prints_the_reply(net: Net, service: Node) -> None:
 
 
 def test_call_error_prints_the_code_and_exits_1(net: Net, service: Node) -> None:
-    code, rows = run_cli(net, "call", "puma", "limit", "--timeout", "10")
+    code, rows = run_cli(net, "call", "arm", "limit", "--timeout", "10")
     assert code == 1 and rows == [{"error": "limit", "message": "joint 3 beyond 45°"}]
 
 
 def test_call_unknown_method_is_bad_request(net: Net, service: Node) -> None:
-    code, rows = run_cli(net, "call", "puma", "fly", "--timeout", "10")
+    code, rows = run_cli(net, "call", "arm", "fly", "--timeout", "10")
     assert code == 1 and rows[0]["error"] == "bad_request"
 
 
@@ -193,7 +193,7 @@ def test_call_without_a_service_is_unavailable_exit_2(net: Net, service: Node) -
 
 @pytest.mark.parametrize("args", ["{not json", "[1, 2]"])
 def test_call_with_bad_arguments_is_bad_request(net: Net, service: Node, args: str) -> None:
-    code, rows = run_cli(net, "call", "puma", "status", args)
+    code, rows = run_cli(net, "call", "arm", "status", args)
     assert code == 1 and rows[0]["error"] == "bad_request"
 
 
@@ -205,7 +205,7 @@ def test_alive_lists_the_tokens(net: Net, service: Node) -> None:
     master.announce()
     assert service.alive.wait("master/m1", DEADLINE_S)
     code, rows = run_cli(net, "alive", "--json", "--timeout", "1.5")
-    assert code == 0 and rows == [["master/m1", "puma"]]
+    assert code == 0 and rows == [["arm", "master/m1"]]
 
 
 def test_a_config_error_exits_2_naming_the_key(net: Net) -> None:
@@ -254,7 +254,7 @@ def test_zenoh_cli_codec_shows_a_rejection_instead_of_failing() -> None:
         ("cell2/robot/cmd", "robot/cmd"),
         ("a/b/vision/stereo/l", "vision/stereo/l"),
         ("cell2/master/state", "master/state"),
-        ("cell2/alive/puma", "alive/puma"),
+        ("cell2/alive/arm", "alive/arm"),
         ("lab/notes", "lab/notes"),
         ("myrobot/x", "myrobot/x"),
     ],

@@ -285,12 +285,12 @@ def test_telerobot_up_stops_its_children_on_sigterm(tmp_path: Path) -> None:
 
 def test_service_names_become_telerobot_subcommands(tmp_path: Path) -> None:
     path = tmp_path / "p.toml"
-    cfg = launcher.UpConfig(services=("router", "puma"), args={"puma": ["--sim"]})
-    assert launcher.child_argv("puma", path, cfg) == [
+    cfg = launcher.UpConfig(services=("router", "arm"), args={"arm": ["--sim"]})
+    assert launcher.child_argv("arm", path, cfg) == [
         PY,
         "-m",
         "services.tools.cli.main",
-        "puma",
+        "arm",
         "--config",
         str(path),
         "--sim",
@@ -303,9 +303,9 @@ def test_service_names_become_telerobot_subcommands(tmp_path: Path) -> None:
     ("table", "key"),
     [
         ("[up]\n", "up.services"),
-        ('[up]\nservices = ["puma"]\nbogus = 1\n', "up.bogus"),
-        ('[up]\nservices = ["puma"]\nbackoff_s = 0\n', "up.backoff_s"),
-        ('[up]\nservices = ["puma"]\n[up.args]\npuma = "--sim"\n', "up.args.puma"),
+        ('[up]\nservices = ["arm"]\nbogus = 1\n', "up.bogus"),
+        ('[up]\nservices = ["arm"]\nbackoff_s = 0\n', "up.backoff_s"),
+        ('[up]\nservices = ["arm"]\n[up.args]\narm = "--sim"\n', "up.args.arm"),
         ("[up]\n[up.commands]\nx = []\n", "up.commands.x"),
         ('[up]\n[up.commands]\nx = ["python", 1]\n', "up.commands.x"),
     ],
@@ -324,7 +324,7 @@ def test_an_unknown_profile_exits_2(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert launcher.main([str(tmp_path / "nope")]) == 2
     assert "no profile" in capsys.readouterr().err
     p = tmp_path / "mine.toml"
-    p.write_text('[up]\nservices = ["puma"]\n')
+    p.write_text('[up]\nservices = ["arm"]\n')
     assert launcher.resolve_profile(str(p)) == p
 
 
@@ -344,7 +344,7 @@ def test_children_die_with_a_killed_launcher(tmp_path: Path) -> None:
 CONFIG_TYPO = (
     "import sys, time\n"
     "time.sleep(0.5)\n"  # past startup_s: the startup rule is not what stops the launch
-    "print('telerobot puma: puma.bogus: unknown key (known: arm, port)', file=sys.stderr)\n"
+    "print('telerobot arm: arm.bogus: unknown key (known: arm, port)', file=sys.stderr)\n"
     "sys.exit(2)\n"
 )
 
@@ -362,7 +362,7 @@ def test_a_configuration_error_stops_everything_and_names_the_key(tmp_path: Path
     lines = out.snapshot()
     assert status == 1
     assert (
-        "[typo] configuration error (exit 2): telerobot puma: puma.bogus: unknown key "
+        "[typo] configuration error (exit 2): telerobot arm: arm.bogus: unknown key "
         "(known: arm, port); stopping everything"
     ) in lines
     assert len(started_pids(lines, "typo")) == 1  # never restarted
@@ -372,22 +372,22 @@ def test_a_configuration_error_stops_everything_and_names_the_key(tmp_path: Path
 
 
 def test_a_real_service_with_a_misspelt_key_fails_the_launch(tmp_path: Path) -> None:
-    """The real puma, its import included (seconds under load): exit 2 names `puma.bogus`."""
+    """The real arm, its import included (seconds under load): exit 2 names `arm.bogus`."""
     path = tmp_path / "typo.toml"
-    path.write_text('[puma]\narm = "sim"\nbogus = 1\n[up]\nservices = ["puma"]\n')
+    path.write_text('[arm]\ndriver = "sim"\nbogus = 1\n[up]\nservices = ["arm"]\n')
     out, stop = Output(), Shutdown(install=False)
     status = launcher.run(path, out, stop)
     lines = out.snapshot()
     assert status == 1
     fatal = [line for line in lines if "configuration error (exit 2)" in line]
-    assert len(fatal) == 1 and fatal[0].startswith("[puma] ") and "puma.bogus" in fatal[0]
-    assert len(started_pids(lines, "puma")) == 1
+    assert len(fatal) == 1 and fatal[0].startswith("[arm] ") and "arm.bogus" in fatal[0]
+    assert len(started_pids(lines, "arm")) == 1
 
 
 def test_a_child_dying_during_a_slow_start_up_stops_everything(tmp_path: Path) -> None:
     """With the default startup_s, a child that dies after 1.5 s (an import under load
     takes 3–13 s) still counts as one that could not start: the old 1 s missed it."""
-    assert launcher.UpConfig(services=("puma",)).startup_s >= 20.0
+    assert launcher.UpConfig(services=("arm",)).startup_s >= 20.0
     slow_death = "import sys, time; time.sleep(1.5); print('no device', flush=True); sys.exit(1)"
     path = profile(tmp_path, {"hello": [PY, "-c", HELLO], "slow": [PY, "-c", slow_death]})
     out, stop = Output(), Shutdown(install=False)
@@ -504,10 +504,10 @@ def test_a_free_port_is_not_taken_and_listen_moves_the_router(tmp_path: Path) ->
 
 def test_listen_and_ns_reach_every_service(tmp_path: Path) -> None:
     path = tmp_path / "p.toml"
-    cfg = launcher.UpConfig(services=("router", "puma"), commands={"rec": ["x"]})
+    cfg = launcher.UpConfig(services=("router", "arm"), commands={"rec": ["x"]})
     o = launcher.Overrides(listen="tcp/0.0.0.0:7450", ns="cell2")
     assert launcher.child_argv("router", path, cfg, o)[-2:] == ["--listen", "tcp/0.0.0.0:7450"]
-    assert launcher.child_argv("puma", path, cfg, o)[-4:] == [
+    assert launcher.child_argv("arm", path, cfg, o)[-4:] == [
         "--connect",
         "tcp/127.0.0.1:7450",
         "--ns",

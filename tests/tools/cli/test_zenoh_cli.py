@@ -43,7 +43,7 @@ class Cell:
         self.force_node = Node("force", NodeConfig(mode=service_mode, connect=(self.endpoint,)))
         # 200 Hz is plenty to see a stream and keeps the test light on a shared machine.
         self.force = ForceService(self.force_node, ForceConfig(seed=3, period_ms=5.0))
-        # The sim sensor senses once it knows where the tool is (robot/state from a puma).
+        # The sim sensor senses once it knows where the tool is (robot/state from a arm).
         self.force.core.update_robot_state((0.5, 0.0, 0.5), IDENTITY_R, (0.5, 0.0, 0.7), IDENTITY_R)
         self.nodes: list[Node] = []
 

@@ -25,7 +25,7 @@ MIXED = [
     ("robot/force", force(1)),
     ("robot/state", state(1)),
     ("robot/force", force(2)),
-    ("robot/events", event(1, "puma", "status", "ready")),
+    ("robot/events", event(1, "arm", "status", "ready")),
     ("robot/force", codec.pack({"seq": 3})),  # breaks the contract: raw only
     ("lab/other", codec.pack({"t_ns": T0_NS + 99, "note": "hi"})),
     ("lab/blob", b"\xc1not msgpack"),

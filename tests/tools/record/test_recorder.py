@@ -122,7 +122,7 @@ def test_a_namespaced_recorder_records_keys_without_the_namespace(
 ) -> None:
     net = make_net("cell2")
     rec = Recorder(net.node("record"), RecorderConfig(output=str(tmp_path / "ns.mcap")))
-    pub = net.node("puma")
+    pub = net.node("arm")
     _wait_subscribed(pub, "robot/events")
     pub.event("status", "in cell2")
     assert wait_until(lambda: rec.stats().received >= 1)
@@ -150,7 +150,7 @@ def test_a_stalled_writer_never_blocks_the_stream_it_drops_and_counts(
     rec = Recorder(
         net.node("record"), RecorderConfig(output=str(tmp_path / "q.mcap"), queue_len=20)
     )
-    pub = net.node("puma")
+    pub = net.node("arm")
     _wait_subscribed(pub, "robot/events")
     pub.event("status", "first")  # the writer takes it and sticks
     assert stuck.wait(10.0)

@@ -1,4 +1,4 @@
-"""A whole sim session — puma, force, decision and a scripted master — recorded, checked with
+"""A whole sim session — arm, force, decision and a scripted master — recorded, checked with
 the mcap library, replayed byte for byte into fresh subscribers, and reported."""
 
 from __future__ import annotations
@@ -24,14 +24,14 @@ from mcap.records import Schema
 
 from services.bus import codec, keys
 from services.bus.messages import Event, RobotState
+from services.control.arm.config import ArmConfig
+from services.control.arm.service import ArmService
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
 from services.control.master.config import MasterConfig
 from services.control.master.service import MasterService
-from services.control.puma.config import PumaConfig
-from services.control.puma.service import PumaService
 from services.tools.cli.main import main as telerobot
 from services.tools.record import schemas
 from services.tools.record.archive import Recording
@@ -67,7 +67,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
     services: list[object] = []
     try:
         rec = Recorder(net.node("record"), RecorderConfig(output=str(path), chunk_interval_s=0.2))
-        services.append(PumaService(net.node("puma"), PumaConfig(sim_calibration_s=0.05)))
+        services.append(ArmService(net.node("arm"), ArmConfig(sim_calibration_s=0.05)))
         services.append(ForceService(net.node("force"), ForceConfig()))
         services.append(DecisionService(net.node("decision"), DecisionConfig()))
         op = net.node("operator")
@@ -223,7 +223,7 @@ def test_the_report_matches_the_recording_and_draws_the_plots(
     assert [(e.source, e.kind, e.message) for e in report.events] == [
         (e.source, e.kind, e.message) for e in events
     ]
-    assert any(e.kind == "status" and e.source == "puma" for e in report.events)
+    assert any(e.kind == "status" and e.source == "arm" for e in report.events)
     states = [codec.decode(RobotState, m.payload) for m in msgs if m.key == "robot/state"]
     assert len(report.traces.tool_p) == sum(s.status in ("ready", "moving") for s in states)
     assert len(report.traces.force_f) == report.key("robot/force").count
@@ -292,9 +292,9 @@ def test_telerobot_replay_command(session: Session) -> None:
 
 
 def test_the_live_arm_s_transforms_reproduce_its_tool_pose(session: Session) -> None:
-    """Over the real puma's states: each /tf message composes (world → … → tool) to the
+    """Over the real arm's states: each /tf message composes (world → … → tool) to the
     tool pose of the robot/state it was derived from, within 1e-6."""
-    from services.control.puma.kinematics import Puma560
+    from services.control.arm.kinematics import Puma560
 
     from .test_world import _compose
 

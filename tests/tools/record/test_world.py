@@ -14,7 +14,7 @@ from mcap.reader import make_reader
 
 from services.bus import codec
 from services.bus.messages import RobotState, vec
-from services.control.puma.kinematics import DEFAULT_eMt, Puma560, qn
+from services.control.arm.kinematics import DEFAULT_eMt, Puma560, qn
 from services.geometry import rot_x
 from services.tools.record import world
 from services.world.workcell.messages import WORKCELL_STATE, WorkcellState

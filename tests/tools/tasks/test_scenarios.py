@@ -1,6 +1,6 @@
 """The paper's three tasks end to end over Zenoh, headless.
 
-Each test runs on a private network: the puma (simulated arm at home), the force service
+Each test runs on a private network: the arm (simulated arm at home), the force service
 (simulated wrist), the decision server and the workcell simulation, each on a node of its
 own, and the operator's station (a master service on a virtual device, id `operator`)
 with the scripted person, who drives the arm only through that master. Assertions are on

@@ -1,4 +1,4 @@
-"""The workcell service over Zenoh: it follows robot/state (published here as the puma
+"""The workcell service over Zenoh: it follows robot/state (published here as the arm
 would), publishes workcell/state, reports its events, and its message survives the codec."""
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def test_config_is_checked() -> None:
 def test_service_grasps_carries_and_stacks_over_the_bus(net: Net) -> None:
     svc = WorkcellService(net.node("workcell"), WorkcellConfig(rate_hz=200.0))
     try:
-        robot = net.node("puma")
+        robot = net.node("arm")
         pub = robot.publisher(keys.STATE)
         watcher = net.node("console")
         scene = watcher.subscribe(WORKCELL_STATE)

@@ -3,7 +3,7 @@
 `ProxyControl` holds the proxy's state and turns the streamed operator commands (PROTOCOL.md
 §2, §3) and the motion generators into one joint setpoint per control cycle for an `Arm`,
 through the safety filter (`safety.safe_step`); it reports status changes and other events
-through `emit(kind, message, data)`. `PumaProxy` (proxy.py) adds the methods of §4 on top.
+through `emit(kind, message, data)`. `ArmProxy` (proxy.py) adds the methods of §4 on top.
 
 Frames: world R_w (the DH base frame), wrist R_e (the flange, DH frame 6, origin at the wrist
 centre), tool R_t (placed in R_e by `eMt`, set with `set_tool`). Units: m, rad, s.
@@ -38,18 +38,18 @@ import pinocchio as pin
 from numpy.typing import NDArray
 
 from services.bus.events import EventLimiter
-from services.control.puma.arguments import RelFrame, is_number, too_long
-from services.control.puma.arm import Arm, ArmError
-from services.control.puma.config import PumaConfig
-from services.control.puma.kinematics import (
+from services.control.arm.arguments import RelFrame, is_number, too_long
+from services.control.arm.config import ArmConfig
+from services.control.arm.driver import Arm, ArmError
+from services.control.arm.kinematics import (
     DEFAULT_eMt,
     Puma560,
     Unreachable,
     se3_floats,
     tool_pose_floats,
 )
-from services.control.puma.mapping import TeleopInput, TeleopMapping
-from services.control.puma.motions import (
+from services.control.arm.mapping import TeleopInput, TeleopMapping
+from services.control.arm.motions import (
     GOAL_TOL_RAD,
     Brake,
     Generator,
@@ -58,7 +58,7 @@ from services.control.puma.motions import (
     Servo,
     servo_target,
 )
-from services.control.puma.safety import MotionLimits, ToolPose, safe_step
+from services.control.arm.safety import MotionLimits, ToolPose, safe_step
 from services.geometry import rotation_problem
 
 Vec = NDArray[np.float64]
@@ -69,12 +69,12 @@ MAX_MOTION_HISTORY = 128
 
 
 class ProxyControl:
-    """The state and control loop of `PumaProxy` over an `Arm` (see the module docstring).
+    """The state and control loop of `ArmProxy` over an `Arm` (see the module docstring).
 
     Events go out through `emit`, outside the lock, in the order they happened.
     """
 
-    def __init__(self, arm: Arm, config: PumaConfig, emit: EmitFn) -> None:
+    def __init__(self, arm: Arm, config: ArmConfig, emit: EmitFn) -> None:
         self.arm = arm
         self.config = config
         self._emit = emit

@@ -1,6 +1,6 @@
 """The PUMA proxy: the paper's IProxyRobot component, free of the bus.
 
-`PumaProxy` turns method calls (PROTOCOL.md §4) and the streamed operator commands (§2, §3)
+`ArmProxy` turns method calls (PROTOCOL.md §4) and the streamed operator commands (§2, §3)
 into one joint setpoint per control cycle for an `Arm`, and reports status changes and
 other events through `emit(kind, message, data)`. The pieces, each in a module of its own:
 the control core (`control.ProxyControl`: tick, streamed commands, motions, status, events),
@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 
 from services.bus.bounds import check_each, check_norm, short
 from services.bus.errors import RpcError
-from services.control.puma.arguments import (
+from services.control.arm.arguments import (
     RelFrame,
     arg_config,
     arg_fraction,
@@ -48,16 +48,16 @@ from services.control.puma.arguments import (
     opt_rotation,
     too_long,
 )
-from services.control.puma.arm import ArmError
-from services.control.puma.control import ProxyControl
-from services.control.puma.kinematics import (
+from services.control.arm.control import ProxyControl
+from services.control.arm.driver import ArmError
+from services.control.arm.kinematics import (
     Puma560,
     compose_floats,
     flange_pose_floats,
     manipulability_floats,
 )
-from services.control.puma.motions import Brake, Motion, Planned
-from services.control.puma.planning import Plan, PlanFn, plan_joint, plan_pose
+from services.control.arm.motions import Brake, Motion, Planned
+from services.control.arm.planning import Plan, PlanFn, plan_joint, plan_pose
 
 Vec = NDArray[np.float64]
 
@@ -67,7 +67,7 @@ this from the measured one on some axis: moving or settling. At rest the two agr
 field is left out (each message costs ~0.3 µs more to decode with it)."""
 
 
-class PumaProxy(ProxyControl):
+class ArmProxy(ProxyControl):
     """The IProxyRobot of PROTOCOL.md §4 over an `Arm`; events go out through `emit`.
 
     `emit(kind, message, data)` is called outside the proxy's lock, in order, from whichever

@@ -1,4 +1,4 @@
-"""`telerobot puma`: the PUMA 560 proxy service (simulated arm or a serial controller)."""
+"""`telerobot arm`: the PUMA 560 proxy service (simulated arm or a serial controller)."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import sys
 
 from services.bus.config import service_table
 from services.bus.lifecycle import ServiceContext, run_service
-from services.control.puma.config import PumaConfig
+from services.control.arm.config import ArmConfig
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--arm", choices=["sim", "serial"], default=None)
+    p.add_argument("--driver", choices=["sim", "serial"], default=None)
     p.add_argument("--port", default=None, help="serial URL (/dev/ttyUSB0, socket://host:port)")
     p.add_argument("--baudrate", type=int, default=None)
     p.add_argument(
@@ -23,22 +23,22 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 def start(ctx: ServiceContext) -> None:
     args = ctx.args
-    overrides = {"arm": args.arm, "port": args.port, "baudrate": args.baudrate}
-    table = service_table(ctx.deploy, "puma", overrides)
+    overrides = {"driver": args.driver, "port": args.port, "baudrate": args.baudrate}
+    table = service_table(ctx.deploy, "arm", overrides)
     autostart = bool(table.pop("autostart", False)) or args.autostart
-    config = PumaConfig.from_mapping(table)
-    from services.control.puma.service import PumaService
+    config = ArmConfig.from_mapping(table)
+    from services.control.arm.service import ArmService
 
-    svc = PumaService(ctx.open(), config)
+    svc = ArmService(ctx.open(), config)
     ctx.closing(svc)
-    ctx.log.info("PUMA proxy up (%s arm)", config.arm)
+    ctx.log.info("PUMA proxy up (%s arm)", config.driver)
     if autostart:
         svc.proxy.rpc_connect({})
         svc.proxy.rpc_initialize({})
 
 
 def main(argv: list[str] | None = None) -> int:
-    return run_service("puma", argv, start, description=__doc__, add_arguments=arguments)
+    return run_service("arm", argv, start, description=__doc__, add_arguments=arguments)
 
 
 if __name__ == "__main__":

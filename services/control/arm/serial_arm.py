@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from services.bus.serialport import close_port
-from services.control.puma.arm import ArmError, ArmStatus, Q
-from services.control.puma.arm_base import ArmBase
+from services.control.arm.arm_base import ArmBase
+from services.control.arm.driver import ArmError, ArmStatus, Q
 
 MAX_LINE_BYTES = 128
 MODEL = "PUMA560"

@@ -1,4 +1,4 @@
-"""The puma service over Zenoh: methods, the command stream, and bad input that never moves it."""
+"""The arm service over Zenoh: methods, the command stream, and bad input that never moves it."""
 
 from __future__ import annotations
 
@@ -12,14 +12,14 @@ import pytest
 from services.bus import keys
 from services.bus.errors import RpcError
 from services.bus.messages import IDENTITY_R, Event, OperatorCommand, RobotState
-from services.control.puma.config import PumaConfig
-from services.control.puma.service import PumaService
+from services.control.arm.config import ArmConfig
+from services.control.arm.service import ArmService
 
 
 @pytest.fixture
-def puma(net):  # type: ignore[no-untyped-def]
-    node = net.node("puma")
-    svc = PumaService(node, PumaConfig(sim_calibration_s=0.05))
+def arm(net):  # type: ignore[no-untyped-def]
+    node = net.node("arm")
+    svc = ArmService(node, ArmConfig(sim_calibration_s=0.05))
     try:
         yield svc
     finally:
@@ -27,33 +27,33 @@ def puma(net):  # type: ignore[no-untyped-def]
 
 
 def _ready(client, state) -> RobotState:  # type: ignore[no-untyped-def]
-    client.call("puma", "connect", {}, timeout_s=30.0)
-    client.call("puma", "initialize", {"wait": True}, timeout_s=30.0)
+    client.call("arm", "connect", {}, timeout_s=30.0)
+    client.call("arm", "initialize", {"wait": True}, timeout_s=30.0)
     st = state.wait_for(lambda s: s.status == "ready", 30.0)
     assert st is not None, "the arm never became ready"
     return st
 
 
-def test_status_machine_and_motion_methods(net, puma) -> None:
+def test_status_machine_and_motion_methods(net, arm) -> None:
     client = net.node("operator")
     state = client.subscribe(keys.STATE)
     statuses: list[str] = []
     moved = threading.Event()
 
     def on_event(ev: Event) -> None:
-        if ev.source == "puma" and ev.kind == "status" and ev.data:
+        if ev.source == "arm" and ev.kind == "status" and ev.data:
             statuses.append(str(ev.data.get("status")))
         if ev.kind == "moved":
             moved.set()
 
     client.subscribe(keys.EVENTS, on_event)
-    assert client.call("puma", "status", {}, timeout_s=5.0)["status"] == "disconnected"
+    assert client.call("arm", "status", {}, timeout_s=5.0)["status"] == "disconnected"
     with pytest.raises(RpcError) as err:
-        client.call("puma", "home", {}, timeout_s=5.0)
+        client.call("arm", "home", {}, timeout_s=5.0)
     assert err.value.code == "not_ready"
     st = _ready(client, state)
     reply = client.call(
-        "puma", "move_relative", {"dp": [0.0, 0.0, -0.05], "wait": True}, timeout_s=20.0
+        "arm", "move_relative", {"dp": [0.0, 0.0, -0.05], "wait": True}, timeout_s=20.0
     )
     assert reply["completed"] is True
     after = state.wait_for(lambda s: s.status == "ready" and s.seq > st.seq + 5, 5.0)
@@ -61,13 +61,13 @@ def test_status_machine_and_motion_methods(net, puma) -> None:
     assert after.tool_p[2] == pytest.approx(st.tool_p[2] - 0.05, abs=1e-3)
     assert moved.wait(5.0)
     assert statuses[:3] == ["connected", "initializing", "ready"]
-    fk = client.call("puma", "fk", {"q": list(after.q)}, timeout_s=5.0)
+    fk = client.call("arm", "fk", {"q": list(after.q)}, timeout_s=5.0)
     assert np.allclose(fk["tool_p"], after.tool_p, atol=1e-6)
-    ik = client.call("puma", "ik", {"p": fk["tool_p"], "R": fk["tool_R"]}, timeout_s=5.0)
+    ik = client.call("arm", "ik", {"p": fk["tool_p"], "R": fk["tool_R"]}, timeout_s=5.0)
     assert len(ik["solutions"]) == 8
 
 
-def test_command_stream_moves_the_tool_and_bad_commands_never_do(net, puma) -> None:
+def test_command_stream_moves_the_tool_and_bad_commands_never_do(net, arm) -> None:
     client = net.node("master")
     state = client.subscribe(keys.STATE)
     rejected: list[Event] = []
@@ -136,7 +136,7 @@ def test_command_stream_moves_the_tool_and_bad_commands_never_do(net, puma) -> N
     assert any(ev.kind == "rejected" for ev in rejected)
 
 
-def test_a_command_is_applied_on_arrival_and_its_times_are_in_the_state(net, puma) -> None:
+def test_a_command_is_applied_on_arrival_and_its_times_are_in_the_state(net, arm) -> None:
     client = net.node("master")
     state = client.subscribe(keys.STATE)
     st0 = _ready(client, state)
@@ -179,7 +179,7 @@ def test_a_command_is_applied_on_arrival_and_its_times_are_in_the_state(net, pum
     assert rest is not None, "at rest the setpoint's position is still sent"
 
 
-def test_at_rest_nothing_is_recomputed_and_the_state_keeps_flowing(net, puma) -> None:
+def test_at_rest_nothing_is_recomputed_and_the_state_keeps_flowing(net, arm) -> None:
     client = net.node("observer")
     state = client.subscribe(keys.STATE)
     _ready(client, state)
@@ -188,57 +188,57 @@ def test_at_rest_nothing_is_recomputed_and_the_state_keeps_flowing(net, puma) ->
     # Let a settle period pass: the servo's approach ends, the sim arm goes to sleep.
     first = state.wait_for(lambda s: s.seq > settled.seq + 50, 10.0)
     assert first is not None
-    ticks0 = puma.proxy.counters["ticks"]
-    setpoints0 = puma.arm.setpoints_accepted
-    t0 = puma.arm.t_s
+    ticks0 = arm.proxy.counters["ticks"]
+    setpoints0 = arm.arm.setpoints_accepted
+    t0 = arm.arm.t_s
     n0 = state.received
     assert state.wait_count(n0 + 100, 10.0)  # ≥ 100 more states: the stream keeps flowing
     later = state.get()
     assert later is not None and later.status == "ready"
     # One watch tick per state published at rest (100 Hz), not the 500 Hz control rate.
     states = state.received - n0
-    assert puma.proxy.counters["ticks"] - ticks0 <= states + 5
-    assert puma.arm.setpoints_accepted == setpoints0  # nothing re-sent to a resting arm
-    assert puma.arm.t_s >= t0  # the simulated clock still follows the wall clock
+    assert arm.proxy.counters["ticks"] - ticks0 <= states + 5
+    assert arm.arm.setpoints_accepted == setpoints0  # nothing re-sent to a resting arm
+    assert arm.arm.t_s >= t0  # the simulated clock still follows the wall clock
     assert later.q == first.q  # not a nanoradian of drift
 
 
-def test_while_a_decision_server_runs_only_it_may_start_motions(net, puma) -> None:
+def test_while_a_decision_server_runs_only_it_may_start_motions(net, arm) -> None:
     client = net.node("operator")
     state = client.subscribe(keys.STATE)
     _ready(client, state)
     move = {"dp": [0.0, 0.0, -0.01], "wait": True}
-    assert client.call("puma", "move_relative", move, timeout_s=20.0)["completed"] is True
+    assert client.call("arm", "move_relative", move, timeout_s=20.0)["completed"] is True
     decision = net.node("decision")
     decision.announce()  # alive/decision: a supervisor is there now
     assert client.alive.wait("decision", 10.0)
-    # the puma's own view of the token counts, not the client's (they arrive apart)
-    assert puma.node.alive.wait("decision", 10.0)
-    sent = puma.arm.setpoints_accepted
+    # the arm's own view of the token counts, not the client's (they arrive apart)
+    assert arm.node.alive.wait("decision", 10.0)
+    sent = arm.arm.setpoints_accepted
     with pytest.raises(RpcError) as err:
-        client.call("puma", "move_relative", move, timeout_s=20.0)
+        client.call("arm", "move_relative", move, timeout_s=20.0)
     assert err.value.code == "busy" and "robot/decision/rpc/move_relative" in err.value.message
-    assert puma.arm.setpoints_accepted == sent  # refused before anything was planned or sent
-    assert puma.proxy.rpc_status({})["motion"] is None
+    assert arm.arm.setpoints_accepted == sent  # refused before anything was planned or sent
+    assert arm.proxy.rpc_status({})["motion"] is None
     via = {**move, "supervised_by": "decision"}
-    assert client.call("puma", "move_relative", via, timeout_s=20.0)["completed"] is True
-    assert client.call("puma", "status", {}, timeout_s=5.0)["status"] == "ready"
+    assert client.call("arm", "move_relative", via, timeout_s=20.0)["completed"] is True
+    assert client.call("arm", "status", {}, timeout_s=5.0)["status"] == "ready"
 
 
-def test_a_retried_motion_with_its_request_id_never_moves_twice(net, puma) -> None:
+def test_a_retried_motion_with_its_request_id_never_moves_twice(net, arm) -> None:
     client = net.node("operator")
     state = client.subscribe(keys.STATE)
     st0 = _ready(client, state)
     move = {"dp": [0.0, 0.0, -0.02], "request_id": "retry-1"}
-    first = client.call("puma", "move_relative", move, timeout_s=20.0)
-    again = client.call("puma", "move_relative", {**move, "wait": True}, timeout_s=20.0)
+    first = client.call("arm", "move_relative", move, timeout_s=20.0)
+    again = client.call("arm", "move_relative", {**move, "wait": True}, timeout_s=20.0)
     assert again["motion"] == first["motion"] and again["duplicate"] is True
     assert again["completed"] is True
     done = state.wait_for(lambda s: s.status == "ready" and s.seq > st0.seq + 20, 10.0)
     assert done is not None
     assert done.tool_p[2] == pytest.approx(st0.tool_p[2] - 0.02, abs=1e-3)  # once, not twice
-    other = client.call("puma", "move_relative", {**move, "request_id": "retry-2"}, 20.0)
+    other = client.call("arm", "move_relative", {**move, "request_id": "retry-2"}, 20.0)
     assert other["motion"] != first["motion"] and "duplicate" not in other
     with pytest.raises(RpcError) as err:
-        client.call("puma", "move_relative", {**move, "request_id": "x" * 65}, timeout_s=5.0)
+        client.call("arm", "move_relative", {**move, "request_id": "x" * 65}, timeout_s=5.0)
     assert err.value.code == "bad_request"

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from services.control.puma.kinematics import (
+from services.control.arm.kinematics import (
     DEFAULT_eMt,
     IkSolution,
     Puma560,

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from services.control.puma.arm import ArmError, ArmStatus, Q
+from services.control.arm.driver import ArmError, ArmStatus, Q
 
 
 class ArmBase(ABC):

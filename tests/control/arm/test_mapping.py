@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.typing import ArrayLike, NDArray
 
-from services.control.puma.kinematics import Puma560, qn
-from services.control.puma.mapping import TeleopInput, TeleopMapping, effector_target
+from services.control.arm.kinematics import Puma560, qn
+from services.control.arm.mapping import TeleopInput, TeleopMapping, effector_target
 from services.geometry import TeleopFrame, tool_target_pose
 
 Mat = NDArray[np.float64]

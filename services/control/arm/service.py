@@ -1,4 +1,4 @@
-"""The `puma` service on the bus: IProxyRobot at robot/puma/rpc, `robot/state`, `robot/puma/cmd`.
+"""The `arm` service on the bus: IProxyRobot at robot/arm/rpc, `robot/state`, `robot/puma/cmd`.
 
 One control thread owns the arm (franka-node's rule). It is woken, not polled: the command
 subscription stores the newest command (latest-wins) and wakes it, and it applies the command
@@ -26,12 +26,12 @@ from services.bus.bounds import check
 from services.bus.errors import RpcError
 from services.bus.messages import MaxLen, OperatorCommand, RobotState, mat3
 from services.bus.node import Node
-from services.control.puma.backends import open_arm
-from services.control.puma.config import PumaConfig
-from services.control.puma.mapping import TeleopInput
-from services.control.puma.proxy import PumaProxy
+from services.control.arm.backends import open_arm
+from services.control.arm.config import ArmConfig
+from services.control.arm.mapping import TeleopInput
+from services.control.arm.proxy import ArmProxy
 
-log = logging.getLogger("telerobot.puma")
+log = logging.getLogger("telerobot.arm")
 
 #: methods that start a motion and so accept `"wait": true` (initialize: until calibrated)
 MOTIONS = ("initialize", "move_joints", "move_pose", "move_relative", "home")
@@ -52,17 +52,17 @@ MAX_TICK_S = 0.01
 command can arrive right after a tick; a stalled thread must not make one long step)."""
 
 
-class PumaService:
+class ArmService:
     """Runs the PUMA proxy on the bus; `close()` holds the arm and disconnects it."""
 
-    def __init__(self, node: Node, config: PumaConfig, arm: Any = None) -> None:
+    def __init__(self, node: Node, config: ArmConfig, arm: Any = None) -> None:
         self.node = node
         self.config = config
         # the liveliness watch starts now, not at the first motion call: a set created on
         # demand has not yet heard of a decision that is already alive (unsupervised moves)
         _ = node.alive
         self.arm = arm if arm is not None else open_arm(config)
-        self.proxy = PumaProxy(self.arm, config, self._emit)
+        self.proxy = ArmProxy(self.arm, config, self._emit)
         self._state_pub = node.publisher(keys.STATE)
         self._state_seq = 0
         self._cmd_lock = threading.Lock()
@@ -93,13 +93,13 @@ class PumaService:
         for name in MOTIONS:
             methods[name] = self._motion_method(name)
         node.serve(
-            "puma",
+            "arm",
             {k: self._waking(h) for k, h in methods.items()},
             inline=INLINE,
             # Before the arguments are read: a stop or an e-stop acts whatever it carries.
             first={"stop": self._stop_first, "estop": self._estop_first},
         )
-        self._thread = threading.Thread(target=self._loop, name="puma-control", daemon=True)
+        self._thread = threading.Thread(target=self._loop, name="arm-control", daemon=True)
         self._thread.start()
         node.announce()
 
@@ -175,7 +175,7 @@ class PumaService:
                 self._wake.wait(max(deadline - time.monotonic(), 0.0))
         except Exception as e:  # the loop must never die silently with the arm moving
             log.exception("control loop failed")
-            self.node.event("error", f"puma control loop failed: {e}", {"code": "internal"})
+            self.node.event("error", f"arm control loop failed: {e}", {"code": "internal"})
             self.proxy.rpc_stop({})
             raise
 

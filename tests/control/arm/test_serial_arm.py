@@ -15,11 +15,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.control.puma.arm import ArmError
-from services.control.puma.config import PumaConfig
-from services.control.puma.fake_controller import FakeController
-from services.control.puma.proxy import PumaProxy
-from services.control.puma.serial_arm import (
+from services.control.arm.config import ArmConfig
+from services.control.arm.driver import ArmError
+from services.control.arm.fake_controller import FakeController
+from services.control.arm.proxy import ArmProxy
+from services.control.arm.serial_arm import (
     LineError,
     SerialArm,
     checksum,
@@ -325,8 +325,8 @@ def test_proxy_over_the_serial_arm_never_jumps_across_a_fault(fake: FakeControll
     """The whole chain: proxy → SerialArm → wire → controller, a fault mid-motion, recovery."""
     arm = SerialArm(fake.url, cycle_ms=4.0)
     events: list[tuple[str, str, dict]] = []
-    cfg = PumaConfig(arm="serial", port=fake.url)
-    proxy = PumaProxy(arm, cfg, lambda k, m, d: events.append((k, m, d)))
+    cfg = ArmConfig(driver="serial", port=fake.url)
+    proxy = ArmProxy(arm, cfg, lambda k, m, d: events.append((k, m, d)))
     dt = 1.0 / cfg.control_rate_hz
 
     def run_until(pred: Callable[[], bool], what: str) -> None:
@@ -373,7 +373,7 @@ def test_fake_controller_runs_as_a_program() -> None:
         [
             sys.executable,
             "-m",
-            "services.control.puma.fake_controller",
+            "services.control.arm.fake_controller",
             "--port",
             str(port),
             "--calibration-s",

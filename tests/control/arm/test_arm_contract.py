@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 
 from services.bus.errors import ConfigError
-from services.control.puma.arm import QN_RAD, Arm, ArmError, ArmKind
-from services.control.puma.backends import BACKENDS, open_arm
-from services.control.puma.config import PumaConfig
-from services.control.puma.fake_controller import FakeController
-from services.control.puma.serial_arm import SerialArm
-from services.control.puma.sim_arm import SimArm
+from services.control.arm.backends import BACKENDS, open_arm
+from services.control.arm.config import ArmConfig
+from services.control.arm.driver import QN_RAD, Arm, ArmError, DriverName
+from services.control.arm.fake_controller import FakeController
+from services.control.arm.serial_arm import SerialArm
+from services.control.arm.sim_arm import SimArm
 from tests.conftest import wait_until
 
 Q0 = np.array(QN_RAD)
@@ -263,11 +263,11 @@ def test_close_is_idempotent(rig: Rig) -> None:
 
 
 def test_every_arm_kind_has_a_backend() -> None:
-    assert set(BACKENDS.names) == set(get_args(ArmKind))
+    assert set(BACKENDS.names) == set(get_args(DriverName))
 
 
 def test_open_arm_picks_the_backend_from_the_config() -> None:
-    arm = open_arm(PumaConfig(sim_calibration_s=0.0, home_q=tuple(QN_RAD)))
+    arm = open_arm(ArmConfig(sim_calibration_s=0.0, home_q=tuple(QN_RAD)))
     assert isinstance(arm, SimArm)
     assert arm.status == "disconnected"
     arm.connect()
@@ -275,29 +275,29 @@ def test_open_arm_picks_the_backend_from_the_config() -> None:
     assert wait_until(lambda: arm.status == "ready", 10.0, what="the simulated arm to calibrate")
     np.testing.assert_allclose(arm.read_joints(), Q0)
     arm.close()
-    ser = open_arm(PumaConfig(arm="serial", port="socket://127.0.0.1:9", serial_cycle_ms=10.0))
+    ser = open_arm(ArmConfig(driver="serial", port="socket://127.0.0.1:9", serial_cycle_ms=10.0))
     assert isinstance(ser, SerialArm)
     assert ser.status == "disconnected"
     assert ser.port == "socket://127.0.0.1:9"
 
 
 def test_open_arm_refuses_a_name_without_a_backend() -> None:
-    # a PumaConfig refuses the name first; one that slipped through is refused here too
-    config = PumaConfig()
-    object.__setattr__(config, "arm", "usb")
+    # an ArmConfig refuses the name first; one that slipped through is refused here too
+    config = ArmConfig()
+    object.__setattr__(config, "driver", "usb")
     with pytest.raises(ConfigError) as info:
         open_arm(config)
-    assert info.value.key == "puma.arm"
+    assert info.value.key == "arm.driver"
 
 
 def test_sim_and_proxy_do_not_load_pyserial() -> None:
     code = (
         "import sys\n"
-        "import services.control.puma.arm, services.control.puma.sim_arm\n"
-        "import services.control.puma.proxy\n"
-        "from services.control.puma.backends import open_arm\n"
-        "from services.control.puma.config import PumaConfig\n"
-        "open_arm(PumaConfig())\n"
+        "import services.control.arm.driver, services.control.arm.sim_arm\n"
+        "import services.control.arm.proxy\n"
+        "from services.control.arm.backends import open_arm\n"
+        "from services.control.arm.config import ArmConfig\n"
+        "open_arm(ArmConfig())\n"
         "print('serial' in sys.modules)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

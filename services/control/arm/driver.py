@@ -32,7 +32,7 @@ from services.bus.errors import TelerobotError
 
 ArmStatus = Literal["disconnected", "connected", "initializing", "ready", "error"]
 ARM_STATUSES: frozenset[str] = frozenset(get_args(ArmStatus))
-ArmKind = Literal["sim", "serial"]
+DriverName = Literal["sim", "serial"]
 
 Q = NDArray[np.float64]
 
@@ -52,7 +52,7 @@ Q_LO_RAD: tuple[float, ...] = tuple(math.radians(lo) for lo, _ in JOINT_LIMITS_D
 Q_HI_RAD: tuple[float, ...] = tuple(math.radians(hi) for _, hi in JOINT_LIMITS_DEG)
 
 # PUMA-like capabilities of the arm itself (rad/s, rad/s²): what the controller's servo can do.
-# The proxy plans with lower limits (`PumaConfig`), so the servo always has headroom.
+# The proxy plans with lower limits (`ArmConfig`), so the servo always has headroom.
 ARM_MAX_JOINT_SPEED_RAD_S: tuple[float, ...] = (2.5, 2.5, 2.5, 5.0, 5.0, 5.0)
 ARM_MAX_JOINT_ACCEL_RAD_S2: tuple[float, ...] = (8.0, 8.0, 8.0, 20.0, 20.0, 20.0)
 

@@ -20,8 +20,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from xml.sax.saxutils import quoteattr
 
-from services.control.puma.arm import ARM_MAX_JOINT_SPEED_RAD_S
-from services.control.puma.kinematics import PUMA560_DH, DHLink
+from services.control.arm.driver import ARM_MAX_JOINT_SPEED_RAD_S
+from services.control.arm.kinematics import PUMA560_DH, DHLink
 
 Mat3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 

@@ -23,8 +23,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from services.control.puma.arm import ARM_MAX_JOINT_ACCEL_RAD_S2, ARM_MAX_JOINT_SPEED_RAD_S
-from services.control.puma.kinematics import (
+from services.control.arm.driver import ARM_MAX_JOINT_ACCEL_RAD_S2, ARM_MAX_JOINT_SPEED_RAD_S
+from services.control.arm.kinematics import (
     DEFAULT_eMt,
     compose_floats,
     flange_pose_floats,
@@ -32,12 +32,12 @@ from services.control.puma.kinematics import (
     se3_floats,
     tool_pose_floats,
 )
-from services.control.puma.motions import servo_target
-from services.control.puma.planning import PLAN_SPEED_MARGIN
-from services.control.puma.safety import safe_step
-from services.control.puma.sim_arm import ARRIVED_RAD, JointFollower
-from services.control.puma.trajectory import discrete_brake_speed
-from tests.control.puma.test_motion_math import KIN, LIM
+from services.control.arm.motions import servo_target
+from services.control.arm.planning import PLAN_SPEED_MARGIN
+from services.control.arm.safety import safe_step
+from services.control.arm.sim_arm import ARRIVED_RAD, JointFollower
+from services.control.arm.trajectory import discrete_brake_speed
+from tests.control.arm.test_motion_math import KIN, LIM
 
 Vec = NDArray[np.float64]
 EDGE = 1e-9

@@ -9,14 +9,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.control.puma.config import PumaConfig
-from services.control.puma.kinematics import DEFAULT_eMt, Puma560, se3_floats
-from services.control.puma.safety import MotionLimits, safe_step
-from services.control.puma.trajectory import SampledPath, Trapezoid, discrete_brake_speed
+from services.control.arm.config import ArmConfig
+from services.control.arm.kinematics import DEFAULT_eMt, Puma560, se3_floats
+from services.control.arm.safety import MotionLimits, safe_step
+from services.control.arm.trajectory import SampledPath, Trapezoid, discrete_brake_speed
 from services.geometry import angle_between
 
 KIN = Puma560()
-CFG = PumaConfig()
+CFG = ArmConfig()
 LIM = MotionLimits(
     q_lo=KIN.q_lo.copy(),
     q_hi=KIN.q_hi.copy(),

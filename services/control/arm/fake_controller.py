@@ -7,7 +7,7 @@ it receives, go silent (a pulled RS-232 cable) or drop the connection (a pulled 
 adapter), and press its own e-stop. It records every setpoint it accepts, and how far each
 was from the measured joints, so tests can prove the host never jumped.
 
-Run it alone: `python -m services.control.puma.fake_controller --port 5555`.
+Run it alone: `python -m services.control.arm.fake_controller --port 5555`.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.control.puma.arm import (
+from services.control.arm.driver import (
     ARM_MAX_JOINT_ACCEL_RAD_S2,
     ARM_MAX_JOINT_SPEED_RAD_S,
     Q_HI_RAD,
@@ -32,7 +32,7 @@ from services.control.puma.arm import (
     QN_RAD,
     Q,
 )
-from services.control.puma.serial_arm import (
+from services.control.arm.serial_arm import (
     MAX_LINE_BYTES,
     MODEL,
     LineError,
@@ -43,7 +43,7 @@ from services.control.puma.serial_arm import (
     parse_joints,
     parse_uint,
 )
-from services.control.puma.sim_arm import SERVO_DT_S, JointFollower
+from services.control.arm.sim_arm import SERVO_DT_S, JointFollower
 
 FIRMWARE = "FAKE-1.0"
 HOST = "127.0.0.1"
@@ -135,7 +135,7 @@ class FakeController:
 
     def start(self) -> FakeController:
         self._running.set()
-        self._thread = threading.Thread(target=self._run, name="fake-puma", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="fake-arm", daemon=True)
         self._thread.start()
         return self
 

@@ -1,6 +1,6 @@
 """The plain-float kinematics against Pinocchio and a straightforward numpy reference.
 
-`services.control.puma.kinematics` computes IK, FK, singularities and manipulability in scalar
+`services.control.arm.kinematics` computes IK, FK, singularities and manipulability in scalar
 Python floats for speed. These tests hold it to the slow, obvious versions: FK(IK) within 1e-12 over
 30 000 random reachable poses (FK by Pinocchio's model), the same solutions, config strings,
 `in_limits` flags and representatives as a numpy transcription of the method (which is how it
@@ -16,7 +16,7 @@ import pinocchio as pin
 import pytest
 from numpy.typing import NDArray
 
-from services.control.puma.kinematics import (
+from services.control.arm.kinematics import (
     A2_M,
     A3_M,
     D1_M,

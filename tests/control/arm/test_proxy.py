@@ -1,4 +1,4 @@
-"""PumaProxy on a SimArm stepped deterministically: the test drives `tick(dt)` and the arm's
+"""ArmProxy on a SimArm stepped deterministically: the test drives `tick(dt)` and the arm's
 `step(dt)` itself, so no wall clock is involved (except where a method must block).
 
 Every setpoint the proxy sends is recorded and checked: joint limits, joint speeds and
@@ -19,17 +19,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from services.bus.errors import ConfigError, RpcError
-from services.control.puma.backends import arm_options
-from services.control.puma.config import HOME_Q_RAD, PumaConfig
-from services.control.puma.kinematics import Puma560, qn
-from services.control.puma.mapping import TeleopInput
-from services.control.puma.proxy import PumaProxy
-from services.control.puma.sim_arm import SimArm
+from services.control.arm.backends import arm_options
+from services.control.arm.config import HOME_Q_RAD, ArmConfig
+from services.control.arm.kinematics import Puma560, qn
+from services.control.arm.mapping import TeleopInput
+from services.control.arm.proxy import ArmProxy
+from services.control.arm.sim_arm import SimArm
 from services.geometry import angle_between
 
 KIN = Puma560()
 HOME = np.array(HOME_Q_RAD)
-CFG = PumaConfig()
+CFG = ArmConfig()
 DT = 1.0 / CFG.control_rate_hz
 TABLE_Z_M = 0.40
 
@@ -49,7 +49,7 @@ class RecordingSimArm(SimArm):
 @dataclass
 class Rig:
     arm: RecordingSimArm
-    proxy: PumaProxy
+    proxy: ArmProxy
     dt: float = DT
     events: list[tuple[str, str, dict[str, Any]]] = field(default_factory=list)
 
@@ -86,8 +86,8 @@ def make_rig(
     q_init: np.ndarray = HOME, connect: bool = True, dt: float = DT, **overrides: Any
 ) -> Rig:
     arm = RecordingSimArm(q_init, calibration_s=0.02, threaded=False, **overrides)
-    rig = Rig(arm, PumaProxy.__new__(PumaProxy), dt)
-    rig.proxy = PumaProxy(arm, CFG, lambda k, m, d: rig.events.append((k, m, d)))
+    rig = Rig(arm, ArmProxy.__new__(ArmProxy), dt)
+    rig.proxy = ArmProxy(arm, CFG, lambda k, m, d: rig.events.append((k, m, d)))
     if connect:
         rig.proxy.rpc_connect({})
         rig.proxy.rpc_initialize({})
@@ -150,34 +150,34 @@ def test_home_q_is_tool_down_above_the_table() -> None:
 @pytest.mark.parametrize(
     ("overrides", "key"),
     [
-        ({"state_rate_hz": 50.0}, "puma.state_rate_hz"),
-        ({"control_rate_hz": 200.0}, "puma.control_rate_hz"),
-        ({"max_joint_speed_rad_s": (1.0, 1.0, 1.0)}, "puma.max_joint_speed_rad_s"),
-        ({"max_joint_speed_rad_s": (1.0, 1.0, 0.0, 1.0, 1.0, 1.0)}, "puma.max_joint_speed_rad_s"),
-        ({"max_joint_speed_rad_s": (9.0, 1.0, 1.0, 1.0, 1.0, 1.0)}, "puma.max_joint_speed_rad_s"),
+        ({"state_rate_hz": 50.0}, "arm.state_rate_hz"),
+        ({"control_rate_hz": 200.0}, "arm.control_rate_hz"),
+        ({"max_joint_speed_rad_s": (1.0, 1.0, 1.0)}, "arm.max_joint_speed_rad_s"),
+        ({"max_joint_speed_rad_s": (1.0, 1.0, 0.0, 1.0, 1.0, 1.0)}, "arm.max_joint_speed_rad_s"),
+        ({"max_joint_speed_rad_s": (9.0, 1.0, 1.0, 1.0, 1.0, 1.0)}, "arm.max_joint_speed_rad_s"),
         (
             {"max_joint_accel_rad_s2": (1.0, 1.0, 1.0, 1.0, 1.0, -1.0)},
-            "puma.max_joint_accel_rad_s2",
+            "arm.max_joint_accel_rad_s2",
         ),
-        ({"max_tool_speed_m_s": math.nan}, "puma.max_tool_speed_m_s"),
-        ({"max_tool_rot_speed_rad_s": 0.0}, "puma.max_tool_rot_speed_rad_s"),
-        ({"home_q": (0.0, 0.0, 0.0, 0.0, 2.0, 0.0)}, "puma.home_q"),
-        ({"home_q": (0.0, 0.0, 0.0, 0.0, "x", 0.0)}, "puma.home_q"),
-        ({"arm": "usb"}, "puma.arm"),
-        ({"arm": "serial"}, "puma.port"),
-        ({"baudrate": True}, "puma.baudrate"),
-        ({"serial_cycle_ms": 40.0}, "puma.serial_cycle_ms"),
-        ({"sim_calibration_s": -1.0}, "puma.sim_calibration_s"),
+        ({"max_tool_speed_m_s": math.nan}, "arm.max_tool_speed_m_s"),
+        ({"max_tool_rot_speed_rad_s": 0.0}, "arm.max_tool_rot_speed_rad_s"),
+        ({"home_q": (0.0, 0.0, 0.0, 0.0, 2.0, 0.0)}, "arm.home_q"),
+        ({"home_q": (0.0, 0.0, 0.0, 0.0, "x", 0.0)}, "arm.home_q"),
+        ({"driver": "usb"}, "arm.driver"),
+        ({"driver": "serial"}, "arm.port"),
+        ({"baudrate": True}, "arm.baudrate"),
+        ({"serial_cycle_ms": 40.0}, "arm.serial_cycle_ms"),
+        ({"sim_calibration_s": -1.0}, "arm.sim_calibration_s"),
     ],
 )
 def test_config_rejects_bad_values_naming_the_key(overrides: dict[str, Any], key: str) -> None:
     with pytest.raises(ConfigError) as info:
-        PumaConfig(**overrides)
+        ArmConfig(**overrides)
     assert info.value.key == key
 
 
 def test_config_from_a_toml_table() -> None:
-    cfg = PumaConfig.from_mapping({"arm": "serial", "port": "/dev/ttyUSB0", "home_q": list(qn)})
+    cfg = ArmConfig.from_mapping({"driver": "serial", "port": "/dev/ttyUSB0", "home_q": list(qn)})
     assert cfg.home_q == tuple(qn)
     assert arm_options(cfg) == {
         "port": "/dev/ttyUSB0",
@@ -185,10 +185,10 @@ def test_config_from_a_toml_table() -> None:
         "cycle_ms": 28.0,
         "timeout_s": 0.1,
     }
-    assert arm_options(PumaConfig()) == {"calibration_s": 0.5, "q_init": HOME_Q_RAD}
+    assert arm_options(ArmConfig()) == {"calibration_s": 0.5, "q_init": HOME_Q_RAD}
     with pytest.raises(ConfigError) as info:
-        PumaConfig.from_mapping({"state_rate": 100})
-    assert info.value.key == "puma.state_rate"
+        ArmConfig.from_mapping({"state_rate": 100})
+    assert info.value.key == "arm.state_rate"
 
 
 # --- status machine ------------------------------------------------------------------------

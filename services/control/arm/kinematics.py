@@ -21,7 +21,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
 
 from services.bus.errors import TelerobotError
-from services.control.puma.arm import Q_HI_RAD, Q_LO_RAD, QN_RAD
+from services.control.arm.driver import Q_HI_RAD, Q_LO_RAD, QN_RAD
 from services.geometry import M9, V3, mul9, mv9
 
 Vec = NDArray[np.float64]

@@ -20,7 +20,8 @@ from typing import Literal
 
 import numpy as np
 
-from services.control.puma.arm import (
+from services.control.arm.arm_base import ArmBase, as_joint_vector
+from services.control.arm.driver import (
     ARM_MAX_JOINT_ACCEL_RAD_S2,
     ARM_MAX_JOINT_SPEED_RAD_S,
     Q_HI_RAD,
@@ -30,7 +31,6 @@ from services.control.puma.arm import (
     ArmStatus,
     Q,
 )
-from services.control.puma.arm_base import ArmBase, as_joint_vector
 
 FaultKind = Literal["stall", "disconnect", "error"]
 

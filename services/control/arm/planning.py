@@ -15,9 +15,9 @@ import pinocchio as pin
 from numpy.typing import NDArray
 
 from services.bus.errors import RpcError
-from services.control.puma.kinematics import Puma560
-from services.control.puma.safety import MotionLimits
-from services.control.puma.trajectory import SampledPath, Trapezoid
+from services.control.arm.kinematics import Puma560
+from services.control.arm.safety import MotionLimits
+from services.control.arm.trajectory import SampledPath, Trapezoid
 
 Vec = NDArray[np.float64]
 

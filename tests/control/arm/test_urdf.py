@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.control.puma.kinematics import Puma560, qn, qr, qz
-from services.control.puma.urdf import UrdfFrames, puma_urdf, rpy_of
+from services.control.arm.kinematics import Puma560, qn, qr, qz
+from services.control.arm.urdf import UrdfFrames, puma_urdf, rpy_of
 
 
 def _rpy_matrix(r: float, p: float, y: float) -> np.ndarray:

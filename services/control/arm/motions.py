@@ -14,9 +14,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from services.control.puma.planning import PLAN_SPEED_MARGIN
-from services.control.puma.safety import MotionLimits, ToolPose, ToolPoseFn, tool_motion
-from services.control.puma.trajectory import Trapezoid, discrete_brake_speed
+from services.control.arm.planning import PLAN_SPEED_MARGIN
+from services.control.arm.safety import MotionLimits, ToolPose, ToolPoseFn, tool_motion
+from services.control.arm.trajectory import Trapezoid, discrete_brake_speed
 
 Vec = NDArray[np.float64]
 
