@@ -14,6 +14,7 @@ from typing import Any, Generic, TypeVar
 from services.bus.bounds import MAX_PAYLOAD_BYTES
 from services.bus.messages import (
     MAX_FRAME_BYTES,
+    ArmTarget,
     Event,
     ForceSample,
     MasterFeedback,
@@ -55,7 +56,7 @@ class Topic(Generic[M]):
 
 
 CMD = Topic("robot/cmd", OperatorCommand, QoS.CONTROL, latest_wins=True)
-PUMA_CMD = Topic("robot/puma/cmd", OperatorCommand, QoS.CONTROL, latest_wins=True)
+ARM_TARGET = Topic("robot/arm/target", ArmTarget, QoS.CONTROL, latest_wins=True)
 STATE = Topic("robot/state", RobotState, QoS.STATE, latest_wins=True)
 FORCE = Topic("robot/force", ForceSample, QoS.CONTROL, latest_wins=True)
 EVENTS = Topic("robot/events", Event, QoS.RELIABLE, latest_wins=False)
@@ -71,7 +72,7 @@ PASSIVITY_SLAVE = Topic("robot/passivity/slave", PassivityState, QoS.CONTROL, la
 
 TOPICS: tuple[Topic[Any], ...] = (
     CMD,
-    PUMA_CMD,
+    ARM_TARGET,
     STATE,
     FORCE,
     EVENTS,

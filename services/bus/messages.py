@@ -72,7 +72,7 @@ class Message:
 
 @dataclass(frozen=True, slots=True)
 class OperatorCommand(Message):
-    """`robot/cmd` and `robot/puma/cmd`: the operator's scaled motion since the engagement (§2)."""
+    """`robot/cmd`: the operator's scaled motion since the engagement (§2)."""
 
     name: ClassVar[str] = "OperatorCommand"
     seq: Count
@@ -84,9 +84,27 @@ class OperatorCommand(Message):
     dp: Vec3
     dR: Rot
     grip: Unit | None = None
-    origin_t_ns: Count | None = None
-    """Extension: on `robot/puma/cmd`, the `t_ns` of the operator's `robot/cmd` command this
-    supervised command carries out (absent on holds and task steps)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ArmTarget(Message):
+    """`robot/arm/target`: the supervised tool pose the arm is to reach (§3), absolute, in
+    world coordinates, after every supervisory rule. `origin_t_ns` is the `t_ns` of the
+    operator command it carries out (the sender's own time for holds and task steps)."""
+
+    name: ClassVar[str] = "ArmTarget"
+    seq: Count
+    t_ns: Count
+    origin_t_ns: Count
+    master: Name
+    engage: Count
+    p: Vec3
+    R: Rot
+    grip: Unit | None = None
+    hold: bool | None = None
+    """Extension: true when the supervisor holds (it re-sends the target it last sent and
+    follows no operator): what the console and the passivity port tell apart; the arm
+    treats it as any target."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,7 +127,7 @@ class RobotState(Message):
     cmd_rx_ns: Count | None = None
     """Extension: time.time_ns() when the arm received command `cmd_seq`."""
     setpoint_ns: Count | None = None
-    """Extension: time.time_ns() when the first arm setpoint computed from command `cmd_seq`
+    """Extension: time.time_ns() when the first arm setpoint computed from target `cmd_seq`
     went to the arm (absent until one has)."""
     cmd_origin_t_ns: Count | None = None
     """Extension: the `origin_t_ns` that command `cmd_seq` carried (the operator's send
@@ -269,6 +287,7 @@ class PassivityState(Message):
 
 ALL_MESSAGES: tuple[type[Message], ...] = (
     OperatorCommand,
+    ArmTarget,
     RobotState,
     ForceSample,
     Event,

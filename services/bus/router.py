@@ -79,7 +79,7 @@ def exposure_note(cfg: NodeConfig) -> str | None:
     who = (
         "only sessions that log in, with the rights the access-control list gives them"
         if acl and login
-        else "ANYONE who reaches the port can join and publish robot/puma/cmd "
+        else "ANYONE who reaches the port can join and publish robot/arm/target "
         "(no login and access-control list configured)"
     )
     admin_note = ""

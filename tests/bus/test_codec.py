@@ -24,6 +24,7 @@ from services.bus.errors import ProtocolError
 from services.bus.messages import (
     ALL_MESSAGES,
     IDENTITY_R,
+    ArmTarget,
     Event,
     ForceSample,
     Joints,
@@ -61,7 +62,17 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "dp": [0.1, 0.2, 0.3],
         "dR": RZ90,
         "grip": 0.5,
+    },
+    ArmTarget: {
+        "seq": 1,
+        "t_ns": 10,
         "origin_t_ns": 7,
+        "master": "decision",
+        "engage": 1,
+        "p": [0.5, 0.0, 0.6],
+        "R": RZ90,
+        "grip": 0.5,
+        "hold": True,
     },
     RobotState: {
         "seq": 1,
@@ -170,7 +181,8 @@ VALID: dict[type[Message], dict[str, Any]] = {
 }
 
 OPTIONAL: dict[type[Message], set[str]] = {
-    OperatorCommand: {"grip", "origin_t_ns"},
+    OperatorCommand: {"grip"},
+    ArmTarget: {"grip", "hold"},
     RobotState: {
         "grip",
         "manipulability",

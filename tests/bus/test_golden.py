@@ -21,6 +21,7 @@ from services.bus import codec
 from services.bus.messages import (
     ALL_MESSAGES,
     IDENTITY_R,
+    ArmTarget,
     Event,
     ForceSample,
     MasterFeedback,
@@ -55,6 +56,23 @@ GOLDEN: list[tuple[Message, str]] = [
         "e147ae147bcb3fe0000000000000a2645299cb0000000000000000cbbff0000000000000cb0000000000"
         "000000cb3ff0000000000000cb0000000000000000cb0000000000000000cb0000000000000000cb0000"
         "000000000000cb3ff0000000000000a467726970cb3fd0000000000000",
+    ),
+    (
+        ArmTarget(
+            seq=43,
+            t_ns=1_700_000_000_123_457_789,
+            origin_t_ns=1_700_000_000_123_456_789,
+            master="decision",
+            engage=5,
+            p=(0.5, -0.125, 0.625),
+            R=RZ90,
+            grip=0.25,
+        ),
+        "88a37365712ba4745f6e73cf17979cfe3d85d0fdab6f726967696e5f745f6e73cf17979cfe3d85cd15a6"
+        "6d6173746572a86465636973696f6ea6656e6761676505a17093cb3fe0000000000000cbbfc000000000"
+        "0000cb3fe4000000000000a15299cb0000000000000000cbbff0000000000000cb0000000000000000cb"
+        "3ff0000000000000cb0000000000000000cb0000000000000000cb0000000000000000cb000000000000"
+        "0000cb3ff0000000000000a467726970cb3fd0000000000000",
     ),
     (
         RobotState(
@@ -238,12 +256,12 @@ def test_golden_bytes_take_the_codec_fast_path(msg: Message, hex_bytes: str) -> 
 
 def test_extension_timing_fields_follow_the_contract_fields_in_order() -> None:
     """docs/protocol-extensions.md: the optional timing fields, as any msgpack writes them."""
-    cmd = GOLDEN[0][0]
-    assert isinstance(cmd, OperatorCommand)
-    with_origin = OperatorCommand(**{**_fields(cmd), "origin_t_ns": 1_700_000_000_000_000_000})
-    expected = {**codec.to_fields(cmd), "origin_t_ns": 1_700_000_000_000_000_000}
-    assert codec.encode(with_origin) == msgpack.packb(expected, use_bin_type=True)
-    state = GOLDEN[1][0]
+    tgt = GOLDEN[1][0]
+    assert isinstance(tgt, ArmTarget)
+    held = ArmTarget(**{**_fields(tgt), "hold": True})
+    expected = {**codec.to_fields(tgt), "hold": True}
+    assert codec.encode(held) == msgpack.packb(expected, use_bin_type=True)
+    state = GOLDEN[2][0]
     assert isinstance(state, RobotState)
     timing = {
         "cmd_rx_ns": 2**63 - 1,

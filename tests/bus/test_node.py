@@ -101,7 +101,7 @@ def test_pub_sub_delivers_every_sample_in_order(net: Net) -> None:
     ("topic", "priority", "congestion"),
     [
         (keys.CMD, zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK),
-        (keys.PUMA_CMD, zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK),
+        (keys.ARM_TARGET, zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK),
         (keys.FORCE, zenoh.Priority.REAL_TIME, zenoh.CongestionControl.BLOCK),
         (keys.STATE, zenoh.Priority.INTERACTIVE_HIGH, None),
         (keys.STEREO_L, zenoh.Priority.DATA_LOW, zenoh.CongestionControl.DROP),

@@ -13,7 +13,7 @@ runs the scripted master from deploy/operator.toml and a probe session that logs
 operator, calls the decision server to connect and initialize the arm, and then watches
 robot/state and robot/force over TLS through the NAT. The probe also logs in with the robot
 host's own password from off the host: the router's ACL, which wants the loopback interface
-for that login, must not deliver its puts to robot/puma/cmd.
+for that login, must not deliver its puts to robot/arm/target.
 
 Needs root, iproute2 and nftables (`make system-deps`); skipped with the reason otherwise.
 """
@@ -50,7 +50,7 @@ import json, math, sys, threading, time
 from dataclasses import replace
 from services.bus import codec, keys
 from services.bus.config import NodeConfig, load_deploy, section
-from services.bus.messages import OperatorCommand
+from services.bus.messages import ArmTarget
 from services.bus.node import Node
 
 profile, endpoint, robot_login, robot_tcp = sys.argv[1:5]
@@ -73,7 +73,7 @@ def control():
 with Node("probe", cfg) as node:
     state = node.subscribe(keys.STATE)
     force = node.subscribe(keys.FORCE)
-    node.subscribe(keys.PUMA_CMD, count)
+    node.subscribe(keys.ARM_TARGET, count)
     assert node.alive.wait("arm", 30) and node.alive.wait("force", 30), node.alive.names()
     print("connect", json.dumps(node.call("decision", "connect", {}, 10)), flush=True)
     print("initialize", json.dumps(node.call("decision", "initialize", {}, 10)), flush=True)
@@ -100,10 +100,10 @@ with Node("probe", cfg) as node:
             i += 1
             # a raw put is sent whether or not the client knows a subscriber: only the
             # router's ACL stands in its way
-            msg = OperatorCommand(seq=i, t_ns=time.time_ns(), master="intruder", engage=1,
-                                  active=True, frame="world", dp=(0.0, 0.0, 0.01),
-                                  dR=(1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0))
-            intruder.session.put(keys.PUMA_CMD.key, codec.encode(msg), encoding=keys.ENCODING)
+            now = time.time_ns()
+            msg = ArmTarget(seq=i, t_ns=now, origin_t_ns=now, master="intruder", engage=1,
+                            p=p0, R=(1.0, 0, 0, 0, 1.0, 0, 0, 0, 1.0))
+            intruder.session.put(keys.ARM_TARGET.key, codec.encode(msg), encoding=keys.ENCODING)
             time.sleep(0.002)
         print("intruder", i, json.dumps(counts()), flush=True)
 

@@ -29,7 +29,7 @@ from services.bus import codec, keys
 from services.bus.config import NodeConfig
 from services.bus.errors import RpcError, Unavailable
 from services.bus.keys import ENCODING
-from services.bus.messages import OperatorCommand, RobotState
+from services.bus.messages import ArmTarget, OperatorCommand, RobotState
 from services.bus.node import Node, Subscription
 from tests.bus.test_node import wait_matched
 from tests.bus.test_router import ChildProcess, spawned, telerobot
@@ -55,6 +55,17 @@ def command(seq: int, master: str) -> OperatorCommand:
     )
 
 
+def target(seq: int, master: str) -> ArmTarget:
+    now = time.time_ns()
+    return ArmTarget(seq=seq, t_ns=now, origin_t_ns=now, master=master, engage=1,
+                     p=(0.5, 0.0, 0.6), R=IDENTITY9)  # fmt: skip
+
+
+def message(key: str, seq: int, master: str) -> OperatorCommand | ArmTarget:
+    """What a sender puts on `key`: a target on robot/arm/target, else a command."""
+    return target(seq, master) if key == keys.ARM_TARGET.key else command(seq, master)
+
+
 def state(seq: int) -> RobotState:
     return RobotState(
         seq=seq,
@@ -78,7 +89,7 @@ class Senders:
         self._lock = threading.Lock()
         self._counts: dict[str, int] = {}
 
-    def __call__(self, msg: OperatorCommand) -> None:
+    def __call__(self, msg: OperatorCommand | ArmTarget) -> None:
         with self._lock:
             self._counts[msg.master] = self._counts.get(msg.master, 0) + 1
 
@@ -108,7 +119,7 @@ def interleave(allowed: tuple[Node, str, Senders], denied: list[tuple[Node, str,
         assert time.monotonic() < deadline, f"allowed {name} delivered {seen.by_master}"
         rounds += 1
         for dnode, dkey, dname in denied:
-            put(dnode, dkey, command(rounds, dname))
+            put(dnode, dkey, message(dkey, rounds, dname))
         put(node, keys.CMD.key, command(rounds, name))
         time.sleep(0.005)  # pacing: commands are sent at ≤ 1 kHz in service too
     return rounds
@@ -164,14 +175,14 @@ def mtls_router(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Router]:
 
 class RobotSide:
     """The robot host's decision and arm stand-ins: subscribers of robot/cmd and
-    robot/puma/cmd, `status` methods that count their calls, and liveliness tokens."""
+    robot/arm/target, `status` methods that count their calls, and liveliness tokens."""
 
     def __init__(self, stack: ExitStack, router: Router) -> None:
-        self.cmd, self.puma_cmd = Senders(), Senders()
+        self.cmd, self.arm_target = Senders(), Senders()
         self.calls: dict[str, int] = {"decision": 0, "arm": 0}
         self.node = stack.enter_context(router.robot("decision"))
         self.node.subscribe(keys.CMD, self.cmd)
-        self.node.subscribe(keys.PUMA_CMD, self.puma_cmd)
+        self.node.subscribe(keys.ARM_TARGET, self.arm_target)
         self.node.serve("decision", {"status": self._status("decision")})
         self.node.announce()
         arm = stack.enter_context(router.robot("arm"))
@@ -195,23 +206,23 @@ def denied_call(node: Node, service: str) -> None:
 def test_operator_commands_through_decision_but_never_the_arm_directly(router: Router) -> None:
     with ExitStack() as stack:
         side = RobotSide(stack, router)
-        robot, cmd, puma_cmd = side.node, side.cmd, side.puma_cmd
+        robot, cmd, arm_target = side.node, side.cmd, side.arm_target
         op = stack.enter_context(
             router.station(router.cell.client_file("operator-client"), router.tls, "op1")
         )
         assert op.alive.wait("decision", DEADLINE_S), "the operator sees the robot's services"
         assert robot.alive.wait("master/op1", DEADLINE_S), "the robot sees the operator's token"
-        rounds = interleave((op, "operator", cmd), [(op, keys.PUMA_CMD.key, "op-to-arm")])
+        rounds = interleave((op, "operator", cmd), [(op, keys.ARM_TARGET.key, "op-to-arm")])
         assert rounds >= DELIVERED
-        assert puma_cmd.by_master == {}, "a put to robot/puma/cmd from off the robot host"
+        assert arm_target.by_master == {}, "a put to robot/arm/target from off the robot host"
 
-        # The subscriber of robot/puma/cmd works: the robot host's own decision reaches it.
-        local = robot.publisher(keys.PUMA_CMD)
+        # The subscriber of robot/arm/target works: the robot host's own decision reaches it.
+        local = robot.publisher(keys.ARM_TARGET)
         wait_matched(local, DEADLINE_S)
         for i in range(1, 6):
-            local.put(command(i, "decision"))
-        assert wait_until(lambda: puma_cmd.count("decision") == 5, DEADLINE_S)
-        assert set(puma_cmd.by_master) == {"decision"}
+            local.put(target(i, "decision"))
+        assert wait_until(lambda: arm_target.count("decision") == 5, DEADLINE_S)
+        assert set(arm_target.by_master) == {"decision"}
 
         # Methods: the decision server answers the operator; the arm's methods do not,
         # although the arm is up and answers the robot host itself.

@@ -29,6 +29,7 @@ from services.bus.errors import ERROR_CODES, ProtocolError, RpcError, Unavailabl
 from services.bus.keys import Topic
 from services.bus.messages import (
     IDENTITY_R,
+    ArmTarget,
     Event,
     ForceSample,
     MasterState,
@@ -61,7 +62,7 @@ FUZZ_SETTINGS = settings(
 
 FUZZED_TOPICS: tuple[Topic[Any], ...] = (
     keys.CMD,
-    keys.PUMA_CMD,
+    keys.ARM_TARGET,
     keys.STATE,
     keys.FORCE,
     keys.MASTER_STATE,
@@ -181,7 +182,7 @@ def _valid_maps() -> dict[str, dict[str, Any]]:
     now = time.time_ns()
     msgs = {
         keys.CMD.key: OperatorCommand(1, now, "m", 1, True, "world", (0.0,) * 3, IDENTITY_R),
-        keys.PUMA_CMD.key: OperatorCommand(1, now, "m", 1, True, "world", (0.0,) * 3, IDENTITY_R),
+        keys.ARM_TARGET.key: ArmTarget(1, now, now, "m", 1, (0.5, 0.0, 0.6), IDENTITY_R),
         keys.STATE.key: RobotState(
             1, now, "ready", HOME_Q_RAD, (0.5, 0, 0.6), IDENTITY_R, (0.5, 0, 0.8), IDENTITY_R, 1, 1
         ),
@@ -377,21 +378,18 @@ def test_random_payloads_on_every_stream_are_rejected_counted_reported_and_move_
         sent[topic.key] += 1
 
     fuzz()
-    # Dangerous but well-formed commands on robot/puma/cmd: |dp| beyond max_dp_m. The arm
-    # must refuse them itself (the decision server is bypassed here).
+    # Dangerous but well-formed targets on robot/arm/target: beyond the arm's reach or its
+    # step bound. The arm must refuse them itself (the decision server is bypassed here).
+    now = time.time_ns()
     far = [
-        codec.encode(
-            OperatorCommand(
-                10**9 + i, time.time_ns(), "rogue", 10**9, True, "world", dp, IDENTITY_R
-            )
-        )
-        for i, dp in enumerate([(3.0, 0.0, 0.0), (0.0, 0.0, -1e9), (1.5, 1.5, 0.0)])
+        codec.encode(ArmTarget(10**9 + i, now, now, "rogue", 10**9, p, IDENTITY_R))
+        for i, p in enumerate([(3.0, 0.0, 0.0), (0.0, 0.0, -1e9), (1.0, 0.6, 0.6)])
     ]
     arm_rejected0 = s.arm.proxy.counters["rejected"]
     for i, p in enumerate(far):
-        # robot/puma/cmd is latest-wins: the control loop applies only the newest command
+        # robot/arm/target is latest-wins: the control loop applies only the newest target
         # of each tick, so each one is sent once the previous one has been dealt with.
-        pubs[keys.PUMA_CMD.key].put_bytes(p)
+        pubs[keys.ARM_TARGET.key].put_bytes(p)
         deadline = time.monotonic() + 5.0
         while s.arm.proxy.counters["rejected"] - arm_rejected0 <= i:
             assert time.monotonic() < deadline, "the arm never refused the command"

@@ -47,7 +47,7 @@ class Attacker:
     def __init__(self, endpoint: str) -> None:
         self.node = Node("attacker", NodeConfig(connect=(endpoint,), listen=(LOOPBACK_LISTEN,)))
         self.cmd = self.node.publisher(keys.CMD)
-        self.arm_cmds = self.node.subscribe(keys.PUMA_CMD)
+        self.arm_cmds = self.node.subscribe(keys.ARM_TARGET)
         self.seq = time.time_ns() // 1000
         self.engage = time.time_ns() // 1_000_000
 
@@ -170,7 +170,7 @@ def test_absurd_commands_never_move_the_arm_and_the_holds_go_on(
         holds = attacker.arm_cmds.received - holds0
         assert holds >= 3, "the decision stopped publishing its hold"
         latest = attacker.arm_cmds.get()
-        assert latest is not None and not latest.active
+        assert latest is not None and latest.hold
         record(f"hostile_cmd_{frame}_{dp[0]:g}", moved_rad=moved, holds=holds)
     alive_and_answering(c, attacker)
 
@@ -321,7 +321,7 @@ def corpus(attacker: Attacker) -> None:
     for i in range(300):
         attacker.call("decision", f"unknown_{i}_{'u' * 200}", {})
         attacker.command((1e308, 0.0, 0.0), master=f"m{i}-{'n' * 100}")
-    for key in (keys.CMD.key, keys.PUMA_CMD.key, keys.STATE.key, keys.FORCE.key):
+    for key in (keys.CMD.key, keys.ARM_TARGET.key, keys.STATE.key, keys.FORCE.key):
         attacker.node.session.put(key, b"\x92" + b"\xff" * 500_000)
         attacker.node.session.put(key, codec.pack({"seq": 1, "t_ns": 1, "pad": big[:60_000]}))
 

@@ -42,6 +42,9 @@ _KINDS: dict[str, str] = {
     "sim_calibration_s": "duration_s",
     "max_following_error_rad": "joint_rad",
     "max_dp_m": "displacement_m",
+    "max_reach_m": "displacement_m",
+    "max_target_step_m": "displacement_m",
+    "max_target_step_rad": "joint_rad",
     "teleop_settle_s": "duration_s",
     "event_interval_s": "duration_s",
 }
@@ -72,6 +75,9 @@ class ArmConfig:
     sim_calibration_s: float = 0.5
     max_following_error_rad: float = 0.35
     max_dp_m: float = 2.0
+    max_reach_m: float = 1.6
+    max_target_step_m: float = 0.05
+    max_target_step_rad: float = 0.35
     teleop_settle_s: float = 0.2
     event_interval_s: float = 1.0
 
@@ -90,6 +96,9 @@ class ArmConfig:
             "serial_timeout_s",
             "max_following_error_rad",
             "max_dp_m",
+            "max_reach_m",
+            "max_target_step_m",
+            "max_target_step_rad",
             "teleop_settle_s",
             "event_interval_s",
         ):

@@ -38,6 +38,7 @@ import pinocchio as pin
 from numpy.typing import NDArray
 
 from services.bus.events import EventLimiter
+from services.bus.messages import ArmTarget
 from services.control.arm.arguments import RelFrame, is_number, too_long
 from services.control.arm.config import ArmConfig
 from services.control.arm.driver import Arm, ArmError
@@ -48,7 +49,6 @@ from services.control.arm.kinematics import (
     se3_floats,
     tool_pose_floats,
 )
-from services.control.arm.mapping import TeleopInput, TeleopMapping
 from services.control.arm.motions import (
     GOAL_TOL_RAD,
     Brake,
@@ -59,7 +59,7 @@ from services.control.arm.motions import (
     servo_target,
 )
 from services.control.arm.safety import MotionLimits, ToolPose, safe_step
-from services.geometry import rotation_problem
+from services.geometry import angle9, rotation_problem
 
 Vec = NDArray[np.float64]
 Status = Literal["disconnected", "connected", "initializing", "ready", "moving", "error"]
@@ -110,7 +110,11 @@ class ProxyControl:
         self._motion: Motion | None = None
         self._motions: OrderedDict[int, Motion] = OrderedDict()
         self._next_id = 1
-        self._mapping = TeleopMapping()
+        self._last_seq = -1
+        self._engage: int | None = None
+        self._target_ref: ToolPose | None = None
+        """The last target applied in this engagement (None: the next one is measured
+        from the commanded pose): the step bound's reference."""
         self._grip: float | None = None
         self._last_cmd_t_ns = 0
         self._cmd_rx_ns: int | None = None
@@ -256,7 +260,7 @@ class ProxyControl:
         if motion is None or motion.kind != "teleop" or reason != "completed":
             # Something other than the operator's commands moved the arm (or cut a command
             # short): the next command re-bases there instead of jumping back.
-            self._mapping.rebase()
+            self._target_ref = None
         if motion is not None:
             motion.finish(reason, self._q_cmd)
         self._set_status("ready")
@@ -282,99 +286,111 @@ class ProxyControl:
         self._q_cmd = q.tolist()
         self._qd_cmd = [0.0] * 6
         self._pose_cmd = self._tool_pose(self._q_cmd)
-        self._mapping.rebase()
+        self._target_ref = None
         self._set_status("ready")
         # The first setpoint is where the arm is: from here on it holds what it was sent.
         self.arm.command(np.array(self._q_cmd))
         self._event("data", "arm calibrated", {"q": [float(x) for x in q]})
 
-    # --- streamed commands ----------------------------------------------------------------
+    # --- streamed targets -----------------------------------------------------------------
 
-    def on_command(
-        self,
-        cmd: TeleopInput,
-        t_ns: int,
-        grip: float | None,
-        rx_ns: int | None = None,
-        origin_t_ns: int | None = None,
-    ) -> None:
-        """A streamed OperatorCommand (`robot/puma/cmd`, after supervision; PROTOCOL §2–3).
+    def on_target(self, tgt: ArmTarget, rx_ns: int | None = None) -> None:
+        """A streamed ArmTarget (`robot/arm/target`: the supervised tool pose; PROTOCOL §3).
 
-        Ignored unless `ready` or `moving` (and while `stop` brakes). A command with a
-        non-finite or too large `dp` (> `max_dp_m`), a `dR` that is not a rotation or a grip
-        outside [0, 1] is rejected (a rate-limited `rejected` event) and moves nothing. An
-        active command maps to a tool target (TeleopMapping, eqs. 1–3) and joints
-        (`Puma560.solve`) that the arm then chases within every limit, pre-empting a running
-        motion. An unreachable target leaves the last reachable goal in place (the arm holds
-        there) and raises a rate-limited `error` event with code `unreachable`.
+        Ignored unless `ready` or `moving` (and while `stop` brakes), and when stale (a `seq`
+        not above the last applied one, or an `engage` below it). Checked once: a grip
+        outside [0, 1], a tool point beyond the arm's reach, or a pose further from the
+        previous target (the commanded pose, at a new engagement) than the step bound
+        (`max_target_step_m`, `max_target_step_rad`) is rejected (a rate-limited `rejected`
+        event) and moves nothing. Otherwise it is solved once (`Kinematics.solve`) into a
+        joint goal the arm chases within every limit, pre-empting a running motion; a pose
+        without a solution within the limits leaves the last goal in place (the arm holds
+        there) and raises a rate-limited `unreachable` event. Nothing is clamped into a
+        different pose.
 
-        `rx_ns` (when the service received it) and `origin_t_ns` (the operator's send time
-        it carries) are reported in the state with the time of the first setpoint it
-        produced, so the operator's path can be timed on one clock.
+        `rx_ns` (when the service received it) and the target's `origin_t_ns` (the
+        operator's send time) are reported in the state with the time of the first setpoint
+        it produced, so the operator's path can be timed on one clock.
         """
         with self._lock:
-            self._on_command_locked(cmd, t_ns, grip, rx_ns, origin_t_ns)
+            self._on_target_locked(tgt, rx_ns)
         self._flush()
 
-    def _on_command_locked(
-        self,
-        cmd: TeleopInput,
-        t_ns: int,
-        grip: float | None,
-        rx_ns: int | None,
-        origin_t_ns: int | None,
-    ) -> None:
+    def _target_problem(self, tgt: ArmTarget) -> str | None:
+        """Why `tgt` may not move the arm (None: it may). The codec has checked that `p`
+        and `R` are finite and `R` a rotation; in-process callers pass through here too."""
+        p, R = tgt.p, tgt.R
+        if len(p) != 3 or not all(map(is_number, p)) or not all(map(math.isfinite, p)):
+            return "p: not 3 finite numbers"
+        if len(R) != 9 or not all(map(is_number, R)):
+            return "R: not 9 numbers"
+        if (r := rotation_problem(np.asarray(R, dtype=np.float64).reshape(3, 3))) is not None:
+            return f"R: {r}"
+        grip = tgt.grip
+        if grip is not None and not (is_number(grip) and 0.0 <= grip <= 1.0):
+            return "grip: must be within [0, 1]"
+        reach = self.config.max_reach_m
+        if too_long(np.asarray(p), reach):
+            return f"p: {math.hypot(*p):.3g} m from the base, beyond the arm's reach ({reach} m)"
+        ref_p, ref_R = self._target_ref if self._target_ref is not None else self._pose_cmd
+        step_m = math.dist(p, ref_p)
+        if not step_m <= self.config.max_target_step_m:
+            return (
+                f"p: {step_m:.3g} m from the previous target (step bound "
+                f"{self.config.max_target_step_m} m)"
+            )
+        step_rad = angle9(ref_R, R)
+        if not step_rad <= self.config.max_target_step_rad:
+            return (
+                f"R: {step_rad:.3g} rad from the previous target (step bound "
+                f"{self.config.max_target_step_rad} rad)"
+            )
+        return None
+
+    def _on_target_locked(self, tgt: ArmTarget, rx_ns: int | None) -> None:
         self.counters["commands"] += 1
         if self._status not in ("ready", "moving") or isinstance(self._gen, Brake):
             self.counters["commands_ignored"] += 1
             return
-        dp = np.asarray(cmd.dp, dtype=np.float64)
-        dR = np.asarray(cmd.dR, dtype=np.float64)
-        why: str | None = None
-        if dp.shape != (3,) or not all(map(math.isfinite, dp.tolist())):
-            why = "dp: not 3 finite numbers"
-        elif too_long(dp, self.config.max_dp_m):
-            why = f"dp: |dp| above {self.config.max_dp_m} m"
-        elif (r := rotation_problem(dR)) is not None:
-            why = f"dR: {r}"
-        elif grip is not None and not (is_number(grip) and 0.0 <= grip <= 1.0):
-            why = "grip: must be within [0, 1]"
+        if tgt.seq <= self._last_seq or (self._engage is not None and tgt.engage < self._engage):
+            self.counters["commands_ignored"] += 1
+            return  # stale: an older seq or engagement
+        if tgt.engage != self._engage:
+            self._target_ref = None  # a new engagement starts from where the arm is told to be
+        why = self._target_problem(tgt)
         if why is not None:
             self.counters["rejected"] += 1
             self._event_limited(
                 "rejected",
                 "rejected",
-                f"command {cmd.seq} rejected: {why}",
-                {"seq": cmd.seq, "reason": why},
+                f"target {tgt.seq} rejected: {why}",
+                {"seq": tgt.seq, "reason": why},
             )
             return
-        before = self._mapping.last_seq
-        p_cmd, R_cmd = self._pose_cmd
-        oMt_cmd = pin.SE3(np.array(R_cmd).reshape(3, 3), np.array(p_cmd))
-        target = self._mapping.apply(cmd, oMt_cmd)
-        if self._mapping.last_seq == before:
-            self.counters["commands_ignored"] += 1
-            return  # stale: an older seq or engagement
-        self._last_cmd_t_ns = int(t_ns)
+        self._last_seq, self._engage = tgt.seq, tgt.engage
+        self._last_cmd_t_ns = int(tgt.t_ns)
         self._cmd_rx_ns = rx_ns
-        self._cmd_origin_t_ns = origin_t_ns
+        self._cmd_origin_t_ns = tgt.origin_t_ns
         self._setpoint_ns = None
-        self._awaiting_setpoint = cmd.active
-        if grip is not None:
-            self._grip = float(grip)
-        if target is None:
-            return  # master-shift: hold; the goal in place is where the arm stays
+        self._awaiting_setpoint = True
+        if tgt.grip is not None:
+            self._grip = float(tgt.grip)
+        ref = self._target_ref
+        if ref is not None and ref[0] == tgt.p and ref[1] == tgt.R:
+            return  # the pose already aimed at (a hold re-sent): nothing to solve or restart
+        target = pin.SE3(np.array(tgt.R, dtype=np.float64).reshape(3, 3), np.array(tgt.p))
         try:
             sol = self._kin.solve(self._q_cmd, target, self._eMt)
         except Unreachable as e:
             self.counters["unreachable"] += 1
             self._event_limited(
                 "unreachable",
-                "error",
-                f"command {cmd.seq} unreachable: {e}",
-                {"code": "unreachable", "seq": cmd.seq},
+                "unreachable",
+                f"target {tgt.seq} unreachable: {e}",
+                {"code": "unreachable", "seq": tgt.seq},
             )
             return
+        self._target_ref = (tuple(tgt.p), tuple(tgt.R))
         if sol.near_singular:
             self._event_limited(
                 "singular",
@@ -382,10 +398,7 @@ class ProxyControl:
                 "near a singularity: motion slowed",
                 {"singularity": self._kin.singularity(sol.q)},
             )
-        goal = [
-            lo if x < lo else hi if x > hi else x
-            for x, (lo, hi, _, _) in zip(sol.q.tolist(), self.limits.joints, strict=True)
-        ]
+        goal: list[float] = sol.q.tolist()
         gen = self._gen
         if isinstance(gen, Servo) and self._motion is not None and self._motion.kind == "teleop":
             gen.goal = goal
@@ -429,7 +442,7 @@ class ProxyControl:
         self._pose_memo = None
         self._tool_version += 1
         self._pose_cmd = self._tool_pose(self._q_cmd)
-        self._mapping.rebase()
+        self._target_ref = None
 
     def _start(self, motion: Motion, gen: Generator) -> None:
         self._motions[motion.id] = motion
@@ -438,7 +451,7 @@ class ProxyControl:
         self._motion = motion
         self._gen = gen
         if motion.kind != "teleop":
-            self._mapping.rebase()
+            self._target_ref = None
         self._set_status("moving")
 
     def _new_id(self) -> int:
@@ -453,7 +466,7 @@ class ProxyControl:
         self._motion = None
         self._gen = None
         self._qd_cmd = [0.0] * 6
-        self._mapping.rebase()
+        self._target_ref = None
 
     def _fail(self, code: str, why: str) -> None:
         self._abandon("error")

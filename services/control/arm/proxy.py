@@ -302,7 +302,7 @@ class ArmProxy(ProxyControl):
         """RobotState of PROTOCOL §3 without seq/t_ns, as plain lists and floats.
 
         `q` is the measured joints (the last setpoint before the first reading); `engage` and
-        `cmd_seq` are those of the last applied command (−1 before any).
+        `cmd_seq` are those of the last applied target (−1 before any).
         """
         with self._lock:
             return self._state_locked()
@@ -310,8 +310,8 @@ class ArmProxy(ProxyControl):
     def _state_locked(self) -> dict[str, Any]:
         out = dict(self._poses_locked())
         out["status"] = self._status
-        out["engage"] = self._mapping.engage if self._mapping.engage is not None else -1
-        out["cmd_seq"] = self._mapping.last_seq
+        out["engage"] = self._engage if self._engage is not None else -1
+        out["cmd_seq"] = self._last_seq
         if self._grip is not None:
             out["grip"] = self._grip
         if self._cmd_rx_ns is not None:

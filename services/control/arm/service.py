@@ -1,9 +1,9 @@
-"""The `arm` service on the bus: IProxyRobot at robot/arm/rpc, `robot/state`, `robot/puma/cmd`.
+"""The `arm` service on the bus: IProxyRobot at robot/arm/rpc, `robot/state`, `robot/arm/target`.
 
-One control thread owns the arm (franka-node's rule). It is woken, not polled: the command
-subscription stores the newest command (latest-wins) and wakes it, and it applies the command
+One control thread owns the arm (franka-node's rule). It is woken, not polled: the target
+subscription stores the newest target (latest-wins) and wakes it, and it applies the target
 and ticks the proxy at once, so the arm gets the new setpoint one IK and one safety step
-after the command arrived. While a motion, brake or servo runs it ticks at
+after the target arrived. While a motion, brake or servo runs it ticks at
 `control_rate_hz` and publishes `robot/state` at `state_rate_hz`; at rest it only watches the
 arm and publishes the (unchanged, cached) state at `idle_state_rate_hz` (≥ 100 Hz, the
 contract's floor). Methods that do not block run in Zenoh's callback, the others on the
@@ -19,16 +19,13 @@ import time
 from collections import OrderedDict
 from typing import Annotated, Any
 
-import numpy as np
-
 from services.bus import codec, keys
 from services.bus.bounds import check
 from services.bus.errors import RpcError
-from services.bus.messages import MaxLen, OperatorCommand, RobotState, mat3
+from services.bus.messages import ArmTarget, MaxLen, RobotState
 from services.bus.node import Node
 from services.control.arm.backends import open_arm
 from services.control.arm.config import ArmConfig
-from services.control.arm.mapping import TeleopInput
 from services.control.arm.proxy import ArmProxy
 
 log = logging.getLogger("telerobot.arm")
@@ -66,14 +63,14 @@ class ArmService:
         self._state_pub = node.publisher(keys.STATE)
         self._state_seq = 0
         self._cmd_lock = threading.Lock()
-        self._pending: tuple[OperatorCommand, int] | None = None
+        self._pending: tuple[ArmTarget, int] | None = None
         self._wake = threading.Event()
         self._stop = threading.Event()
         self.late_ticks = 0
         self.late_max_ms = 0.0
         self._requests: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self._requests_lock = threading.Lock()
-        node.subscribe(keys.PUMA_CMD, self._on_command)
+        node.subscribe(keys.ARM_TARGET, self._on_target)
         methods: dict[str, Any] = {
             name: getattr(self.proxy, f"rpc_{name}")
             for name in (
@@ -106,10 +103,10 @@ class ArmService:
     def _emit(self, kind: str, message: str, data: dict[str, Any]) -> None:
         self.node.event(kind, message, data)
 
-    # --- commands (latest wins; applied by the control thread) ------------------------
-    def _on_command(self, cmd: OperatorCommand) -> None:
+    # --- targets (latest wins; applied by the control thread) -------------------------
+    def _on_target(self, tgt: ArmTarget) -> None:
         with self._cmd_lock:
-            self._pending = (cmd, time.time_ns())
+            self._pending = (tgt, time.time_ns())
         self._wake.set()
 
     def _waking(self, handler: Any) -> Any:
@@ -130,16 +127,8 @@ class ArmService:
             pending, self._pending = self._pending, None
         if pending is None:
             return False
-        cmd, rx_ns = pending
-        ti = TeleopInput(
-            seq=cmd.seq,
-            engage=cmd.engage,
-            active=cmd.active,
-            frame=cmd.frame,
-            dp=np.asarray(cmd.dp),
-            dR=mat3(cmd.dR),
-        )
-        self.proxy.on_command(ti, cmd.t_ns, cmd.grip, rx_ns, cmd.origin_t_ns)
+        tgt, rx_ns = pending
+        self.proxy.on_target(tgt, rx_ns)
         return True
 
     # --- the control loop -------------------------------------------------------------

@@ -11,16 +11,9 @@ from __future__ import annotations
 
 from numpy.typing import ArrayLike
 
-from services.geometry import M9, V3, len3, m9, ortho9, sub3, tmul9, v3
+from services.geometry import V3, len3, v3
 
 _TINY = 1e-12
-
-
-def engagement_command(p0: ArrayLike, R0: ArrayLike, p: ArrayLike, R: ArrayLike) -> tuple[V3, M9]:
-    """The world-frame (dp, dR) that makes a §2 slave with engagement pose (p0, R0) go to
-    the tool pose (p, R): the inverse of `tool_target_pose`, dp = p − p0, dR = R0ᵀ·R (a
-    rotation: re-projected if rounding drifted it)."""
-    return sub3(v3(p), v3(p0)), ortho9(tmul9(m9(R0), m9(R)))
 
 
 # The per-command filters below work in plain floats (V3 tuples; numpy arrays are accepted):

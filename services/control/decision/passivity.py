@@ -4,18 +4,17 @@ The decision server runs on the robot host and sees the supervised command, robo
 robot/force, so it holds the slave port: the wrist force (tool frame → world by `tool_R`)
 against the tool's measured motion, both taken at one instant from short timestamped
 histories (`SlavePort`, `TimedHistory`). `SlaveTdpa.apply` observes that port, corrects the
-command's target so the robot never puts more energy into the workcell than the operator
+supervised target so the robot never puts more energy into the workcell than the operator
 put into the channel (energies from `robot/passivity/master`), and publishes its own on
 `robot/passivity/slave`. Above the supervisor's contact limit the supervisor retracts the
 target itself: the energy that brings in is not the channel's (excluded).
 
 Engagements: a new operator engagement (master, engage) starts a new count, as the master
-does; a new engagement of the arm (the supervisor's own `engage`, e.g. after a hold) takes
-the tool pose then as (p0, R0) and the offset restarts at zero (the arm records its start
-pose at that command, so the offset is already in it: nothing jumps). A hold (inactive
-command) passes unchanged and is not observed. The correction only shortens motion into a
-contact or backs it out along the contact force (at most 2 mm past the tool); the
-supervisor checked the uncorrected target.
+does; a new engagement of the arm (the supervisor's own `engage`, e.g. after a hold)
+restarts the offset at zero (the supervisor starts it where the arm is told to be, so the
+offset is already in it: nothing jumps). A hold passes unchanged and is not observed. The
+correction only shortens motion into a contact or backs it out along the contact force (at
+most 2 mm past the tool); the supervisor checked the uncorrected target.
 
 Moments: while the operator's master runs a rotational port (its figures carry
 `rot_e_in`), so does this side (`rot`): the wrist's moment about the tool point against the
@@ -34,7 +33,7 @@ import time
 import numpy as np
 
 from services.bus import keys
-from services.bus.messages import ForceSample, OperatorCommand, PassivityState, RobotState
+from services.bus.messages import ArmTarget, ForceSample, PassivityState, RobotState
 from services.bus.node import Node
 from services.control.passivity.rotation import (
     RotationTrack,
@@ -47,7 +46,7 @@ from services.control.passivity.rotation import (
 from services.control.passivity.roundtrip import RoundTrip
 from services.control.passivity.slave import DEADBAND_N, SlavePort, TimedHistory
 from services.control.passivity.wire import passivity_state
-from services.geometry import m9, mul9, sub3, tmul9
+from services.geometry import m9, sub3
 
 DT_MIN_S = 1e-4
 DT_MAX_S = 0.1
@@ -94,8 +93,6 @@ class SlaveTdpa:
         self._seq = 0
         self._operator: tuple[str, int] | None = None
         self._arm_engage: int | None = None
-        self._R0 = np.eye(3)
-        self._p0 = np.zeros(3)
         self._last_ns = 0
         self._tool = TimedHistory()
         self._force = TimedHistory()
@@ -105,48 +102,36 @@ class SlaveTdpa:
 
     def apply(
         self,
-        cmd: OperatorCommand,
+        tgt: ArmTarget,
         operator: tuple[str, int] | None,
         state: RobotState | None,
         force: ForceSample | None,
         now_ns: int,
-    ) -> OperatorCommand:
-        """The command to send to the arm in place of `cmd`.
+    ) -> ArmTarget:
+        """The target to send to the arm in place of `tgt`.
 
         operator: (master id, engage) of the operator command being carried out, or None
         (no lease); force: None when there is none fresh. Energies are counted per operator
-        engagement (the master counts the same way); the arm's own engagements (`cmd.engage`,
+        engagement (the master counts the same way); the arm's own engagements (`tgt.engage`,
         renumbered by the supervisor, e.g. after a hold) only rebase the offset. A hold
-        (inactive command) passes unchanged and is not observed (the supervisor's).
+        passes unchanged and is not observed (the supervisor's).
         """
         self._remember(state, force)
-        if not cmd.active or operator is None:
+        if tgt.hold or operator is None:
             self.pc.restart()
             if self.rot is not None:
                 self.rot.restart()
-            return cmd
+            return tgt
         if operator != self._operator:
             self._operator = operator
             self.pc.reset(operator[1])
             self.rot = None
             self._arm_engage = None
-        if cmd.engage != self._arm_engage:
-            self._arm_engage = cmd.engage
+        if tgt.engage != self._arm_engage:
+            self._arm_engage = tgt.engage
             self.pc.rebase()
             if self.rot is not None:
                 self.rot.rebase()
-            if state is not None:
-                # The arm starts the engagement from its setpoint's pose, not the measured
-                # one, which trails it by the servo's error: with the measured pose every
-                # target was that far off what the arm aimed at (0.13 mm after the move to
-                # the start pose), and the port, holding its target "at the tool", pressed
-                # the tool in by that much at each correction (docs/passivity.md).
-                p0 = state.tool_p_cmd if state.tool_p_cmd is not None else state.tool_p
-                self._R0 = np.asarray(state.tool_R, dtype=float).reshape(3, 3)
-                self._p0 = np.asarray(p0, dtype=float)
-        d = np.asarray(cmd.dp, dtype=float)
-        if cmd.frame == "tool":
-            d = self._R0 @ d
         dt_s = min(max((now_ns - self._last_ns) * 1e-9, DT_MIN_S), DT_MAX_S)
         self._last_ns = now_ns
         got = self._master_energy.read()
@@ -165,19 +150,12 @@ class SlaveTdpa:
         self.pc.rtt_s = self.link.rtt_s(mono)
         f_now, c_now = self._observe()
         if state is None:
-            return cmd
-        target = self.pc.correct((self._p0 + d).tolist(), list(state.tool_p), f_now.tolist(), dt_s)
-        dR = self._turned(cmd, state, c_now, dt_s)
+            return tgt
+        target = self.pc.correct(list(tgt.p), list(state.tool_p), f_now.tolist(), dt_s)
+        R = self._turned(tgt, state, c_now, dt_s)
         self._publish(operator)
-        out = np.asarray(target) - self._p0
-        if cmd.frame == "tool":
-            out = self._R0.T @ out
-        dp = tuple(float(x) for x in out)
-        return (
-            dataclasses.replace(cmd, dp=dp)
-            if dR is None
-            else dataclasses.replace(cmd, dp=dp, dR=dR)
-        )
+        p = tuple(float(x) for x in target)
+        return dataclasses.replace(tgt, p=p) if R is None else dataclasses.replace(tgt, p=p, R=R)
 
     def _heard(self, msg: PassivityState) -> None:
         """Each of the operator's master's figures as read (in `apply`): its echo of ours."""
@@ -185,21 +163,20 @@ class SlaveTdpa:
             self.link.heard(msg, time.time_ns(), time.monotonic_ns())
 
     def _turned(
-        self, cmd: OperatorCommand, state: RobotState, c_now: list[float], dt_s: float
+        self, tgt: ArmTarget, state: RobotState, c_now: list[float], dt_s: float
     ) -> tuple[float, ...] | None:
-        """The rotational port's correction of the command's rotation: the new `dR`, or None
+        """The rotational port's correction of the target's rotation: the new `R`, or None
         when it is unchanged (no rotational port, or no offset in rotation)."""
         rot = self.rot
         if rot is None:
             return None
         theta = self._turn.theta
         R_now = m9(state.tool_R)
-        goal = angles_towards(theta, R_now, mul9(m9(self._R0), m9(cmd.dR)))
+        goal = angles_towards(theta, R_now, m9(tgt.R))
         target = rot.correct(port_angles(goal), port_angles(theta), c_now, dt_s)
         if not any(rot.offset):
             return None
-        R_out = rotate_towards(R_now, sub3(angles_of(target), theta))
-        return tmul9(m9(self._R0), R_out)
+        return tuple(rotate_towards(R_now, sub3(angles_of(target), theta)))
 
     def _start_turning(self, state: RobotState | None) -> None:
         """The rotational port starts: its histories from now on, the tool's angles from its

@@ -2,7 +2,7 @@
 
 It serves `robot/decision/rpc/…` (every IProxyRobot and IForceSensor method forwarded to the
 arm and force services, plus `status`, `supervisor`, `estop`, `reset`, `task`), and
-supervises `robot/cmd` into `robot/puma/cmd`.
+supervises `robot/cmd` into `robot/arm/target`.
 
 Reactive: an operator command is supervised and its result published in the Zenoh callback
 that delivers it, so the arm has it one hop later; a lost service is handled the same way.
@@ -15,7 +15,7 @@ engaged included), the 1 kHz stream is neither received here nor, with no other 
 sent at all; a new engagement from idle waits (deferred, not refused) for its first sample.
 
 Threads: every tick runs under one lock (`_cond`), and the command it yields is published
-under it too, so `robot/puma/cmd` leaves in `seq` order whichever thread ticked; events go
+under it too, so `robot/arm/target` leaves in `seq` order whichever thread ticked; events go
 out after the lock is released. RPC handlers touch the supervisor under the same lock,
 briefly; a task's caller waits on its condition.
 """
@@ -36,8 +36,8 @@ from services.bus.bounds import out_of_bounds, short
 from services.bus.codec import arg
 from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
-from services.bus.keys import CMD, PUMA_CMD, STATE
-from services.bus.messages import ForceSample, OperatorCommand, RobotState
+from services.bus.keys import ARM_TARGET, CMD, STATE
+from services.bus.messages import ArmTarget, ForceSample, OperatorCommand, RobotState
 from services.bus.node import Node
 from services.control.decision.config import STARTUP_ONLY, DecisionConfig
 from services.control.decision.forcefeed import FORCE_WAIT_S, ForceFeed
@@ -89,7 +89,7 @@ ALIVE_WAIT_S = 0.5
 """How long a forwarded call waits for the target's liveliness token before `unavailable`."""
 STATUS_CALL_TIMEOUT_S = 1.0
 HOLD_REPEATS = 3
-"""Inactive commands sent at close (each a new seq): one lost packet must not matter."""
+"""Holds sent at close (each a new seq): one lost packet must not matter."""
 IDLE_WAIT_S = 1.0
 """The timer re-checks this often when nothing is due (a safety net; inputs wake it)."""
 
@@ -97,7 +97,7 @@ IDLE_WAIT_S = 1.0
 class DecisionService:
     """The DecisionServer: declares its streams and methods, starts the loop, announces.
 
-    `close()` holds the arm (an inactive command, then arm `stop`) and stops the loop; it
+    `close()` holds the arm (a hold target, then arm `stop`) and stops the loop; it
     does not close the node.
     """
 
@@ -126,7 +126,7 @@ class DecisionService:
         self._task_waiters = 0
         """Callers of `task` waiting for their task to end (every tick notifies them)."""
 
-        self._pub = node.publisher(PUMA_CMD)
+        self._pub = node.publisher(ARM_TARGET)
         self.passivity = (
             SlaveTdpa(
                 node,
@@ -310,12 +310,12 @@ class DecisionService:
         for n in notices:
             self._event(n.kind, n.message, n.data)
 
-    def _put(self, cmd: OperatorCommand) -> None:
+    def _put(self, tgt: ArmTarget) -> None:
         try:
-            self._pub.put(cmd)
+            self._pub.put(tgt)
         except (zenoh.ZError, ProtocolError):
             self.publish_errors += 1
-            log.warning("could not publish on robot/puma/cmd", exc_info=True)
+            log.warning("could not publish on robot/arm/target", exc_info=True)
 
     def _event(self, kind: str, message: str, data: Mapping[str, Any]) -> None:
         if not self.node.closed:
@@ -622,7 +622,7 @@ class DecisionService:
 
     # --- shutdown --------------------------------------------------------------------------
     def close(self) -> None:
-        """Hold the arm (inactive command, arm `stop`), stop the loop. Idempotent."""
+        """Hold the arm (a hold target, arm `stop`), stop the loop. Idempotent."""
         if self._closed:
             return
         with self._cond:

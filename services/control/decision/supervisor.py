@@ -1,22 +1,22 @@
 """The supervisory logic, free of I/O: one `tick()` per input, and per timer wake-up.
 
-The decision server stands between the masters (`robot/cmd`) and the arm (`robot/puma/cmd`).
+The decision server stands between the masters (`robot/cmd`) and the arm (`robot/arm/target`).
 It keeps its own engagement towards the arm (`engage_out`, its own `seq`, master id
 "decision"). When the lease holder's engagement starts, it records the tool pose (p0, R0)
 from the newest robot/state and starts a new `engage_out`; each tick it maps the newest
 command to the operator's desired tool pose (PROTOCOL §2) and moves the SUPERVISED target
 towards it through the filters: (a) contact, (b) active compliance, (c) tool speed,
-(d) workspace box. It sends the arm `dp = p_sup − p0`, `dR = R0ᵀ·R_sup` in the world frame,
-so whatever a filter held back stays an offset of the target: it never turns into a jump.
+(d) workspace box. It sends the arm that supervised pose (ArmTarget), so whatever a filter
+held back stays an offset of the target: it never turns into a jump.
 
 Motion the filters remove (into a contact, out of the workspace) is dropped for good: it is
 kept as an offset between the operator's target and the supervised one, so moving the hand
 back moves the tool back at once. Motion the speed limit holds back is only delayed: the
 target catches up with the operator at the limit speed.
 
-Holding (watchdog, lost master, e-stop, stale streams, disengage) sends `active = false`
-with the last dp/dR at once and then every HOLD_RESEND_NS, never `active = true` again for
-that engagement; motion resumes only with a NEW engagement of a master, which is rebased on
+Holding (watchdog, lost master, e-stop, stale streams, disengage) re-sends the last target
+(marked `hold`) at once and then every HOLD_RESEND_NS, never a moving one again for that
+engagement; motion resumes only with a NEW engagement of a master, which is rebased on
 the then-current pose.
 
 Reactive: the service ticks once per operator command as it arrives (and per lost service),
@@ -46,7 +46,7 @@ from typing import Any
 
 from services.bus.bounds import norm_out_of_bounds
 from services.bus.errors import ErrorCode, RpcError
-from services.bus.messages import ForceSample, OperatorCommand, RobotState
+from services.bus.messages import ArmTarget, ForceSample, OperatorCommand, RobotState
 from services.control.decision.config import DecisionConfig
 from services.control.decision.masters import MasterRecord, Masters
 from services.control.decision.notices import Notice, Notices
@@ -102,10 +102,10 @@ class Inputs:
 
 @dataclass(frozen=True, slots=True)
 class TickResult:
-    """A tick's output: the command for robot/puma/cmd (None: send nothing), the events,
+    """A tick's output: the target for robot/arm/target (None: send nothing), the events,
     and the task runs that ended (their waiters are woken)."""
 
-    command: OperatorCommand | None
+    command: ArmTarget | None
     notices: tuple[Notice, ...]
     finished: tuple[TaskRun, ...]
     stop_arm: bool = False
@@ -185,7 +185,7 @@ class Supervisor:
             self._on_lost(name)
         for cmd in inp.commands:
             self._on_command(cmd, inp, state_ok, force_ok)
-        out: OperatorCommand | None = None
+        out: ArmTarget | None = None
         target = self.target
         if self.mode is Mode.FOLLOW:
             out = self._follow(inp, state_ok, force_ok)
@@ -483,7 +483,7 @@ class Supervisor:
             self.mode = Mode.HOLD if self.target.p0 is not None else Mode.IDLE
 
     # --- teleoperation ---------------------------------------------------------------------
-    def _follow(self, inp: Inputs, state_ok: bool, force_ok: bool) -> OperatorCommand | None:
+    def _follow(self, inp: Inputs, state_ok: bool, force_ok: bool) -> ArmTarget | None:
         cfg = self._cfg
         state = inp.state
         why = follow_problem(
@@ -516,13 +516,15 @@ class Supervisor:
             # last finite value and the arm holds there.
             self._hold("limit", "non_finite", "the operator's target is not finite: holding")
             return None
-        return self._command(inp, active=True, origin_t_ns=cmd.t_ns if self._fresh else None)
+        # A step that catches up with the operator still carries out their newest command.
+        return self._command(inp, active=True, origin_t_ns=cmd.t_ns)
 
-    def _command(
-        self, inp: Inputs, active: bool, origin_t_ns: int | None = None
-    ) -> OperatorCommand:
+    def _command(self, inp: Inputs, active: bool, origin_t_ns: int | None = None) -> ArmTarget:
+        """The target out: `origin_t_ns` the operator command it carries out (the tick's
+        own wall time for holds and tasks)."""
         self.stats["published"] += 1
-        return self.target.command(self._now_ns, inp.wall_ns, active, origin_t_ns)
+        origin = inp.wall_ns if origin_t_ns is None else origin_t_ns
+        return self.target.command(self._now_ns, inp.wall_ns, active, origin)
 
     # --- e-stop, stop, hand-over to forwarded motions ---------------------------------------
     def estop(self, now_ns: int, why: str = "estop requested") -> None:
@@ -601,9 +603,9 @@ class Supervisor:
         elif verdict is None:
             self.watch = None
 
-    def shutdown(self, now_ns: int, wall_ns: int, repeats: int) -> list[OperatorCommand]:
+    def shutdown(self, now_ns: int, wall_ns: int, repeats: int) -> list[ArmTarget]:
         """The service is closing: end any task, release the lease, and return `repeats`
-        inactive commands for the current engagement (none if there never was one)."""
+        holds of the current engagement (none if there never was one)."""
         self._now_ns = now_ns
         if self.tasks.current is not None:
             self._finish_task(
@@ -669,7 +671,7 @@ class Supervisor:
             self.mode = Mode.HOLD if streamed else Mode.IDLE
             self.hold_reason = f"task {run.name} ended"
 
-    def _run_task(self, inp: Inputs, state_ok: bool, force_ok: bool) -> OperatorCommand | None:
+    def _run_task(self, inp: Inputs, state_ok: bool, force_ok: bool) -> ArmTarget | None:
         run = self.tasks.current
         assert run is not None
         end = run_tick(run, self.target, self._sensed(inp, force_ok), state_ok, self._begin_out)

@@ -1,12 +1,12 @@
 """The supervised target: the tool pose the decision server commands the arm to, shaped
-from the operator's (or a task's) goal through the filters, and the commands that carry it.
+from the operator's (or a task's) goal through the filters, and the targets that carry it.
 
 Each outgoing engagement (`engage_out`, its own `seq_out`, master id "decision") starts
-from the tool pose (p0, R0) then (the setpoint's position, as the arm's start, when
-robot/state carries it). The target (p_sup, R_sup) moves towards the goal
-through (a) contact, (b) active compliance, (c) tool speed, (d) workspace box; the arm is
-sent `dp = p_sup − p0`, `dR = R0ᵀ·R_sup` in the world frame, so whatever a filter held back
-stays an offset of the target (off_p, off_R): it never turns into a jump.
+from the tool pose (p0, R0) then (the setpoint's position, where the arm is told to be,
+when robot/state carries it). The target (p_sup, R_sup) moves towards the goal through
+(a) contact, (b) active compliance, (c) tool speed, (d) workspace box, and the arm is sent
+that pose itself (ArmTarget, robot/arm/target); whatever a filter held back stays an
+offset of the target (off_p, off_R): it never turns into a jump.
 
 Pure: the supervisor passes the time and the sensed state in a `Sensed` each tick. It runs on
 every operator command, so it computes in plain floats (`V3`, row-major `M9`: a numpy call
@@ -20,14 +20,13 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.bus.messages import ForceSample, OperatorCommand, RobotState
+from services.bus.messages import ArmTarget, ForceSample, OperatorCommand, RobotState
 from services.control.decision.config import DecisionConfig
 from services.control.decision.filters import (
     admittance_step,
     clamp_box,
     clip_norm,
     effective_box,
-    engagement_command,
     slow_near_box,
     without_motion_into,
 )
@@ -57,7 +56,7 @@ Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
 
 MASTER_ID = "decision"
-"""The decision's own master id on robot/puma/cmd."""
+"""The decision's own master id on robot/arm/target."""
 MOVING_STATUSES = ("ready", "moving")
 """The robot statuses in which an engagement (teleoperation or a task) may start."""
 STEP_EPS_M = 1e-9
@@ -164,8 +163,9 @@ class SupervisedTarget:
 
     def begin(self, state: RobotState, now_ns: int, period_s: float) -> None:
         """Start a new engagement towards the arm, rebased on the current tool pose: the
-        setpoint's (`tool_p_cmd`), which the arm records as its start, when the state
-        carries it; the measured one trails it by the servo's error."""
+        setpoint's (`tool_p_cmd`), where the arm is told to be and what it measures the
+        first target's step from, when the state carries it; the measured one trails it by
+        the servo's error."""
         self.engage_out = max(self.engage_out, state.engage) + 1
         start = state.tool_p_cmd if state.tool_p_cmd is not None else state.tool_p
         self._p0 = self._p = v3(start)
@@ -350,25 +350,22 @@ class SupervisedTarget:
         self._R = ortho9(mul9(R_sup, exp9(wstep)))
         return goal_p, ortho9(goal_R)
 
-    def command(
-        self, now_ns: int, wall_ns: int, active: bool, origin_t_ns: int | None = None
-    ) -> OperatorCommand:
-        """The next command for robot/puma/cmd carrying the target (`t_ns` = wall_ns):
-        dp = p_sup − p0, dR = R0ᵀ·R_sup (filters.engagement_command)."""
+    def command(self, now_ns: int, wall_ns: int, active: bool, origin_t_ns: int) -> ArmTarget:
+        """The next target for robot/arm/target (`t_ns` = wall_ns): the supervised pose
+        (p_sup, R_sup) itself; `hold` when it is not `active` (the supervisor holds).
+        `origin_t_ns`: the operator command it carries out (wall_ns for holds and tasks)."""
         assert self._p0 is not None
-        dp, dR = engagement_command(self._p0, self._R0, self._p, self._R)
         self.seq_out += 1
         self.last_out_ns = now_ns
         self.last_out_active = active
-        return OperatorCommand(
+        return ArmTarget(
             seq=self.seq_out,
             t_ns=wall_ns,
+            origin_t_ns=origin_t_ns,
             master=MASTER_ID,
             engage=self.engage_out,
-            active=active,
-            frame="world",
-            dp=dp,
-            dR=dR,
+            p=self._p,
+            R=self._R,
             grip=self.grip,
-            origin_t_ns=origin_t_ns,
+            hold=None if active else True,
         )

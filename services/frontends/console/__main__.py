@@ -23,7 +23,7 @@ MASTER_TAKEN_WAIT_S = 0.5
 
 def console_node_config(cfg: NodeConfig, config: ConsoleConfig) -> NodeConfig:
     """The console's session. Zenoh hands it robot/force at `force_rate_hz` (the plots show
-    fewer points than that), robot/state, robot/puma/cmd, workcell/state and the passivity
+    fewer points than that), robot/state, robot/arm/target, workcell/state and the passivity
     figures (the decision server's at its 500 Hz) at twice the GUI rate (the page is drawn
     at the GUI rate): the rest is dropped on arrival, before any Python runs, instead of a
     thousand callbacks a second."""
@@ -31,7 +31,7 @@ def console_node_config(cfg: NodeConfig, config: ConsoleConfig) -> NodeConfig:
     rules = (
         (keys.FORCE.key, config.force_rate_hz),
         (keys.STATE.key, mirror_hz),
-        (keys.PUMA_CMD.key, mirror_hz),
+        (keys.ARM_TARGET.key, mirror_hz),
         (WORKCELL_STATE.key, mirror_hz),
         (keys.PASSIVITY_MASTER.key, mirror_hz),
         (keys.PASSIVITY_SLAVE.key, mirror_hz),

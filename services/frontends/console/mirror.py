@@ -17,7 +17,6 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
@@ -27,12 +26,12 @@ from numpy.typing import NDArray
 from services.bus import codec
 from services.bus.errors import ProtocolError
 from services.bus.keys import (
+    ARM_TARGET,
     EVENTS,
     FORCE,
     MASTER_STATE,
     PASSIVITY_MASTER,
     PASSIVITY_SLAVE,
-    PUMA_CMD,
     STATE,
     STEREO_L,
     STEREO_R,
@@ -40,11 +39,11 @@ from services.bus.keys import (
     Topic,
 )
 from services.bus.messages import (
+    ArmTarget,
     Event,
     ForceSample,
     MasterState,
     Message,
-    OperatorCommand,
     PassivityState,
     RobotState,
     StereoFrame,
@@ -54,13 +53,12 @@ from services.bus.messages import (
 from services.bus.node import Node, Subscription
 from services.frontends.console.geometry import Mat, Vec
 from services.frontends.console.tdpa import PortSeen, TdpaView, newer, plot_row, tdpa_view
-from services.geometry import tool_target_pose
 from services.world.workcell.messages import WORKCELL_STATE, WorkcellState
 
 M = TypeVar("M", bound=Message)
 
 TARGET_STALE_S = 1.0
-"""The commanded target is drawn while robot/puma/cmd arrived within this time."""
+"""The commanded target is drawn while robot/arm/target arrived within this time."""
 
 
 class History:
@@ -149,22 +147,12 @@ class ForceHistory(History):
         self.add_row(t_s, (*f, *c), rx_s)
 
 
-@dataclass(frozen=True, slots=True)
-class TargetRef:
-    """The tool pose (p0, R0) at the start of engagement `engage` on robot/puma/cmd, taken
-    from the newest robot/state when that engagement's first command arrived."""
-
-    engage: int
-    p0: Vec
-    R0: Mat
-
-
 class BusMirror:
     """Subscribes to the streams the console shows; polled status is stored here too.
 
     Always: robot/state, master/state, robot/events, vision/stats (what the hand link and
     the event log need, at low rates). While `watch_page(True)`: robot/force,
-    robot/puma/cmd, workcell/state and robot/passivity/{master,slave}. While
+    robot/arm/target, workcell/state and robot/passivity/{master,slave}. While
     `watch_video(True)`: vision/stereo/l and /r.
 
     `tdpa` holds the passivity plot's rows (`tdpa.plot_row`), one per figures received,
@@ -185,9 +173,8 @@ class BusMirror:
         self._events: deque[Event] = deque(maxlen=events)
         self.events_seen = 0
         self._masters: dict[str, MasterState] = {}
-        self._cmd: OperatorCommand | None = None
-        self._cmd_rx_s = -1e18
-        self._ref: TargetRef | None = None
+        self._target: ArmTarget | None = None
+        self._target_rx_s = -1e18
         self.decision_status: dict[str, Any] | None = None
         self.decision_error: str | None = "no reply yet"
         self.master_status: dict[str, Any] | None = None
@@ -207,7 +194,7 @@ class BusMirror:
         if on and not self._page_subs:
             self._page_subs = [
                 self._subscribe(FORCE, self._on_force),
-                self._subscribe(PUMA_CMD, self._on_puma_cmd),
+                self._subscribe(ARM_TARGET, self._on_target),
                 self._subscribe(WORKCELL_STATE, self._on_workcell),
                 self._subscribe(PASSIVITY_MASTER, self._passivity_store("master")),
                 self._subscribe(PASSIVITY_SLAVE, self._passivity_store("slave")),
@@ -326,17 +313,13 @@ class BusMirror:
                 self._masters[msg.master] = msg
             self._cond.notify_all()
 
-    def _on_puma_cmd(self, cmd: OperatorCommand) -> None:
-        state = self.state.latest
+    def _on_target(self, tgt: ArmTarget) -> None:
         with self._lock:
-            if self._cmd is not None and cmd.seq <= self._cmd.seq and cmd.t_ns <= self._cmd.t_ns:
+            old = self._target
+            if old is not None and tgt.seq <= old.seq and tgt.t_ns <= old.t_ns:
                 return
-            self._cmd = cmd
-            self._cmd_rx_s = time.monotonic()
-            if (self._ref is None or self._ref.engage != cmd.engage) and state is not None:
-                self._ref = TargetRef(
-                    cmd.engage, np.asarray(state.tool_p, dtype=float), mat3(state.tool_R)
-                )
+            self._target = tgt
+            self._target_rx_s = time.monotonic()
 
     # --- readers ----------------------------------------------------------------------------
     def latest_force(self) -> ForceSample | None:
@@ -383,16 +366,13 @@ class BusMirror:
                 self._cond.wait(left)
 
     def target(self) -> tuple[Vec, Mat, bool] | None:
-        """The tool target robot/puma/cmd asks for (p, R, active), PROTOCOL §2, or None when
-        no command arrived within TARGET_STALE_S."""
+        """The tool target robot/arm/target asks for (p, R, active: false while the
+        supervisor holds), or None when none arrived within TARGET_STALE_S."""
         with self._lock:
-            cmd, ref, rx = self._cmd, self._ref, self._cmd_rx_s
-        if cmd is None or ref is None or ref.engage != cmd.engage:
+            tgt, rx = self._target, self._target_rx_s
+        if tgt is None or time.monotonic() - rx > TARGET_STALE_S:
             return None
-        if time.monotonic() - rx > TARGET_STALE_S:
-            return None
-        p, R = tool_target_pose(ref.p0, ref.R0, cmd.dp, mat3(cmd.dR), cmd.frame)
-        return p, R, cmd.active
+        return np.asarray(tgt.p, dtype=float), mat3(tgt.R), not tgt.hold
 
     def set_status(
         self,

@@ -1,20 +1,13 @@
 """The command phases: the bench as a master streams `robot/cmd` through the decision to the
 arm, and times the operator's path.
 
-Two ways to time it, chosen per figure by what the running services send:
-
-- **the contract-extension fields** (docs/protocol-extensions.md): the decision's
-  `robot/puma/cmd` carries `origin_t_ns` (the `t_ns` of the bench command it carries out) and
-  `robot/state` carries `cmd_rx_ns`, `setpoint_ns` and `cmd_origin_t_ns` for its `cmd_seq`.
-  Commands reaching the arm = distinct bench `t_ns` seen as `origin_t_ns`; master → arm =
-  `cmd_rx_ns − cmd_origin_t_ns`; master → setpoint = `setpoint_ns − cmd_origin_t_ns`, over the
-  commands `robot/state` showed (a sample: states run slower than a 1 kHz master);
-- **dp matching**, the fallback for services that do not send those fields: the bench encodes
-  its command index k in `dp` (k · step), decodes it back from the decision's commands, and
-  takes the arrival at the bench of the first arm command carrying k as "master → arm" and
-  the `t_ns` of the first `robot/state` showing it applied as "master → setpoint".
-
-Each phase records which way each figure was timed (`*_method`) and says so in a note.
+Timed from the contract's `origin_t_ns` and the extension fields
+(docs/protocol-extensions.md): the decision's `robot/arm/target` carries `origin_t_ns` (the
+`t_ns` of the bench command it carries out) and `robot/state` carries `cmd_rx_ns`,
+`setpoint_ns` and `cmd_origin_t_ns` for its `cmd_seq`. Commands reaching the arm = distinct
+bench `t_ns` seen as `origin_t_ns`; master → arm = `cmd_rx_ns − cmd_origin_t_ns`; master →
+setpoint = `setpoint_ns − cmd_origin_t_ns`, over the commands `robot/state` showed (a
+sample: states run slower than a 1 kHz master).
 """
 
 from __future__ import annotations
@@ -26,8 +19,8 @@ from dataclasses import dataclass
 from typing import Any
 
 from services.bus.errors import RpcError, Unavailable
-from services.bus.keys import EVENTS, PUMA_CMD, STATE
-from services.bus.messages import Event, OperatorCommand, RobotState
+from services.bus.keys import ARM_TARGET, EVENTS, STATE
+from services.bus.messages import ArmTarget, Event, RobotState
 from services.bus.node import Node
 from services.tools.bench import stats
 from services.tools.bench.probes import CommandDriver, CommandRun, StreamProbe
@@ -49,13 +42,13 @@ lease refusals are in the decision's intervention counters)."""
 MAX_MESSAGES = 10
 
 # Field positions in the probes' records.
-F_SEQ, F_MASTER, F_ACTIVE, F_DP_X, F_ENGAGE, F_ORIGIN, F_T = range(7)
+F_SEQ, F_MASTER, F_ACTIVE, F_ENGAGE, F_ORIGIN, F_T = range(6)
 S_T, S_CMD_SEQ, S_STATUS, S_RX, S_SETPOINT, S_ORIGIN = range(6)
 
 
-def puma_cmd_fields(m: OperatorCommand) -> tuple[Any, ...]:
-    """What the bench keeps of a `robot/puma/cmd` (indices F_*)."""
-    return (m.seq, m.master, m.active, m.dp[0], m.engage, m.origin_t_ns, m.t_ns)
+def target_fields(m: ArmTarget) -> tuple[Any, ...]:
+    """What the bench keeps of a `robot/arm/target` (indices F_*)."""
+    return (m.seq, m.master, not m.hold, m.engage, m.origin_t_ns, m.t_ns)
 
 
 def state_fields(m: RobotState) -> tuple[Any, ...]:
@@ -65,10 +58,10 @@ def state_fields(m: RobotState) -> tuple[Any, ...]:
 
 class HoldWatch:
     """Tells the command driver when the decision stopped following the bench's current
-    engagement: an inactive arm command of the engagement it was following (a hold), or
-    no active one at all `refused_after_s` after the engagement began (a refusal).
+    engagement: a hold target of the engagement it was following, or no moving one at all
+    `refused_after_s` after the engagement began (a refusal).
 
-    `newest()` gives the newest robot/puma/cmd record `(rx_ns, puma_cmd_fields(m))`."""
+    `newest()` gives the newest robot/arm/target record `(rx_ns, target_fields(m))`."""
 
     def __init__(
         self,
@@ -102,108 +95,57 @@ def step_for(rate_hz: float, duration_s: float, sign: float) -> float:
     return sign * min(CMD_MAX_STEP_M, CMD_TRAVEL_M / n_planned)
 
 
-def decision_active(
-    fwd_rec: Sequence[Record], run: CommandRun, step_m: float
-) -> list[tuple[int, int, int]]:
-    """(rx_ns, seq, k) of the decision's active arm commands since the bench's first
-    command, k decoded from dp within the bench engagement the decision engagement follows
-    (dp matching)."""
-    if not run.sent:
-        return []
-    t_first = run.sent[0][1]
-    k0s = [k0 for _, k0 in run.starts]
-    active = [
-        (rx, f) for rx, f in fwd_rec if f[F_MASTER] == "decision" and f[F_ACTIVE] and rx >= t_first
-    ]
-    first_seen: dict[int, int] = {}
-    for rx, f in active:
-        first_seen.setdefault(int(f[F_ENGAGE]), rx)
-    follows = stats.assign_engagements([t for t, _ in run.starts], first_seen)
-    return [
-        (rx, int(f[F_SEQ]), k0s[follows[int(f[F_ENGAGE])]] + stats.dp_index(f[F_DP_X], step_m))
-        for rx, f in active
-        if int(f[F_ENGAGE]) in follows
-    ]
-
-
 def command_figures(
     rate_hz: float,
     run: CommandRun,
     step_m: float,
     fwd_rec: Sequence[Record],
     st_rec: Sequence[Record],
-    drain_s: float = DRAIN_TIMEOUT_S,
 ) -> dict[str, Any]:
     """A command phase's figures from what the probes recorded (pure: no bus).
 
-    `fwd_rec`: `(rx_ns, puma_cmd_fields)` per robot/puma/cmd; `st_rec`: `(rx_ns,
-    state_fields)` per robot/state, both in arrival order. Each headline figure —
-    `reached_rate_hz`, `arm_ms`, `setpoint_ms` — comes from the extension fields when the
-    services send them and from dp matching otherwise (`reached_method`, `arm_method`,
-    `setpoint_method`); the dp-matching figures are kept beside them whatever the path.
-    `na` names, for a headline figure left empty, why.
+    `fwd_rec`: `(rx_ns, target_fields)` per robot/arm/target; `st_rec`: `(rx_ns,
+    state_fields)` per robot/state, both in arrival order. `na` names, for a headline
+    figure left empty, why.
     """
     sent = run.sent
     t_first, t_last = (sent[0][1], sent[-1][1]) if sent else (0, 0)
     duration_s = (t_last - t_first) / stats.NS_PER_S
-    forwarded = [r for r in decision_active(fwd_rec, run, step_m) if 0 <= r[2] < len(sent)]
-    st_rows = [(rx, int(s[S_T]), int(s[S_CMD_SEQ])) for rx, s in st_rec if rx >= t_first]
-    m = stats.match_commands(sent, forwarded, st_rows)
-    fwd_rx = [r[0] for r in forwarded if r[0] <= t_last + drain_s * stats.NS_PER_S]
-
-    has_origin = any(f[F_ORIGIN] is not None for _, f in fwd_rec)
-    has_rx = any(s[S_RX] is not None and s[S_ORIGIN] is not None for _, s in st_rec)
-    has_setpoint = any(s[S_SETPOINT] is not None and s[S_ORIGIN] is not None for _, s in st_rec)
     stamped = stats.stamped_commands(
         [t for _, t in sent],
         [(int(f[F_SEQ]), f[F_ORIGIN]) for _, f in fwd_rec],
         [(int(s[S_CMD_SEQ]), s[S_RX], s[S_SETPOINT], s[S_ORIGIN]) for rx, s in st_rec
          if rx >= t_first],
-        {int(f[F_SEQ]): int(f[F_T]) for _, f in fwd_rec if f[F_ORIGIN] is not None},
+        {int(f[F_SEQ]): int(f[F_T]) for _, f in fwd_rec},
     )  # fmt: skip
-    reached = stamped.reached if has_origin else m.forwarded_distinct
-    arm_ms = stamped.arm_ms if has_rx else m.forward_ms
-    setpoint_ms = stamped.setpoint_ms if has_setpoint else m.applied_ms
     na: dict[str, str] = {}
-    if arm_ms.size == 0:
-        na["arm_ms"] = (
-            "robot/state showed none of the bench's commands (cmd_origin_t_ns)"
-            if has_rx
-            else "no robot/puma/cmd carried a bench command (dp matching found none)"
-        )
-    if setpoint_ms.size == 0:
-        na["setpoint_ms"] = (
-            "robot/state showed no setpoint_ns for the bench's commands"
-            if has_setpoint
-            else "no robot/state showed a bench command applied (dp matching)"
-        )
+    if stamped.arm_ms.size == 0:
+        na["arm_ms"] = "robot/state showed none of the bench's commands (cmd_origin_t_ns)"
+    if stamped.setpoint_ms.size == 0:
+        na["setpoint_ms"] = "robot/state showed no setpoint_ns for the bench's commands"
+    fwd_rx = [
+        rx
+        for rx, f in fwd_rec
+        if f[F_MASTER] == "decision" and f[F_ACTIVE] and t_first <= rx
+        and rx <= t_last + DRAIN_TIMEOUT_S * stats.NS_PER_S
+    ]  # fmt: skip
     return {
         "rate_hz_target": rate_hz,
         "sent": len(sent),
         "sent_rate_hz": stats.rate_hz(max(len(sent) - 1, 0), duration_s),
         "step_m": step_m,
         "engagements": len(run.starts),
-        "reached_distinct": reached,
-        "reached_rate_hz": stats.rate_hz(reached, duration_s),
-        "reached_method": "origin_t_ns" if has_origin else "dp",
-        "arm_ms": stats.summarize(arm_ms).as_dict(),
-        "arm_method": "cmd_rx_ns" if has_rx else "bench_arrival",
-        "setpoint_ms": stats.summarize(setpoint_ms).as_dict(),
-        "setpoint_method": "setpoint_ns" if has_setpoint else "state_t_ns",
+        "reached_distinct": stamped.reached,
+        "reached_rate_hz": stats.rate_hz(stamped.reached, duration_s),
+        "arm_ms": stats.summarize(stamped.arm_ms).as_dict(),
+        "setpoint_ms": stats.summarize(stamped.setpoint_ms).as_dict(),
         "stamped_sampled": stamped.sampled,
         "hops_ms": {
             "decision": stats.summarize(stamped.decision_ms).as_dict(),
             "to_arm": stats.summarize(stamped.to_arm_ms).as_dict(),
             "apply": stats.summarize(stamped.apply_ms).as_dict(),
         },
-        "forwarded_distinct": m.forwarded_distinct,
-        "forwarded_rate_hz": stats.rate_hz(m.forwarded_distinct, duration_s),
         "arm_cmd_rate_hz": stats.rate_from_times(fwd_rx),
-        "matched": m.matched,
-        "unforwarded": m.unforwarded,
-        "forward_ms": stats.summarize(m.forward_ms).as_dict(),
-        "applied_ms": stats.summarize(m.applied_ms).as_dict(),
-        "seen_ms": stats.summarize(m.seen_ms).as_dict(),
         "states_moving": sum(1 for rx, s in st_rec if rx >= t_first and s[S_STATUS] == "moving"),
         "na": na,
     }
@@ -211,23 +153,12 @@ def command_figures(
 
 def method_note(key: str, fig: dict[str, Any]) -> str:
     """How a command phase was timed, in words (one note per phase)."""
-    if fig["arm_method"] == "cmd_rx_ns":
-        how = (
-            f"timed from the extension fields: commands reaching the arm by origin_t_ns "
-            f"({fig['reached_method']}), master→arm = cmd_rx_ns − cmd_origin_t_ns, "
-            f"master→setpoint = setpoint_ns − cmd_origin_t_ns ({fig['setpoint_method']}), over "
-            f"the {fig['stamped_sampled']} of {fig['sent']} commands robot/state showed (a "
-            "sample: the state stream is slower than the master)"
-        )
-    else:
-        how = (
-            "the services send no cmd_rx_ns/cmd_origin_t_ns yet: fallback dp matching — "
-            f"commands reaching the arm by the k decoded from dp ({fig['reached_method']}), "
-            "master→arm = arrival at the bench of the first robot/puma/cmd carrying the "
-            f"command, master→setpoint = t_ns of the first robot/state showing it applied "
-            f"({fig['setpoint_method']})"
-        )
-    return f"{key}: {how}."
+    return (
+        f"{key}: commands reaching the arm by origin_t_ns, master→arm = cmd_rx_ns − "
+        "cmd_origin_t_ns, master→setpoint = setpoint_ns − cmd_origin_t_ns, over the "
+        f"{fig['stamped_sampled']} of {fig['sent']} commands robot/state showed (a sample: "
+        "the state stream is slower than the master)."
+    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -250,12 +181,12 @@ def stream(
     sign: float,
     mark: Callable[[str], None] | None = None,
 ) -> Streamed:
-    """Stream `robot/cmd` at `rate_hz` for `duration_s` with robot/puma/cmd, robot/state and
+    """Stream `robot/cmd` at `rate_hz` for `duration_s` with robot/arm/target, robot/state and
     robot/events recorded, engaging again after a hold (HoldWatch); then wait (with a
     deadline) until the arm reports the last forwarded command applied. `mark("start")`
     and `mark("end")` are called right around the stream itself (a CPU window)."""
     step = step_for(rate_hz, duration_s, sign)
-    fwd = StreamProbe(node, PUMA_CMD, puma_cmd_fields).start()
+    fwd = StreamProbe(node, ARM_TARGET, target_fields).start()
     states = StreamProbe(node, STATE, state_fields).start()
     events = StreamProbe(node, EVENTS, _event_fields).start()
     try:
@@ -267,7 +198,10 @@ def stream(
         run = driver.stream(rate_hz, duration_s, step, held=HoldWatch(fwd.newest))
         if mark is not None:
             mark("end")
-        last_seq = max((r[1] for r in decision_active(fwd.snapshot(), run, step)), default=None)
+        ours = {t for _, t in run.sent}
+        last_seq = max(
+            (int(f[F_SEQ]) for _, f in fwd.snapshot() if f[F_ORIGIN] in ours), default=None
+        )
         if last_seq is not None:
             deadline = time.monotonic() + DRAIN_TIMEOUT_S
             while time.monotonic() < deadline:
@@ -322,12 +256,12 @@ def phase_commands(
     say(
         f"    sent {fig['sent']} ({fig['sent_rate_hz']:.0f} Hz) in {len(s.run.starts)} "
         f"engagement(s), {fig['reached_distinct']} reached the arm "
-        f"({fig['reached_rate_hz']:.0f} Hz, {fig['reached_method']}"
+        f"({fig['reached_rate_hz']:.0f} Hz"
         + (f"; arm counted {counter['rate_hz']:.0f}/s" if counter else "")
         + f"); master→arm p50 {ms_text(fig['arm_ms']['p50'])} p99 "
         f"{ms_text(fig['arm_ms']['p99'])}; master→setpoint p50 "
-        f"{ms_text(fig['setpoint_ms']['p50'])} p99 {ms_text(fig['setpoint_ms']['p99'])} "
-        f"({fig['arm_method']}, {fig['setpoint_method']})" + intake_text(fig["decision_intake"])
+        f"{ms_text(fig['setpoint_ms']['p50'])} p99 {ms_text(fig['setpoint_ms']['p99'])}"
+        + intake_text(fig["decision_intake"])
     )
     return fig, notes
 

@@ -235,7 +235,7 @@ def build_robot(
     console.subscribe(keys.PASSIVITY_SLAVE, trace.on_passivity)
     console.subscribe(keys.PASSIVITY_MASTER, trace.on_passivity)
     console.subscribe(keys.MASTER_FEEDBACK, trace.on_feedback)
-    console.subscribe(keys.PUMA_CMD, trace.on_cmd)
+    console.subscribe(keys.ARM_TARGET, trace.on_cmd)
     console.subscribe(keys.EVENTS, trace.on_event)
     state = console.latest(keys.STATE)
     console.call("decision", "connect", {}, 5.0)

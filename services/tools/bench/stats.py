@@ -242,121 +242,11 @@ def pair_skew_ms(left_rx_ns: Mapping[int, int], right_rx_ns: Mapping[int, int]) 
 
 
 @dataclass(frozen=True, slots=True)
-class CommandLatencies:
-    """Per operator command: how long until the arm had it (or a newer one).
-
-    forward_ms: bench `t_ns` → the first `robot/puma/cmd` carrying this command or a newer
-      one arrives at the bench (master → decision → arm's input, through the router);
-    applied_ms: bench `t_ns` → `t_ns` of the first `robot/state` whose `cmd_seq` shows that
-      arm command (or a later one) applied — the arm's own stamp;
-    seen_ms: bench `t_ns` → that `robot/state` arrives back at the bench (the full loop).
-    matched: commands with all three; unforwarded: commands no arm command carried (the
-    tail of a run, or commands the decision superseded before its next tick and never
-    followed by a newer one); forwarded_distinct: distinct commands the arm stream carried.
-    """
-
-    forward_ms: np.ndarray
-    applied_ms: np.ndarray
-    seen_ms: np.ndarray
-    sent: int
-    matched: int
-    unforwarded: int
-    forwarded_distinct: int
-
-
-def match_commands(
-    sent: Sequence[tuple[int, int]],
-    forwarded: Sequence[tuple[int, int, int]],
-    states: Sequence[tuple[int, int, int]],
-) -> CommandLatencies:
-    """Match the bench's commands to the decision's commands and the arm's states.
-
-    sent: (k, t_ns) per bench command, k its index in the engagement (0, 1, …), which the
-      bench encodes in `dp` so that it survives the decision's re-sequencing;
-    forwarded: (rx_ns, seq, k) per `robot/puma/cmd` in arrival order, k decoded from its dp;
-    states: (rx_ns, t_ns, cmd_seq) per `robot/state` in arrival order.
-
-    The decision sends the newest command each tick, so a command may be carried only by a
-    later one: command k counts as forwarded by the first arm command with index ≥ k, and
-    applied by the first state with `cmd_seq` ≥ that arm command's seq.
-    """
-    if not sent:
-        empty = np.zeros(0)
-        return CommandLatencies(empty, empty, empty, 0, 0, 0, 0)
-    ks = np.array([k for k, _ in sent], dtype=np.int64)
-    t_sent = np.array([t for _, t in sent], dtype=np.int64)
-    f_rx = np.array([f[0] for f in forwarded], dtype=np.int64)
-    f_seq = np.array([f[1] for f in forwarded], dtype=np.int64)
-    f_k = np.array([f[2] for f in forwarded], dtype=np.int64)
-    s_rx = np.array([s[0] for s in states], dtype=np.int64)
-    s_t = np.array([s[1] for s in states], dtype=np.int64)
-    s_cmd = np.array([s[2] for s in states], dtype=np.int64)
-
-    # Running maxima make "first with index ≥ k" a binary search, and a late duplicate of
-    # an old arm command or state cannot make a newer command look older.
-    fi = _first_at_least(f_k, ks)
-    seq_needed = np.where(fi >= 0, f_seq[np.maximum(fi, 0)] if f_seq.size else 0, -1)
-    si = _first_at_least(s_cmd, seq_needed)
-    si = np.where(fi >= 0, si, -1)
-    fwd = fi >= 0
-    ok = fwd & (si >= 0)
-    forward_ms = (f_rx[fi[fwd]] - t_sent[fwd]).astype(float) / NS_PER_MS
-    applied_ms = (s_t[si[ok]] - t_sent[ok]).astype(float) / NS_PER_MS
-    seen_ms = (s_rx[si[ok]] - t_sent[ok]).astype(float) / NS_PER_MS
-    distinct = int(np.unique(f_k[np.isin(f_k, ks)]).size) if f_k.size else 0
-    return CommandLatencies(
-        forward_ms=forward_ms,
-        applied_ms=applied_ms,
-        seen_ms=seen_ms,
-        sent=len(sent),
-        matched=int(ok.sum()),
-        unforwarded=int((~fwd).sum()),
-        forwarded_distinct=distinct,
-    )
-
-
-def _first_at_least(values: np.ndarray, wanted: np.ndarray) -> np.ndarray:
-    """For each w in `wanted`: the first index i with max(values[:i+1]) ≥ w, else −1."""
-    if values.size == 0:
-        return np.full(wanted.shape, -1, dtype=np.int64)
-    running = np.maximum.accumulate(values)
-    idx = np.searchsorted(running, wanted, side="left")
-    return np.where(idx < values.size, idx, -1).astype(np.int64)
-
-
-def assign_engagements(
-    starts_ns: Sequence[int], first_seen_ns: Mapping[int, int]
-) -> dict[int, int]:
-    """Which of the bench's engagements each decision engagement follows.
-
-    starts_ns: when each bench engagement's first command was sent, in order;
-    first_seen_ns: decision `engage` → arrival of its first active arm command.
-    A decision engagement starts only in answer to a bench engagement's first command, so it
-    follows the latest bench engagement started before it was first seen (an engagement the
-    decision refused simply gets none). Decision engagements seen before any bench
-    engagement are left out.
-    """
-    starts = np.asarray(starts_ns, dtype=np.int64)
-    out: dict[int, int] = {}
-    for engage, seen in first_seen_ns.items():
-        j = int(np.searchsorted(starts, seen, side="right")) - 1
-        if j >= 0:
-            out[engage] = j
-    return out
-
-
-def dp_index(dp_x_m: float, step_m: float) -> int:
-    """The command index the bench encoded as dp_x = k · step (rounded: the decision's
-    (p0 + dp) − p0 differs from dp by a few ulps, far below step/2)."""
-    return round(dp_x_m / step_m)
-
-
-@dataclass(frozen=True, slots=True)
 class StampedCommands:
     """The operator's path timed from the contract-extension fields (docs/protocol-extensions.md),
     every figure on the machine's one clock.
 
-    reached: distinct bench commands (by `t_ns`) that a `robot/puma/cmd` carried as its
+    reached: distinct bench commands (by `t_ns`) that a `robot/arm/target` carried as its
       `origin_t_ns`: what the arm was given;
     arm_ms: per command `robot/state` showed, `cmd_rx_ns − cmd_origin_t_ns`: master → arm;
     setpoint_ms: per command `robot/state` showed with a `setpoint_ns`, `setpoint_ns −
@@ -365,7 +255,7 @@ class StampedCommands:
       1 kHz master, so it shows only the command newest at each state).
 
     The same path hop by hop, where the decision's send stamps are known (`sent_at`):
-    decision_ms: per reached command, the `t_ns` of the first `robot/puma/cmd` carrying it
+    decision_ms: per reached command, the `t_ns` of the first `robot/arm/target` carrying it
       (the decision's tick) − `origin_t_ns`: master → decision, through the router;
     to_arm_ms: per command shown, `cmd_rx_ns` − that `t_ns`: the decision's tick → the
       arm's receipt (the supervision, the put, the router);
@@ -383,7 +273,7 @@ class StampedCommands:
 
 
 def first_carriers(arm_cmds: Sequence[tuple[int, int | None]]) -> dict[int, int]:
-    """`origin_t_ns` → the lowest `robot/puma/cmd` seq that carried it, from `(seq,
+    """`origin_t_ns` → the lowest `robot/arm/target` seq that carried it, from `(seq,
     origin_t_ns)` records (those without an origin, holds and task steps, are left out)."""
     out: dict[int, int] = {}
     for seq, origin in arm_cmds:
@@ -401,10 +291,10 @@ def stamped_commands(
     """The operator's path from the extension fields.
 
     sent_t_ns: the `t_ns` of every command the bench sent in the phase;
-    arm_cmds: `(seq, origin_t_ns)` per `robot/puma/cmd` seen (any order);
+    arm_cmds: `(seq, origin_t_ns)` per `robot/arm/target` seen (any order);
     states: `(cmd_seq, cmd_rx_ns, setpoint_ns, cmd_origin_t_ns)` per `robot/state`, in
       arrival order;
-    sent_at: `robot/puma/cmd` seq → its `t_ns` (the decision's tick), for the hops.
+    sent_at: `robot/arm/target` seq → its `t_ns` (the decision's tick), for the hops.
 
     Each bench command counts once, through the first arm command that carried it: a later
     arm command carrying the same origin (a re-send) arrived later than the operator's

@@ -192,8 +192,7 @@ class SimRun:
         fig = cpu_figures(a.services, b.services, b.bench_s - a.bench_s, b.mono_s - a.mono_s)
         cmd = commands.command_figures(rate_hz, s.run, s.step_m, s.fwd_rec, s.st_rec)
         fig["commands"] = {
-            k: cmd[k]
-            for k in ("sent", "sent_rate_hz", "engagements", "reached_rate_hz", "reached_method")
+            k: cmd[k] for k in ("sent", "sent_rate_hz", "engagements", "reached_rate_hz")
         }
         inside = [f for f in frames if a.wall_ns <= f.rx_ns <= b.wall_ns]
         fig["video"] = {

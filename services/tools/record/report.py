@@ -14,7 +14,7 @@ Read from the raw channels (the exact payloads), decoded with the contract's cod
   samples. `gaps` counts both, so a stream that stopped for a while is never "0 gaps";
 - events: every `robot/events` message;
 - tracking: the distance from the arm's tool point (`robot/state` while `ready` or
-  `moving`) to the newest supervised command target (`robot/puma/cmd`) at that moment.
+  `moving`) to the newest supervised target (`robot/arm/target`) at that moment.
 
 `--plots DIR` writes `force.png` (force and moment at the tool point over time; a line
 stops where the stream stalled instead of bridging the gap) and `path.png` (the tool path
@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from services.bus import codec, keys
 from services.bus.errors import ProtocolError
 from services.bus.messages import (
+    ArmTarget,
     Event,
     ForceSample,
     MasterFeedback,
@@ -53,7 +54,7 @@ from services.tools.record import plots
 from services.tools.record.archive import Recording
 
 #: command streams whose targets are drawn, with their plot labels
-COMMAND_KEYS = {keys.PUMA_CMD.key: "supervised command", keys.CMD.key: "operator command"}
+COMMAND_KEYS = {keys.ARM_TARGET.key: "supervised target", keys.CMD.key: "operator command"}
 #: robot states whose tool pose is the arm's (before calibration it is not)
 POSED = ("ready", "moving")
 STALL_PERIODS = 10.0
@@ -65,7 +66,7 @@ MIN_PATH_SPAN_M = 0.05
 #: streams that pause by design: commands flow only while an operator is engaged, and so do
 #: the passivity figures (each side publishes them only while it observes an engagement)
 NOT_PERIODIC = frozenset(
-    {keys.CMD.key, keys.PUMA_CMD.key, keys.PASSIVITY_MASTER.key, keys.PASSIVITY_SLAVE.key}
+    {keys.CMD.key, keys.ARM_TARGET.key, keys.PASSIVITY_MASTER.key, keys.PASSIVITY_SLAVE.key}
 )
 
 
@@ -325,6 +326,11 @@ def analyze(paths: Sequence[str | Path], select: Callable[[str], bool] | None = 
                     res_.append((msg.rot_e_in, msg.rot_e_out))
             elif isinstance(msg, Event):
                 events.append(EventRow(t_s, msg.source, msg.kind, msg.message, msg.data))
+            elif isinstance(msg, ArmTarget) and m.key in COMMAND_KEYS and not msg.hold:
+                ts, ps = traces.targets.setdefault(m.key, ([], []))
+                ts.append(t_s)
+                ps.append(msg.p)
+                target = np.asarray(msg.p)
             elif isinstance(msg, OperatorCommand) and m.key in COMMAND_KEYS and msg.active:
                 k = (m.key, msg.master)
                 eng = engaged.get(k)
@@ -336,8 +342,6 @@ def analyze(paths: Sequence[str | Path], select: Callable[[str], bool] | None = 
                 ts, ps = traces.targets.setdefault(m.key, ([], []))
                 ts.append(t_s)
                 ps.append(tuple(float(x) for x in p))
-                if m.key == keys.PUMA_CMD.key:
-                    target = p
         if rec.truncated:
             truncated.append(str(path))
         stats = rec.metadata.get("telerobot.stats", {}).get("stats")

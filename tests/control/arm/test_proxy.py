@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -19,13 +19,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from services.bus.errors import ConfigError, RpcError
+from services.bus.messages import ArmTarget
 from services.control.arm.backends import arm_options
 from services.control.arm.config import HOME_Q_RAD, ArmConfig
 from services.control.arm.kinematics import Puma560, qn
-from services.control.arm.mapping import TeleopInput
 from services.control.arm.proxy import ArmProxy
 from services.control.arm.sim_arm import SimArm
-from services.geometry import angle_between
+from services.geometry import angle_between, tool_target_pose
 
 KIN = Puma560()
 HOME = np.array(HOME_Q_RAD)
@@ -83,11 +83,15 @@ class Rig:
 
 
 def make_rig(
-    q_init: np.ndarray = HOME, connect: bool = True, dt: float = DT, **overrides: Any
+    q_init: np.ndarray = HOME,
+    connect: bool = True,
+    dt: float = DT,
+    config: ArmConfig = CFG,
+    **overrides: Any,
 ) -> Rig:
     arm = RecordingSimArm(q_init, calibration_s=0.02, threaded=False, **overrides)
     rig = Rig(arm, ArmProxy.__new__(ArmProxy), dt)
-    rig.proxy = ArmProxy(arm, CFG, lambda k, m, d: rig.events.append((k, m, d)))
+    rig.proxy = ArmProxy(arm, config, lambda k, m, d: rig.events.append((k, m, d)))
     if connect:
         rig.proxy.rpc_connect({})
         rig.proxy.rpc_initialize({})
@@ -127,10 +131,32 @@ def flat(R: np.ndarray) -> list[float]:
     return [float(x) for x in np.asarray(R).reshape(-1)]
 
 
-def cmd(seq: int, dp: Any, dR: Any = None, engage: int = 1, active: bool = True,
-        frame: str = "world") -> TeleopInput:  # fmt: skip
-    return TeleopInput(seq, engage, active, frame, np.asarray(dp, dtype=float),  # type: ignore[arg-type]
-                       np.eye(3) if dR is None else np.asarray(dR, dtype=float))  # fmt: skip
+class Supervisor:
+    """The decision's side of the contract, as a test needs it: motions since an engagement
+    (PROTOCOL §2) sent as absolute ArmTargets, from where the arm is told to be (the
+    setpoint's tool pose) when each engagement begins."""
+
+    def __init__(self, rig: Rig) -> None:
+        self.rig = rig
+        self.engage: int | None = None
+        self.p0 = np.zeros(3)
+        self.R0 = np.eye(3)
+
+    def target(self, seq: int, dp: Any, dR: Any = None, engage: int = 1, frame: str = "world",
+               grip: float | None = None, hold: bool = False) -> ArmTarget:  # fmt: skip
+        if engage != self.engage:
+            st = self.rig.proxy.state()
+            self.engage = engage
+            self.p0 = np.array(st.get("tool_p_cmd", st["tool_p"]), dtype=float)
+            self.R0 = np.array(st["tool_R"], dtype=float).reshape(3, 3)
+        dR = np.eye(3) if dR is None else np.asarray(dR, dtype=float)
+        p, R = tool_target_pose(self.p0, self.R0, np.asarray(dp, dtype=float), dR, frame)  # type: ignore[arg-type]
+        return ArmTarget(seq=seq, t_ns=seq, origin_t_ns=seq, master="decision", engage=engage,
+                         p=tuple(map(float, p)), R=tuple(map(float, np.asarray(R).reshape(-1))),
+                         grip=grip, hold=True if hold else None)  # fmt: skip
+
+    def send(self, seq: int, dp: Any, dR: Any = None, **kw: Any) -> None:
+        self.rig.proxy.on_target(self.target(seq, dp, dR, **kw))
 
 
 # --- configuration ---------------------------------------------------------------------------
@@ -534,16 +560,17 @@ def test_home_fk_ik_and_limits() -> None:
     assert lim["max_joint_speed_rad_s"] == list(CFG.max_joint_speed_rad_s)
 
 
-# --- streamed commands ---------------------------------------------------------------------
+# --- streamed targets ----------------------------------------------------------------------
 
 
 def test_teleop_follows_the_engagement_in_world_and_tool_frames() -> None:
     rig = make_rig()
+    sup = Supervisor(rig)
     p0 = rig.tool().translation.copy()
     R0 = rig.tool().rotation.copy()
     for k in range(1, 51):
-        rig.proxy.on_command(cmd(k, [0.001 * k, 0.0, 0.0], rz(0.004 * k)), k, 0.5)
-        rig.tick(10)  # commands at 50 Hz, control at 500 Hz
+        sup.send(k, [0.001 * k, 0.0, 0.0], rz(0.004 * k), grip=0.5)
+        rig.tick(10)  # targets at 50 Hz, control at 500 Hz
     assert rig.status() == "moving"
     rig.finish()
     np.testing.assert_allclose(rig.tool().translation, p0 + np.array([0.05, 0.0, 0.0]), atol=1e-9)
@@ -551,23 +578,25 @@ def test_teleop_follows_the_engagement_in_world_and_tool_frames() -> None:
     s = rig.proxy.state()
     assert (s["engage"], s["cmd_seq"], s["grip"]) == (1, 50, 0.5)
     assert rig.kinds().count("moved") == 1  # no flapping between commands
-    # A new engagement in the tool frame starts from where the tool is now.
+    # A new engagement in the tool frame starts from where the tool is now (as robot/state
+    # shows it: the setpoint's pose, or the measured one within SETPOINT_SHOWN_M of it).
     p1 = rig.tool().translation.copy()
-    rig.proxy.on_command(cmd(51, [0.0, 0.0, 0.03], engage=2, frame="tool"), 0, None)
+    sup.send(51, [0.0, 0.0, 0.03], engage=2, frame="tool")
     rig.finish()
-    np.testing.assert_allclose(rig.tool().translation, p1 + R0 @ rz(0.2) @ [0, 0, 0.03], atol=1e-9)
+    np.testing.assert_allclose(rig.tool().translation, p1 + R0 @ rz(0.2) @ [0, 0, 0.03], atol=1e-6)
     check_setpoints(rig.arm.sent)
 
 
-def test_stale_and_inactive_commands_do_not_move_the_arm() -> None:
+def test_stale_targets_and_holds_do_not_move_the_arm() -> None:
     rig = make_rig()
-    rig.proxy.on_command(cmd(10, [0.02, 0.0, 0.0]), 0, None)
+    sup = Supervisor(rig)
+    sup.send(10, [0.02, 0.0, 0.0])
     rig.finish()
     q = rig.q_cmd().copy()
     ignored = rig.proxy.counters["commands_ignored"]
-    rig.proxy.on_command(cmd(9, [0.1, 0.0, 0.0]), 0, None)  # older seq
-    rig.proxy.on_command(cmd(11, [0.1, 0.0, 0.0], engage=0), 0, None)  # older engagement
-    rig.proxy.on_command(cmd(12, [0.1, 0.0, 0.0], active=False), 0, None)  # master-shift
+    sup.send(9, [0.04, 0.0, 0.0])  # older seq
+    rig.proxy.on_target(replace(sup.target(11, [0.04, 0.0, 0.0]), engage=0))  # older engagement
+    sup.send(12, [0.02, 0.0, 0.0], hold=True)  # the supervisor holds: the same target again
     rig.tick(50)
     assert rig.status() == "ready"
     np.testing.assert_array_equal(rig.q_cmd(), q)
@@ -577,9 +606,10 @@ def test_stale_and_inactive_commands_do_not_move_the_arm() -> None:
 
 def test_commands_are_ignored_unless_ready() -> None:
     rig = make_rig(connect=False)
-    rig.proxy.on_command(cmd(1, [0.01, 0.0, 0.0]), 0, None)
+    sup = Supervisor(rig)
+    sup.send(1, [0.01, 0.0, 0.0])
     rig.proxy.rpc_connect({})
-    rig.proxy.on_command(cmd(2, [0.01, 0.0, 0.0]), 0, None)
+    sup.send(2, [0.01, 0.0, 0.0])
     assert rig.proxy.counters["commands_ignored"] == 2
     assert rig.proxy.state()["cmd_seq"] == -1
 
@@ -588,7 +618,7 @@ def test_a_command_preempts_a_move_and_moves_are_busy_during_teleop() -> None:
     rig = make_rig()
     r = rig.proxy.rpc_move_joints({"q": list(HOME + 0.4)})
     rig.tick(100)
-    rig.proxy.on_command(cmd(1, [0.0, 0.0, 0.01]), 0, None)
+    Supervisor(rig).send(1, [0.0, 0.0, 0.01])
     result = rig.proxy.wait_motion(r["motion"], 0.0)
     assert result["done"] and result["reason"] == "preempted"
     with pytest.raises(RpcError) as info:
@@ -599,17 +629,20 @@ def test_a_command_preempts_a_move_and_moves_are_busy_during_teleop() -> None:
     assert rig.proxy.rpc_home({})["accepted"]  # once teleop has settled
 
 
-def test_unreachable_command_holds_and_reports_at_a_bounded_rate() -> None:
-    rig = make_rig()
-    rig.proxy.on_command(cmd(1, [0.02, 0.0, 0.0]), 0, None)
+def test_unreachable_target_holds_and_reports_at_a_bounded_rate() -> None:
+    # A step bound wide enough to let a target 0.5 m away through to the solver: the wrist
+    # centre would be 1.07 m from the shoulder, the arm reaches 0.86 m.
+    rig = make_rig(config=replace(CFG, max_target_step_m=1.0))
+    sup = Supervisor(rig)
+    sup.send(1, [0.02, 0.0, 0.0])
     rig.finish()
     q_hold = rig.q_cmd().copy()
     n_events = len(rig.events)
-    for k in range(2, 1002):  # 2 s of 500 Hz commands, all out of reach
-        rig.proxy.on_command(cmd(k, [1.5, 0.0, 0.0]), 0, None)
+    for k in range(2, 1002):  # 2 s of 500 Hz targets, all out of reach
+        sup.send(k, [0.5, 0.0, 0.0])
         rig.tick()
     assert rig.proxy.counters["unreachable"] == 1000
-    errors = [d for k, _, d in rig.events[n_events:] if k == "error"]
+    errors = [d for k, _, d in rig.events[n_events:] if k == "unreachable"]
     assert 1 <= len(errors) <= 3
     assert all(d["code"] == "unreachable" for d in errors)
     assert errors[-1].get("suppressed", 0) > 0 or len(errors) == 1
@@ -754,7 +787,7 @@ rotations = st.builds(
     st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda a: np.linalg.norm(a) > 0.1),
     st.floats(-0.6, 0.6),
 )
-bad_commands = st.one_of(
+bad_targets = st.one_of(
     st.tuples(st.just("huge"), st.floats(2.01, 1e12)),
     st.tuples(st.just("reflect"), st.integers(0, 2)),
     st.tuples(st.just("skew"), st.floats(1e-4, 0.5)),
@@ -762,27 +795,27 @@ bad_commands = st.one_of(
 )
 
 
-def make_bad(k: int, bad: tuple[str, float]) -> tuple[TeleopInput, float | None]:
+def make_bad(sup: Supervisor, k: int, bad: tuple[str, float], engage: int = 1) -> ArmTarget:
     kind, x = bad
     if kind == "huge":
-        return cmd(k, [x, 0.0, 0.0]), None
+        return sup.target(k, [x, 0.0, 0.0], engage=engage)
     if kind == "reflect":
         R = np.eye(3)
         R[int(x), int(x)] = -1.0
-        return cmd(k, [0.01, 0.0, 0.0], R), None
+        return sup.target(k, [0.01, 0.0, 0.0], R, engage=engage)
     if kind == "skew":
-        return cmd(k, [0.01, 0.0, 0.0], np.eye(3) + x * np.ones((3, 3))), None
-    return cmd(k, [0.01, 0.0, 0.0]), x
+        return sup.target(k, [0.01, 0.0, 0.0], np.eye(3) + x * np.ones((3, 3)), engage=engage)
+    return sup.target(k, [0.01, 0.0, 0.0], grip=x, engage=engage)
 
 
 @FUZZ
-@given(stream=st.lists(bad_commands, min_size=1, max_size=30))
-def test_invalid_commands_are_rejected_and_never_move(stream: list[tuple[str, float]]) -> None:
+@given(stream=st.lists(bad_targets, min_size=1, max_size=30))
+def test_invalid_targets_are_rejected_and_never_move(stream: list[tuple[str, float]]) -> None:
     rig = make_rig()
+    sup = Supervisor(rig)
     n = len(rig.arm.sent)
     for k, bad in enumerate(stream, start=1):
-        c, grip = make_bad(k, bad)
-        rig.proxy.on_command(c, 0, grip)
+        rig.proxy.on_target(make_bad(sup, k, bad))
         rig.tick(3)
     assert rig.proxy.counters["rejected"] == len(stream)
     assert "rejected" in rig.kinds()
@@ -795,9 +828,9 @@ def test_invalid_commands_are_rejected_and_never_move(stream: list[tuple[str, fl
 @given(
     steps=st.lists(
         st.tuples(
-            st.one_of(st.lists(st.floats(-0.4, 0.4), min_size=3, max_size=3), bad_commands),
+            st.one_of(st.lists(st.floats(-0.1, 0.1), min_size=3, max_size=3), bad_targets),
             rotations,
-            st.booleans(),  # active
+            st.booleans(),  # hold
             st.sampled_from(["world", "tool"]),
             st.integers(0, 1),  # engage increment
             st.integers(1, 25),  # ticks until the next command
@@ -806,17 +839,34 @@ def test_invalid_commands_are_rejected_and_never_move(stream: list[tuple[str, fl
         max_size=25,
     )
 )
-def test_any_command_stream_stays_within_every_limit(steps: list[Any]) -> None:
+def test_any_target_stream_stays_within_every_limit(steps: list[Any]) -> None:
     rig = make_rig()
+    sup = Supervisor(rig)
     engage = 1
-    for k, (dp, dR, active, frame, inc, ticks) in enumerate(steps, start=1):
+    for k, (dp, dR, hold, frame, inc, ticks) in enumerate(steps, start=1):
         engage += inc
         if isinstance(dp, tuple):
-            c, grip = make_bad(k, dp)
+            tgt = make_bad(sup, k, dp, engage)
         else:
-            c, grip = cmd(k, dp, dR, engage=engage, active=active, frame=frame), None
-        rig.proxy.on_command(c, 0, grip)
+            tgt = sup.target(k, dp, dR, engage=engage, frame=frame, hold=hold)
+        rig.proxy.on_target(tgt)
         rig.tick(ticks)
     rig.finish(max_ticks=20_000)
     assert rig.status() == "ready"
+    check_setpoints(rig.arm.sent)
+
+
+def test_a_target_turned_in_place_turns_the_tool_about_the_tool_point() -> None:
+    """PROTOCOL §2: a pure rotation command turns the tool about the tool point, which stays
+    put; the arm solves the tool target through its tool placement (eqs. 2–3)."""
+    rig = make_rig()
+    p0 = rig.tool().translation.copy()
+    R0 = rig.tool().rotation.copy()
+    sup = Supervisor(rig)
+    for k in range(1, 31):
+        sup.send(k, [0.0, 0.0, 0.0], rx(0.01 * k) @ rz(0.01 * k), frame="tool")
+        rig.tick(5)
+    rig.finish()
+    np.testing.assert_allclose(rig.tool().translation, p0, atol=1e-6)
+    np.testing.assert_allclose(rig.tool().rotation, R0 @ rx(0.3) @ rz(0.3), atol=1e-6)
     check_setpoints(rig.arm.sent)

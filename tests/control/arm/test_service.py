@@ -1,4 +1,4 @@
-"""The arm service over Zenoh: methods, the command stream, and bad input that never moves it."""
+"""The arm service over Zenoh: methods, the target stream, and bad input that never moves it."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pytest
 
 from services.bus import keys
 from services.bus.errors import RpcError
-from services.bus.messages import IDENTITY_R, Event, OperatorCommand, RobotState
+from services.bus.messages import ArmTarget, Event, RobotState
 from services.control.arm.config import ArmConfig
 from services.control.arm.service import ArmService
 
@@ -67,7 +67,7 @@ def test_status_machine_and_motion_methods(net, arm) -> None:
     assert len(ik["solutions"]) == 8
 
 
-def test_command_stream_moves_the_tool_and_bad_commands_never_do(net, arm) -> None:
+def test_target_stream_moves_the_tool_and_bad_targets_never_do(net, arm) -> None:
     client = net.node("master")
     state = client.subscribe(keys.STATE)
     rejected: list[Event] = []
@@ -80,90 +80,80 @@ def test_command_stream_moves_the_tool_and_bad_commands_never_do(net, arm) -> No
 
     client.subscribe(keys.EVENTS, on_event)
     st0 = _ready(client, state)
-    pub = client.publisher(keys.PUMA_CMD)
+    pub = client.publisher(keys.ARM_TARGET)
     seq = 0
 
-    def send(dp: tuple[float, float, float], engage: int = 1, active: bool = True) -> None:
+    def send(dp: tuple[float, float, float], engage: int = 1) -> None:
         nonlocal seq
         seq += 1
+        now = time.time_ns()
+        p = tuple(a + b for a, b in zip(st0.tool_p, dp, strict=True))
         pub.put(
-            OperatorCommand(
-                seq=seq,
-                t_ns=time.time_ns(),
-                master="m",
-                engage=engage,
-                active=active,
-                frame="world",
-                dp=dp,
-                dR=IDENTITY_R,
-            )
-        )
+            ArmTarget(seq=seq, t_ns=now, origin_t_ns=now, master="decision", engage=engage,
+                      p=p, R=st0.tool_R)
+        )  # fmt: skip
 
     for i in range(1, 41):
         send((0.0, 0.001 * i, 0.0))
     moved = state.wait_for(
         lambda s: s.cmd_seq == seq and abs(s.tool_p[1] - st0.tool_p[1] - 0.04) < 1e-7, 10.0
     )
-    assert moved is not None, "the tool did not follow the command stream"
+    assert moved is not None, "the tool did not follow the target stream"
     q_before = np.array(moved.q)
 
-    # Garbage on the command key: NaN, a reflected R, a huge dp, not msgpack at all.
+    # Garbage on the target key: NaN, a reflected R, a huge step, not msgpack at all.
     raw = client.session
     good = {
         "seq": seq + 1,
         "t_ns": 1,
-        "master": "m",
+        "origin_t_ns": 1,
+        "master": "decision",
         "engage": 1,
-        "active": True,
-        "frame": "world",
-        "dp": [0.0, 0.04, 0.0],
-        "dR": list(IDENTITY_R),
+        "p": list(moved.tool_p),
+        "R": list(st0.tool_R),
     }
     bad = [
-        {**good, "dp": [float("nan"), 0.0, 0.0]},
-        {**good, "dR": [1.0, 0, 0, 0, 1.0, 0, 0, 0, -1.0]},
+        {**good, "p": [float("nan"), 0.0, 0.0]},
+        {**good, "R": [1.0, 0, 0, 0, 1.0, 0, 0, 0, -1.0]},
         b"\xc1\xff not msgpack",
     ]
     for payload in bad:
         raw.put(
-            keys.PUMA_CMD.key, payload if isinstance(payload, bytes) else msgpack.packb(payload)
+            keys.ARM_TARGET.key, payload if isinstance(payload, bytes) else msgpack.packb(payload)
         )
-    send((5.0, 0.0, 0.0))  # a valid message, but a 5 m jump: refused by the proxy
+    send((0.5, 0.04, 0.0))  # a valid message, but a 0.5 m jump: refused by the arm
     assert got_rejected.wait(5.0), "no rejected event"
     later = state.wait_for(lambda s: s.seq > moved.seq + 50, 5.0)
     assert later is not None
-    assert np.allclose(later.q, q_before, atol=1e-6), "bad commands moved the arm"
+    assert np.allclose(later.q, q_before, atol=1e-6), "bad targets moved the arm"
     assert any(ev.kind == "rejected" for ev in rejected)
 
 
-def test_a_command_is_applied_on_arrival_and_its_times_are_in_the_state(net, arm) -> None:
+def test_a_target_is_applied_on_arrival_and_its_times_are_in_the_state(net, arm) -> None:
     client = net.node("master")
     state = client.subscribe(keys.STATE)
     st0 = _ready(client, state)
-    pub = client.publisher(keys.PUMA_CMD)
-    sent: list[OperatorCommand] = []
+    pub = client.publisher(keys.ARM_TARGET)
+    sent: list[ArmTarget] = []
     for i in range(1, 21):
         now = time.time_ns()
-        cmd = OperatorCommand(
+        tgt = ArmTarget(
             seq=i,
             t_ns=now,
+            origin_t_ns=now - 1_000,  # the operator sent it 1 µs earlier
             master="decision",
             engage=1,
-            active=True,
-            frame="world",
-            dp=(0.0, 0.0005 * i, 0.0),
-            dR=IDENTITY_R,
-            origin_t_ns=now - 1_000,  # the operator sent it 1 µs earlier
+            p=(st0.tool_p[0], st0.tool_p[1] + 0.0005 * i, st0.tool_p[2]),
+            R=st0.tool_R,
         )
-        sent.append(cmd)
-        pub.put(cmd)
+        sent.append(tgt)
+        pub.put(tgt)
     last = sent[-1]
     st = state.wait_for(lambda s: s.cmd_seq == last.seq and s.setpoint_ns is not None, 10.0)
-    assert st is not None, "the last command was never applied"
+    assert st is not None, "the last target was never applied"
     assert st.cmd_origin_t_ns == last.origin_t_ns
     assert st.cmd_rx_ns is not None and st.setpoint_ns is not None
     # one clock: sent, then received, then the first setpoint from it
-    assert last.origin_t_ns is not None
     assert last.origin_t_ns < last.t_ns <= st.cmd_rx_ns <= st.setpoint_ns <= st.t_ns
     # the setpoint's tool position (what a new engagement starts from): left out at rest
     # (the measured one is it), on the way to the target while moving, ahead of the tool

@@ -1,20 +1,22 @@
-"""A closed loop for the pure Supervisor: an ideal §2 slave and the workcell's contact force.
+"""A closed loop for the pure Supervisor: an ideal arm and the workcell's contact force.
 
 `Rig.step()` runs one tick: it feeds the supervisor the current robot state and force (the
 slave's tool pose; the sim table pushes on a probe sphere around the tool point), applies the
-published command to the slave like the arm does (records its pose at the first active
-command of a new engagement, then goes to p0 + dp, R0·dR at once) and records everything.
+published target to the slave like the arm does (goes to its pose at once, ignoring stale
+ones) and records everything, each target with its motion since its engagement began
+(`Out.dp`, `Out.dR`: p − p0 and R0ᵀ·R, p0 and R0 the supervisor's engagement pose).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.bus.messages import ForceSample, OperatorCommand, RobotState, mat3, vec
+from services.bus.messages import ArmTarget, ForceSample, OperatorCommand, RobotState, mat3, vec
 from services.control.decision.config import DecisionConfig
 from services.control.decision.notices import Notice
 from services.control.decision.supervisor import Inputs, Supervisor, TickResult
@@ -25,6 +27,23 @@ TOOL_DOWN: NDArray[np.float64] = np.diag([-1.0, 1.0, -1.0])
 I3 = np.eye(3)
 TICK_NS = 2_000_000
 PROBE_RADIUS_M = 0.005
+
+
+@dataclass(frozen=True)
+class Out:
+    """A published ArmTarget and its motion since its engagement began (world frame)."""
+
+    target: ArmTarget
+    dp: tuple[float, ...]
+    dR: tuple[float, ...]
+
+    @property
+    def active(self) -> bool:
+        """False for a hold (the supervisor re-sends the target it last sent)."""
+        return not self.target.hold
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.target, name)
 
 
 class Rig:
@@ -51,11 +70,9 @@ class Rig:
         self.force_seq = 0
         self.slave_engage: int | None = None
         self.slave_seq = -1
-        self._p0 = self.p.copy()
-        self._R0 = self.R.copy()
         self.grip: float | None = None
         self.seqs: dict[str, int] = {}
-        self.outputs: list[OperatorCommand] = []
+        self.outputs: list[Out] = []
         self.notices: list[Notice] = []
         self.results: list[TickResult] = []
         self.state_rx_ns = 0
@@ -147,8 +164,13 @@ class Rig:
         self.results.append(res)
         self.notices.extend(res.notices)
         if res.command is not None:
-            self.outputs.append(res.command)
-            self._slave(res.command)
+            t = self.sup.target
+            p0 = t.p0 if t.p0 is not None else np.zeros(3)
+            tgt = res.command
+            dp = vec(np.asarray(tgt.p) - p0)
+            dR = vec(t.R0.T @ mat3(tgt.R))
+            self.outputs.append(Out(tgt, dp, dR))
+            self._slave(tgt)
         return res
 
     def run(self, n: int, make: object = None, **kw: bool) -> None:
@@ -157,22 +179,18 @@ class Rig:
             cmds = make(i) if callable(make) else ()
             self.step(cmds, **kw)
 
-    def _slave(self, c: OperatorCommand) -> None:
-        """PROTOCOL §2 as the arm applies it (ideal tracking)."""
+    def _slave(self, c: ArmTarget) -> None:
+        """The target as the arm applies it (ideal tracking)."""
         if c.seq <= self.slave_seq or (
             self.slave_engage is not None and c.engage < self.slave_engage
         ):
             return
         self.slave_seq = c.seq
+        self.slave_engage = c.engage
         if c.grip is not None:
             self.grip = c.grip
-        if not c.active:
-            return
-        if c.engage != self.slave_engage:
-            self._p0, self._R0 = self.p.copy(), self.R.copy()
-            self.slave_engage = c.engage
-        self.p = self._p0 + np.asarray(c.dp)
-        self.R = self._R0 @ mat3(c.dR)
+        self.p = np.asarray(c.p, dtype=float)
+        self.R = mat3(c.R)
 
     # --- views -----------------------------------------------------------------------------
     def kinds(self) -> list[str]:
@@ -182,7 +200,7 @@ class Rig:
         return [n for n in self.notices if n.kind == kind]
 
     def targets(self) -> list[NDArray[np.float64]]:
-        """The target tool point of every published command (p0 + dp of its engagement)."""
+        """Every published target's tool point relative to its engagement's start (dp)."""
         return [np.asarray(c.dp) for c in self.outputs]
 
     def with_config(self, **changes: object) -> None:

@@ -11,22 +11,11 @@ from services.control.decision.filters import (
     clip_norm,
     deadband,
     effective_box,
-    engagement_command,
     slow_near_box,
     without_motion_into,
 )
-from services.geometry import exp_so3, tool_target_pose
 
 TOOL_DOWN = np.diag([-1.0, 1.0, -1.0])
-
-
-def test_engagement_command_inverts_the_mapping() -> None:
-    p0 = np.array([0.5, 0.1, 0.6])
-    R = TOOL_DOWN @ exp_so3((0.1, -0.2, 0.3))
-    dp, dR = engagement_command(p0, TOOL_DOWN, (0.55, 0.0, 0.7), R)
-    p, R2 = tool_target_pose(p0, TOOL_DOWN, dp, dR, "world")
-    assert np.allclose(p, [0.55, 0.0, 0.7])
-    assert np.allclose(R2, R)
 
 
 def test_contact_filter_removes_only_motion_into_the_contact() -> None:

@@ -154,7 +154,7 @@ class Checker:
             self.t_moved = rig.now_ns
         self.p, self.R = sup.target.p_sup.copy(), sup.target.R_sup.copy()
         for c in rig.outputs[self.n_out :]:
-            to_fields(c)
+            to_fields(c.target)
             assert c.seq > self.last_seq
             self.last_seq = c.seq
             if c.active:

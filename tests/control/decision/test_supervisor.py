@@ -39,7 +39,7 @@ def test_follows_the_operator_in_world_and_tool_frames() -> None:
     start = rig.p.copy()
     engaged(rig)
     first = rig.outputs[0]
-    assert first.master == "decision" and first.frame == "world" and first.active
+    assert first.master == "decision" and first.active
     assert np.allclose(first.dp, 0.0)  # rebased on the current pose: no jump
     rig.run(20, lambda i: [rig.cmd(dp=(0.0, 0.01, 0.0))])
     assert np.allclose(rig.p, start + np.array([0.0, 0.01, 0.0]), atol=1e-9)
@@ -54,7 +54,7 @@ def test_every_published_command_is_valid_on_the_wire() -> None:
     engaged(rig)
     rig.run(50, lambda i: [rig.cmd(dp=(0.001 * i, 0, 0), dR=rot_z(0.01 * i))])
     for c in rig.outputs:
-        to_fields(c)  # raises ProtocolError if a rotation drifted or a field is bad
+        to_fields(c.target)  # raises ProtocolError if a rotation drifted or a field is bad
     seqs = [c.seq for c in rig.outputs]
     assert seqs == sorted(set(seqs))
 
@@ -120,7 +120,8 @@ def test_with_passivity_on_a_contact_re_sends_the_target_every_period() -> None:
         rig.run(10)
         sent = rig.outputs[n:]
         assert len(sent) == (10 if passivity else 0)
-        assert all(c.active and c.origin_t_ns is None for c in sent)
+        # each a re-send of the target carrying out the operator's newest command
+        assert all(c.active and c.origin_t_ns == rig.outputs[n - 1].origin_t_ns for c in sent)
         assert all(np.allclose(c.dp, rig.outputs[n - 1].dp) for c in sent)  # the same target
         # The force goes stale (no sample for stale_ms): no contact is known, nothing sent.
         rig.step([rig.cmd()], force=False, dt_ns=int(CFG.stale_ms * 1e6) + TICK_NS)
@@ -173,7 +174,9 @@ def test_a_target_held_back_by_the_speed_limit_catches_up_on_the_timer() -> None
     assert wake == rig.now_ns + int(CFG.period_s * 1e9)  # catching up: every period
     n = len(rig.outputs)
     rig.run(25)  # 50 ms of timer ticks, no new command
-    assert len(rig.outputs) > n and all(c.origin_t_ns is None for c in rig.outputs[n:])
+    # each step still carries out that one command: its origin
+    assert len(rig.outputs) > n
+    assert all(c.origin_t_ns == rig.outputs[n - 1].origin_t_ns for c in rig.outputs[n:])
     assert np.allclose(rig.sup.target.p_sup, start + np.array([0.01, 0, 0]), atol=1e-12)
     rig.step()
     assert rig.sup.next_wake_ns() == rig.sup._cmd_rx_ns + int(CFG.watchdog_ms * 1e6) + 1
@@ -606,7 +609,7 @@ def test_an_absurd_command_is_refused_before_arithmetic_and_the_hold_goes_on(
     out = rig.outputs[n:]
     assert out and not any(c.active for c in out)  # holds keep going out, finite
     for c in out:
-        to_fields(c)
+        to_fields(c.target)
     assert rig.sup.notices.counters["limit"] == 20
     (ev,) = [e for e in rig.notices_of("limit") if e.data.get("reason", "").startswith("dp")]
     assert "exceeds 2 m" in ev.data["reason"]  # names the field and the bound

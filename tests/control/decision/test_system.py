@@ -21,7 +21,7 @@ import pytest
 
 from services.bus import keys
 from services.bus.errors import RpcError
-from services.bus.messages import IDENTITY_R, Event, OperatorCommand, RobotState, vec
+from services.bus.messages import IDENTITY_R, ArmTarget, Event, OperatorCommand, RobotState, vec
 from services.bus.node import Node
 from services.control.arm.config import HOME_Q_RAD, ArmConfig
 from services.control.arm.driver import QN_RAD
@@ -75,14 +75,14 @@ class Events:
 
 
 class Recorder:
-    """Every robot/puma/cmd, in arrival order."""
+    """Every robot/arm/target, in arrival order."""
 
     def __init__(self, node: Node) -> None:
         self._cond = threading.Condition()
-        self.items: list[OperatorCommand] = []
-        node.subscribe(keys.PUMA_CMD, self._on)
+        self.items: list[ArmTarget] = []
+        node.subscribe(keys.ARM_TARGET, self._on)
 
-    def _on(self, c: OperatorCommand) -> None:
+    def _on(self, c: ArmTarget) -> None:
         with self._cond:
             self.items.append(c)
             self._cond.notify_all()
@@ -91,21 +91,21 @@ class Recorder:
         with self._cond:
             return len(self.items)
 
-    def since(self, n: int) -> list[OperatorCommand]:
+    def since(self, n: int) -> list[ArmTarget]:
         with self._cond:
             return self.items[n:]
 
     def held_after(self, n: int, more: int = 50, timeout_s: float = 5.0) -> bool:
-        """From the first inactive command after the n-th on, `more` commands, none active
-        (active ones sent before the hold may still be in flight when it is announced)."""
+        """From the first hold after the n-th target on, `more` targets, all holds (moving
+        ones sent before the hold may still be in flight when it is announced)."""
         cmds = self.wait_more(n, more, timeout_s)
-        first = next((i for i, c in enumerate(cmds) if not c.active), None)
+        first = next((i for i, c in enumerate(cmds) if c.hold), None)
         if first is None:
             return False
         cmds = self.wait_more(n + first, more, timeout_s)
-        return not any(c.active for c in cmds)
+        return all(c.hold for c in cmds)
 
-    def wait_more(self, n: int, more: int, timeout_s: float = 5.0) -> list[OperatorCommand]:
+    def wait_more(self, n: int, more: int, timeout_s: float = 5.0) -> list[ArmTarget]:
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while len(self.items) < n + more:
@@ -482,7 +482,6 @@ def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) 
     # status keeps its settings map per configuration: the change shows at once
     assert before != [0.95, 0.05, 1.2]
     assert cell.call("status", {})["settings"]["workspace_max"] == [0.95, 0.05, 1.2]
-    y0 = cell.tool_p()[1]  # the arm is at rest: the engagement's p0
     m = cell.master("m1")
     m.engage_new(ramp((0.0, 0.12, 0.0), 0.2))
     ev = cell.events.wait(
@@ -493,7 +492,7 @@ def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) 
     n = cell.arm_cmds.count()
     cell.arm_cmds.wait_more(n, 200)
     assert cell.tool_p()[1] == pytest.approx(0.05, abs=5e-4)
-    assert max(y0 + c.dp[1] for c in cell.arm_cmds.since(0)) <= 0.05 + 1e-9
+    assert max(c.p[1] for c in cell.arm_cmds.since(0)) <= 0.05 + 1e-9
 
 
 def test_estop_latches_until_reset(make_cell: Callable[..., Cell]) -> None:

@@ -14,8 +14,8 @@ from services.bus import codec, keys
 from services.bus.errors import ProtocolError
 from services.bus.messages import (
     IDENTITY_R,
+    ArmTarget,
     ForceSample,
-    OperatorCommand,
     PassivityState,
     RobotState,
 )
@@ -259,17 +259,27 @@ def robot_state(
     )
 
 
-def command(engage: int, dz: float, frame: str = "world", seq: int = 1) -> OperatorCommand:
-    return OperatorCommand(
-        seq=seq,
-        t_ns=time.time_ns(),
-        master="decision",
-        engage=engage,
-        active=True,
-        frame=frame,  # type: ignore[arg-type]
-        dp=(0.0, 0.0, dz),
-        dR=IDENTITY_R,
+P0 = (0.5, 0.0, 0.5)
+"""Where `robot_state` puts the tool by default, and every engagement here starts."""
+
+
+def command(
+    engage: int,
+    dz: float,
+    seq: int = 1,
+    p0: tuple[float, ...] = P0,
+    along: tuple[float, ...] = (0.0, 0.0, 1.0),
+) -> ArmTarget:
+    """The supervised target `dz` along `along` (world) from `p0`, the engagement's start."""
+    now = time.time_ns()
+    p = tuple(a + dz * u for a, u in zip(p0, along, strict=True))
+    return ArmTarget(
+        seq=seq, t_ns=now, origin_t_ns=now, master="decision", engage=engage, p=p, R=IDENTITY_R
     )
+
+
+def dz_of(out: ArmTarget, p0: tuple[float, ...] = P0) -> float:
+    return float(out.p[2] - p0[2])
 
 
 def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> None:
@@ -284,8 +294,8 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
     clock = {"k": 0}
 
     def go(engage: int, dz: float) -> float:
-        """One tick: the command through the slave port, then an ideal arm (the arm: start
-        pose at a new engagement, then p0 + dp at once)."""
+        """One tick: the target (dz from where the engagement began) through the slave
+        port, then an ideal arm (at the corrected target at once)."""
         clock["k"] += 1
         k = clock["k"]
         if engage != arm["engage"]:
@@ -294,9 +304,10 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
         t = 1_000_000_000 + k * 2_000_000
         st = robot_state(tool_p=tuple(float(x) for x in arm["p"]), seq=k, t_ns=t)
         f = dataclasses.replace(push_up, seq=k, t_ns=t)
-        out = tdpa.apply(command(engage, dz, seq=k), op, st, f, t)
-        arm["p"] = arm["p0"] + np.asarray(out.dp)
-        return float(out.dp[2])
+        p0 = tuple(float(x) for x in arm["p0"])
+        out = tdpa.apply(command(engage, dz, seq=k, p0=p0), op, st, f, t)
+        arm["p"] = np.asarray(out.p)
+        return dz_of(out, p0)
 
     outs = [go(9, 0.0)] + [go(9, -0.001 * k) for k in range(1, 6)]
     # 1 mm a tick down into a surface pushing up with 20 N, no energy from the operator
@@ -324,32 +335,27 @@ def test_decision_holds_back_motion_into_a_contact_until_paid_for(net: Net) -> N
     assert go(9, -0.008) == pytest.approx(-0.0025)
     # Moving back out of the contact is never held back.
     assert go(9, -0.0055) == pytest.approx(0.0)
-    # A new arm engagement (a rebase) starts the offset from zero: the command is unchanged.
+    # A new arm engagement (a rebase) starts the offset from zero: the target is unchanged.
     assert go(10, 0.0) == 0.0
     # Holds pass unchanged.
-    hold = OperatorCommand(**{**codec.to_fields(command(10, -0.3)), "active": False})  # type: ignore[arg-type]
+    hold = dataclasses.replace(command(10, -0.3), hold=True)
     st = robot_state()
     assert tdpa.apply(hold, op, st, push_up, 0) is hold
 
 
-def test_decision_starts_from_the_pose_the_arm_starts_from(net: Net) -> None:
-    """The arm maps an engagement onto its setpoint's pose; the measured tool trails it
-    (here still 0.13 mm above it, settling after a move). In contact, with no energy from
-    the operator, the port holds the target the arm aims at on the measured tool: the dp
-    it sends puts the arm's target there, not 0.13 mm into the wall (which it did while it
-    took the measured pose as the start)."""
+def test_decision_holds_the_target_on_the_measured_tool_in_contact(net: Net) -> None:
+    """The supervisor starts an engagement at the setpoint's pose; the measured tool trails
+    it (here still 0.13 mm above it, settling after a move). In contact, with no energy from
+    the operator, the port holds the target on the measured tool, not 0.13 mm into the
+    wall where the setpoint is."""
     tdpa = SlaveTdpa(net.node("decision"), drift_m_s=0.0)
     op = ("m1", 1)
     t0 = 1_000_000_000
     setpoint, tool = (0.5, 0.0, 0.5), (0.5, 0.0, 0.50013)
     push = ForceSample(seq=1, t_ns=t0, f=(0.0, 0.0, 20.0), c=(0.0, 0.0, 0.0))
     st = robot_state(tool_p=tool, seq=1, t_ns=t0, tool_p_cmd=setpoint)
-    out = tdpa.apply(command(1, 0.0), op, st, push, t0)
-    assert setpoint[2] + out.dp[2] == pytest.approx(tool[2], abs=1e-12)
-    # Without the setpoint's pose in robot/state (an older arm), the measured one.
-    old = SlaveTdpa(net.node("decision2"), drift_m_s=0.0)
-    out = old.apply(command(1, 0.0), op, robot_state(tool_p=tool, seq=1, t_ns=t0), push, t0)
-    assert out.dp[2] == pytest.approx(0.0, abs=1e-12)
+    out = tdpa.apply(command(1, 0.0, p0=setpoint), op, st, push, t0)
+    assert out.p[2] == pytest.approx(tool[2], abs=1e-12)
 
 
 def test_decision_ignores_forces_below_the_deadband(net: Net) -> None:
@@ -359,7 +365,7 @@ def test_decision_ignores_forces_below_the_deadband(net: Net) -> None:
     noise = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.3, 0.0, 0.5), c=(0.0, 0.0, 0.0))
     tdpa.apply(command(1, 0.0), op, st, noise, 0)
     out = tdpa.apply(command(1, -0.01, seq=2), op, st, noise, 2_000_000)
-    assert out.dp[2] == pytest.approx(-0.01)
+    assert dz_of(out) == pytest.approx(-0.01)
     assert tdpa.pc.telemetry.active_steps == 0
 
 
@@ -408,21 +414,21 @@ def test_decision_excludes_the_supervisors_retraction(net: Net) -> None:
     assert soft.pc.excluded_j == 0.0 and soft.pc.clipped_j == pytest.approx(0.02)
 
 
-def test_decision_tool_frame_correction_is_mapped_back(net: Net) -> None:
+def test_decision_reads_the_wrist_force_in_the_tool_frame(net: Net) -> None:
     a = net.node("decision")
     tdpa = SlaveTdpa(a, drift_m_s=0.0)
     flip = (1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, -1.0)  # tool z points down (world −z)
     st = robot_state(flip)
-    # tool frame: the wall pushes along tool −z (world +z), the tool moves along tool +z
+    # the wall pushes along tool −z (world +z); the target moves along tool +z (world −z)
     push = ForceSample(seq=1, t_ns=time.time_ns(), f=(0.0, 0.0, -20.0), c=(0.0, 0.0, 0.0))
     op = ("m1", 1)
-    tdpa.apply(command(1, 0.0, "tool"), op, st, push, 0)
-    out = tdpa.apply(command(1, 0.002, "tool", seq=2), op, st, push, 2_000_000)
-    assert out.dp == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    down = (0.0, 0.0, -1.0)
+    tdpa.apply(command(1, 0.0, along=down), op, st, push, 0)
+    out = tdpa.apply(command(1, 0.002, seq=2, along=down), op, st, push, 2_000_000)
+    assert out.p == pytest.approx(P0, abs=1e-12)
     free = ForceSample(seq=2, t_ns=time.time_ns(), f=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0))
-    assert tdpa.apply(command(1, 0.003, "tool", seq=3), op, st, free, 4_000_000).dp[
-        2
-    ] == pytest.approx(0.001)
+    out = tdpa.apply(command(1, 0.003, seq=3, along=down), op, st, free, 4_000_000)
+    assert dz_of(out) == pytest.approx(-0.001)
 
 
 @pytest.mark.parametrize(
@@ -444,9 +450,9 @@ def test_decision_warns_when_passivity_runs_without_a_guarded_approach(
         dec.close()
 
 
-def turn_command(engage: int, angle_rad: float, seq: int = 1) -> OperatorCommand:
+def turn_command(engage: int, angle_rad: float, seq: int = 1) -> ArmTarget:
     """Stay where the engagement began and turn the tool by `angle_rad` about the world's z."""
-    return dataclasses.replace(command(engage, 0.0, seq=seq), dR=m9(rot_z(angle_rad)))
+    return dataclasses.replace(command(engage, 0.0, seq=seq), R=m9(rot_z(angle_rad)))
 
 
 def test_decision_holds_back_a_turn_into_a_contact_moment_until_paid_for(net: Net) -> None:
@@ -467,15 +473,15 @@ def test_decision_holds_back_a_turn_into_a_contact_moment_until_paid_for(net: Ne
     tick = {"k": 0}
     arm = {"R": IDENTITY_R}
 
-    def go(angle_rad: float) -> OperatorCommand:
-        """One tick, then an ideal arm: the tool turned to R0·dR at once (R0 = I)."""
+    def go(angle_rad: float) -> ArmTarget:
+        """One tick, then an ideal arm: the tool turned to the target at once."""
         tick["k"] += 1
         k = tick["k"]
         t = t0 + k * 2_000_000
         st = robot_state(tool_R=arm["R"], seq=k, t_ns=t)
         f = dataclasses.replace(resist, seq=k, t_ns=t)  # about z: the same in either frame
         out = tdpa.apply(turn_command(9, angle_rad, seq=k), op, st, f, t)
-        arm["R"] = out.dR
+        arm["R"] = out.R
         return out
 
     def rot_state(e_in: float) -> PassivityState:
@@ -490,9 +496,7 @@ def test_decision_holds_back_a_turn_into_a_contact_moment_until_paid_for(net: Ne
 
     assert wait_until(counting_moments)
     out = go(0.01)
-    assert angle_between(np.asarray(out.dR).reshape(3, 3), np.eye(3)) == pytest.approx(
-        0.0, abs=1e-9
-    )
+    assert angle_between(np.asarray(out.R).reshape(3, 3), np.eye(3)) == pytest.approx(0.0, abs=1e-9)
     assert tdpa.rot is not None and tdpa.rot.offset[2] == pytest.approx(-0.01 * 0.1)
     master_pub.put(rot_state(0.01))
 
@@ -504,8 +508,8 @@ def test_decision_holds_back_a_turn_into_a_contact_moment_until_paid_for(net: Ne
     # The master turns on to 0.015 rad: the tool, 0.01 behind it, turns 0.005 and no more.
     for angle, allowed in ((0.015, 0.005), (0.02, 0.005)):
         out = go(angle)
-        assert np.asarray(out.dR).reshape(3, 3) == pytest.approx(rot_z(allowed), abs=1e-9)
-    assert out.dp == (0.0, 0.0, 0.0)
+        assert np.asarray(out.R).reshape(3, 3) == pytest.approx(rot_z(allowed), abs=1e-9)
+    assert out.p == P0
     assert tdpa.pc.telemetry.active_steps == 0 and tdpa.pc.observer.e_out == 0.0
 
     def reported() -> bool:  # figures sent before the turn may still be arriving
@@ -519,5 +523,5 @@ def test_decision_holds_back_a_turn_into_a_contact_moment_until_paid_for(net: Ne
     plain = SlaveTdpa(net.node("decision2"), drift_m_s=0.0)
     cmd = turn_command(9, 0.01)
     st = robot_state(seq=1, t_ns=t0)
-    assert plain.apply(cmd, op, st, resist, t0).dR == cmd.dR
+    assert plain.apply(cmd, op, st, resist, t0).R == cmd.R
     assert plain.rot is None

@@ -184,7 +184,7 @@ def test_session_configs_carry_the_downsampling_rules() -> None:
         ("x/y", 5.0),
         (keys.FORCE.key, 50.0),
         (keys.STATE.key, 40.0),
-        (keys.PUMA_CMD.key, 40.0),
+        (keys.ARM_TARGET.key, 40.0),
         (WORKCELL_STATE.key, 40.0),
         (keys.PASSIVITY_MASTER.key, 40.0),
         (keys.PASSIVITY_SLAVE.key, 40.0),

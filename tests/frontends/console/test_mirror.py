@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from services.bus import keys
-from services.bus.messages import IDENTITY_R, OperatorCommand
+from services.bus.messages import IDENTITY_R, ArmTarget
 from services.frontends.console.mirror import BusMirror, ForceHistory
 
 from .support import ready_state, wait_until
@@ -45,16 +45,10 @@ def test_empty_history() -> None:
     assert t.shape == (0,) and w.shape == (0, 6)
 
 
-def _cmd(seq: int, engage: int, dp: tuple[float, float, float]) -> OperatorCommand:
-    return OperatorCommand(
-        seq=seq,
-        t_ns=time.time_ns(),
-        master="decision",
-        engage=engage,
-        active=True,
-        frame="world",
-        dp=dp,
-        dR=IDENTITY_R,
+def _target(seq: int, engage: int, p: tuple[float, float, float]) -> ArmTarget:
+    now = time.time_ns()
+    return ArmTarget(
+        seq=seq, t_ns=now, origin_t_ns=now, master="decision", engage=engage, p=p, R=IDENTITY_R
     )
 
 
@@ -62,21 +56,20 @@ def test_mirror_over_the_bus(net: Any) -> None:
     pub_node = net.node("arm")
     mirror_node = net.node("console")
     mirror = BusMirror(mirror_node, events=3, force_capacity=100)
-    mirror.watch_page(True)  # robot/puma/cmd is subscribed to while a page is shown
+    mirror.watch_page(True)  # robot/arm/target is subscribed to while a page is shown
     state_pub = pub_node.publisher(keys.STATE)
-    cmd_pub = pub_node.publisher(keys.PUMA_CMD)
+    cmd_pub = pub_node.publisher(keys.ARM_TARGET)
     assert mirror.target() is None
 
     state_pub.put(ready_state(1, (0.5, 0.0, 0.6)))
     assert mirror.state.wait_for(lambda s: s.seq == 1, 5.0) is not None
-    # robot/puma/cmd was subscribed to just now: until the publisher's session has heard of
-    # it, a put reaches nobody (the same command again is harmless: latest-wins by seq).
-    cmd = _cmd(10, 7, (0.0, 0.1, 0.0))
+    # robot/arm/target was subscribed to just now: until the publisher's session has heard
+    # of it, a put reaches nobody (the same target again is harmless: latest-wins by seq).
+    cmd = _target(10, 7, (0.5, 0.1, 0.6))
     assert wait_until(lambda: cmd_pub.put(cmd) or mirror.target() is not None, poll_s=0.05)
     target = mirror.target()
     assert target is not None
     p, R, active = target
-    # The engagement's reference is the tool pose when its first command arrived.
     assert np.allclose(p, [0.5, 0.1, 0.6]) and np.allclose(R, np.eye(3)) and active
 
     for i in range(5):

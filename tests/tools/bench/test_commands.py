@@ -1,5 +1,5 @@
-"""A command phase's figures from synthetic probe records: the contract-extension path and the
-dp-matching fallback of services that do not send the fields."""
+"""A command phase's figures from synthetic probe records (the contract's `origin_t_ns` and
+the extension timing fields)."""
 
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ def _run() -> CommandRun:
     return CommandRun(sent=[(k, T0 + k * MS) for k in range(N)], starts=[(T0, 0)])
 
 
-def _records(fields: bool, setpoint: bool = True) -> tuple[list[Any], list[Any]]:
+def _records(setpoint: bool = True) -> tuple[list[Any], list[Any]]:
     """The decision forwards every other command (its tick carries the newest) from a tick
     0.1 ms after it was sent, and the bench sees that 0.5 ms after it was sent; the arm
     receives it 0.3 ms after it was sent, has its setpoint 0.8 ms after, and publishes a
@@ -38,25 +38,19 @@ def _records(fields: bool, setpoint: bool = True) -> tuple[list[Any], list[Any]]
     fwd, states = [], []
     for i, k in enumerate(range(0, N, 2)):
         t = T0 + k * MS
-        origin = t if fields else None
-        fwd.append((t + MS // 2, (SEQ0 + i, "decision", True, k * STEP, 7, origin, t + MS // 10)))
+        fwd.append((t + MS // 2, (SEQ0 + i, "decision", True, 7, t, t + MS // 10)))
         if k % 4 == 0:
-            rx = t + 3 * MS // 10 if fields else None
-            sp = t + 8 * MS // 10 if fields and setpoint else None
-            states.append((t + 11 * MS // 10, (t + MS, SEQ0 + i, "moving", rx, sp, origin)))
-    hold = (SEQ0 + 9, "decision", False, 0.0, 7, None, T0 + 20 * MS)
-    fwd.append((T0 + 20 * MS, hold))  # the hold after
+            rx = t + 3 * MS // 10
+            sp = t + 8 * MS // 10 if setpoint else None
+            states.append((t + 11 * MS // 10, (t + MS, SEQ0 + i, "moving", rx, sp, t)))
+    hold = (SEQ0 + 9, "decision", False, 7, T0 + 20 * MS, T0 + 20 * MS)
+    fwd.append((T0 + 20 * MS, hold))  # the hold after, with its own time as origin
     return fwd, states
 
 
 def test_the_extension_fields_time_the_path_on_the_arm_clock() -> None:
-    fwd, states = _records(fields=True)
+    fwd, states = _records()
     f = command_figures(1000.0, _run(), STEP, fwd, states)
-    assert (f["reached_method"], f["arm_method"], f["setpoint_method"]) == (
-        "origin_t_ns",
-        "cmd_rx_ns",
-        "setpoint_ns",
-    )
     assert f["sent"] == N and f["reached_distinct"] == 5  # k = 0, 2, 4, 6, 8
     assert f["reached_rate_hz"] == pytest.approx(5 / 0.009)  # over first → last sent
     assert f["stamped_sampled"] == 3  # the states showed k = 0, 4, 8
@@ -70,45 +64,22 @@ def test_the_extension_fields_time_the_path_on_the_arm_clock() -> None:
     assert hops["decision"]["p50"] == pytest.approx(0.1)
     assert hops["to_arm"]["p50"] == pytest.approx(0.2)
     assert hops["apply"]["p50"] == pytest.approx(0.5)
-    # the dp-matching figures are kept beside them
-    assert f["forwarded_distinct"] == 5 and f["forward_ms"]["p50"] == pytest.approx(0.5)
-    assert "timed from the extension fields" in method_note("commands_1000hz", f)
+    assert f["arm_cmd_rate_hz"] > 0.0
     assert "3 of 10 commands robot/state showed" in method_note("commands_1000hz", f)
 
 
-def test_without_the_fields_dp_matching_stands_in() -> None:
-    fwd, states = _records(fields=False)
-    f = command_figures(1000.0, _run(), STEP, fwd, states)
-    assert (f["reached_method"], f["arm_method"], f["setpoint_method"]) == (
-        "dp",
-        "bench_arrival",
-        "state_t_ns",
-    )
-    assert f["reached_distinct"] == f["forwarded_distinct"] == 5
-    # master→arm: arrival at the bench of the first arm command carrying k or a newer one
-    # (k odd waits for k + 1's: 1.5 ms; k even 0.5 ms); k = 9 was never carried.
-    assert f["arm_ms"]["n"] == 9 and f["unforwarded"] == 1
-    assert f["arm_ms"]["min"] == pytest.approx(0.5) and f["arm_ms"]["max"] == pytest.approx(1.5)
-    # master→setpoint: t_ns of the first state showing the carrying command (or a later one)
-    # applied: k = 0 by its own state 1 ms later, k = 1 … 8 by the states of k = 4 and 8
-    assert f["setpoint_ms"]["n"] == 9 and f["setpoint_ms"]["min"] == pytest.approx(1.0)
-    assert f["setpoint_ms"]["max"] == pytest.approx(4.0)  # k = 1 → the state of k = 4
-    assert f["stamped_sampled"] == 0 and f["na"] == {}
-    assert "fallback dp matching" in method_note("commands_1000hz", f)
-
-
-def test_a_arm_without_setpoint_ns_falls_back_for_that_figure_only() -> None:
-    fwd, states = _records(fields=True, setpoint=False)
+def test_an_arm_without_setpoint_ns_leaves_that_figure_empty_and_says_why() -> None:
+    fwd, states = _records(setpoint=False)
     f = command_figures(100.0, _run(), STEP, fwd, states)
-    assert (f["arm_method"], f["setpoint_method"]) == ("cmd_rx_ns", "state_t_ns")
-    assert f["setpoint_ms"]["n"] == 9
+    assert f["arm_ms"]["n"] == 3 and f["setpoint_ms"]["n"] == 0
+    assert set(f["na"]) == {"setpoint_ms"}
 
 
 def test_nothing_forwarded_says_why() -> None:
     f = command_figures(100.0, _run(), STEP, [], [])
     assert f["reached_distinct"] == 0 and f["arm_ms"]["n"] == 0
     assert set(f["na"]) == {"arm_ms", "setpoint_ms"}
-    assert "dp matching found none" in f["na"]["arm_ms"]
+    assert "cmd_origin_t_ns" in f["na"]["arm_ms"]
     empty = command_figures(100.0, CommandRun([], []), STEP, [], [])
     assert empty["sent"] == 0 and empty["reached_rate_hz"] == 0.0
 

@@ -135,7 +135,7 @@ def test_a_router_beyond_loopback_says_who_can_join() -> None:
     )
     assert open_note is not None
     assert "beyond loopback on tcp/0.0.0.0:7447" in open_note
-    assert "ANYONE who reaches the port can join and publish robot/puma/cmd" in open_note
+    assert "ANYONE who reaches the port can join and publish robot/arm/target" in open_note
     assert "admin space @/**" in open_note and "readable by all" in open_note
     # Zenoh's own default listener ([::]:7447) counts as beyond loopback too
     assert "tcp/[::]:7447" in (exposure_note(NodeConfig(mode="router")) or "")

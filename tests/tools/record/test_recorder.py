@@ -102,19 +102,19 @@ def test_no_video_and_key_filters(net: Net, tmp_path: Path) -> None:
     _wait_subscribed(pub, "vision/stereo/l")
     pub.publisher(keys.STEREO_L).put(_frame("l", 1))
     pub.event("status", "hello")
-    pub.session.put("robot/puma/cmd/extra", codec.pack({"x": 1}))
+    pub.session.put("robot/arm/target/extra", codec.pack({"x": 1}))
     assert wait_until(
         lambda: a.stats().received >= 2 and b.stats().received >= 1 and c.stats().received >= 2
     )
     sa, sb, sc = a.stop(), b.stop(), c.stop()
-    assert set(sa.keys) == {"robot/events", "robot/puma/cmd/extra"}
+    assert set(sa.keys) == {"robot/events", "robot/arm/target/extra"}
     assert set(sb.keys) == {"robot/events"}
     # overlapping expressions: each sample once
     assert {k: v.written for k, v in sc.keys.items()} == {
         "robot/events": 1,
-        "robot/puma/cmd/extra": 1,
+        "robot/arm/target/extra": 1,
     }
-    assert Recording(tmp_path / "a.mcap").raw_keys() == ["robot/events", "robot/puma/cmd/extra"]
+    assert Recording(tmp_path / "a.mcap").raw_keys() == ["robot/events", "robot/arm/target/extra"]
 
 
 def test_a_namespaced_recorder_records_keys_without_the_namespace(

@@ -15,6 +15,7 @@ from services.bus import codec, keys
 from services.bus.errors import ConfigError
 from services.bus.messages import (
     ALL_MESSAGES,
+    ArmTarget,
     ForceSample,
     OperatorCommand,
     RobotState,
@@ -108,9 +109,9 @@ def test_bad_and_foreign_payloads() -> None:
 def test_key_selection_uses_zenoh_key_expressions() -> None:
     sel = schemas.key_matcher(("robot/*",))
     assert sel("robot/cmd") and sel("robot/force")
-    assert not sel("robot/puma/cmd") and not sel("master/state")
+    assert not sel("robot/arm/target") and not sel("master/state")
     sel = schemas.key_matcher(("robot/**", "vision/**"), video=False)
-    assert sel("robot/puma/cmd") and sel("vision/stats")
+    assert sel("robot/arm/target") and sel("vision/stats")
     assert not sel("vision/stereo/l") and not sel("vision/stereo/r")
     assert schemas.key_matcher(())("anything/at/all")
     with pytest.raises(ConfigError) as err:
@@ -140,6 +141,18 @@ commands = st.builds(
     dR=st.builds(_rotation, st.tuples(finite, finite, finite), st.floats(-3.14, 3.14)),
     grip=st.none() | st.floats(0.0, 1.0),
 )
+targets = st.builds(
+    ArmTarget,
+    seq=st.integers(0, 2**63 - 1),
+    t_ns=st.integers(0, 2**63 - 1),
+    origin_t_ns=st.integers(0, 2**63 - 1),
+    master=st.text(max_size=128),
+    engage=st.integers(0, 2**63 - 1),
+    p=vec3,
+    R=st.builds(_rotation, st.tuples(finite, finite, finite), st.floats(-3.14, 3.14)),
+    grip=st.none() | st.floats(0.0, 1.0),
+    hold=st.none() | st.just(True),
+)
 forces = st.builds(
     ForceSample,
     seq=st.integers(0, 2**63 - 1),
@@ -153,7 +166,9 @@ forces = st.builds(
 @settings(max_examples=150, deadline=None)
 @given(
     st.one_of(
-        commands.map(lambda m: ("robot/puma/cmd", m)), forces.map(lambda m: ("robot/force", m))
+        commands.map(lambda m: ("robot/cmd", m)),
+        targets.map(lambda m: ("robot/arm/target", m)),
+        forces.map(lambda m: ("robot/force", m)),
     )
 )
 def test_views_conform_and_decode_back_to_the_same_message(case: tuple[str, object]) -> None:

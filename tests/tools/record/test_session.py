@@ -45,7 +45,7 @@ pytestmark = pytest.mark.system
 
 SESSION_KEYS = {
     "robot/cmd",
-    "robot/puma/cmd",
+    "robot/arm/target",
     "robot/state",
     "robot/force",
     "robot/events",
@@ -75,7 +75,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
         op.call("decision", "connect", {}, timeout_s=10.0)
         op.call("decision", "initialize", {"wait": True}, timeout_s=20.0)
         assert state.wait_for(lambda s: s.status == "ready", 20.0) is not None
-        cmds = op.subscribe(keys.PUMA_CMD)
+        cmds = op.subscribe(keys.ARM_TARGET)
         services.append(
             MasterService(
                 net.node("master", instance="m1"),
@@ -228,7 +228,7 @@ def test_the_report_matches_the_recording_and_draws_the_plots(
     assert len(report.traces.tool_p) == sum(s.status in ("ready", "moving") for s in states)
     assert len(report.traces.force_f) == report.key("robot/force").count
     assert report.tracking_mm is not None and report.tracking_mm.n > 0
-    assert len(report.traces.targets["robot/puma/cmd"][0]) > 0
+    assert len(report.traces.targets["robot/arm/target"][0]) > 0
 
     out = io.StringIO()
     with redirect_stdout(out):
