@@ -4,8 +4,9 @@ A value can be a valid float and still absurd: `dp = [1e308, 0, 0]` is finite, a
 arithmetic it meets (a rotation, a norm, a sum) overflows to inf or NaN. Every entry of a
 service (a stream, a method argument, a configuration key) checks its magnitudes against
 this table **before** any such arithmetic, and refuses what is outside with an error that
-names the field and the bound. The bounds are generous for a PUMA 560 (reach ≈ 0.9 m,
-tool ≤ 1 m) and tight enough that no product of two in-bound values can overflow.
+names the field and the bound. The bounds are generous for the arms we ship (the tool point
+within 1.9 m of the world origin, tool ≤ 1 m; `position_m` ±5 m) and tight enough that no
+product of two in-bound values can overflow.
 
 Sizes: a payload or a method's arguments above `MAX_PAYLOAD_BYTES` are refused before
 they are decoded (stereo frames have their own cap, `MAX_FRAME_BYTES`), and no reply,

@@ -50,18 +50,20 @@ _INT_LO, _INT_HI = -(2**63), 2**64 - 1
 class _Spec:
     """What one annotation allows: `kind` plus that kind's bounds."""
 
-    kind: Literal["literal", "vector", "bool", "int", "float", "str", "bytes", "map"]
+    kind: Literal["literal", "vector", "bool", "int", "float", "str", "bytes", "map", "records"]
     allowed: tuple[Any, ...] = ()
     """literal: the allowed values."""
     n: int = 0
-    """vector: the number of floats."""
+    """vector: the number of floats (the fewest, when `n_hi` is set)."""
+    n_hi: int | None = None
+    """vector: the most floats of a variable-length vector (None: exactly `n`)."""
     rotation_tol: float | None = None
     """vector of 9: a proper rotation within this ‖RᵀR − I‖."""
     lo: float | None = None
     hi: float | None = None
     """int, float: the range (int: msgpack's when None)."""
     max_len: int = MAX_TEXT
-    """str, bytes: the largest length."""
+    """str, bytes: the largest length; records: the most maps."""
 
 
 def _spec(tp: Any) -> _Spec:
@@ -70,14 +72,17 @@ def _spec(tp: Any) -> _Spec:
     if get_origin(tp) is typing.Annotated:
         tp, *rest = get_args(tp)
         meta = tuple(rest)
-    size = next((m.n for m in meta if isinstance(m, Size)), None)
+    size_meta = next((m for m in meta if isinstance(m, Size)), None)
+    size = None if size_meta is None else size_meta.n
     rot = next((m for m in meta if isinstance(m, Rotation)), None)
     rng = next((m for m in meta if isinstance(m, Range)), None)
     max_len = next((m.n for m in meta if isinstance(m, MaxLen)), MAX_TEXT)
     if get_origin(tp) is typing.Literal:
         return _Spec("literal", allowed=get_args(tp))
-    if size is not None:
-        return _Spec("vector", n=size, rotation_tol=None if rot is None else rot.tol)
+    if size_meta is not None and size is not None:
+        return _Spec(
+            "vector", n=size, n_hi=size_meta.hi, rotation_tol=None if rot is None else rot.tol
+        )
     if tp is bool:
         return _Spec("bool")
     if tp is int:
@@ -93,6 +98,8 @@ def _spec(tp: Any) -> _Spec:
         return _Spec("bytes", max_len=max_len)
     if get_origin(tp) is dict:
         return _Spec("map")
+    if get_origin(tp) is tuple and get_args(tp)[:1] and get_origin(get_args(tp)[0]) is dict:
+        return _Spec("records", max_len=max_len)
     raise TypeError(f"no validator for annotation {tp!r}")
 
 
@@ -159,13 +166,14 @@ def _general(s: _Spec) -> Validator:
 
         return literal
     if s.kind == "vector":
-        n, tol = s.n, s.rotation_tol
+        n, hi, tol = s.n, s.n_hi, s.rotation_tol
+        want = f"{n}" if hi is None else f"{n} … {hi}"
 
         def vector(name: str, v: Any) -> tuple[float, ...]:
             if not isinstance(v, list | tuple):
-                raise ProtocolError(name, f"expected {n} numbers, got {type(v).__name__}")
-            if len(v) != n:
-                raise ProtocolError(name, f"expected {n} numbers, got {len(v)}")
+                raise ProtocolError(name, f"expected {want} numbers, got {type(v).__name__}")
+            if (len(v) != n) if hi is None else not n <= len(v) <= hi:
+                raise ProtocolError(name, f"expected {want} numbers, got {len(v)}")
             out: list[float] = []
             for i, x in enumerate(v):
                 f, why = _float_or_reason(x)
@@ -234,6 +242,17 @@ def _general(s: _Spec) -> Validator:
             raise ProtocolError(name, "expected a map with string keys")
         return v
 
+    if s.kind == "records":
+        most = s.max_len
+
+        def records(name: str, v: Any) -> tuple[dict[str, Any], ...]:
+            if not isinstance(v, list | tuple):
+                raise ProtocolError(name, f"expected a list of maps, got {type(v).__name__}")
+            if len(v) > most:
+                raise ProtocolError(name, f"more than {most} maps")
+            return tuple(mapping(f"{name}[{i}]", x) for i, x in enumerate(v))
+
+        return records
     return mapping
 
 
@@ -258,6 +277,19 @@ def _check_source(s: _Spec, v: str, k: int, consts: dict[str, Any]) -> list[str]
     if s.kind == "literal":
         consts[f"allowed_{k}"] = frozenset(s.allowed)
         return [f"if type({v}) is not str or {v} not in allowed_{k}: {fail}"]
+    if s.kind == "records":
+        return [fail]  # rare (the arm's description): the general path checks it
+    if s.kind == "vector" and s.n_hi is not None:
+        lines = [
+            f"if type({v}) is not tuple and type({v}) is not list: {fail}",
+            f"if not {s.n} <= len({v}) <= {s.n_hi}: {fail}",
+            f"for _x{k} in {v}:",
+            f"    if type(_x{k}) is not float: {fail}",
+            f"_s{k} = sum({v})",
+            f"if _s{k} - _s{k} != 0.0: {fail}",
+            f"if type({v}) is list: {v} = tuple({v})",
+        ]
+        return lines
     if s.kind == "vector":
         xs = [f"_{k}_{i}" for i in range(s.n)]
         lines = [
@@ -376,7 +408,7 @@ class _Schema:
         self.fast_from, self.fast_to, self.source = _compile(cls, specs)
         # msgpack arrays may arrive as tuples (no copy to a tuple later) unless a free-form
         # map field would then hold tuples where its sender put lists.
-        self.tuples = all(spec.kind != "map" for _, spec, _ in specs)
+        self.tuples = all(spec.kind not in ("map", "records") for _, spec, _ in specs)
 
 
 _SCHEMAS: dict[type[Message], _Schema] = {}

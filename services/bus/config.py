@@ -62,6 +62,9 @@ class NodeConfig:
     (measured over a 700 ms link: 116–554 ms, 2–3 times a run; docs/deploy.md "A stalled
     link never blinds the robot host").
     Empty: no overwrite, the control class blocks everywhere.
+
+    `timestamping`: the session stamps what it publishes (Zenoh's HLC), which a cached
+    publisher (`Node.publisher(topic, cache=…)`, the arm's description) needs.
     """
 
     mode: Mode = "peer"
@@ -75,6 +78,7 @@ class NodeConfig:
     shared_memory: bool = False
     downsampling: tuple[tuple[str, float], ...] = ()
     loopback: tuple[str, ...] = ("lo", "lo0")
+    timestamping: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in ("peer", "client", "router"):
@@ -118,6 +122,8 @@ class NodeConfig:
             cfg.insert_json5("namespace", json.dumps(self.ns))
         if self.admin_space:
             cfg.insert_json5("adminspace/enabled", "true")
+        if self.timestamping:
+            cfg.insert_json5("timestamping/enabled", "true")
         if self.downsampling:
             # Zenoh matches these rules against the namespaced key: add the prefix here.
             prefix = f"{self.ns}/" if self.ns else ""

@@ -57,3 +57,4 @@ class ConfigError(TelerobotError, ValueError):
     def __init__(self, key: str, message: str) -> None:
         super().__init__(f"config key {key!r}: {message}")
         self.key = key
+        self.reason = message

@@ -14,6 +14,7 @@ from typing import Any, Generic, TypeVar
 from services.bus.bounds import MAX_PAYLOAD_BYTES
 from services.bus.messages import (
     MAX_FRAME_BYTES,
+    ArmDescription,
     ArmTarget,
     Event,
     ForceSample,
@@ -57,6 +58,11 @@ class Topic(Generic[M]):
 
 CMD = Topic("robot/cmd", OperatorCommand, QoS.CONTROL, latest_wins=True)
 ARM_TARGET = Topic("robot/arm/target", ArmTarget, QoS.CONTROL, latest_wins=True)
+# The arm's description (PROTOCOL §1): on change only, kept in the publisher's cache for a
+# late subscriber; reliable, as events are. Large: it carries the URDF.
+ARM_DESCRIPTION = Topic(
+    "robot/arm/description", ArmDescription, QoS.RELIABLE, latest_wins=True, max_bytes=2 << 20
+)
 STATE = Topic("robot/state", RobotState, QoS.STATE, latest_wins=True)
 FORCE = Topic("robot/force", ForceSample, QoS.CONTROL, latest_wins=True)
 EVENTS = Topic("robot/events", Event, QoS.RELIABLE, latest_wins=False)
@@ -73,6 +79,7 @@ PASSIVITY_SLAVE = Topic("robot/passivity/slave", PassivityState, QoS.CONTROL, la
 TOPICS: tuple[Topic[Any], ...] = (
     CMD,
     ARM_TARGET,
+    ARM_DESCRIPTION,
     STATE,
     FORCE,
     EVENTS,

@@ -1,27 +1,32 @@
-"""The messages of the wire contract (PROTOCOL.md §3) as frozen dataclasses.
+"""The messages of the wire contract (PROTOCOL.md §1 and §3) as frozen dataclasses.
 
-Vectors travel as tuples of floats: `Vec3` (3), `Joints` (6), `Rot` (9, a row-major 3×3
-rotation). The field annotations are the schema: `services.bus.codec` reads them to encode,
-decode and validate, so a field is declared once, here. Optional fields default to None and
+Vectors travel as tuples of floats: `Vec3` (3), `Joints` (the arm's n, 1 … MAX_JOINTS),
+`Rot` (9, a row-major 3×3 rotation). The field annotations are the schema:
+`services.bus.codec` reads them to encode, decode and validate, so a field is declared once,
+here. Optional fields default to None and
 are left out of the encoding when None.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from services.geometry import ROTATION_TOL
+from services.bus.errors import ProtocolError
+from services.geometry import ROTATION_TOL, rotation_defect
 
 
 @dataclass(frozen=True, slots=True)
 class Size:
-    """Annotation: a float sequence of exactly `n` finite numbers."""
+    """Annotation: a float sequence of exactly `n` finite numbers (of `n` … `hi` when `hi`
+    is given)."""
 
     n: int
+    hi: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,9 +51,13 @@ class MaxLen:
     n: int
 
 
+MAX_JOINTS = 32
+"""The most joints an arm may have: a joint vector's largest size."""
+MAX_URDF_CHARS = 1 << 20
+
 Vec3 = Annotated[tuple[float, ...], Size(3)]
 Vec6 = Annotated[tuple[float, ...], Size(6)]
-Joints = Annotated[tuple[float, ...], Size(6)]
+Joints = Annotated[tuple[float, ...], Size(1, MAX_JOINTS)]
 Rot = Annotated[tuple[float, ...], Size(9), Rotation()]
 Count = Annotated[int, Range(0, 2**63 - 1)]
 Name = Annotated[str, MaxLen(128)]
@@ -136,6 +145,91 @@ class RobotState(Message):
     """Extension: the tool position (world) of the setpoint the arm is following; the pose
     the arm takes as a new engagement's start (`tool_p` is measured, and trails it by the
     servo's error). Left out when the two agree (at rest)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ArmDescription(Message):
+    """`robot/arm/description` (and `describe`'s reply, PROTOCOL §1): the arm the arm
+    service runs. `joints`: n maps {name, lo, hi, max_speed, max_accel} (rad, rad/s,
+    rad/s²); `eMt`: {p, R}, the tool in use. Optional fields are extensions
+    (docs/protocol-extensions.md)."""
+
+    name: ClassVar[str] = "ArmDescription"
+    seq: Count
+    t_ns: Count
+    model: Name
+    n: Annotated[int, Range(1, MAX_JOINTS)]
+    joints: Annotated[tuple[dict[str, Any], ...], MaxLen(MAX_JOINTS)]
+    base_frame: Name
+    flange_frame: Name
+    urdf: Annotated[str, MaxLen(MAX_URDF_CHARS)] = field(repr=False)
+    eMt: dict[str, Any]
+    analytic_ik: bool
+    grip: bool | None = None
+    named: dict[str, Any] | None = None
+    """Extension: named configurations, name → n joints (rad); `home` among them."""
+    reach_m: Annotated[float, Range(0.0, 100.0)] | None = None
+    """Extension: how far from the world origin the tool point can be (m)."""
+    max_target_step_m: Annotated[float, Range(0.0, 10.0)] | None = None
+    max_target_step_rad: Annotated[float, Range(0.0, 10.0)] | None = None
+    """Extension: the step bound of robot/arm/target (§3)."""
+    workspace: dict[str, Any] | None = None
+    """Extension: {min, max} (m, world): the box the decision supervises the tool point in
+    unless configured otherwise."""
+    max_tool_speed_m_s: Annotated[float, Range(0.0, 100.0)] | None = None
+    max_tool_rot_speed_rad_s: Annotated[float, Range(0.0, 100.0)] | None = None
+    """Extension: the tool speeds the arm holds every setpoint to (its `limits`)."""
+
+    def __post_init__(self) -> None:
+        try:
+            check_description(self)
+        except ProtocolError:
+            raise
+        except (TypeError, AttributeError, KeyError, ValueError) as e:
+            # fields of the wrong kind altogether: the codec names which when it decodes
+            raise ProtocolError("joints", f"malformed description ({type(e).__name__})") from None
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def check_description(d: ArmDescription) -> None:
+    """The cross-field rules of an ArmDescription (ProtocolError naming the field): n joint
+    maps, each with a name and finite limits lo < hi, max_speed and max_accel > 0; eMt a p
+    and a proper rotation R; named configurations of n finite joints; a workspace box of
+    finite min < max."""
+    if len(d.joints) != d.n:
+        raise ProtocolError("joints", f"{len(d.joints)} joints, not the n said")
+    for i, j in enumerate(d.joints):
+        name = j.get("name")
+        if not isinstance(name, str) or not 0 < len(name) <= 128:
+            raise ProtocolError(f"joints[{i}].name", "must be a name of 1 … 128 characters")
+        for key in ("lo", "hi", "max_speed", "max_accel"):
+            if not _finite(j.get(key)):
+                raise ProtocolError(f"joints[{i}].{key}", "must be a finite number")
+        if not j["lo"] < j["hi"] or j["max_speed"] <= 0 or j["max_accel"] <= 0:
+            raise ProtocolError(f"joints[{i}]", "needs lo < hi, max_speed > 0, max_accel > 0")
+    p, R = d.eMt.get("p"), d.eMt.get("R")
+    if not (isinstance(p, list | tuple) and len(p) == 3 and all(map(_finite, p))):
+        raise ProtocolError("eMt.p", "must be 3 finite numbers")
+    if not (isinstance(R, list | tuple) and len(R) == 9 and all(map(_finite, R))):
+        raise ProtocolError("eMt.R", "must be 9 finite numbers")
+    err, det = rotation_defect([float(x) for x in R])
+    if not err <= ROTATION_TOL or det < 0.0:
+        raise ProtocolError("eMt.R", "not a rotation")
+    for k, q in (d.named or {}).items():
+        if not (isinstance(q, list | tuple) and len(q) == d.n and all(map(_finite, q))):
+            raise ProtocolError(f"named.{k}", f"must be {d.n} finite numbers")
+    if d.workspace is not None:
+        box = [d.workspace.get(k) for k in ("min", "max")]
+        for k, v in zip(("min", "max"), box, strict=True):
+            if not (isinstance(v, list | tuple) and len(v) == 3 and all(map(_finite, v))):
+                raise ProtocolError(f"workspace.{k}", "must be 3 finite numbers (m)")
+            if max(abs(float(x)) for x in v) > 100.0:
+                raise ProtocolError(f"workspace.{k}", "more than 100 m from the origin")
+        if not all(a < b for a, b in zip(box[0], box[1], strict=True)):  # type: ignore[arg-type]
+            raise ProtocolError("workspace", "needs min < max on every axis")
 
 
 @dataclass(frozen=True, slots=True)
@@ -289,6 +383,7 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     OperatorCommand,
     ArmTarget,
     RobotState,
+    ArmDescription,
     ForceSample,
     Event,
     StereoFrame,

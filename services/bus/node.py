@@ -183,19 +183,26 @@ class Node:
         return self._closed
 
     # --- streams ---------------------------------------------------------------------
-    def publisher(self, topic: Topic[M]) -> Publisher[M]:
-        pub = Publisher(self.session, topic)
+    def publisher(self, topic: Topic[M], cache: int = 0) -> Publisher[M]:
+        """A typed publisher; `cache` > 0 keeps that many samples for late subscribers with
+        `history` (streams.Publisher)."""
+        pub = Publisher(self.session, topic, cache)
         self._decls.append(pub)
         return pub
 
     def subscribe(
-        self, topic: Topic[M], on_message: Callable[[M], None] | None = None, key: str | None = None
+        self,
+        topic: Topic[M],
+        on_message: Callable[[M], None] | None = None,
+        key: str | None = None,
+        history: bool = False,
     ) -> Subscription[M]:
         """Subscribe to a typed stream.
 
         Valid messages update `latest` (latest-wins topics keep the highest `seq`; see
         `newer`); every valid message is passed to `on_message`. Bad payloads are counted
-        and reported, never raised.
+        and reported, never raised. `history`: also get what a cached publisher kept (the
+        arm's description), now and from a publisher that appears later.
         `on_message` runs on Zenoh's thread: store or hand over, do not block.
         """
         sub: Subscription[M] = Subscription(topic)
@@ -226,7 +233,15 @@ class Node:
                         {"traceback": traceback.format_exc(limit=5)},
                     )
 
-        sub._sub = self.session.declare_subscriber(keyexpr, callback)
+        if history:
+            sub._sub = zenoh.ext.declare_advanced_subscriber(
+                self.session,
+                keyexpr,
+                callback,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+            )
+        else:
+            sub._sub = self.session.declare_subscriber(keyexpr, callback)
         self._subs.append(sub)
         return sub
 

@@ -55,11 +55,26 @@ _QOS: dict[QoS, dict[str, Any]] = {
 
 
 class Publisher(Generic[M]):
-    """A typed publisher: `put(msg)` validates, encodes and sends with the topic's QoS."""
+    """A typed publisher: `put(msg)` validates, encodes and sends with the topic's QoS.
 
-    def __init__(self, session: zenoh.Session, topic: Topic[M]) -> None:
+    `cache` > 0: a Zenoh advanced publisher keeping the last `cache` samples, which a late
+    subscriber with `history` (`Node.subscribe(…, history=True)`) is handed when it comes;
+    the session must stamp its samples (NodeConfig.timestamping)."""
+
+    def __init__(self, session: zenoh.Session, topic: Topic[M], cache: int = 0) -> None:
         self.topic = topic
-        self._pub = session.declare_publisher(topic.key, encoding=ZENOH_ENCODING, **_QOS[topic.qos])
+        qos = _QOS[topic.qos]
+        if cache > 0:
+            self._pub: Any = zenoh.ext.declare_advanced_publisher(
+                session,
+                topic.key,
+                encoding=ZENOH_ENCODING,
+                cache=zenoh.ext.CacheConfig(cache),
+                publisher_detection=True,
+                **qos,
+            )
+        else:
+            self._pub = session.declare_publisher(topic.key, encoding=ZENOH_ENCODING, **qos)
         self.sent = 0
 
     def put(self, msg: M) -> None:

@@ -20,7 +20,7 @@ import zenoh
 from services.bus import codec, keys
 from services.bus.config import NodeConfig
 from services.bus.errors import ProtocolError, RpcError, Unavailable
-from services.bus.messages import IDENTITY_R, Event, ForceSample, Joints, OperatorCommand
+from services.bus.messages import IDENTITY_R, Event, ForceSample, OperatorCommand, Vec6
 from services.bus.node import Node, Publisher, Subscription, opened
 from services.bus.rate import RateLoop
 from tests.conftest import Net, wait_until
@@ -327,7 +327,7 @@ def arm(net: Net) -> Iterator[Puma]:
         return {"status": "ready", "q": [0.0] * 6, "echo": args}
 
     def move_joints(args: dict[str, Any]) -> dict[str, Any]:
-        q = codec.arg(args, "q", Joints)
+        q = codec.arg(args, "q", Vec6)
         return {"accepted": True, "q": list(q)}
 
     def limit(args: dict[str, Any]) -> dict[str, Any]:

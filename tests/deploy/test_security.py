@@ -337,3 +337,43 @@ def test_mutual_tls_needs_the_operator_certificate_and_login(mtls_router: Router
     # Without any client certificate the TLS handshake fails.
     with pytest.raises(zenoh.ZError, match="Unable to connect"):
         mtls_router.node("master", cell.client_file("operator-client"), mtls_router.tls).close()
+
+
+def test_stations_and_observers_read_the_arm_s_description_but_never_publish_one(
+    router: Router,
+) -> None:
+    """The description is published once and kept (Zenoh's advanced publisher): a station
+    that comes later asks for the cached one through the router, and gets republished ones
+    as they come; none of them can publish a description of its own."""
+    from services.bus.messages import ArmDescription
+    from services.control.arm.model import load_model
+
+    fields = load_model("fr3").description()
+    with ExitStack() as stack:
+        arm = stack.enter_context(router.robot("arm"))
+        pub = arm.publisher(keys.ARM_DESCRIPTION, cache=1)
+        pub.put(ArmDescription(seq=1, t_ns=time.time_ns(), **fields))
+        op = stack.enter_context(
+            router.node("console", router.cell.client_file("operator-client"), router.tls)
+        )
+        obs = stack.enter_context(
+            router.node("obs", router.cell.client_file("observer-client"), router.tls)
+        )
+        subs = [n.subscribe(keys.ARM_DESCRIPTION, history=True) for n in (op, obs)]
+        for sub in subs:  # the cached one, though published before they subscribed
+            got = sub.wait_for(lambda d: d.seq == 1, DEADLINE_S)
+            assert got is not None and got.model == "fr3" and got.n == 7
+        # a hostile station's description never reaches the robot host's subscriber
+        local = arm.subscribe(keys.ARM_DESCRIPTION)
+        for seq in range(2, 12):
+            for n in (op, obs):
+                n.session.put(
+                    keys.ARM_DESCRIPTION.key,
+                    codec.encode(ArmDescription(seq=100 + seq, t_ns=1, **fields)),
+                    encoding=ENCODING,
+                )
+            pub.put(ArmDescription(seq=seq, t_ns=time.time_ns(), **fields))
+            time.sleep(0.005)
+        for sub in (*subs, local):  # the newest (highest seq) of each is the arm's last
+            assert sub.wait_for(lambda d: d.seq == 11, DEADLINE_S) is not None
+        assert local.received == 10, "only the arm's own ten, none of the stations' twenty"

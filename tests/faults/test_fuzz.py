@@ -37,7 +37,8 @@ from services.bus.messages import (
     RobotState,
 )
 from services.bus.node import REJECT_REPORT_INTERVAL_S, Node
-from services.control.arm.config import HOME_Q_RAD, ArmConfig
+from services.control.arm.config import ArmConfig
+from services.control.arm.model import load_model
 from services.control.arm.service import MOTIONS, ArmService
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import ARM_METHODS, FORCE_METHODS, DecisionService
@@ -48,6 +49,9 @@ from services.control.master.service import MasterService
 from services.frontends.console.mirror import BusMirror
 from tests.conftest import Net, wait_until
 from tests.faults.observe import REST_TOL_RAD, record
+
+HOME_Q_RAD = load_model().home
+"""The default model's home (the PUMA 560's)."""
 
 pytestmark = [pytest.mark.faults, pytest.mark.timeout(180)]
 

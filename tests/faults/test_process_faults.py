@@ -23,8 +23,9 @@ import pytest
 
 from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import RobotState
-from services.control.arm.config import HOME_Q_RAD, ArmConfig
+from services.control.arm.config import ArmConfig
 from services.control.arm.fake_controller import FakeController
+from services.control.arm.model import load_model
 from tests.conftest import wait_until
 from tests.faults.cell import MASTER_ID, FaultCell, path_length
 from tests.faults.observe import (
@@ -37,6 +38,9 @@ from tests.faults.observe import (
 )
 from tests.faults.procs import Proc
 from tests.faults.rogue import MARK
+
+HOME_Q_RAD = load_model().home
+"""The default model's home (the PUMA 560's)."""
 
 pytestmark = [pytest.mark.faults, pytest.mark.alone, pytest.mark.timeout(180)]
 

@@ -1,17 +1,25 @@
-"""`telerobot arm`: the PUMA 560 proxy service (simulated arm or a serial controller)."""
+"""`telerobot arm`: the arm service — any arm model (the PUMA 560 by default), simulated or real."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from typing import get_args
 
 from services.bus.config import service_table
 from services.bus.lifecycle import ServiceContext, run_service
 from services.control.arm.config import ArmConfig
+from services.control.arm.driver import DriverName
+from services.control.arm.model import DEFAULT_MODEL, SHIPPED
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--driver", choices=["sim", "serial"], default=None)
+    p.add_argument(
+        "--model",
+        default=None,
+        help=f"arm model: {', '.join(SHIPPED)} (default {DEFAULT_MODEL}) or an arm's TOML",
+    )
+    p.add_argument("--driver", choices=list(get_args(DriverName)), default=None)
     p.add_argument("--port", default=None, help="serial URL (/dev/ttyUSB0, socket://host:port)")
     p.add_argument("--baudrate", type=int, default=None)
     p.add_argument(
@@ -23,7 +31,12 @@ def arguments(p: argparse.ArgumentParser) -> None:
 
 def start(ctx: ServiceContext) -> None:
     args = ctx.args
-    overrides = {"driver": args.driver, "port": args.port, "baudrate": args.baudrate}
+    overrides = {
+        "model": args.model,
+        "driver": args.driver,
+        "port": args.port,
+        "baudrate": args.baudrate,
+    }
     table = service_table(ctx.deploy, "arm", overrides)
     autostart = bool(table.pop("autostart", False)) or args.autostart
     config = ArmConfig.from_mapping(table)
@@ -31,7 +44,7 @@ def start(ctx: ServiceContext) -> None:
 
     svc = ArmService(ctx.open(), config)
     ctx.closing(svc)
-    ctx.log.info("PUMA proxy up (%s arm)", config.driver)
+    ctx.log.info("arm up: %s, %d joints, %s driver", svc.model.name, svc.model.n, config.driver)
     if autostart:
         svc.proxy.rpc_connect({})
         svc.proxy.rpc_initialize({})

@@ -26,6 +26,8 @@ class ArmBase(ABC):
     _status: ArmStatus
     _last_error: str | None
     setpoints_ignored: int
+    n: int
+    """The number of joints."""
 
     @property
     def status(self) -> ArmStatus:
@@ -53,18 +55,18 @@ class ArmBase(ABC):
             self.setpoints_ignored += 1
             return None
         try:
-            return as_joint_vector(q_setpoint, "setpoint")
+            return as_joint_vector(q_setpoint, "setpoint", self.n)
         except ValueError as e:
             self._fail_locked(f"bad setpoint: {e}")
             return None
 
 
-def as_joint_vector(q: Any, name: str = "q") -> Q:
-    """`q` as a finite float vector (6,), or ValueError naming `name`."""
+def as_joint_vector(q: Any, name: str, n: int) -> Q:
+    """`q` as a finite float vector (n,), or ValueError naming `name`."""
     arr = np.asarray(q, dtype=np.float64)
-    if arr.shape != (6,):
-        raise ValueError(f"{name} must have 6 joint values, got shape {arr.shape}")
-    # On plain floats: a numpy reduction costs more than six checks (once per setpoint).
+    if arr.shape != (n,):
+        raise ValueError(f"{name} must have {n} joint values, got shape {arr.shape}")
+    # On plain floats: a numpy reduction costs more than n checks (once per setpoint).
     if not all(map(math.isfinite, arr.tolist())):
         raise ValueError(f"{name} must be finite, got {arr.tolist()}")
     return arr

@@ -1,4 +1,4 @@
-"""`open_arm(config)`: the arm backend a `ArmConfig` names, built and not yet connected.
+"""`open_arm(config, model)`: the arm driver an `ArmConfig` names, built and not yet connected.
 
 `BACKENDS` names each `arm.driver` backend's class, imported only when that backend is built,
 so the simulation and its tests never load pyserial; `arm_options` maps the configuration
@@ -12,6 +12,7 @@ from typing import Any
 from services.bus.registry import BackendRegistry
 from services.control.arm.config import ArmConfig
 from services.control.arm.driver import Arm
+from services.control.arm.model import ArmModel, load_model
 
 BACKENDS: BackendRegistry[Arm] = BackendRegistry(
     "arm.driver",
@@ -24,8 +25,11 @@ BACKENDS: BackendRegistry[Arm] = BackendRegistry(
 """Backend name (`arm.driver`) → class, constructed with `arm_options(config)`."""
 
 
-def arm_options(config: ArmConfig) -> dict[str, Any]:
-    """The constructor arguments of the backend `config.driver`."""
+def arm_options(config: ArmConfig, model: ArmModel | None = None) -> dict[str, Any]:
+    """The constructor arguments of the backend `config.driver`, for `model` (default: the
+    configuration's)."""
+    arm = model if model is not None else load_model(config.model)
+    config = config.bind(arm)
     if config.driver == "serial":
         return {
             "port": config.port,
@@ -34,13 +38,13 @@ def arm_options(config: ArmConfig) -> dict[str, Any]:
             "timeout_s": config.serial_timeout_s,
         }
     # The simulated arm powers on at home: the tool above the table, ready to work.
-    return {"calibration_s": config.sim_calibration_s, "q_init": config.home_q}
+    return {"calibration_s": config.sim_calibration_s, "q_init": config.home_q, "model": arm}
 
 
-def open_arm(config: ArmConfig) -> Arm:
+def open_arm(config: ArmConfig, model: ArmModel | None = None) -> Arm:
     """The arm `config.driver` with its options, not yet connected (`Arm.connect` does that).
 
     Raises `ConfigError("arm.driver", …)` for a name without a backend (an `ArmConfig` built
     the ordinary way has already refused it).
     """
-    return BACKENDS.build(config.driver, arm_options(config))
+    return BACKENDS.build(config.driver, arm_options(config, model))

@@ -1,36 +1,25 @@
-"""Configuration of the PUMA proxy service: rates, motion limits, home pose, arm backend.
+"""Configuration of the arm service: its model, driver, rates and motion limits.
 
 Read once at start-up (from the deployment TOML's `[arm]` table via `ArmConfig.from_mapping`)
-into a frozen dataclass; a bad or misspelt key raises `ConfigError("arm.<key>", …)`.
+into a frozen dataclass; a bad or misspelt key raises `ConfigError("arm.<key>", …)`. What
+depends on the arm model (the joint limits and home pose, n values each, the step bound) is
+left empty here and filled from the model by `bind(model)`, which checks what was given
+against it: a home pose outside the joint limits, a speed above what the model says its
+joints can do, or a vector of the wrong length is an error naming the key.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, get_args
 
 from services.bus.bounds import check_config
 from services.bus.config import section
 from services.bus.errors import ConfigError
-from services.control.arm.driver import (
-    ARM_MAX_JOINT_ACCEL_RAD_S2,
-    ARM_MAX_JOINT_SPEED_RAD_S,
-    Q_HI_RAD,
-    Q_LO_RAD,
-    DriverName,
-)
-
-Joint6 = tuple[float, float, float, float, float, float]
-
-HOME_Q_RAD: Joint6 = (0.276321, 1.193707, -3.260341, 0.0, -1.074959, 0.276321)
-"""Home: tool point at (0.55, 0, 0.65) m in the world, 0.25 m above the table top (z = 0.40),
-tool z axis pointing down (R_wt = diag(−1, 1, −1)) with the default tool eMt; branch `rum`,
-no joint within 25° of a limit, away from every singularity (manipulability 0.086 vs 0.079 at
-qn). Computed with `Puma560.ik` and rounded to 1 µrad; tests/control/arm/test_proxy.py
-checks it."""
-
+from services.control.arm.driver import DriverName
+from services.control.arm.model import DEFAULT_MODEL, ArmModel
 
 #: the physical bound (services/bus/bounds.py) each numeric setting must respect
 _KINDS: dict[str, str] = {
@@ -42,9 +31,6 @@ _KINDS: dict[str, str] = {
     "sim_calibration_s": "duration_s",
     "max_following_error_rad": "joint_rad",
     "max_dp_m": "displacement_m",
-    "max_reach_m": "displacement_m",
-    "max_target_step_m": "displacement_m",
-    "max_target_step_rad": "joint_rad",
     "teleop_settle_s": "duration_s",
     "event_interval_s": "duration_s",
 }
@@ -54,20 +40,28 @@ _KINDS: dict[str, str] = {
 class ArmConfig:
     """The arm service's settings. Units are in the names; joint tuples are joint 1 first.
 
-    The proxy plans every motion within `max_joint_speed_rad_s`, `max_joint_accel_rad_s2`,
-    `max_tool_speed_m_s` (tool point) and `max_tool_rot_speed_rad_s` (tool frame), and its
-    safety filter enforces them on every setpoint whatever the source. They must not exceed
-    what the arm's servo can do (`ARM_MAX_JOINT_*` in arm.py).
+    `model`: a shipped model's name (`puma560`, `fr3`, `ur5e`) or the path of an arm's TOML
+    (services/control/arm/model.py). `driver`: what moves the joints (`sim` for any model;
+    `serial` for the retrofitted PUMA 560 controller).
+
+    The arm plans every motion within `max_joint_speed_rad_s`, `max_joint_accel_rad_s2`
+    (default: the model's planning limits), `max_tool_speed_m_s` (tool point) and
+    `max_tool_rot_speed_rad_s` (tool frame), and its safety filter enforces them on every
+    setpoint whatever the source. They must not exceed what the model's joints can do.
+    `home_q` (default: the model's `home`) is where `home` goes and the simulated arm powers
+    on. `max_target_step_m` / `max_target_step_rad` (default: the model's): a streamed
+    target further than this from the previous one is refused.
     """
 
+    model: str = DEFAULT_MODEL
+    driver: DriverName = "sim"
     state_rate_hz: float = 250.0
     control_rate_hz: float = 500.0
-    max_joint_speed_rad_s: Joint6 = (2.0, 2.0, 2.0, 4.0, 4.0, 4.0)
-    max_joint_accel_rad_s2: Joint6 = (5.0, 5.0, 5.0, 10.0, 10.0, 10.0)
+    max_joint_speed_rad_s: tuple[float, ...] = ()
+    max_joint_accel_rad_s2: tuple[float, ...] = ()
     max_tool_speed_m_s: float = 0.5
     max_tool_rot_speed_rad_s: float = 1.5
-    home_q: Joint6 = HOME_Q_RAD
-    driver: DriverName = "sim"
+    home_q: tuple[float, ...] = ()
     port: str | None = None
     baudrate: int = 115_200
     serial_cycle_ms: float = 28.0
@@ -75,40 +69,40 @@ class ArmConfig:
     sim_calibration_s: float = 0.5
     max_following_error_rad: float = 0.35
     max_dp_m: float = 2.0
-    max_reach_m: float = 1.6
-    max_target_step_m: float = 0.05
-    max_target_step_rad: float = 0.35
+    max_target_step_m: float = 0.0
+    max_target_step_rad: float = 0.0
     teleop_settle_s: float = 0.2
     event_interval_s: float = 1.0
 
     def __post_init__(self) -> None:
+        if not isinstance(self.model, str) or not self.model:
+            raise ConfigError("arm.model", "must be a model name or the path of an arm's TOML")
         _positive(self, "state_rate_hz")
         if self.state_rate_hz < 100.0:
             raise ConfigError("arm.state_rate_hz", "must be ≥ 100 Hz (PROTOCOL §3)")
         _positive(self, "control_rate_hz")
         if self.control_rate_hz < self.state_rate_hz:
             raise ConfigError("arm.control_rate_hz", "must be ≥ state_rate_hz")
-        _joint6(self, "max_joint_speed_rad_s", positive=True, at_most=ARM_MAX_JOINT_SPEED_RAD_S)
-        _joint6(self, "max_joint_accel_rad_s2", positive=True, at_most=ARM_MAX_JOINT_ACCEL_RAD_S2)
         for key in (
             "max_tool_speed_m_s",
             "max_tool_rot_speed_rad_s",
             "serial_timeout_s",
             "max_following_error_rad",
             "max_dp_m",
-            "max_reach_m",
-            "max_target_step_m",
-            "max_target_step_rad",
             "teleop_settle_s",
             "event_interval_s",
         ):
             _positive(self, key)
-        _joint6(self, "home_q")
-        for j, (q, lo, hi) in enumerate(zip(self.home_q, Q_LO_RAD, Q_HI_RAD, strict=True)):
-            if not lo <= q <= hi:
-                raise ConfigError("arm.home_q", f"q{j + 1} = {q} rad is outside [{lo}, {hi}]")
+        for key in ("max_target_step_m", "max_target_step_rad"):
+            if _number(key, getattr(self, key)) < 0.0:
+                raise ConfigError(f"arm.{key}", "must be ≥ 0 (0: the model's)")
+        if self.max_target_step_m > 1.0:
+            raise ConfigError("arm.max_target_step_m", "must be ≤ 1 m")
+        if self.max_target_step_rad > math.pi:
+            raise ConfigError("arm.max_target_step_rad", "must be ≤ π")
         if self.driver not in get_args(DriverName):
-            raise ConfigError("arm.driver", f"must be 'sim' or 'serial', got {self.driver!r}")
+            names = ", ".join(get_args(DriverName))
+            raise ConfigError("arm.driver", f"must be one of {names}, got {self.driver!r}")
         if self.driver == "serial" and not (isinstance(self.port, str) and self.port):
             raise ConfigError("arm.port", "a serial arm needs a port (device or pyserial URL)")
         if self.port is not None and not isinstance(self.port, str):
@@ -129,6 +123,27 @@ class ArmConfig:
         value of the wrong type is an error naming `arm.<key>`)."""
         return section(cls, table, "arm")
 
+    def bind(self, model: ArmModel) -> ArmConfig:
+        """This configuration with everything the model decides filled in and checked
+        against it (n values each, within its limits): ConfigError naming the key."""
+        if self.driver == "serial" and model.name != "puma560":
+            raise ConfigError(
+                "arm.driver", f"the serial driver is the PUMA 560 controller's, not {model.name}"
+            )
+        speed = self.max_joint_speed_rad_s or model.plan_speed_rad_s
+        accel = self.max_joint_accel_rad_s2 or model.plan_accel_rad_s2
+        _n_positive("max_joint_speed_rad_s", speed, [j.max_speed for j in model.joints])
+        _n_positive("max_joint_accel_rad_s2", accel, [j.max_accel for j in model.joints])
+        home = model.check_joints("arm.home_q", list(self.home_q or model.home))
+        return replace(
+            self,
+            max_joint_speed_rad_s=tuple(float(x) for x in speed),
+            max_joint_accel_rad_s2=tuple(float(x) for x in accel),
+            home_q=home,
+            max_target_step_m=self.max_target_step_m or model.max_target_step_m,
+            max_target_step_rad=self.max_target_step_rad or model.max_target_step_rad,
+        )
+
 
 def _number(key: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float):
@@ -148,18 +163,14 @@ def _non_negative(cfg: ArmConfig, key: str) -> None:
         raise ConfigError(f"arm.{key}", "must be ≥ 0")
 
 
-def _joint6(
-    cfg: ArmConfig,
-    key: str,
-    positive: bool = False,
-    at_most: tuple[float, ...] | None = None,
-) -> None:
-    value = getattr(cfg, key)
-    if not isinstance(value, tuple | list) or len(value) != 6:
-        raise ConfigError(f"arm.{key}", f"must be 6 numbers, joint 1 first, got {value!r}")
-    for j, x in enumerate(value):
+def _n_positive(key: str, values: tuple[float, ...], at_most: list[float]) -> None:
+    if len(values) != len(at_most):
+        raise ConfigError(
+            f"arm.{key}", f"must be {len(at_most)} numbers, joint 1 first, got {len(values)}"
+        )
+    for j, (x, top) in enumerate(zip(values, at_most, strict=True)):
         v = _number(key, x)
-        if positive and v <= 0.0:
+        if v <= 0.0:
             raise ConfigError(f"arm.{key}", f"joint {j + 1} must be > 0")
-        if at_most is not None and v > at_most[j]:
-            raise ConfigError(f"arm.{key}", f"joint {j + 1} exceeds the arm's {at_most[j]}")
+        if v > top * (1 + 1e-12):
+            raise ConfigError(f"arm.{key}", f"joint {j + 1} exceeds what the arm can do ({top})")

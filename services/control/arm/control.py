@@ -1,24 +1,26 @@
-"""The PUMA proxy's control core: the fixed-rate tick, streamed commands, motions, status.
+"""The arm service's control core: the fixed-rate tick, streamed targets, motions, status.
 
-`ProxyControl` holds the proxy's state and turns the streamed operator commands (PROTOCOL.md
-§2, §3) and the motion generators into one joint setpoint per control cycle for an `Arm`,
-through the safety filter (`safety.safe_step`); it reports status changes and other events
-through `emit(kind, message, data)`. `ArmProxy` (proxy.py) adds the methods of §4 on top.
+`ProxyControl` holds the arm's state and turns the streamed supervised targets (PROTOCOL.md
+§3, `robot/arm/target`) and the motion generators into one joint setpoint per control cycle
+for an `Arm`, through the safety filter (`safety.safe_step`); it reports status changes and
+other events through `emit(kind, message, data)`. `ArmProxy` (proxy.py) adds the methods of
+§4 on top. Everything about the arm — joints, limits, frames, kinematics — comes from its
+`ArmModel`.
 
-Frames: world R_w (the DH base frame), wrist R_e (the flange, DH frame 6, origin at the wrist
-centre), tool R_t (placed in R_e by `eMt`, set with `set_tool`). Units: m, rad, s.
+Frames: world R_w (the model's base frame), flange R_e (the model's flange frame), tool R_t
+(placed in R_e by `eMt`, set with `set_tool`). Units: m, rad, s.
 
-The per-tick and per-command state is plain floats (joint vectors: lists of 6; the tool pose:
-`safety.ToolPose`): at 1 kHz of commands a numpy call on six joints costs more than the
+The per-tick and per-target state is plain floats (joint vectors: lists of n; the tool pose:
+`safety.ToolPose`): at 1 kHz of targets a numpy call on a few joints costs more than the
 arithmetic. Arrays appear only at the boundaries (the arm, planning, the methods' replies).
 
 Who calls what: `tick(dt_s)` is called by the service's fixed-rate loop and is the only
-place that talks to the arm's setpoint stream; `on_command` and the proxy's methods may be
+place that talks to the arm's setpoint stream; `on_target` and the proxy's methods may be
 called from any thread (the bus's callbacks). One lock serialises them; motion planning (many
 IK solves) runs outside it on a kinematics instance of its own.
 
 Safety, whatever the source of the motion: `safe_step` applies every tick. Motions are
-planned, and streamed commands chased, within the limits (with margin), so the filter is a
+planned, and streamed targets chased, within the limits (with margin), so the filter is a
 last line that seldom has to act. An arm error, a following error or a failed read puts the
 proxy in `error`: the motion is abandoned, the arm holds, and nothing moves until `connect`
 and `initialize`.
@@ -42,13 +44,8 @@ from services.bus.messages import ArmTarget
 from services.control.arm.arguments import RelFrame, is_number, too_long
 from services.control.arm.config import ArmConfig
 from services.control.arm.driver import Arm, ArmError
-from services.control.arm.kinematics import (
-    DEFAULT_eMt,
-    Puma560,
-    Unreachable,
-    se3_floats,
-    tool_pose_floats,
-)
+from services.control.arm.kinematics import Kinematics, Unreachable, se3_floats, tool_se3
+from services.control.arm.model import ArmModel, load_model
 from services.control.arm.motions import (
     GOAL_TOL_RAD,
     Brake,
@@ -74,17 +71,22 @@ class ProxyControl:
     Events go out through `emit`, outside the lock, in the order they happened.
     """
 
-    def __init__(self, arm: Arm, config: ArmConfig, emit: EmitFn) -> None:
+    def __init__(
+        self, arm: Arm, config: ArmConfig, emit: EmitFn, model: ArmModel | None = None
+    ) -> None:
+        self.model = model if model is not None else load_model(config.model)
+        config = config.bind(self.model)
         self.arm = arm
         self.config = config
+        self.n = self.model.n
         self._emit = emit
         self._lock = threading.RLock()
         self._status_changed = threading.Condition(self._lock)
         self._plan_lock = threading.Lock()
         self._emit_lock = threading.RLock()
         self._events: list[tuple[str, str, dict[str, Any]]] = []
-        self._kin = Puma560()  # the loop's: tick, on_command, state
-        self._plan_kin = Puma560()  # the methods': planning, fk, ik
+        self._kin: Kinematics = self.model.kinematics()  # the loop's: tick, targets, state
+        self._plan_kin: Kinematics = self.model.kinematics()  # the methods': planning, fk, ik
         self.limits = MotionLimits(
             q_lo=self._kin.q_lo.copy(),
             q_hi=self._kin.q_hi.copy(),
@@ -96,13 +98,15 @@ class ProxyControl:
         self._status: Status = "disconnected"
         self._estopped = False
         self._last_error: str | None = None
-        self._eMt: pin.SE3 = pin.SE3(DEFAULT_eMt)
+        self._eMt: pin.SE3 = tool_se3(self.model)
         self._eMt_floats = se3_floats(self._eMt)
+        self._reach_m = self.model.reach_m
+        """How far from the world origin the tool point can be, for the tool in use."""
         self._tool_version = 0
         self._frame: RelFrame = "world"
         self._t_s = 0.0
-        self._q_cmd: list[float] = [0.0] * 6
-        self._qd_cmd: list[float] = [0.0] * 6
+        self._q_cmd: list[float] = list(config.home_q)
+        self._qd_cmd: list[float] = [0.0] * self.n
         self._q_meas: list[float] | None = None
         self._pose_memo: tuple[list[float], ToolPose] | None = None
         self._pose_cmd: ToolPose = self._tool_pose(self._q_cmd)
@@ -250,7 +254,7 @@ class ProxyControl:
         if e <= GOAL_TOL_RAD and max(map(abs, self._qd_cmd)) < 1e-6:
             self._q_cmd = list(gen.goal)
             if self._t_s - gen.last_goal_t_s >= gen.settle_s:
-                self._qd_cmd = [0.0] * 6
+                self._qd_cmd = [0.0] * self.n
                 self._end_motion("completed")
 
     def _end_motion(self, reason: str) -> None:
@@ -284,7 +288,7 @@ class ProxyControl:
             return
         self._q_meas = q.tolist()
         self._q_cmd = q.tolist()
-        self._qd_cmd = [0.0] * 6
+        self._qd_cmd = [0.0] * self.n
         self._pose_cmd = self._tool_pose(self._q_cmd)
         self._target_ref = None
         self._set_status("ready")
@@ -329,7 +333,7 @@ class ProxyControl:
         grip = tgt.grip
         if grip is not None and not (is_number(grip) and 0.0 <= grip <= 1.0):
             return "grip: must be within [0, 1]"
-        reach = self.config.max_reach_m
+        reach = self._reach_m
         if too_long(np.asarray(p), reach):
             return f"p: {math.hypot(*p):.3g} m from the base, beyond the arm's reach ({reach} m)"
         ref_p, ref_R = self._target_ref if self._target_ref is not None else self._pose_cmd
@@ -379,8 +383,12 @@ class ProxyControl:
         if ref is not None and ref[0] == tgt.p and ref[1] == tgt.R:
             return  # the pose already aimed at (a hold re-sent): nothing to solve or restart
         target = pin.SE3(np.array(tgt.R, dtype=np.float64).reshape(3, 3), np.array(tgt.p))
+        gen = self._gen
+        # The previous target's solution is the nearest seed (a numerical IK converges from
+        # it in a step or two); at a new engagement, where the arm is told to be.
+        seed = gen.goal if isinstance(gen, Servo) and self._motion is not None else None
         try:
-            sol = self._kin.solve(self._q_cmd, target, self._eMt)
+            sol = self._kin.solve(self._q_cmd, target, self._eMt, seed)
         except Unreachable as e:
             self.counters["unreachable"] += 1
             self._event_limited(
@@ -431,7 +439,7 @@ class ProxyControl:
         memo = self._pose_memo
         if memo is not None and memo[0] == q:
             return memo[1]
-        pose = tool_pose_floats(q, self._eMt_floats)
+        pose = self._kin.tool_pose_floats(q, self._eMt_floats)
         self._pose_memo = (list(q), pose)
         return pose
 
@@ -439,6 +447,11 @@ class ProxyControl:
         """Place the tool in the flange frame; the caller holds the lock and is not moving."""
         self._eMt = eMt
         self._eMt_floats = se3_floats(eMt)
+        self._reach_m = (
+            self.model.reach_m
+            - math.hypot(*self.model.tool_p)
+            + float(np.linalg.norm(eMt.translation))
+        )
         self._pose_memo = None
         self._tool_version += 1
         self._pose_cmd = self._tool_pose(self._q_cmd)
@@ -465,7 +478,7 @@ class ProxyControl:
             self._motion.finish(reason, self._q_cmd)
         self._motion = None
         self._gen = None
-        self._qd_cmd = [0.0] * 6
+        self._qd_cmd = [0.0] * self.n
         self._target_ref = None
 
     def _fail(self, code: str, why: str) -> None:

@@ -1,11 +1,12 @@
-"""The arm controller role: what the PUMA proxy needs from whatever moves the joints.
+"""The arm driver role: what the arm service needs from whatever moves the joints.
 
-An `Arm` is the joint-level controller of the PUMA 560: the simulated one (`SimArm`) or a
-retrofitted real controller on a serial line (`SerialArm`). The proxy streams one joint
-setpoint per control cycle and reads the joints back; the controller interpolates between
-setpoints, enforces its own software joint limits and refuses a setpoint that jumps.
+An `Arm` is the joint-level controller of the arm model in use: the simulated one (`SimArm`,
+any model), or a real controller — the retrofitted PUMA 560 controller on a serial line
+(`SerialArm`). The service streams one joint setpoint per control cycle and reads the joints
+back; the controller interpolates between setpoints, enforces its own software joint limits
+and refuses a setpoint that jumps.
 
-Units: joint angles in rad, joint 1 first, DH convention of PROTOCOL.md §1. Times in s.
+Units: joint angles in rad, the model's n joints, joint 1 first. Times in s.
 
 Status, as the controller reports it:
 
@@ -15,14 +16,13 @@ Status, as the controller reports it:
 controller reports it is done. After an error the arm holds and takes no setpoint until
 `connect()` and `initialize()` succeed again; neither of them moves the joints.
 
-This module holds the role and what it publishes (its statuses, its error, the controller's
-joint limits and capabilities, `qn`); `arm_base.py` what the backends share, `backends.py`
-`open_arm(config)`, which picks a backend and imports it lazily.
+This module holds the role and what it publishes (its statuses, its error); `arm_base.py`
+what the backends share, `backends.py` `open_arm(config, model)`, which picks a backend and
+imports it lazily.
 """
 
 from __future__ import annotations
 
-import math
 from typing import Literal, Protocol, get_args, runtime_checkable
 
 import numpy as np
@@ -36,29 +36,6 @@ DriverName = Literal["sim", "serial"]
 
 Q = NDArray[np.float64]
 
-# The controller's software joint limits (rad): the PUMA 560 table of PROTOCOL.md §1. They
-# belong to the controller as much as to the kinematic model, and the fake controller runs
-# as its own process without Pinocchio, so the table is kept here as plain numbers (the DH
-# table of kinematics.py takes its limits from here).
-JOINT_LIMITS_DEG: tuple[tuple[float, float], ...] = (
-    (-160.0, 160.0),
-    (-45.0, 225.0),
-    (-225.0, 45.0),
-    (-110.0, 170.0),
-    (-100.0, 100.0),
-    (-266.0, 266.0),
-)
-Q_LO_RAD: tuple[float, ...] = tuple(math.radians(lo) for lo, _ in JOINT_LIMITS_DEG)
-Q_HI_RAD: tuple[float, ...] = tuple(math.radians(hi) for _, hi in JOINT_LIMITS_DEG)
-
-# PUMA-like capabilities of the arm itself (rad/s, rad/s²): what the controller's servo can do.
-# The proxy plans with lower limits (`ArmConfig`), so the servo always has headroom.
-ARM_MAX_JOINT_SPEED_RAD_S: tuple[float, ...] = (2.5, 2.5, 2.5, 5.0, 5.0, 5.0)
-ARM_MAX_JOINT_ACCEL_RAD_S2: tuple[float, ...] = (8.0, 8.0, 8.0, 20.0, 20.0, 20.0)
-
-# The nominal "ready" pose qn of PROTOCOL.md §1 (`kinematics.qn`): where a simulated arm starts.
-QN_RAD: tuple[float, ...] = (0.0, math.pi / 4, -math.pi, 0.0, math.pi / 4, 0.0)
-
 
 class ArmError(TelerobotError):
     """The arm cannot do what was asked (not connected, not calibrated, link lost, ...)."""
@@ -66,7 +43,7 @@ class ArmError(TelerobotError):
 
 @runtime_checkable
 class Arm(Protocol):
-    """The joint-level controller of a PUMA 560 (the proxy's only way to move the robot).
+    """The joint-level controller of the arm (the service's only way to move the robot).
 
     Thread safety: every method may be called from any thread; `command` is called once per
     control cycle by the proxy's loop and never blocks on I/O.
@@ -98,7 +75,7 @@ class Arm(Protocol):
         ...
 
     def read_joints(self) -> Q:
-        """The latest measured joint angles (6,), rad.
+        """The latest measured joint angles (n,), rad.
 
         Raises `ArmError` before the first calibration has completed (the encoders are
         incremental: nothing is known before). After an error: the last value received.
@@ -106,7 +83,7 @@ class Arm(Protocol):
         ...
 
     def command(self, q_setpoint: Q) -> None:
-        """Stream the joint setpoint (6,), rad, for this control cycle.
+        """Stream the joint setpoint (n,), rad, for this control cycle.
 
         Only in `ready`; ignored in any other status (so nothing queued before an error is
         ever executed after it). A setpoint outside the joint limits or too far from the

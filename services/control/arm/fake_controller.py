@@ -24,14 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.control.arm.driver import (
-    ARM_MAX_JOINT_ACCEL_RAD_S2,
-    ARM_MAX_JOINT_SPEED_RAD_S,
-    Q_HI_RAD,
-    Q_LO_RAD,
-    QN_RAD,
-    Q,
-)
+from services.control.arm.driver import Q
+from services.control.arm.model import load_model
 from services.control.arm.serial_arm import (
     MAX_LINE_BYTES,
     MODEL,
@@ -76,19 +70,26 @@ class FakeController:
         self,
         port: int = 0,
         *,
-        q_init: Sequence[float] = QN_RAD,
+        q_init: Sequence[float] | None = None,
         calibration_s: float = 0.5,
         min_cycle_us: int = 1000,
         watchdog_s: float = 0.25,
         max_setpoint_step_rad: float = 0.5,
-        max_joint_speed_rad_s: Sequence[float] = ARM_MAX_JOINT_SPEED_RAD_S,
-        max_joint_accel_rad_s2: Sequence[float] = ARM_MAX_JOINT_ACCEL_RAD_S2,
+        max_joint_speed_rad_s: Sequence[float] | None = None,
+        max_joint_accel_rad_s2: Sequence[float] | None = None,
         seed: int = 0,
     ) -> None:
+        # The controller's servo limits are the PUMA 560's (its model: URDF and arm.toml).
+        puma = load_model("puma560")
         self._lock = threading.RLock()
-        self._servo = JointFollower(q_init, max_joint_speed_rad_s, max_joint_accel_rad_s2)
-        self.q_lo = np.asarray(Q_LO_RAD)
-        self.q_hi = np.asarray(Q_HI_RAD)
+        self._servo = JointFollower.of(
+            puma,
+            puma.named["qn"] if q_init is None else q_init,
+            max_joint_speed_rad_s,
+            max_joint_accel_rad_s2,
+        )
+        self.q_lo = np.asarray(puma.q_lo)
+        self.q_hi = np.asarray(puma.q_hi)
         self.calibration_s = float(calibration_s)
         self.min_cycle_us = int(min_cycle_us)
         self.watchdog_s = float(watchdog_s)

@@ -1,4 +1,4 @@
-"""Motions of the PUMA proxy: the handle callers wait on and the generators that drive it.
+"""Motions of the arm: the handle callers wait on and the generators that drive it.
 
 A generator gives the desired setpoint each control cycle: `Planned` follows a plan,
 `Servo` chases a goal (streamed commands, or the end of a plan the filter held back), `Brake`
@@ -95,8 +95,8 @@ class Planned:
 
 
 class Servo:
-    """Chases a goal (6 floats, rad) as fast as the joint limits allow, slowing so the tool
-    stays below its speed limits; used for streamed commands and to finish a planned motion."""
+    """Chases a goal (n floats, rad) as fast as the joint limits allow, slowing so the tool
+    stays below its speed limits; used for streamed targets and to finish a planned motion."""
 
     def __init__(self, goal: list[float], t_s: float, settle_s: float) -> None:
         self.goal = goal
@@ -124,7 +124,7 @@ def servo_target(
     still stop at the goal, within the acceleration box around the present velocity, and
     with the tool kept under 90 % of its speeds (so `safe_step` has nothing to cut).
 
-    Joint vectors are 6 plain floats (rad, rad/s) and the pose is a `safety.ToolPose`: this
+    Joint vectors are n plain floats (rad, rad/s) and the pose is a `safety.ToolPose`: this
     runs every tick of a streamed motion."""
     v_des: list[float] = []
     v_lo: list[float] = []

@@ -15,7 +15,7 @@ import pinocchio as pin
 from numpy.typing import NDArray
 
 from services.bus.errors import RpcError
-from services.control.arm.kinematics import Puma560
+from services.control.arm.kinematics import Kinematics
 from services.control.arm.safety import MotionLimits
 from services.control.arm.trajectory import SampledPath, Trapezoid
 
@@ -34,11 +34,11 @@ acceleration to the path's acceleration and 45 % to its curvature (q'·s̈ + q''
 
 Plan = tuple[Callable[[float], Vec], Trapezoid, Vec, str]
 """A planned motion: q(s) for s ∈ [0, 1], its time law, the goal joints, `joint`|`cartesian`."""
-PlanFn = Callable[[Puma560, Vec, pin.SE3], Plan]
+PlanFn = Callable[[Kinematics, Vec, pin.SE3], Plan]
 
 
 def plan_joint(
-    kin: Puma560, lim: MotionLimits, q0: Vec, q1: Vec, eMt: pin.SE3, speed: float
+    kin: Kinematics, lim: MotionLimits, q0: Vec, q1: Vec, eMt: pin.SE3, speed: float
 ) -> Plan:
     """A straight line in joint space with one trapezoidal law for all joints: each
     joint within its speed and acceleration, the tool within its speeds (sampled)."""
@@ -71,7 +71,7 @@ def tool_speed_bound(lim: MotionLimits, lin: float, ang: float, speed: float) ->
 
 
 def plan_pose(
-    kin: Puma560, lim: MotionLimits, q0: Vec, target: pin.SE3, eMt: pin.SE3, config: str | None
+    kin: Kinematics, lim: MotionLimits, q0: Vec, target: pin.SE3, eMt: pin.SE3, config: str | None
 ) -> Plan:
     sols = kin.ik(target, eMt, q_ref=q0)
     if not sols:
@@ -95,7 +95,7 @@ def plan_pose(
 
 
 def plan_line(
-    kin: Puma560, lim: MotionLimits, q0: Vec, target: pin.SE3, eMt: pin.SE3
+    kin: Kinematics, lim: MotionLimits, q0: Vec, target: pin.SE3, eMt: pin.SE3
 ) -> Plan | None:
     """A straight tool line (position lerp, rotation slerp), or None if it leaves the
     workspace or the joint limits or needs a joint jump on the way."""
@@ -118,7 +118,7 @@ def plan_line(
     d1, d2 = path.derivative_bounds()
     v_max = tool_speed_bound(lim, length, angle, 1.0)
     a_max = math.inf
-    for j in range(6):
+    for j in range(kin.n):
         if d1[j] > 0.0:
             v_max = min(v_max, PLAN_SPEED_MARGIN * lim.vmax[j] / d1[j])
             a_max = min(a_max, PLAN_ACCEL_SHARE * lim.amax[j] / d1[j])

@@ -1,6 +1,6 @@
-"""The PUMA proxy: the paper's IProxyRobot component, free of the bus.
+"""The arm's proxy: the paper's IProxyRobot component, for any arm model, free of the bus.
 
-`ArmProxy` turns method calls (PROTOCOL.md §4) and the streamed operator commands (§2, §3)
+`ArmProxy` turns method calls (PROTOCOL.md §4) and the streamed supervised targets (§3)
 into one joint setpoint per control cycle for an `Arm`, and reports status changes and
 other events through `emit(kind, message, data)`. The pieces, each in a module of its own:
 the control core (`control.ProxyControl`: tick, streamed commands, motions, status, events),
@@ -8,14 +8,14 @@ the safety filter (`safety`), time laws and paths (`trajectory`), planning (`pla
 motion handles and generators (`motions`) and the methods' arguments (`arguments`).
 
 Who calls what: `tick(dt_s)` is called by the service's fixed-rate loop and is the only
-place that talks to the arm's setpoint stream; `rpc_*`, `on_command`, `state` and
+place that talks to the arm's setpoint stream; `rpc_*`, `on_target`, `state` and
 `wait_motion` may be called from any thread (the bus's callbacks). One lock serialises
 them; motion planning (many IK solves) runs outside it on a kinematics instance of its own.
 
 Motions. A method that moves the robot (`move_joints`, `move_pose`, `move_relative`,
 `home`) is accepted only when the robot is `ready` (at rest): `busy` while another motion
-or the teleoperation stream is moving it. It returns `{"accepted": True, "motion": id}` at
-once; `wait_motion(id, timeout_s)` blocks until that motion ends. A streamed command
+or the target stream is moving it. It returns `{"accepted": True, "motion": id}` at
+once; `wait_motion(id, timeout_s)` blocks until that motion ends. A streamed target
 pre-empts a running motion; `stop` brakes any motion to rest.
 
 Safety, whatever the source of the motion (`safe_step`, applied every tick): a setpoint
@@ -46,16 +46,12 @@ from services.control.arm.arguments import (
     arg_vector,
     opt_frame,
     opt_rotation,
+    opt_vector,
     too_long,
 )
 from services.control.arm.control import ProxyControl
 from services.control.arm.driver import ArmError
-from services.control.arm.kinematics import (
-    Puma560,
-    compose_floats,
-    flange_pose_floats,
-    manipulability_floats,
-)
+from services.control.arm.kinematics import Kinematics, compose_floats
 from services.control.arm.motions import Brake, Motion, Planned
 from services.control.arm.planning import Plan, PlanFn, plan_joint, plan_pose
 
@@ -76,6 +72,18 @@ class ArmProxy(ProxyControl):
     """
 
     # --- methods (PROTOCOL §4, IProxyRobot) -----------------------------------------------
+
+    def rpc_describe(self, args: Mapping[str, Any]) -> dict[str, Any]:
+        """The ArmDescription (PROTOCOL §1) of the model, with the tool in use."""
+        with self._lock:
+            tool_p, tool_R = self._eMt_floats
+        out = self.model.description(tuple(tool_p), tuple(tool_R))  # type: ignore[arg-type]
+        # What the arm holds the tool to (its `limits`): the decision supervises within them.
+        out["max_tool_speed_m_s"] = self.limits.tool_speed_m_s
+        out["max_tool_rot_speed_rad_s"] = self.limits.tool_rot_speed_rad_s
+        out["max_target_step_m"] = self.config.max_target_step_m
+        out["max_target_step_rad"] = self.config.max_target_step_rad
+        return out
 
     def rpc_status(self, args: Mapping[str, Any]) -> dict[str, Any]:
         """The robot state plus the proxy's settings and last error."""
@@ -138,7 +146,7 @@ class ArmProxy(ProxyControl):
     def rpc_set_tool(self, args: Mapping[str, Any]) -> dict[str, Any]:
         """Place the tool frame in the flange frame: `{p (m), R}` = eMt. Not while moving."""
         p = arg_vector(args, "p", 3)
-        check_norm("p", p.tolist(), "tool_offset_m")  # a tool over 1 m is not a PUMA tool
+        check_norm("p", p.tolist(), "tool_offset_m")  # a tool over 1 m is not an arm's tool
         R = arg_rotation(args, "R")
         with self._lock:
             if self._status == "moving":
@@ -157,7 +165,7 @@ class ArmProxy(ProxyControl):
 
     def rpc_move_joints(self, args: Mapping[str, Any]) -> dict[str, Any]:
         """Joint-interpolated move to `q` (rad) at `speed` (fraction of the limits, default 1)."""
-        q = arg_vector(args, "q", 6)
+        q = arg_vector(args, "q", self.n)
         speed = arg_fraction(args, "speed")
         self._check_limits(q)
         return self._move(
@@ -179,6 +187,10 @@ class ArmProxy(ProxyControl):
         check_each("p", p.tolist(), "position_m")
         R = arg_rotation(args, "R")
         config = arg_config(args)
+        if config is not None and not self._plan_kin.analytic:
+            raise RpcError(
+                "bad_request", f"config: {self.model.name} has no analytic IK, hence no branches"
+            )
         target = pin.SE3(R, p)
         return self._move(
             "move_pose", lambda kin, q0, eMt: plan_pose(kin, self.limits, q0, target, eMt, config)
@@ -199,7 +211,7 @@ class ArmProxy(ProxyControl):
         with self._lock:
             frame: RelFrame = frame_arg or self._frame
 
-        def plan(kin: Puma560, q0: Vec, eMt: pin.SE3) -> Plan:
+        def plan(kin: Kinematics, q0: Vec, eMt: pin.SE3) -> Plan:
             oMe = kin.fk_flange(q0)
             oMt = oMe * eMt
             R_f = {"world": np.eye(3), "wrist": oMe.rotation, "tool": oMt.rotation}[frame]
@@ -233,7 +245,7 @@ class ArmProxy(ProxyControl):
 
     def rpc_fk(self, args: Mapping[str, Any]) -> dict[str, Any]:
         """Tool and flange poses (world) of joints `q` with the current tool."""
-        q = arg_vector(args, "q", 6)
+        q = arg_vector(args, "q", self.n)
         with self._lock:
             eMt = pin.SE3(self._eMt)
         with self._plan_lock:
@@ -247,20 +259,27 @@ class ArmProxy(ProxyControl):
         }
 
     def rpc_ik(self, args: Mapping[str, Any]) -> dict[str, Any]:
-        """Every IK solution of the tool target `{p, R}` (world), in the limits or not."""
+        """IK of the tool target `{p, R}` (world): every branch, in the limits or not, each
+        with its `config`, for an analytic arm; the numerical solution nearest `seed`
+        (default: the present joints) for any other (none when it does not converge)."""
         p = arg_vector(args, "p", 3)
+        check_each("p", p.tolist(), "position_m")
         R = arg_rotation(args, "R")
+        seed = opt_vector(args, "seed", self.n)
+        if seed is not None:
+            check_each("seed", seed.tolist(), "joint_rad")
         with self._lock:
             eMt = pin.SE3(self._eMt)
-            q_ref = np.array(self._q_cmd)
+            q_ref = np.array(self._q_cmd) if seed is None else seed
         with self._plan_lock:
             sols = self._plan_kin.ik(pin.SE3(R, p), eMt, q_ref=q_ref)
-        return {
-            "solutions": [
-                {"q": _floats(s.q), "config": s.config, "in_limits": bool(s.in_limits)}
-                for s in sols
-            ]
-        }
+        out = []
+        for s in sols:
+            sol: dict[str, Any] = {"q": _floats(s.q), "in_limits": bool(s.in_limits)}
+            if s.config is not None:
+                sol["config"] = s.config
+            out.append(sol)
+        return {"solutions": out}
 
     def rpc_limits(self, args: Mapping[str, Any]) -> dict[str, Any]:
         """The joint limits (rad) and the motion limits the proxy enforces."""
@@ -332,7 +351,7 @@ class ArmProxy(ProxyControl):
         cache = self._fk_cache
         if cache is not None and cache[0] == q and cache[1] == self._tool_version:
             return cache[2]
-        oMe = flange_pose_floats(q)
+        oMe = self._kin.flange_pose_floats(q)
         tool_p, tool_R = compose_floats(oMe, self._eMt_floats)
         poses: dict[str, Any] = {
             "q": list(q),
@@ -340,7 +359,7 @@ class ArmProxy(ProxyControl):
             "tool_R": tool_R,
             "flange_p": oMe[0],
             "flange_R": oMe[1],
-            "manipulability": manipulability_floats(q),
+            "manipulability": self._kin.manipulability(q),
         }
         self._fk_cache = (list(q), self._tool_version, poses)
         return poses
@@ -352,7 +371,7 @@ class ArmProxy(ProxyControl):
         }
 
     def _check_limits(self, q: Vec) -> None:
-        for j in range(6):
+        for j in range(self.n):
             lo, hi = self.limits.q_lo[j], self.limits.q_hi[j]
             if not lo <= q[j] <= hi:
                 raise RpcError("limit", f"q[{j}] = {q[j]:.6g} rad is outside [{lo:.4f}, {hi:.4f}]")

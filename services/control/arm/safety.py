@@ -6,9 +6,9 @@ leaves the joint limits, no joint exceeds its speed limit, no joint its accelera
 `tool_speed_m_s` and the tool frame turns at most `tool_rot_speed_rad_s` between two ticks.
 Units: rad, m, s.
 
-It runs every tick on six joints, where a numpy call costs more than the arithmetic: joint
-vectors are sequences of 6 plain floats, joint 1 first, and a tool pose is (p, R), 3 floats
-(m) and 9 floats (row-major), as `kinematics.tool_pose_floats` gives them.
+It runs every tick on the arm's few joints, where a numpy call costs more than the
+arithmetic: joint vectors are sequences of n plain floats, joint 1 first, and a tool pose is
+(p, R), 3 floats (m) and 9 floats (row-major), as `Kinematics.tool_pose_floats` gives them.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ Vec = NDArray[np.float64]
 ToolPose = tuple[Sequence[float], Sequence[float]]
 """(p, R) of the tool in the world: position (3 floats, m), rotation (9 floats, row-major)."""
 ToolPoseFn = Callable[[list[float]], ToolPose]
-"""The tool pose at a joint vector (6 floats, rad)."""
+"""The tool pose at a joint vector (n floats, rad)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,8 +50,9 @@ class MotionLimits:
 
     def __post_init__(self) -> None:
         tables = (self.q_lo, self.q_hi, self.vmax, self.amax)
+        n = len(self.q_lo)
         rows = zip(
-            *(np.asarray(t, dtype=np.float64).reshape(6).tolist() for t in tables), strict=True
+            *(np.asarray(t, dtype=np.float64).reshape(n).tolist() for t in tables), strict=True
         )
         object.__setattr__(self, "joints", tuple(rows))
 

@@ -34,6 +34,8 @@ from services.control.arm.driver import ArmError, ArmStatus, Q
 
 MAX_LINE_BYTES = 128
 MODEL = "PUMA560"
+N_JOINTS = 6
+"""The protocol's joint count (docs/serial-arm-protocol.md): this driver is the PUMA 560's."""
 CONTROLLER_STATES = ("IDLE", "CAL", "READY", "ESTOP", "FAULT")
 ERROR_CODES = ("CHK", "SYNTAX", "UNKNOWN", "STATE", "LIMIT", "STEP", "ESTOP", "FAULT")
 
@@ -113,14 +115,15 @@ def decode_line(raw: bytes) -> list[str]:
 
 
 def format_joints(q: Sequence[float] | Q) -> list[str]:
-    """Joint angles (rad) as 6 fixed-point fields, 1 µrad resolution."""
+    """Joint angles (rad) as fixed-point fields, 1 µrad resolution."""
     return [f"{float(x):.6f}" for x in q]
 
 
 def parse_joints(fields: Sequence[str]) -> Q:
-    """6 fields → joint angles (rad); `LineError("SYNTAX")` unless 6 finite numbers."""
-    if len(fields) != 6:
-        raise LineError("SYNTAX", f"expected 6 joint values, got {len(fields)}")
+    """N_JOINTS fields → joint angles (rad); `LineError("SYNTAX")` unless N_JOINTS finite
+    numbers."""
+    if len(fields) != N_JOINTS:
+        raise LineError("SYNTAX", f"expected {N_JOINTS} joint values, got {len(fields)}")
     try:
         q = np.array([float(f) for f in fields], dtype=np.float64)
     except ValueError:
@@ -182,6 +185,7 @@ class SerialArm(ArmBase):
         self.cycle_s = cycle_ms / 1000.0
         self.timeout_s = float(timeout_s)
         self.setpoint_stale_s = float(setpoint_stale_s)
+        self.n = N_JOINTS
         self._lock = threading.RLock()
         # Whole sentences only: a HOLD written on failure must not split a SP in two.
         self._wlock = threading.Lock()

@@ -1,4 +1,5 @@
-"""The `arm` service on the bus: IProxyRobot at robot/arm/rpc, `robot/state`, `robot/arm/target`.
+"""The `arm` service on the bus: IProxyRobot at robot/arm/rpc, `robot/state`, `robot/arm/target`,
+and the arm's description (`describe`, `robot/arm/description`, cached for late subscribers).
 
 One control thread owns the arm (franka-node's rule). It is woken, not polled: the target
 subscription stores the newest target (latest-wins) and wakes it, and it applies the target
@@ -22,10 +23,11 @@ from typing import Annotated, Any
 from services.bus import codec, keys
 from services.bus.bounds import check
 from services.bus.errors import RpcError
-from services.bus.messages import ArmTarget, MaxLen, RobotState
+from services.bus.messages import ArmDescription, ArmTarget, MaxLen, RobotState
 from services.bus.node import Node
 from services.control.arm.backends import open_arm
 from services.control.arm.config import ArmConfig
+from services.control.arm.model import ArmModel, load_model
 from services.control.arm.proxy import ArmProxy
 
 log = logging.getLogger("telerobot.arm")
@@ -35,7 +37,7 @@ MOTIONS = ("initialize", "move_joints", "move_pose", "move_relative", "home")
 #: motions the decision server supervises: while one is alive, only it may start them
 SUPERVISED = ("move_joints", "move_pose", "move_relative", "home")
 #: methods that never block (no I/O with the arm, no waiting): answered in Zenoh's callback
-INLINE = ("status", "set_frame", "stop", "fk", "ik", "limits")
+INLINE = ("status", "describe", "set_frame", "stop", "fk", "limits")
 WAIT_TIMEOUT_S = 120.0
 MAX_REQUESTS = 256
 """Motion request ids remembered (oldest forgotten first) so a retry never moves twice."""
@@ -52,15 +54,20 @@ command can arrive right after a tick; a stalled thread must not make one long s
 class ArmService:
     """Runs the PUMA proxy on the bus; `close()` holds the arm and disconnects it."""
 
-    def __init__(self, node: Node, config: ArmConfig, arm: Any = None) -> None:
+    def __init__(
+        self, node: Node, config: ArmConfig, arm: Any = None, model: ArmModel | None = None
+    ) -> None:
         self.node = node
-        self.config = config
+        self.model = model if model is not None else load_model(config.model)
+        self.config = config.bind(self.model)
         # the liveliness watch starts now, not at the first motion call: a set created on
         # demand has not yet heard of a decision that is already alive (unsupervised moves)
         _ = node.alive
-        self.arm = arm if arm is not None else open_arm(config)
-        self.proxy = ArmProxy(self.arm, config, self._emit)
+        self.arm = arm if arm is not None else open_arm(self.config, self.model)
+        self.proxy = ArmProxy(self.arm, self.config, self._emit, self.model)
         self._state_pub = node.publisher(keys.STATE)
+        self._description_pub = node.publisher(keys.ARM_DESCRIPTION, cache=1)
+        self._description_seq = 0
         self._state_seq = 0
         self._cmd_lock = threading.Lock()
         self._pending: tuple[ArmTarget, int] | None = None
@@ -75,7 +82,6 @@ class ArmService:
             name: getattr(self.proxy, f"rpc_{name}")
             for name in (
                 "connect",
-                "set_tool",
                 "set_frame",
                 "stop",
                 "estop",
@@ -85,6 +91,8 @@ class ArmService:
             )
         }
         methods["status"] = self.rpc_status
+        methods["describe"] = self.proxy.rpc_describe
+        methods["set_tool"] = self._set_tool
         # The e-stop acted before its arguments were read (`first`): the reply reports it.
         methods["estop"] = lambda args: {"status": self.proxy.status}
         for name in MOTIONS:
@@ -98,7 +106,22 @@ class ArmService:
         )
         self._thread = threading.Thread(target=self._loop, name="arm-control", daemon=True)
         self._thread.start()
+        self._publish_description()
         node.announce()
+
+    def _publish_description(self) -> None:
+        """robot/arm/description: at start-up and after every tool change (cached: a late
+        subscriber with history gets the newest)."""
+        self._description_seq += 1
+        desc = self.proxy.rpc_describe({})
+        self._description_pub.put(
+            ArmDescription(seq=self._description_seq, t_ns=time.time_ns(), **desc)
+        )
+
+    def _set_tool(self, args: dict[str, Any]) -> dict[str, Any]:
+        reply = self.proxy.rpc_set_tool(args)
+        self._publish_description()
+        return reply
 
     def _emit(self, kind: str, message: str, data: dict[str, Any]) -> None:
         self.node.event(kind, message, data)

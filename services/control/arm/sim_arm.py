@@ -1,10 +1,10 @@
-"""A simulated PUMA 560 joint controller: the default `Arm`.
+"""A simulated joint controller for any arm model: the default `Arm`.
 
 The simulated servo (`JointFollower`) tracks the streamed setpoint like a position loop
-with per-joint speed and acceleration limits; it is stepped at 1 kHz, either by its own
-thread (`SimArm()`, for the service) or by the caller through `step(dt_s)` (`threaded=False`,
-deterministic, for tests). Calibration takes `calibration_s` of simulated time. Faults can
-be injected to exercise the proxy's error paths.
+with the model's per-joint limits (positions, speeds, accelerations); it is stepped at 1 kHz,
+either by its own thread (`SimArm()`, for the service) or by the caller through `step(dt_s)`
+(`threaded=False`, deterministic, for tests). Calibration takes `calibration_s` of simulated
+time. Faults can be injected to exercise the proxy's error paths.
 
 The same follower also moves the fake serial controller (`fake_controller.py`), so both
 backends behave alike under the contract test.
@@ -21,20 +21,12 @@ from typing import Literal
 import numpy as np
 
 from services.control.arm.arm_base import ArmBase, as_joint_vector
-from services.control.arm.driver import (
-    ARM_MAX_JOINT_ACCEL_RAD_S2,
-    ARM_MAX_JOINT_SPEED_RAD_S,
-    Q_HI_RAD,
-    Q_LO_RAD,
-    QN_RAD,
-    ArmError,
-    ArmStatus,
-    Q,
-)
+from services.control.arm.driver import ArmError, ArmStatus, Q
+from services.control.arm.model import ArmModel, load_model
 
 FaultKind = Literal["stall", "disconnect", "error"]
 
-# Substep of the simulated servo (s): the 1 kHz of a PUMA joint servo board.
+# Substep of the simulated servo (s): the 1 kHz of a joint servo board.
 SERVO_DT_S = 1e-3
 ARRIVED_RAD = 1e-9
 """The servo's exponential approach ends here: joints this close to the setpoint, and this
@@ -42,17 +34,16 @@ slow (rad/s), are at the setpoint and at rest (far below any encoder's resolutio
 IDLE_WAIT_S = 1.0
 
 Joints = tuple[float, ...]
-"""Six joint values (rad or rad/s), joint 1 first."""
-_REST: Joints = (0.0,) * 6
+"""The n joint values (rad or rad/s), joint 1 first."""
 
 
-def _joints(value: Sequence[float] | Q) -> Joints:
-    """Six joint values as a tuple of floats (ValueError unless 6)."""
+def _joints(value: Sequence[float] | Q, n: int) -> Joints:
+    """n joint values as a tuple of floats (ValueError unless n)."""
     if isinstance(value, np.ndarray):
-        return tuple(np.asarray(value, dtype=np.float64).reshape(6).tolist())
+        return tuple(np.asarray(value, dtype=np.float64).reshape(n).tolist())
     out = tuple(map(float, value))
-    if len(out) != 6:
-        raise ValueError(f"expected 6 joint values, got {len(out)}")
+    if len(out) != n:
+        raise ValueError(f"expected {n} joint values, got {len(out)}")
     return out
 
 
@@ -64,8 +55,8 @@ class JointFollower:
     then limited to ±`vmax` and to a change of at most `amax·dt` from the previous velocity.
     The joints never leave [q_lo, q_hi]. Not thread safe: the owner locks.
 
-    The state is plain floats: it steps at 1 kHz, and on six joints a numpy call costs more
-    than the arithmetic. `q`, `v` and `setpoint` give (fresh) arrays and take any 6 floats;
+    The state is plain floats: it steps at 1 kHz, and on a few joints a numpy call costs more
+    than the arithmetic. `q`, `v` and `setpoint` give (fresh) arrays and take any n floats;
     `q_rad` is the joints as a tuple, for an owner that copies them every step.
     """
 
@@ -74,17 +65,19 @@ class JointFollower:
         q: Sequence[float],
         vmax: Sequence[float],
         amax: Sequence[float],
-        q_lo: Sequence[float] = Q_LO_RAD,
-        q_hi: Sequence[float] = Q_HI_RAD,
+        q_lo: Sequence[float],
+        q_hi: Sequence[float],
         kp_1_s: float = 50.0,
     ) -> None:
-        self._q: Joints = _joints(as_joint_vector(q))
-        self._v: Joints = _REST
+        n = self.n = len(q)
+        self._q: Joints = _joints(as_joint_vector(q, "q", n), n)
+        self._rest: Joints = (0.0,) * n
+        self._v: Joints = self._rest
         self._sp: Joints = self._q
-        self.vmax = as_joint_vector(vmax, "vmax")
-        self.amax = as_joint_vector(amax, "amax")
-        self.q_lo = as_joint_vector(q_lo, "q_lo")
-        self.q_hi = as_joint_vector(q_hi, "q_hi")
+        self.vmax = as_joint_vector(vmax, "vmax", n)
+        self.amax = as_joint_vector(amax, "amax", n)
+        self.q_lo = as_joint_vector(q_lo, "q_lo", n)
+        self.q_hi = as_joint_vector(q_hi, "q_hi", n)
         self.kp_1_s = float(kp_1_s)
         # Per joint (vmax, amax, q_lo, q_hi), as floats for the step.
         self._limits = tuple(
@@ -97,6 +90,26 @@ class JointFollower:
             )
         )
 
+    @classmethod
+    def of(
+        cls,
+        model: ArmModel,
+        q: Sequence[float] | None = None,
+        vmax: Sequence[float] | None = None,
+        amax: Sequence[float] | None = None,
+        q_lo: Sequence[float] | None = None,
+        q_hi: Sequence[float] | None = None,
+    ) -> JointFollower:
+        """The servo of `model`'s arm: its home, speeds, accelerations and joint limits,
+        each unless given."""
+        return cls(
+            model.home if q is None else q,
+            [j.max_speed for j in model.joints] if vmax is None else vmax,
+            [j.max_accel for j in model.joints] if amax is None else amax,
+            model.q_lo if q_lo is None else q_lo,
+            model.q_hi if q_hi is None else q_hi,
+        )
+
     @property
     def q(self) -> Q:
         """The joints (rad)."""
@@ -104,7 +117,7 @@ class JointFollower:
 
     @q.setter
     def q(self, value: Sequence[float] | Q) -> None:
-        self._q = _joints(value)
+        self._q = _joints(value, self.n)
 
     @property
     def q_rad(self) -> Joints:
@@ -118,7 +131,7 @@ class JointFollower:
 
     @v.setter
     def v(self, value: Sequence[float] | Q) -> None:
-        self._v = _joints(value)
+        self._v = _joints(value, self.n)
 
     @property
     def setpoint(self) -> Q:
@@ -127,10 +140,10 @@ class JointFollower:
 
     @setpoint.setter
     def setpoint(self, value: Sequence[float] | Q) -> None:
-        self._sp = _joints(value)
+        self._sp = _joints(value, self.n)
 
     def stop_joint(self, j: int) -> None:
-        """Zero the velocity of joint `j` (0…5): it is blocked."""
+        """Zero the velocity of joint `j` (0 … n − 1): it is blocked."""
         v = list(self._v)
         v[j] = 0.0
         self._v = tuple(v)
@@ -145,7 +158,7 @@ class JointFollower:
 
     def halt(self) -> None:
         """Stop dead (brakes): velocity zero, setpoint where the joints are."""
-        self._v = _REST
+        self._v = self._rest
         self._sp = self._q
 
     def _desired(self) -> list[float]:
@@ -188,10 +201,11 @@ class JointFollower:
                 [
                     lo if x < lo else hi if x > hi else x
                     for x, (_, _, lo, hi) in zip(self._sp, self._limits, strict=True)
-                ]
+                ],
+                self.n,
             )
             self._sp = rest
-            self._q, self._v = rest, _REST
+            self._q, self._v = rest, self._rest
         else:
             self._q, self._v = tuple(q_new), tuple(v_new)
 
@@ -201,9 +215,11 @@ class JointFollower:
 
 
 class SimArm(ArmBase):
-    """A simulated PUMA 560 controller (implements `Arm`).
+    """A simulated joint controller of an arm model (implements `Arm`; default: the PUMA 560).
 
-    `q_init` (rad) is where the joints are at power-on. `calibration_s` is the simulated
+    The servo's limits are the model's capabilities (the URDF's joint ranges and velocities,
+    the model file's accelerations) unless given. `q_init` (rad) is where the joints are at
+    power-on (default: the model's `home`). `calibration_s` is the simulated
     duration of `initialize()`. `threaded=True` steps the servo at 1 kHz of wall time in a
     thread started by `connect()` while anything moves, and sleeps while the joints rest at
     the setpoint (a new setpoint, a fault or a calibration wakes it); `threaded=False`
@@ -216,22 +232,26 @@ class SimArm(ArmBase):
 
     def __init__(
         self,
-        q_init: Sequence[float] = QN_RAD,
+        q_init: Sequence[float] | None = None,
         *,
+        model: ArmModel | None = None,
         calibration_s: float = 0.5,
         threaded: bool = True,
-        max_joint_speed_rad_s: Sequence[float] = ARM_MAX_JOINT_SPEED_RAD_S,
-        max_joint_accel_rad_s2: Sequence[float] = ARM_MAX_JOINT_ACCEL_RAD_S2,
+        max_joint_speed_rad_s: Sequence[float] | None = None,
+        max_joint_accel_rad_s2: Sequence[float] | None = None,
         max_setpoint_step_rad: float = 0.5,
         stall_threshold_rad: float = 0.02,
-        q_lo: Sequence[float] = Q_LO_RAD,
-        q_hi: Sequence[float] = Q_HI_RAD,
+        q_lo: Sequence[float] | None = None,
+        q_hi: Sequence[float] | None = None,
     ) -> None:
         if calibration_s < 0.0:
             raise ValueError("calibration_s must be ≥ 0")
+        arm = model if model is not None else load_model()
+        self.model = arm
+        self.n = arm.n
         self._lock = threading.RLock()
-        self._servo = JointFollower(
-            q_init, max_joint_speed_rad_s, max_joint_accel_rad_s2, q_lo, q_hi
+        self._servo = JointFollower.of(
+            arm, q_init, max_joint_speed_rad_s, max_joint_accel_rad_s2, q_lo, q_hi
         )
         self._lo: Joints = tuple(self._servo.q_lo.tolist())
         self._hi: Joints = tuple(self._servo.q_hi.tolist())
@@ -296,7 +316,7 @@ class SimArm(ArmBase):
             accepted = self._accept_setpoint(q_setpoint)
             if accepted is None:
                 return
-            sp = _joints(accepted)
+            sp = _joints(accepted, self.n)
             for j, (x, lo, hi) in enumerate(zip(sp, self._lo, self._hi, strict=True)):
                 if x < lo or x > hi:
                     self._fail_locked(f"setpoint q{j + 1}={x:.4f} rad outside the joint limits")
@@ -362,7 +382,7 @@ class SimArm(ArmBase):
         """Inject a fault; `connect()` clears it.
 
         `error`: an amplifier fault, `error` at once. `disconnect`: the link drops, `error`
-        at once, the readback freezes. `stall`: joint `joint` (1…6) stops moving; the arm
+        at once, the readback freezes. `stall`: joint `joint` (1 … n) stops moving; the arm
         goes to `error` as soon as the servo asks it to move.
         """
         with self._lock:
@@ -372,8 +392,8 @@ class SimArm(ArmBase):
                 self._link_up = False
                 self._fail_locked("link lost (injected)")
             elif kind == "stall":
-                if not 1 <= joint <= 6:
-                    raise ValueError("joint must be 1…6")
+                if not 1 <= joint <= self.n:
+                    raise ValueError(f"joint must be 1 … {self.n}")
                 self._stalled_joint = joint - 1
             else:
                 raise ValueError(f"unknown fault {kind!r}")

@@ -85,7 +85,7 @@ class SampledPath:
         if self.n >= 2:
             d2max = (np.abs(np.diff(self.q, n=2, axis=0)) * self.n * self.n).max(axis=0)
         else:
-            d2max = np.zeros(6)
+            d2max = np.zeros(self.q.shape[1])
         return np.asarray(d1max, dtype=np.float64), np.asarray(d2max, dtype=np.float64)
 
 

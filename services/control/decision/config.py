@@ -11,7 +11,7 @@ which builds a new config with the same checks.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 from services.bus.bounds import check_config
@@ -123,6 +123,11 @@ class DecisionConfig:
       workspace_min, workspace_max: the box (m, world) the tool point must stay in. The
         default spans the table (x 0.35…0.85, y −0.45…0.45, top z = 0.40) and its margins;
         its floor is the table top, so the tool point never enters the table.
+      workspace_from_arm: while true (the default), the box is the one the arm's
+        description gives (robot/arm/description `workspace`, its model file's), when it
+        gives one; false: workspace_min/workspace_max as set here. Setting either through
+        the `supervisor` call sets it false (the box given wins over the arm's). The tool
+        speeds are never above what the description says the arm holds the tool to.
       max_tool_speed_m_s, max_tool_rot_speed_rad_s: the supervised target never moves
         faster: a step covers at most speed × the time since the previous one (at most
         0.1 s of it: `target.MAX_SPAN_S`), whatever the master's rate.
@@ -158,6 +163,7 @@ class DecisionConfig:
     admittance_deadband_nm: float = 0.2
     workspace_min: Vec3T = (0.25, -0.5, 0.40)
     workspace_max: Vec3T = (0.95, 0.5, 1.2)
+    workspace_from_arm: bool = True
     max_tool_speed_m_s: float = 0.25
     max_tool_rot_speed_rad_s: float = 1.0
     approach_zone_m: float = 0.0
@@ -202,6 +208,25 @@ class DecisionConfig:
     def period_s(self) -> float:
         """The nominal loop period (s): the speed limits are applied per this period."""
         return 1.0 / self.rate_hz
+
+    def with_arm(self, arm: Any) -> DecisionConfig:
+        """These settings bound by the arm's description (an ArmDescription): its workspace
+        box unless `workspace_from_arm` is false or it gives none, and tool speeds (the
+        task, guarded and approach speeds with them) no higher than it holds the tool to."""
+        changes: dict[str, Any] = {}
+        ws = arm.workspace or {}
+        if self.workspace_from_arm and "min" in ws and "max" in ws:
+            changes["workspace_min"] = tuple(float(x) for x in ws["min"])
+            changes["workspace_max"] = tuple(float(x) for x in ws["max"])
+        top = arm.max_tool_speed_m_s
+        if top is not None and top < self.max_tool_speed_m_s:
+            changes["max_tool_speed_m_s"] = top
+            for key in ("task_speed_m_s", "guarded_speed_m_s", "approach_speed_m_s"):
+                changes[key] = min(getattr(self, key), top)
+        turn = arm.max_tool_rot_speed_rad_s
+        if turn is not None and turn < self.max_tool_rot_speed_rad_s:
+            changes["max_tool_rot_speed_rad_s"] = turn
+        return replace(self, **changes) if changes else self
 
     def settings(self) -> dict[str, Any]:
         """Every setting as a msgpack-friendly map (tuples as lists)."""

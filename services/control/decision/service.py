@@ -36,8 +36,14 @@ from services.bus.bounds import out_of_bounds, short
 from services.bus.codec import arg
 from services.bus.config import section
 from services.bus.errors import ConfigError, ErrorCode, ProtocolError, RpcError, Unavailable
-from services.bus.keys import ARM_TARGET, CMD, STATE
-from services.bus.messages import ArmTarget, ForceSample, OperatorCommand, RobotState
+from services.bus.keys import ARM_DESCRIPTION, ARM_TARGET, CMD, STATE
+from services.bus.messages import (
+    ArmDescription,
+    ArmTarget,
+    ForceSample,
+    OperatorCommand,
+    RobotState,
+)
 from services.bus.node import Node
 from services.control.decision.config import STARTUP_ONLY, DecisionConfig
 from services.control.decision.forcefeed import FORCE_WAIT_S, ForceFeed
@@ -55,6 +61,7 @@ log = logging.getLogger("telerobot.decision")
 SERVICE = "decision"
 #: IProxyRobot (PROTOCOL §4) forwarded to robot/arm/rpc/…; arm's `status` is part of ours.
 ARM_METHODS: tuple[str, ...] = (
+    "describe",
     "connect",
     "initialize",
     "set_tool",
@@ -111,6 +118,10 @@ class DecisionService:
         self.supervisor = Supervisor(
             config, seq_start=wall // 1_000, engage_start=wall // 1_000_000
         )
+        self._configured = config
+        """The settings as configured; the supervisor runs them bound by the arm's
+        description (`DecisionConfig.with_arm`) once one has come."""
+        self._arm: ArmDescription | None = None
         self._stop = threading.Event()
         self._closed = False
         self.loop_errors = 0
@@ -156,6 +167,7 @@ class DecisionService:
             )
         )
         self._state = node.latest(STATE)
+        node.subscribe(ARM_DESCRIPTION, self._on_description, history=True)
         # robot/force only while the arm moves or may start to (forcefeed.py).
         self._force = ForceFeed(node)
         node.alive.on_change(self._on_alive)
@@ -174,6 +186,29 @@ class DecisionService:
     def _on_commands(self, msgs: tuple[OperatorCommand, ...]) -> None:
         """Each arrival, at once; what piled up while the last one was handled, together."""
         self._react(commands=msgs)
+
+    def _on_description(self, desc: ArmDescription) -> None:
+        """The arm (re)described itself: supervise within its workspace and speeds."""
+        with self._cond:
+            self._arm = desc
+            bound = self._configured.with_arm(desc)
+            changed = bound != self.supervisor.config
+            if changed:
+                self.supervisor.set_config(bound)
+                if self.passivity is not None:
+                    self.passivity.contact_n = bound.max_force_n
+                self._cond.notify_all()
+        if changed:
+            self._event(
+                "status",
+                f"supervising the {desc.model} arm: workspace and tool speeds from its description",
+                {
+                    "model": desc.model,
+                    "workspace_min": list(bound.workspace_min),
+                    "workspace_max": list(bound.workspace_max),
+                    "max_tool_speed_m_s": bound.max_tool_speed_m_s,
+                },
+            )
 
     def _on_alive(self, name: str, up: bool) -> None:
         if not up:
@@ -488,15 +523,24 @@ class DecisionService:
             if fixed:
                 raise RpcError("bad_request", f"{', '.join(fixed)}: fixed at start-up")
             with self._cond:
-                current = self.config.settings()
+                current = self._configured.settings()
+                if {"workspace_min", "workspace_max"} & set(args):
+                    # A box given here wins over the arm's: the one not given is the one
+                    # in force now, not the table's that the arm's replaced.
+                    effective = self.supervisor.config
+                    current["workspace_min"] = list(effective.workspace_min)
+                    current["workspace_max"] = list(effective.workspace_max)
+                    args = {"workspace_from_arm": False, **args}
             try:
                 new = section(DecisionConfig, {**current, **args}, "decision")
             except ConfigError as e:
                 raise RpcError("bad_request", str(e)) from None
             with self._cond:
-                self.supervisor.set_config(new)
+                self._configured = new
+                bound = new if self._arm is None else new.with_arm(self._arm)
+                self.supervisor.set_config(bound)
                 if self.passivity is not None:
-                    self.passivity.contact_n = new.max_force_n
+                    self.passivity.contact_n = bound.max_force_n
                 self._cond.notify_all()  # the timer's next deadline may have moved
             changed = sorted(k for k in args if current.get(k) != new.settings().get(k))
             self._event(

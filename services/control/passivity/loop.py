@@ -1,7 +1,7 @@
 """A whole position–force bilateral loop over a bad link, in simulation (pure, seeded).
 
 hand → device → [link] → slave (follows the commanded position kinematically, at most at
-the PUMA's tool speed, as the simulated PUMA does behind its safety filter) → wall → force →
+an arm's tool speed, as the simulated arm does behind its safety filter) → wall → force →
 [link] → device → hand. The master sends its position and its
 cumulative input energy each tick; the slave sends the wall force and its cumulative input
 energy. The link delays every packet by `delay_s` ± `jitter` (a fraction, uniform), loses a

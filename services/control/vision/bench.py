@@ -13,35 +13,24 @@ from typing import Any
 
 import numpy as np
 
+from services.control.arm.model import load_model
 from services.control.vision.config import VisionConfig
 from services.control.vision.pipeline import encode_image
 from services.control.vision.sim_camera import SimStereoCamera
 
-# The PUMA at qn = (0, π/4, −π, 0, π/4, 0) (PROTOCOL.md §1), tool 0.2 m out of the flange:
-# the base, DH frame origins 1…6, the tool point and the tool axes (world, m).
-_QN_LINKS = np.array(
-    [
-        [0.0, 0.0, 0.0],
-        [0.0, 0.0, 0.67183],
-        [0.30533, 0.0, 0.97716],
-        [0.29097, -0.15005, 0.96280],
-        [0.59630, -0.15005, 0.65748],
-        [0.59630, -0.15005, 0.65748],
-        [0.59630, -0.15005, 0.65748],
-    ]
-)
-_QN_TOOL_P = np.array([0.79630, -0.15005, 0.65748])
-_QN_TOOL_R = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])
-
 
 def bench_render(n: int = 100, config: VisionConfig | None = None) -> dict[str, Any]:
-    """Render and JPEG-encode `n` pairs of the default workcell with the arm moving.
+    """Render and JPEG-encode `n` pairs of the default workcell with the default arm moving.
 
     Returns ms per pair (p50, mean, max) for rendering both eyes and for encoding both,
     the mean JPEG bytes per pair, the time to open the camera (ray-casting the static
     scene) and the pair rate one core could sustain.
     """
     cfg = config if config is not None else VisionConfig()
+    model = load_model()  # the default model, at home
+    kin = model.kinematics()
+    links0 = kin.link_origins(model.home)
+    tool = kin.fk_tool(model.home)
     cam = SimStereoCamera(cfg)
     t0 = time.perf_counter()
     cam.open()
@@ -53,9 +42,10 @@ def bench_render(n: int = 100, config: VisionConfig | None = None) -> dict[str, 
         for i in range(n):
             # Sweep the wrist and tool so the arm's screen area changes from frame to frame.
             off = np.array([0.0, 0.15 * math.sin(i / 7.0), 0.08 * math.cos(i / 5.0)])
-            links = _QN_LINKS.copy()
-            links[4:] += off
-            cam.set_robot(links, _QN_TOOL_P + off, _QN_TOOL_R, 0.5 + 0.5 * math.sin(i / 3.0))
+            links = links0.copy()
+            links[-3:] += off
+            grip = 0.5 + 0.5 * math.sin(i / 3.0)
+            cam.set_robot(links, tool.translation + off, tool.rotation, grip)
             t0 = time.perf_counter()
             pair = cam.grab()
             t1 = time.perf_counter()

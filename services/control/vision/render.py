@@ -48,7 +48,7 @@ DEPTH_STEP_M = 0.02
 """Longest depth extent (m) of one drawn piece of a link: bounds the occlusion error."""
 MAX_PIECES = 32
 _PIECE_IDS = 255
-"""Pieces are numbered in a uint8 layer: the PUMA's links (≤ 0.67 m) give ~100 at most;
+"""Pieces are numbered in a uint8 layer: an arm's links (≤ 0.7 m each) give ~100 at most;
 beyond 255 (a pose no arm can take) the farthest pieces are not drawn."""
 SHIFT = 4
 """Sub-pixel bits for OpenCV drawing: coordinates are sent as integers × 2**SHIFT."""
@@ -57,8 +57,12 @@ _ONE = 1 << SHIFT
 TOOL_MARKER_BGR = (255, 0, 255)
 """The tool point's marker: a flat, unshaded magenta no other part of the scene uses."""
 TOOL_MARKER_RADIUS_M = 0.015
-LINK_RADII_M = (0.09, 0.075, 0.06, 0.05, 0.04, 0.035)
-"""Drawn radius of the segment from point i to point i+1 of `RobotPose.link_points`."""
+LINK_RADIUS_BASE_M = 0.09
+LINK_RADIUS_TIP_M = 0.035
+"""Drawn radius of the segments of `RobotPose.link_points`: from the base's down to the
+flange's, in even steps."""
+MAX_LINK_POINTS = 34
+"""The most skeleton points an arm has (32 joints, its base and its flange)."""
 LINK_BGR = ((175, 185, 195), (140, 150, 160))
 JOINT_BGR = (70, 72, 80)
 SHAFT_BGR = (110, 110, 110)
@@ -79,8 +83,9 @@ _CHUNK_RAYS = 1 << 17
 class RobotPose:
     """What is drawn of the arm, in world coordinates (m).
 
-    `link_points` (7, 3): the base, then the origins of DH frames 1…6 (the last one is the
-    flange / wrist centre). `tool_p` (3): the tool point. `tool_R` (3, 3): the tool frame's
+    `link_points` (k, 3): the arm's skeleton from its base to its flange
+    (`Kinematics.link_origins`: the base link, each joint's frame origin, the flange).
+    `tool_p` (3): the tool point. `tool_R` (3, 3): the tool frame's
     axes as columns in world. `grip`: 0 open … 1 closed, None when there is no gripper.
     """
 
@@ -103,10 +108,16 @@ class RobotPose:
         R = np.array(tool_R, dtype=np.float64)
         if R.shape == (9,):
             R = R.reshape(3, 3)
-        if pts.shape != (7, 3) or p.shape != (3,) or R.shape != (3, 3):
+        if (
+            pts.ndim != 2
+            or pts.shape[1] != 3
+            or not 2 <= pts.shape[0] <= MAX_LINK_POINTS
+            or p.shape != (3,)
+            or R.shape != (3, 3)
+        ):
             raise ValueError(
-                f"expected link_points (7, 3), tool_p (3,), tool_R (3, 3); got "
-                f"{pts.shape}, {p.shape}, {R.shape}"
+                f"expected link_points (k, 3) with 2 ≤ k ≤ {MAX_LINK_POINTS}, tool_p (3,), "
+                f"tool_R (3, 3); got {pts.shape}, {p.shape}, {R.shape}"
             )
         if not (np.isfinite(pts).all() and np.isfinite(p).all() and np.isfinite(R).all()):
             raise ValueError("robot pose has a non-finite value")
@@ -375,8 +386,10 @@ class EyeRenderer:
         cam = self.camera
         pts_c = cam.to_camera(robot.link_points)
         tool_c = cam.to_camera(robot.tool_p)
-        links = [(pts_c[i], pts_c[i + 1], r, LINK_BGR[i % 2]) for i, r in enumerate(LINK_RADII_M)]
-        tail = [(pts_c[6], tool_c, SHAFT_RADIUS_M, SHAFT_BGR)]
+        k = len(pts_c)
+        radii = np.linspace(LINK_RADIUS_BASE_M, LINK_RADIUS_TIP_M, k - 1).tolist()
+        links = [(pts_c[i], pts_c[i + 1], r, LINK_BGR[i % 2]) for i, r in enumerate(radii)]
+        tail = [(pts_c[-1], tool_c, SHAFT_RADIUS_M, SHAFT_BGR)]
         if robot.grip is not None:
             x_t = robot.tool_R[:, 0] @ cam.wRc
             z_t = robot.tool_R[:, 2] @ cam.wRc
@@ -387,11 +400,11 @@ class EyeRenderer:
                 tops.append(base - 0.05 * z_t)
                 tail.append((tops[-1], base + 0.012 * z_t, FINGER_RADIUS_M, FINGER_BGR))
             tail.append((tops[0], tops[1], FINGER_RADIUS_M, FINGER_BGR))
-        joint_radii = np.array([1.15 * LINK_RADII_M[min(i, 5)] for i in range(1, 7)])
+        joint_radii = 1.15 * np.array([radii[min(i, k - 2)] for i in range(1, k)])
         pieces = _Pieces.join(
             [
                 self._segments(links),
-                self._discs(pts_c[1:7], joint_radii, JOINT_BGR),
+                self._discs(pts_c[1:], joint_radii, JOINT_BGR),
                 self._segments(tail),
             ]
         )

@@ -1,6 +1,7 @@
 """The `vision` service on the bus: stereo pairs on `vision/stereo/l|r`, stats on `vision/stats`.
 
-The simulated camera follows the arm from `robot/state` (link origins from the PUMA model)
+The simulated camera follows the arm from `robot/state` (link origins from the arm's
+description, `robot/arm/description`)
 and the workcell's movable objects from `workcell/state` (docs/vision.md, "The moved world");
 video is published at DATA_LOW with drop-on-congestion (keys.STEREO_*), so it never delays
 force or commands.
@@ -20,8 +21,8 @@ from typing import Any
 
 from services.bus import keys
 from services.bus.audience import Audience
-from services.bus.errors import ProtocolError
-from services.bus.messages import RobotState, StereoFrame, VisionStats, mat3
+from services.bus.errors import ConfigError, ProtocolError
+from services.bus.messages import ArmDescription, RobotState, StereoFrame, VisionStats, mat3
 from services.bus.node import Node
 from services.control.vision.backends import open_camera
 from services.control.vision.config import VisionConfig
@@ -52,9 +53,9 @@ class VisionService:
             self.camera, config, self._publish, self._emit, watched=False
         )
         if isinstance(self.camera, SimStereoCamera):
-            from services.control.arm.kinematics import Puma560
-
-            self._kin = Puma560()
+            # The simulated camera draws the arm the arm service describes (its skeleton
+            # from the description's URDF), as soon as a description has come.
+            node.subscribe(keys.ARM_DESCRIPTION, self._on_description, history=True)
             node.subscribe(keys.STATE, self._on_state)
             node.subscribe(WORKCELL_STATE, self._on_workcell)
         self.audience = Audience(
@@ -67,6 +68,19 @@ class VisionService:
         self._stats_thread.start()
         node.serve("vision", {"status": self._rpc_status})
         node.announce()
+
+    def _on_description(self, desc: ArmDescription) -> None:
+        from services.control.arm.model import model_from_description
+
+        try:
+            kin = model_from_description(desc).kinematics()
+        except ConfigError as e:
+            self.node.report_rejected(keys.ARM_DESCRIPTION.key, e.reason)
+            return
+        self._kin = kin
+        robot = self._robot
+        if robot is not None and self.pipeline.watched:
+            self._draw_robot(robot)
 
     def _on_state(self, st: RobotState) -> None:
         # Called at the state rate; the renderer needs at most two updates per frame, and
@@ -89,11 +103,14 @@ class VisionService:
 
     def _draw_robot(self, st: RobotState) -> None:
         assert isinstance(self.camera, SimStereoCamera)
-        self.camera.set_robot(self._kin.link_origins(st.q), st.tool_p, mat3(st.tool_R), st.grip)
+        kin = self._kin
+        if kin is None or len(st.q) != kin.n:
+            return  # no description yet, or a state of another arm than the one described
+        self.camera.set_robot(kin.link_origins(st.q), st.tool_p, mat3(st.tool_R), st.grip)
 
     def _on_audience(self, watched: bool) -> None:
         robot = self._robot
-        if watched and robot is not None and self._kin is not None:
+        if watched and robot is not None:
             self._draw_robot(robot)  # the first pair shows the arm where it is now
         self.pipeline.set_watched(watched)
 

@@ -68,8 +68,8 @@ class SimStereoCamera:
     ) -> None:
         """The arm to draw from now on, in world coordinates (m).
 
-        `link_points` (7, 3): the base, then the DH frame origins 1…6
-        (`Puma560().link_origins(q)`); `tool_p` (3); `tool_R` (3, 3) or 9 floats row-major;
+        `link_points` (k, 3): the arm's skeleton, base to flange
+        (`Kinematics.link_origins(q)`); `tool_p` (3); `tool_R` (3, 3) or 9 floats row-major;
         `grip` 0 open … 1 closed, None for no gripper. Raises ValueError on a bad shape or a
         non-finite value, leaving the previous pose in place.
         """

@@ -2,10 +2,11 @@
 
 Threads (franka-node's rule, applied to a page): Zenoh's callbacks only store into the
 `BusMirror`; the page's callbacks only store, queue an action or notify the `HandLink`;
-ONE GUI thread pushes to viser at `gui_rate_hz` (arm, frames, force arrow, panels, plots,
-video at `video_fps`); one action thread runs the buttons' calls in order (the e-stop does
-not queue: it is called at once); one poller thread asks the decision server and the master
-for their status every `status_period_s`; the hand link's thread feeds the virtual master.
+ONE GUI thread pushes to viser at `gui_rate_hz` (the arm when its joints moved, frames,
+force arrow, panels, plots, video at `video_fps`); one action thread runs the buttons'
+calls in order (the e-stop does not queue: it is called at once); one poller thread asks
+the decision server and the master for their status every `status_period_s`; the hand
+link's thread feeds the virtual master.
 
 The console talks to the robot only through the decision server (`robot/decision/rpc/…`)
 and to the operator's station through the master's methods (`robot/master/<id>/rpc/…`).
@@ -37,7 +38,6 @@ import viser
 from services.bus.messages import Event, RobotState, mat3
 from services.bus.node import Node
 from services.bus.rate import RateLoop
-from services.control.arm.kinematics import Puma560
 from services.frontends.console.actions import DECISION, Actions
 from services.frontends.console.config import ConsoleConfig
 from services.frontends.console.geometry import Mat, Vec
@@ -54,6 +54,8 @@ log = logging.getLogger("telerobot.console")
 PANEL_EVERY_S = 0.2
 PLOT_EVERY_S = 0.1
 SAME_Q_RAD = 1e-5
+"""The arm is redrawn when a joint (rad) or the tool's or flange's pose (m, unit-free R)
+moved more than this since it was last drawn."""
 REFUSALS = frozenset({"lease", "busy", "rejected"})
 """Decision events that, naming our master, mean its engagement was refused or held."""
 
@@ -78,7 +80,6 @@ class Console(Scene, Panels, Actions):
     def __init__(self, node: Node, config: ConsoleConfig) -> None:
         self.node = node
         self.config = config
-        self._kin = Puma560()  # GUI thread only: Pinocchio's data is not thread-safe
         # The passivity figures reach the console at twice the GUI rate per side (its
         # session's downsampling): room for the plot's window of both.
         self.mirror = BusMirror(
@@ -103,7 +104,7 @@ class Console(Scene, Panels, Actions):
         self._viewers = 0
         self._viewers_cond = threading.Condition()
         self._held_while_away = False
-        self._last_q: tuple[float, ...] | None = None
+        self._last_drawn: tuple[float, ...] | None = None
         self._last_status: str | None = None
         self._events_seen = 0
         self._panels: dict[str, str] = {}
@@ -249,14 +250,20 @@ class Console(Scene, Panels, Actions):
         for ev in events:
             self._watch_event(ev)
         st = self.mirror.state.latest
+        rebuilt = self._sync_arm()
         if st is not None:
             self._watch_status(st)
+            # Drawn only when it moved: the joints, or the tool alone (set_tool).
+            drawn = (*st.q, *st.tool_p, *st.tool_R, *st.flange_p)
+            last = self._last_drawn
             if (
-                self._last_q is None
-                or max(abs(a - b) for a, b in zip(st.q, self._last_q, strict=True)) > SAME_Q_RAD
+                rebuilt
+                or last is None
+                or len(last) != len(drawn)
+                or max(abs(a - b) for a, b in zip(drawn, last, strict=True)) > SAME_Q_RAD
             ):
                 self._draw_arm(st)
-                self._last_q = st.q
+                self._last_drawn = drawn
         self._draw_target()
         self._draw_force(st)
         self._draw_workcell(st)

@@ -26,7 +26,7 @@ _POSITIVE = (
 
 @dataclass(frozen=True, slots=True)
 class ConsoleConfig:
-    """Settings of the web console (units in the names; world frame = the DH base frame).
+    """Settings of the web console (units in the names; world frame = the arm's base frame).
 
     host, port: where the page is served (`--host`, `--port`; port 0 = any free port).
     master: start an in-process master with a virtual device (`--master`, default on), so

@@ -1,12 +1,10 @@
 """Pure geometry of the console's 3D scene: poses of the drawn parts from the bus messages.
 
-Frames: world R_w (the DH base frame, z up, m); rotations are 3×3 matrices or unit
+Frames: world R_w (the arm's base frame, z up, m); rotations are 3×3 matrices or unit
 quaternions `wxyz` (w first, viser's convention). Nothing here touches the bus or the page.
 """
 
 from __future__ import annotations
-
-import itertools
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -21,10 +19,10 @@ MIN_SEGMENT_M = 1e-6
 
 def rotation_z_to(direction: ArrayLike) -> Mat:
     """A rotation whose z axis is `direction` (any non-zero length; identity for a null
-    one): how a link drawn as a cylinder along its local z is turned to join two joints.
-    The twist about z is arbitrary (a cylinder does not show it); the x axis is taken
-    square to the world axis least aligned with `direction`, which is accurate for every
-    direction, antiparallel to z included."""
+    one): how a cylinder along its local z is turned to join two points (a skeleton's
+    link, the tool). The twist about z is arbitrary (a cylinder does not show it); the x
+    axis is taken square to the world axis least aligned with `direction`, which is
+    accurate for every direction, antiparallel to z included."""
     d = np.asarray(direction, dtype=float).reshape(3)
     n = float(np.linalg.norm(d))
     if n < MIN_SEGMENT_M:
@@ -35,19 +33,6 @@ def rotation_z_to(direction: ArrayLike) -> Mat:
     x = np.cross(helper, z)
     x /= np.linalg.norm(x)
     return np.column_stack([x, np.cross(z, x), z])
-
-
-def link_segments(origins: ArrayLike, tool_p: ArrayLike) -> list[tuple[Vec, Vec]]:
-    """The arm's links as segments (start, end), m, world: between consecutive DH frame
-    origins (`Puma560.link_origins`, (7, 3)), then flange → tool point; segments shorter
-    than 1 µm (the wrist's coincident origins) are left out."""
-    pts = np.asarray(origins, dtype=float).reshape(-1, 3)
-    chain = [*pts, np.asarray(tool_p, dtype=float).reshape(3)]
-    out: list[tuple[Vec, Vec]] = []
-    for a, b in itertools.pairwise(chain):
-        if float(np.linalg.norm(b - a)) >= MIN_SEGMENT_M:
-            out.append((a.copy(), b.copy()))
-    return out
 
 
 def cylinder_pose(a: ArrayLike, b: ArrayLike) -> tuple[Vec, Vec, float]:

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from services.bus import codec
 from services.bus.errors import ProtocolError
 from services.bus.keys import (
+    ARM_DESCRIPTION,
     ARM_TARGET,
     EVENTS,
     FORCE,
@@ -39,6 +40,7 @@ from services.bus.keys import (
     Topic,
 )
 from services.bus.messages import (
+    ArmDescription,
     ArmTarget,
     Event,
     ForceSample,
@@ -151,9 +153,10 @@ class BusMirror:
     """Subscribes to the streams the console shows; polled status is stored here too.
 
     Always: robot/state, master/state, robot/events, vision/stats (what the hand link and
-    the event log need, at low rates). While `watch_page(True)`: robot/force,
-    robot/arm/target, workcell/state and robot/passivity/{master,slave}. While
-    `watch_video(True)`: vision/stereo/l and /r.
+    the event log need, at low rates), and robot/arm/description (on change, with history:
+    the arm's cached description arrives however late the console starts). While
+    `watch_page(True)`: robot/force, robot/arm/target, workcell/state and
+    robot/passivity/{master,slave}. While `watch_video(True)`: vision/stereo/l and /r.
 
     `tdpa` holds the passivity plot's rows (`tdpa.plot_row`), one per figures received,
     timed on this process's monotonic clock (the two sides' clocks may differ).
@@ -183,6 +186,9 @@ class BusMirror:
         # eye → (frames arrived, the newest one's payload, undecoded)
         self._frames: dict[str, tuple[int, bytes | None]] = {"l": (0, None), "r": (0, None)}
         self.state: Subscription[RobotState] = node.subscribe(STATE)
+        self.description: Subscription[ArmDescription] = node.subscribe(
+            ARM_DESCRIPTION, history=True
+        )
         self.vision: Subscription[VisionStats] = node.subscribe(VISION_STATS)
         node.subscribe(EVENTS, self._on_event)
         node.subscribe(MASTER_STATE, self._on_master)

@@ -19,6 +19,7 @@ from services.frontends.console.mirror import BusMirror, History
 from services.frontends.console.tdpa import TdpaView
 from services.frontends.console.video import VIEW_MODES, FrameGate, Image, ViewMode, compose, decode
 from services.frontends.console.view import (
+    ArmShown,
     MasterView,
     alive_html,
     estop_latched,
@@ -73,6 +74,7 @@ class Panels:
     video_errors: int
     frames_shown: int
     loaded: bool
+    arm_shown: ArmShown
     _gate: FrameGate
     _view_mode: ViewMode
     _panels: dict[str, str]
@@ -206,7 +208,9 @@ class Panels:
             self.mirror.master(self.config.master_id),
             self.hand.error,
         )
-        return status_html(self.mirror.state.latest, decision, error, mview, self.last_action)
+        return status_html(
+            self.mirror.state.latest, decision, error, mview, self.last_action, self.arm_shown
+        )
 
     def _update_panels(self) -> None:
         self._set_html("status", self._status_html, self._html_status())

@@ -1,5 +1,6 @@
-"""The console's 3D scene: the arm, its tool frame and fingers, the target, the force
-arrow and the workcell's objects, liquids and puddles, redrawn only when they move."""
+"""The console's 3D scene: the arm (whatever robot/arm/description says it is), its tool
+frame, tool and fingers, the target, the force arrow and the workcell's objects, liquids
+and puddles, redrawn only when they move."""
 
 from __future__ import annotations
 
@@ -9,14 +10,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import viser
 
-from services.bus.errors import ProtocolError
-from services.bus.messages import RobotState, mat3
+from services.bus.errors import ConfigError, ProtocolError
+from services.bus.keys import ARM_DESCRIPTION
+from services.bus.messages import ArmDescription, RobotState, mat3
 from services.bus.node import Node
-from services.control.arm.kinematics import Puma560
 from services.control.vision.objects import LIQUID_BGR, SPILL_BGR, Spills
+from services.frontends.console.arm import ArmView, arm_layout
 from services.frontends.console.config import ConsoleConfig
-from services.frontends.console.geometry import cylinder_pose, force_arrow, link_segments
+from services.frontends.console.geometry import MIN_SEGMENT_M, cylinder_pose, force_arrow
 from services.frontends.console.mirror import BusMirror
+from services.frontends.console.view import NO_ARM, ArmShown
 from services.frontends.console.world import (
     FINGER_SIZE_M,
     PUDDLE_THICKNESS_M,
@@ -32,9 +35,8 @@ from services.world.workcell.scene import default_scene
 log = logging.getLogger("telerobot.console")
 
 
-LINK_RADIUS_M = 0.045
-JOINT_RADIUS_M = 0.06
-TOOL_RADIUS_M = 0.012
+TOOL_RADIUS_M = 0.008
+"""The tool (flange → tool point, eMt) is drawn as a thin cylinder of this radius."""
 FORCE_ARROW_MAX_M = 0.4
 FORCE_MIN_N = 0.5
 """Below this the force arrow is hidden (sensor noise, not a contact)."""
@@ -44,10 +46,7 @@ for rotation entries): sub-millimetre noise does not keep the browser re-renderi
 GIZMO_LINE_WIDTH = 4.0
 """The gizmo's handles are drawn this thick (screen px; viser's default is 2.5): a first
 drag grabs them rather than the camera."""
-_ARM_COLOR = (235, 140, 52)
-_PEDESTAL_COLOR = (90, 90, 100)
-_JOINT_COLOR = (60, 60, 70)
-_TOOL_COLOR = (200, 200, 210)
+_TOOL_COLOR = (235, 140, 52)
 _FORCE_COLOR = (220, 30, 200)
 _TARGET_COLOR = (255, 140, 0)
 _FINGER_COLOR = (70, 70, 80)
@@ -68,7 +67,6 @@ class Scene:
     config: ConsoleConfig
     mirror: BusMirror
     server: viser.ViserServer
-    _kin: Puma560
     _drawn: dict[str, np.ndarray]
 
     if TYPE_CHECKING:
@@ -113,10 +111,25 @@ class Scene:
                     color=_rgb(LIQUID_BGR),
                     position=(0.0, 0.0, -0.5 * c.height + 0.5 * c.liquid_height_m),
                 )
-        self._links: list[Any] = []
-        self._joints: list[Any] = []
+        # The arm is built when its description arrives (`_sync_arm`), not before.
+        self.arm: ArmView | None = None
+        self.arm_shown: ArmShown = NO_ARM
+        self.arm_description: ArmDescription | None = None
+        """The newest robot/arm/description the scene has followed."""
+        self._arm_source: tuple[str, str] | None = None
+        self._arm_warned: set[tuple[str, str]] = set()
+        self.arm_builds = 0
         self._tool_frame = sc.add_frame(
             "/arm/tool_frame", axes_length=0.1, axes_radius=0.006, visible=False
+        )
+        # The tool, from the flange to the tool point: a child of the tool frame, so it
+        # moves with it and is re-sent only when eMt changes (set_tool).
+        self._tool = sc.add_cylinder(
+            "/arm/tool_frame/tool",
+            radius=TOOL_RADIUS_M,
+            height=1.0,
+            color=_TOOL_COLOR,
+            visible=False,
         )
         self._fingers = [
             sc.add_box(
@@ -155,39 +168,68 @@ class Scene:
         )
         self.gizmo.on_update(self._on_gizmo)
 
+    def _sync_arm(self) -> bool:
+        """Follow robot/arm/description: build the arm anew when its model or URDF changed
+        (a restarted arm with another model), keep it when only the tool did (set_tool).
+        True when the arm was rebuilt (or taken off the page)."""
+        desc = self.mirror.description.latest
+        if desc is None or desc is self.arm_description:
+            return False
+        self.arm_description = desc
+        source = (desc.model, desc.urdf)
+        if source == self._arm_source:
+            return False
+        self._arm_source = source
+        if self.arm is not None:
+            self.arm.remove()
+            self.arm = None
+        self.arm_builds += 1
+        self.arm_shown = ArmShown("none", desc.model, f"{desc.model}: being built")
+        try:
+            layout = arm_layout(desc)
+        except ConfigError as e:
+            self.node.report_rejected(ARM_DESCRIPTION.key, e.reason)
+            self.arm_shown = ArmShown(
+                "invalid", desc.model, f"{desc.model}: not drawn ({e.reason})"
+            )
+            log.error("the description of arm %r cannot be drawn: %s", desc.model, e.reason)
+            return True
+        self.arm = ArmView(self.server.scene, layout)
+        if layout.kind == "visuals":
+            text = f"{desc.model}, {layout.n} joints: {len(layout.parts)} URDF visuals"
+        else:
+            text = f"{desc.model}, {layout.n} joints: skeleton (its visuals: {layout.why})"
+            if source not in self._arm_warned:
+                self._arm_warned.add(source)
+                log.warning(
+                    "arm %r: its visuals cannot be drawn here (%s): drawing its skeleton",
+                    desc.model,
+                    layout.why,
+                )
+        self.arm_shown = ArmShown(layout.kind, desc.model, text)
+        log.info("drawing arm %r: %s", desc.model, text)
+        return True
+
     def _draw_arm(self, st: RobotState) -> None:
-        origins = self._kin.link_origins(st.q)
-        segments = link_segments(origins, st.tool_p)
-        sc = self.server.scene
-        for i, (a, b) in enumerate(segments):
-            centre, wxyz, length = cylinder_pose(a, b)
-            tool = i == len(segments) - 1
-            if i >= len(self._links):
-                self._links.append(
-                    sc.add_cylinder(
-                        f"/arm/link{i}",
-                        radius=TOOL_RADIUS_M if tool else LINK_RADIUS_M,
-                        height=length,
-                        color=_TOOL_COLOR if tool else _PEDESTAL_COLOR if i == 0 else _ARM_COLOR,
-                        position=centre,
-                        wxyz=wxyz,
-                    )
-                )
-            else:
-                h = self._links[i]
-                h.position, h.wxyz, h.height = centre, wxyz, length
-        for j, p in enumerate(origins[1:]):
-            if j >= len(self._joints):
-                self._joints.append(
-                    sc.add_icosphere(
-                        f"/arm/joint{j + 1}", radius=JOINT_RADIUS_M, color=_JOINT_COLOR, position=p
-                    )
-                )
-            else:
-                self._joints[j].position = p
+        """The arm at st.q (when it is the described arm's: a state of another, from a
+        restart under way, is not drawn), the tool frame at the state's tool pose, and the
+        tool from the flange to the tool point (both as the arm computed them: never
+        recomputed from q)."""
+        if self.arm is not None and len(st.q) == self.arm.n:
+            self.arm.draw(st.q)
+        tool_R = mat3(st.tool_R)
         self._tool_frame.position = np.asarray(st.tool_p)
-        self._tool_frame.wxyz = wxyz_from_R(mat3(st.tool_R))
-        self._tool_frame.visible = True
+        self._tool_frame.wxyz = wxyz_from_R(tool_R)
+        if not self._tool_frame.visible:
+            self._tool_frame.visible = True
+        # The flange in the tool frame, −R_etᵀ·p_et: constant until the tool changes.
+        flange_t = tool_R.T @ (np.asarray(st.flange_p) - np.asarray(st.tool_p))
+        if self._changed("tool", flange_t, REDRAW_TOL):
+            length = float(np.linalg.norm(flange_t))
+            if length >= MIN_SEGMENT_M:
+                centre, wxyz, _ = cylinder_pose(np.zeros(3), flange_t)
+                self._tool.position, self._tool.wxyz, self._tool.height = centre, wxyz, length
+            self._tool.visible = length >= MIN_SEGMENT_M
 
     def _draw_workcell(self, st: RobotState | None) -> None:
         """Move the objects to the newest `workcell/state` (once per new message), and

@@ -29,6 +29,8 @@ _STATUS_COLOR = {
     "error": "#cf222e",
 }
 _ESTOP_COLOR = "#cf222e"
+_ARM_COLOR = {"visuals": "#24292f", "invalid": _ESTOP_COLOR}
+"""The arm row's colour by what is drawn; amber otherwise (none yet, or the skeleton)."""
 _KIND_COLOR = {
     "estop": "#cf222e",
     "error": "#cf222e",
@@ -39,6 +41,20 @@ _KIND_COLOR = {
     "lease": "#8250df",
     "status": "#0969da",
 }
+
+
+@dataclass(frozen=True, slots=True)
+class ArmShown:
+    """What the 3D view draws of the arm: `kind` is `none` (no robot/arm/description yet:
+    no arm drawn), `visuals` (the URDF's), `skeleton` (its visuals cannot be drawn here) or
+    `invalid` (the description does not build); `model` its name; `text` a line for people."""
+
+    kind: str
+    model: str
+    text: str
+
+
+NO_ARM = ArmShown("none", "", "no robot/arm/description yet: no arm drawn")
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,9 +89,10 @@ def status_html(
     decision_error: str | None,
     master: MasterView,
     last_action: str,
+    arm: ArmShown = NO_ARM,
 ) -> str:
-    """The status panel: robot (robot/state), supervisor (decision `status`), master, and
-    the result of the last button pressed."""
+    """The status panel: robot (robot/state), the arm drawn (robot/arm/description),
+    supervisor (decision `status`), master, and the result of the last button pressed."""
     rows: list[str] = []
     latched = estop_latched(decision)
     if state is None:
@@ -97,6 +114,14 @@ def status_html(
             _row("tool p (m)", f'<code id="tr-tool-p">{_vec(state.tool_p)}</code>'),
         )
         rows.append(_row("q (rad)", f'<code id="tr-q">{_vec(state.q, 2)}</code>'))
+    color = _ARM_COLOR.get(arm.kind, "#9a6700")
+    rows.append(
+        _row(
+            "arm",
+            f'<span id="tr-arm" data-arm="{_e(arm.kind)}" data-model="{_e(arm.model)}" '
+            f'style="color:{color}">{_e(arm.text)}</span>',
+        )
+    )
     if decision is not None:
         mode = str(decision.get("mode", "?"))
         estop = bool(decision.get("estop"))

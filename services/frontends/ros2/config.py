@@ -28,7 +28,9 @@ class Ros2Config:
       target_timeout_s: a target older than this holds.
     max_target_distance_m, max_target_radius_m: a target farther than this from the tool,
       or from the world origin, is refused.
-    world_frame, flange_frame, tool_frame, camera_frames: frame ids (URDF and /tf).
+    tool_frame: the frame id of the tool (the link /robot_description adds at the arm's eMt,
+      the child of the flange on /tf, /wrench's frame); camera_frames: the stereo images'.
+      The world and the arm's links are the URDF's own (the arm's description).
     """
 
     domain_id: int | None = None
@@ -42,8 +44,6 @@ class Ros2Config:
     target_timeout_s: float = 0.5
     max_target_distance_m: float = 0.5
     max_target_radius_m: float = 2.0
-    world_frame: str = "world"
-    flange_frame: str = "flange"
     tool_frame: str = "tool"
     camera_frames: tuple[str, str] = ("stereo_left", "stereo_right")
 
@@ -68,7 +68,7 @@ class Ros2Config:
             raise ConfigError("ros2", "state_rate_hz and wrench_rate_hz must be ≤ 1000 Hz")
         if not self.master_id or "/" in self.master_id or "*" in self.master_id:
             raise ConfigError("ros2.master_id", "a plain name without '/' or '*'")
-        frames = (self.world_frame, self.flange_frame, self.tool_frame, *self.camera_frames)
+        frames = (self.tool_frame, *self.camera_frames)
         if any(not f or len(f) > 128 for f in frames) or len(set(frames)) != len(frames):
             raise ConfigError("ros2", "frame ids must be distinct, non-empty, ≤ 128 characters")
 

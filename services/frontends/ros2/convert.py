@@ -1,25 +1,32 @@
 """Telerobot messages → ROS 2 messages, pure functions on plain floats (they run per sample).
 
-Frames: the world is the DH base frame; `link<i>` is DH frame i−1 turned by q_i and `flange`
-DH frame 6, exactly as in the URDF of services/control/arm/urdf.py, so /tf drives RViz's robot
-model with nothing else running; `tool` is placed in the flange by the live tool placement
-(eMt = oMe⁻¹·oMt from each RobotState). Quaternions are ROS's (x, y, z, w).
+The arm is whatever the arm service describes (robot/arm/description, PROTOCOL §1): an
+`ArmView` is built from one ArmDescription and knows nothing of any particular model. Its
+URDF is the description's with the tool link added at the described eMt (what
+/robot_description carries); /joint_states names the described joints; /tf carries every
+URDF joint's parent→child transform (services/control/arm/links.py, `LinkPoses`), so RViz's
+robot model follows /tf with nothing else running, and then the flange→tool transform
+from each RobotState (eMt = oMe⁻¹·oMt, the placement the arm really uses). The root of /tf
+is the URDF's root link, the description's `base_frame` (the world frame R_w).
+Quaternions are ROS's (x, y, z, w).
 """
 
 from __future__ import annotations
 
-import math
+import threading
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 
-from services.bus.messages import ForceSample, RobotState, StereoFrame
-from services.control.arm.kinematics import PUMA560_DH, DHLink
-from services.control.arm.urdf import UrdfFrames
+import numpy as np
+import pinocchio as pin
+
+from services.bus.errors import ConfigError
+from services.bus.messages import ArmDescription, ForceSample, RobotState, StereoFrame
+from services.control.arm.links import TOOL_LINK, LinkPoses, urdf_tree, urdf_with_tool
+from services.control.arm.model import model_from_description
 from services.frontends.rosmsg import msgs
 from services.frontends.rosmsg.msgs import Header, Quat, Vec3
-from services.geometry import quat_of_rotation, quat_of_rx_rz, rotation_of_quat
+from services.geometry import quat_of_rotation, rotation_of_quat
 
-JOINT_NAMES: tuple[str, ...] = tuple(f"joint{i}" for i in range(1, 7))
 JPEG_FORMAT = "bgr8; jpeg compressed bgr8"
 """What compressed_image_transport writes for a colour JPEG (RViz, rqt and Foxglove read it)."""
 
@@ -54,53 +61,76 @@ def relative_pose(
     return p, R
 
 
-def _joint_transform(prev: DHLink | None, q_rad: float) -> tuple[Vec3, Quat]:
-    """link<i−1> → link<i>: the fixed part of DH link i−1, then Rz(q_i) (see urdf.py)."""
-    if prev is None:
-        w, x, y, z = quat_of_rx_rz(0.0, q_rad)
-        return (0.0, 0.0, 0.0), (x, y, z, w)
-    w, x, y, z = quat_of_rx_rz(prev.alpha_rad, q_rad)
-    return (prev.a_m, 0.0, prev.d_m), (x, y, z, w)
+def transform_of(M: pin.SE3) -> tuple[Vec3, Quat]:
+    """(translation, quaternion) of a rigid transform, as TransformStamped carries them."""
+    t = M.translation
+    R: list[float] = np.asarray(M.rotation).reshape(9).tolist()
+    return (float(t[0]), float(t[1]), float(t[2])), quat_of(R)
 
 
-@dataclass(frozen=True, slots=True)
-class StateConverter:
-    """RobotState → /joint_states and /tf, with the frame names of the URDF."""
+class ArmView:
+    """One ArmDescription as ROS sees it: `urdf` (/robot_description) and RobotState →
+    /joint_states and /tf. ConfigError when the description cannot be drawn: its URDF
+    does not build (key `arm.model`), or already has a link named `tool_frame`
+    (`ros2.tool_frame`). `joint_state` and `tf` are thread-safe; a state whose `q` has not
+    the described n joints raises ValueError (see `fits`)."""
 
-    frames: UrdfFrames = field(default_factory=UrdfFrames)
-    dh: tuple[DHLink, ...] = PUMA560_DH
+    def __init__(self, desc: ArmDescription, tool_frame: str = TOOL_LINK) -> None:
+        model = model_from_description(desc)
+        links = {link for j in urdf_tree(desc.urdf) for link in (j.parent, j.child)}
+        if tool_frame in links:
+            raise ConfigError(
+                "ros2.tool_frame",
+                f"the URDF of {desc.model!r} already has a link {tool_frame!r}: set another "
+                "[ros2] tool_frame for the tool",
+            )
+        self.model = desc.model
+        self.n = model.n
+        self.joint_names = model.joint_names
+        self.world_frame = desc.base_frame
+        self.flange_frame = desc.flange_frame
+        self.tool_frame = tool_frame
+        self.tool_p = tuple(float(x) for x in desc.eMt["p"])
+        self.tool_R = tuple(float(x) for x in desc.eMt["R"])
+        self.urdf = urdf_with_tool(
+            desc.urdf, desc.flange_frame, self.tool_p, self.tool_R, name=tool_frame
+        )
+        self._poses = LinkPoses(model)
+        self._lock = threading.Lock()
+        # The joints off the arm's chain (fixed ones, locked fingers) do not move: their
+        # transforms are computed once; the chain's at each state.
+        moving = set(self.joint_names)
+        self._fixed: tuple[tuple[Vec3, Quat] | None, ...] = tuple(
+            None if j.name in moving else transform_of(M)
+            for j, M in self._poses.transforms(model.home)
+        )
+
+    def fits(self, st: RobotState) -> bool:
+        """Whether `st` has the described number of joints."""
+        return len(st.q) == self.n
 
     def joint_state(self, st: RobotState) -> msgs.JointState:
-        return msgs.JointState(Header.at(st.t_ns, ""), JOINT_NAMES, st.q)
+        if not self.fits(st):
+            raise ValueError(f"robot/state has {len(st.q)} joints, {self.model} has {self.n}")
+        return msgs.JointState(Header.at(st.t_ns, ""), self.joint_names, st.q)
 
     def tool_placement(self, st: RobotState) -> tuple[Vec3, tuple[float, ...]]:
         """eMt: the tool in the flange, from the state's flange and tool poses."""
         return relative_pose(st.flange_p, st.flange_R, st.tool_p, st.tool_R)
 
     def tf(self, st: RobotState) -> msgs.TFMessage:
+        """Every URDF joint's parent→child transform at the state's joints, in the URDF's
+        order, then flange→tool."""
+        with self._lock:  # LinkPoses has one pin.Data
+            joints = self._poses.transforms(st.q)  # ValueError on a wrong n
         out: list[msgs.TransformStamped] = []
-        for i, q in enumerate(st.q, start=1):
-            prev = self.dh[i - 2] if i > 1 else None
-            p, quat = _joint_transform(prev, q)
-            out.append(
-                msgs.TransformStamped(
-                    Header.at(st.t_ns, self.frames.link(i - 1)), self.frames.link(i), p, quat
-                )
-            )
-        last = self.dh[-1]
-        ha = 0.5 * last.alpha_rad
-        out.append(
-            msgs.TransformStamped(
-                Header.at(st.t_ns, self.frames.link(len(self.dh))),
-                self.frames.flange,
-                (last.a_m, 0.0, last.d_m),
-                (math.sin(ha), 0.0, 0.0, math.cos(ha)),
-            )
-        )
+        for (j, M), fixed in zip(joints, self._fixed, strict=True):
+            p, quat = fixed if fixed is not None else transform_of(M)
+            out.append(msgs.TransformStamped(Header.at(st.t_ns, j.parent), j.child, p, quat))
         p_et, R_et = self.tool_placement(st)
         out.append(
             msgs.TransformStamped(
-                Header.at(st.t_ns, self.frames.flange), self.frames.tool, p_et, quat_of(R_et)
+                Header.at(st.t_ns, self.flange_frame), self.tool_frame, p_et, quat_of(R_et)
             )
         )
         return msgs.TFMessage(tuple(out))

@@ -31,7 +31,9 @@ HEARTBEAT_S = 0.5
 
 
 class RosPublisher:
-    """One topic publisher. `put(cdr)` is thread-safe; `matching` says whether anyone listens."""
+    """One topic publisher. `put(cdr)` is thread-safe, and a no-op once undeclared (a late
+    callback's put must not race the undeclaration); `matching` says whether anyone
+    listens."""
 
     def __init__(
         self,
@@ -47,6 +49,9 @@ class RosPublisher:
         self.qos = qos
         self.gid = rmw.gid_of(token)
         self._lock = threading.Lock()
+        self._put_lock = threading.Lock()
+        """Held by a put and by undeclare: Zenoh's handle is not to be used by both at once."""
+        self._closed = False
         self._seq = 0
         self.sent = 0
         reliability = (
@@ -118,20 +123,25 @@ class RosPublisher:
 
     def put(self, cdr: bytes, t_ns: int | None = None) -> None:
         """Publish one serialized message; the attachment carries `t_ns` (default: now)."""
-        with self._lock:
-            self._seq += 1
-            seq = self._seq
         stamp = time.time_ns() if t_ns is None else t_ns
-        self._pub.put(cdr, attachment=rmw.attachment(seq, stamp, self.gid))
-        self.sent += 1
+        with self._put_lock:
+            if self._closed:
+                return
+            with self._lock:
+                self._seq += 1
+                seq = self._seq
+            self._pub.put(cdr, attachment=rmw.attachment(seq, stamp, self.gid))
+            self.sent += 1
 
     def undeclare(self) -> None:
-        for handle in (self._token, self._listener, self._pub):
-            if handle is not None:
-                try:
-                    handle.undeclare()
-                except zenoh.ZError:
-                    log.debug("undeclare of %s failed", self.key, exc_info=True)
+        with self._put_lock:
+            self._closed = True
+            for handle in (self._token, self._listener, self._pub):
+                if handle is not None:
+                    try:
+                        handle.undeclare()
+                    except zenoh.ZError:
+                        log.debug("undeclare of %s failed", self.key, exc_info=True)
 
 
 class RosSubscription:

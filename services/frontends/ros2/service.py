@@ -14,6 +14,12 @@ Work happens only when something arrives, and only what someone reads:
 - callbacks convert and publish, nothing else; the master's thread sleeps until a target
   arrives and streams commands only while targets are fresh.
 
+The arm is the one robot/arm/description describes (any model: convert.ArmView): its URDF,
+with the tool link added, is /robot_description (latched, republished when the description
+changes, e.g. on `set_tool`); its joint names are /joint_states'; its URDF joints are /tf's.
+Until a description has come, nothing about the arm is published and targets are refused
+(the world frame is not known to ROS); `status()["arm_note"]` and the log say so.
+
 The target master (services/frontends/ros2/target.py) drives the arm through the decision server
 like any master: `robot/cmd` with master id `ros2`, token `alive/master/ros2`; lease, limits
 and watchdogs apply. Every exit path sends inactive commands, so the decision holds.
@@ -35,10 +41,16 @@ from services.bus import codec, keys
 from services.bus.config import NodeConfig
 from services.bus.errors import ConfigError, ProtocolError
 from services.bus.keys import Topic, alive_key, with_ns
-from services.bus.messages import ForceSample, OperatorCommand, RobotState, StereoFrame
+from services.bus.messages import (
+    ArmDescription,
+    ForceSample,
+    OperatorCommand,
+    RobotState,
+    StereoFrame,
+)
 from services.bus.node import Node
 from services.bus.rate import RateLoop
-from services.control.arm.urdf import DEFAULT_TOOL_P, IDENTITY_R, UrdfFrames, puma_urdf
+from services.bus.streams import newer
 from services.frontends.ros2 import convert, rmw
 from services.frontends.ros2.config import Ros2Config
 from services.frontends.ros2.graph import RosNode, RosPublisher
@@ -56,8 +68,7 @@ log = logging.getLogger("telerobot.ros2")
 
 STATE_STALE_S = 0.5
 """A robot/state older than this does not start an engagement (the pose is unknown)."""
-TOOL_CHANGE_TOL = 1e-6
-"""A tool placement differing by more than this (m, or rotation entry) republishes the URDF."""
+NO_DESCRIPTION = "waiting for robot/arm/description: nothing about the arm is published"
 TF_DEPTH = 100
 """tf2's broadcaster depth."""
 TARGET_TOPIC = "telerobot/tool_target"
@@ -185,21 +196,21 @@ class Ros2Service:
         self.config = config
         self.domain_id = config.resolved_domain_id()
         self.namespace = config.resolved_namespace(node.config.ns)
-        self.frames = UrdfFrames(
-            world=config.world_frame, flange=config.flange_frame, tool=config.tool_frame
-        )
-        self.converter = convert.StateConverter(self.frames)
-        self.limits = TargetLimits(
-            frame_id=config.world_frame,
-            max_radius_m=config.max_target_radius_m,
-            max_distance_m=config.max_target_distance_m,
-        )
         self._lock = threading.Lock()
+        self._description_lock = threading.Lock()
+        """Held while a description is turned into the arm's view (descriptions in order)."""
+        self._description: ArmDescription | None = None
+        self.arm: convert.ArmView | None = None
+        """The arm as ROS sees it; None until a description that can be bridged has come."""
+        self.limits: TargetLimits | None = None
+        """What a target must satisfy: its frame is the described arm's world frame."""
+        self._urdf_sent: str | None = None
+        self._arm_note = NO_DESCRIPTION
+        self._noted: set[str] = set()
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._state: RobotState | None = None
         self._state_rx_s = -1e9
-        self._tool_placement: tuple[float, ...] = (*DEFAULT_TOOL_P, *IDENTITY_R)
         self._warned_raw_video = False
         self.master = TargetMaster(config.target_timeout_s, seq_start, engage_start)
         self.targets_accepted = 0
@@ -243,7 +254,6 @@ class Ros2Service:
             "wrench", defs.WRENCH_STAMPED, reliable, zenoh.Priority.INTERACTIVE_HIGH
         )
         self.pub_description = ros.publisher("robot_description", defs.STRING_MSG, rmw.LATCHED)
-        self.pub_description.put(msgs.encode(msgs.String(puma_urdf(frames=self.frames))))
         self.cmd = self.node.publisher(keys.CMD)
         self._master_token = self.node.session.liveliness().declare_token(
             alive_key("master", cfg.master_id)
@@ -275,32 +285,78 @@ class Ros2Service:
             TARGET_TOPIC, defs.POSE_STAMPED, reliable, self._on_target
         )
         self._target_where = f"ros2:{self.ros.fqn(TARGET_TOPIC)}"
+        # Last: its history reply may come at once, and every publisher must exist by then.
+        self.description_sub = self.node.subscribe(
+            keys.ARM_DESCRIPTION, self._on_description, history=True
+        )
+
+    # --- the arm's description ----------------------------------------------------------
+    def _on_description(self, desc: ArmDescription) -> None:
+        """A new description: the arm's view, then its URDF on /robot_description (only
+        when the text changed: a repeated description does not wake RViz)."""
+        with self._description_lock:
+            with self._lock:
+                if not newer(desc, self._description):
+                    return  # the history's copy of one already applied
+                self._description = desc
+            try:
+                view = convert.ArmView(desc, self.config.tool_frame)
+            except ConfigError as e:
+                note = (
+                    f"the description of {desc.model!r} cannot be bridged ({e.reason}): "
+                    "nothing about the arm is published"
+                )
+                with self._lock:
+                    self.arm, self.limits, self._arm_note = None, None, note
+                log.error("ros2: %s", note)
+                self.node.event("error", f"ros2: {note}", {"model": desc.model})
+                return
+            limits = TargetLimits(
+                frame_id=view.world_frame,
+                max_radius_m=self.config.max_target_radius_m,
+                max_distance_m=self.config.max_target_distance_m,
+            )
+            with self._lock:
+                first = self.arm is None
+                self.arm, self.limits, self._arm_note = view, limits, ""
+            if view.urdf != self._urdf_sent:
+                self.pub_description.put(msgs.encode(msgs.String(view.urdf)))
+                self._urdf_sent = view.urdf
+            if first:
+                log.info(
+                    "ros2: arm %s (%d joints, %s → %s → %s) on /robot_description, "
+                    "/joint_states and /tf",
+                    view.model, view.n, view.world_frame, view.flange_frame, view.tool_frame,
+                )  # fmt: skip
+
+    def _note(self, note: str) -> None:
+        """Say once (per reason) why a robot/state is not shown to ROS."""
+        with self._lock:
+            if note in self._noted:
+                return
+            self._noted.add(note)
+        # Waiting is normal for a moment at start-up; anything else is worth a warning.
+        log.log(logging.INFO if note == NO_DESCRIPTION else logging.WARNING, "ros2: %s", note)
 
     # --- Telerobot → ROS (Zenoh's threads: convert and publish) --------------------------
     def _on_state(self, st: RobotState) -> None:
         with self._lock:
             self._state, self._state_rx_s = st, time.monotonic()
+            arm = self.arm
+            if arm is not None:
+                fits = arm.fits(st)
+                self._arm_note = "" if fits else (
+                    f"robot/state has {len(st.q)} joints, the described {arm.model} "
+                    f"{arm.n}: nothing about the arm is published until they agree"
+                )  # fmt: skip
+            note = self._arm_note
+        if note or arm is None:
+            self._note(note or NO_DESCRIPTION)
+            return
         if self.pub_joint_states.matching:
-            self.pub_joint_states.put(msgs.encode(self.converter.joint_state(st)))
+            self.pub_joint_states.put(msgs.encode(arm.joint_state(st)))
         if self.pub_tf.matching:
-            self.pub_tf.put(msgs.encode(self.converter.tf(st)))
-        self._maybe_republish_description(st)
-
-    def _maybe_republish_description(self, st: RobotState) -> None:
-        """A tool change (arm `set_tool`) republishes the URDF, so a late joiner gets the
-        tool that is really mounted."""
-        p_et, R_et = self.converter.tool_placement(st)
-        placement = (*p_et, *R_et)
-        with self._lock:
-            changed = any(
-                abs(a - b) > TOOL_CHANGE_TOL
-                for a, b in zip(placement, self._tool_placement, strict=True)
-            )
-            if changed:
-                self._tool_placement = placement
-        if changed:
-            urdf = puma_urdf(tool_p=p_et, tool_R=R_et, frames=self.frames)
-            self.pub_description.put(msgs.encode(msgs.String(urdf)))
+            self.pub_tf.put(msgs.encode(arm.tf(st)))
 
     def _on_force(self, f: ForceSample) -> None:
         self.pub_wrench.put(msgs.encode(convert.wrench(f, self.config.tool_frame)))
@@ -334,9 +390,17 @@ class Ros2Service:
 
     def _on_target(self, payload: bytes, _attachment: bytes | None) -> None:
         tool = self._fresh_tool()
+        with self._lock:
+            limits, note = self.limits, self._arm_note
         try:
             pose = msgs.decode(msgs.PoseStamped, payload)
-            target = check_target(pose, self.limits, None if tool is None else tool[0])
+            if limits is None:
+                raise TargetRefused(
+                    "no robot/arm/description yet: the world frame is unknown"
+                    if note == NO_DESCRIPTION
+                    else f"no arm to drive: {note}"
+                )
+            target = check_target(pose, limits, None if tool is None else tool[0])
         except (CdrError, TargetRefused) as e:
             with self._lock:
                 self.targets_refused += 1
@@ -411,6 +475,8 @@ class Ros2Service:
             return {
                 "domain_id": self.domain_id,
                 "namespace": self.namespace,
+                "arm": None if self.arm is None else self.arm.model,
+                "arm_note": self._arm_note,
                 "targets_accepted": self.targets_accepted,
                 "targets_refused": self.targets_refused,
                 "commands_sent": self.commands_sent,

@@ -357,7 +357,7 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         metavar="M_S",
         help=f"the simulated slave's speed limit (default {SLAVE_SPEED_M_S:g} m/s, "
-        "the PUMA's tool speed; 0: it jumps to each target in one tick)",
+        "the arms' tool speed; 0: it jumps to each target in one tick)",
     )
     p.add_argument(
         "--slave-port",

@@ -42,7 +42,8 @@ from services.bus.config import NodeConfig
 from services.bus.messages import Event, ForceSample, MasterFeedback, PassivityState, RobotState
 from services.bus.node import Node
 from services.bus.peers import Clients, Peers
-from services.control.arm.config import HOME_Q_RAD, ArmConfig
+from services.control.arm.config import ArmConfig
+from services.control.arm.model import load_model
 from services.control.arm.service import ArmService
 from services.control.arm.sim_arm import SimArm
 from services.control.decision.config import DecisionConfig
@@ -57,6 +58,9 @@ from services.tools.bench.netem import ROBOT_IP, LinkShape, in_ns, netem_link, u
 from services.tools.bench.passivity import put_measures
 from services.tools.bench.procs import free_port
 from services.world.workcell.scene import TABLE
+
+HOME_Q_RAD = load_model().home
+"""The default model's home (the PUMA 560's)."""
 
 APPROACH_S, HOLD_S, RELEASE_S = 2.0, 8.0, 1.0
 """The operator's path: down over APPROACH_S, hold HOLD_S (`--hold-s`), up over RELEASE_S."""

@@ -107,7 +107,7 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
 
     log = CpuLog()
     say(f"IK throughput over {opts.ik_n} poses …")
-    from services.control.arm.kinematics import bench_ik
+    from services.tools.bench.ik_phase import bench_ik
 
     with log.phase("ik"):
         res.phases["ik"] = bench_ik(opts.ik_n)

@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     launcher.add_override_args(p)
     args = p.parse_args(argv)
     profile = launcher.resolve_profile(args.profile)
-    overrides = launcher.Overrides(listen=args.listen, ns=args.ns)
+    overrides = launcher.Overrides(listen=args.listen, ns=args.ns, model=args.model)
     deploy = load_deploy(profile)
     port = int(deploy.get("console", {}).get("port", 8080))
     node_cfg = demo_node_config(deploy, overrides)

@@ -24,7 +24,9 @@ What stops the whole launch (everything is stopped and `up` exits non-zero):
 
 `--listen ENDPOINT` moves the profile's router to another endpoint (its services connect
 there); `--ns NS` runs every service under a namespace and, when the router endpoint is
-already taken, joins that router instead of starting one (several robots on one network).
+already taken, joins that router instead of starting one (several robots on one network);
+`--model MODEL` runs the arm service with another arm model (puma560, fr3, ur5e, or the path
+of an arm's TOML): every other service learns it from the arm's description.
 """
 
 from __future__ import annotations
@@ -172,11 +174,12 @@ class Child:
 
 @dataclass(frozen=True, slots=True)
 class Overrides:
-    """What `up --listen/--ns` changes in a profile: the router's endpoint (its services
-    connect there) and a namespace for every service."""
+    """What `up --listen/--ns/--model` changes in a profile: the router's endpoint (its
+    services connect there), a namespace for every service, the arm's model."""
 
     listen: str = ""
     ns: str = ""
+    model: str = ""
 
     def __post_init__(self) -> None:
         if self.listen and tcp_host_port(self.listen) is None:
@@ -196,6 +199,8 @@ def child_argv(
         extra += [] if name == "router" else ["--connect", dialable(overrides.listen)]
     if overrides.ns and name != "router":
         extra += ["--ns", overrides.ns]
+    if overrides.model and name == "arm":
+        extra += ["--model", overrides.model]
     return [
         sys.executable,
         "-m",
@@ -331,6 +336,11 @@ def add_override_args(p: argparse.ArgumentParser) -> None:
         help="a namespace for every service (e.g. cell2); if the router endpoint is "
         "taken, join that router instead of starting one",
     )
+    p.add_argument(
+        "--model",
+        default="",
+        help="the arm model: puma560 (default), fr3, ur5e, or the path of an arm's TOML",
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -349,7 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         profile = resolve_profile(args.profile)
-        overrides = Overrides(listen=args.listen, ns=args.ns)
+        overrides = Overrides(listen=args.listen, ns=args.ns, model=args.model)
     except ConfigError as e:
         print(f"telerobot up: {e}", file=sys.stderr)
         return 2

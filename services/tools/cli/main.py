@@ -20,7 +20,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "up": ("services.tools.cli.launcher", "start a profile's services as child processes"),
     "arm": (
         "services.control.arm.__main__",
-        "the arm service (PUMA 560 by default)",
+        "the arm service (any arm model: PUMA 560 by default, FR3, UR5e)",
     ),
     "force": ("services.control.force.__main__", "the force sensor service"),
     "decision": ("services.control.decision.__main__", "the DecisionServer (supervisor)"),

@@ -32,7 +32,8 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--no-3d",
         action="store_true",
-        help="leave out /tf, /robot_model, /workcell (what a 3D viewer draws of the arm)",
+        help="leave out /tf, /robot_model, /robot_description, /workcell (what a 3D viewer "
+        "draws of the arm and the workcell)",
     )
     p.add_argument(
         "--max-size-mb", type=float, default=0.0, help="end (or split) at this size (0: none)"
@@ -68,10 +69,13 @@ def parser() -> argparse.ArgumentParser:
 
 
 def progress(st: RecorderStats, elapsed_s: float) -> str:
-    """One progress line: samples received per topic, written, dropped, the file."""
+    """One progress line: samples received per topic, written, dropped, the arm, the file."""
     per_key = ", ".join(f"{k} {v.received}" for k, v in sorted(st.keys.items())) or "no sample"
     where = st.files[-1] if st.files else "-"
-    return f"{elapsed_s:.0f} s: {per_key}; {st.written} written, {st.dropped} dropped → {where}"
+    arm = f"arm {st.arm_model}" if st.arm_model else "no arm description"
+    return (
+        f"{elapsed_s:.0f} s: {per_key}; {st.written} written, {st.dropped} dropped, {arm} → {where}"
+    )
 
 
 def start(ctx: ServiceContext) -> int:
@@ -103,12 +107,15 @@ def start(ctx: ServiceContext) -> int:
         final = recorder.stop()
     summary = final.as_dict()
     ctx.log.info(
-        "recorded %d messages (%d dropped) in %s",
+        "recorded %d messages (%d dropped) in %s; %s",
         summary["written"],
         summary["dropped"],
         ", ".join(summary["files"]),
+        f"arm {final.arm_model}" if final.arm_model else "no arm description: no /robot_model",
     )
-    print(json.dumps({k: summary[k] for k in ("written", "dropped", "files", "error")}))
+    print(
+        json.dumps({k: summary[k] for k in ("written", "dropped", "files", "error", "arm_model")})
+    )
     return 1 if final.error else 0
 
 

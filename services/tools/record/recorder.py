@@ -11,6 +11,13 @@ file with its summary and footer.
 
 Limits: `max_size_mb` and `max_duration_s` end the recording, or with `split` start the
 next part (FILE_000.mcap, FILE_001.mcap, …), each a complete MCAP file on its own.
+
+The arm's description (`robot/arm/description`, cached by the arm for late subscribers) is
+taken with Zenoh's history, so a recorder started after the arm still gets it: it is
+recorded like any other key (when the key filter selects it) and gives the 3D views their
+arm (world.py: `/tf` from its URDF, `/robot_model`, `/robot_description`). With no
+description, the file has no `/robot_model`; the stats (`arm_model` null, `robot_models` 0)
+and the log say so.
 """
 
 from __future__ import annotations
@@ -26,14 +33,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Literal
 
-import numpy as np
 import zenoh
+import zenoh.ext
 from mcap.writer import CompressionType, Writer
 
-from services.bus import keys
+from services.bus import codec, keys
 from services.bus.errors import ConfigError, ProtocolError
+from services.bus.messages import ArmDescription
 from services.bus.node import Node
-from services.control.arm.urdf import puma_urdf
 from services.tools.record import schemas, world
 
 log = logging.getLogger("telerobot.record")
@@ -45,6 +52,8 @@ _COMPRESSION = {
     "none": CompressionType.NONE,
 }
 FORMAT_VERSION = "1"
+CONTRACT = "PROTOCOL.md v2"
+DESCRIPTION_KEY = keys.ARM_DESCRIPTION.key
 #: bytes an MCAP message record adds to its data (opcode, length, channel, seq, 2 times)
 _RECORD_OVERHEAD = 1 + 8 + 2 + 4 + 8 + 8
 
@@ -75,7 +84,8 @@ class RecorderConfig:
     chunk_interval_s: float = 1.0
     compression: Compression = "zstd"
     world: bool = True
-    """Also write what a 3D viewer draws (`world.py`): `/tf`, `/robot_model`, `/workcell`."""
+    """Also write what a 3D viewer draws (`world.py`): `/tf`, `/robot_model`,
+    `/robot_description`, `/workcell`."""
 
     def __post_init__(self) -> None:
         if not self.output.endswith(".mcap"):
@@ -103,11 +113,14 @@ def part_path(output: str | Path, index: int) -> Path:
 
 @dataclass(frozen=True, slots=True)
 class Received:
-    """One sample as the callback saw it: receive time (time.time_ns()), key, payload."""
+    """One sample as the callback saw it: receive time (time.time_ns()), key, payload.
+    `record` False: not to be recorded, only read (an arm description outside the key
+    filter, still needed by the 3D views)."""
 
     log_time_ns: int
     key: str
     payload: bytes
+    record: bool = True
 
 
 @dataclass
@@ -130,6 +143,11 @@ class RecorderStats:
     keys: dict[str, KeyStats] = field(default_factory=dict)
     files: list[Path] = field(default_factory=list)
     error: str = ""
+    arm_model: str = ""
+    """The model of the newest arm description received ("": none arrived)."""
+    robot_models: int = 0
+    """`/robot_model` messages written (one per description and file; 0: the recording has
+    no arm model, see `arm_model`)."""
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
 
     def key(self, key: str) -> KeyStats:
@@ -146,6 +164,8 @@ class RecorderStats:
                 {k: KeyStats(**vars(v)) for k, v in self.keys.items()},
                 list(self.files),
                 self.error,
+                self.arm_model,
+                self.robot_models,
             )
 
     @property
@@ -169,6 +189,8 @@ class RecorderStats:
             "keys": {k: vars(v).copy() for k, v in sorted(self.keys.items())},
             "files": [str(f) for f in self.files],
             "error": self.error,
+            "arm_model": self.arm_model or None,
+            "robot_models": self.robot_models,
         }
 
 
@@ -251,7 +273,12 @@ class McapSink:
         self._last_flush_s = 0.0
         self._pos = 0
         self._pending = 0
-        self._model_written = False
+        self._arm: world.ArmView | None = None
+        """The arm of the newest description, over the whole recording (all parts)."""
+        self._arm_written = False
+        """This part has the current arm's /robot_model."""
+        self._states_without_arm = 0
+        """robot/states of this part derived with no arm description."""
         self._spills = world.Spills(world.SCENE)
         """Puddles of spilled liquid, over the whole recording (all parts)."""
         self.derive_errors = 0
@@ -275,7 +302,7 @@ class McapSink:
             "telerobot.recording",
             {
                 "format": FORMAT_VERSION,
-                "contract": "PROTOCOL.md v1",
+                "contract": CONTRACT,
                 "ns": self.ns,
                 "keys": " ".join(self.config.keys) or "**",
                 "video": str(self.config.video).lower(),
@@ -287,7 +314,8 @@ class McapSink:
         self._schemas.clear()
         self._channels.clear()
         self._sequence.clear()
-        self._model_written = False
+        self._arm_written = False
+        self._states_without_arm = 0
         self._part_start_s = self._last_flush_s = self._monotonic_s()
         self._pos = self._file.tell()
         self._pending = 0
@@ -298,6 +326,12 @@ class McapSink:
     def _finish_part(self) -> None:
         if self._writer is None or self._file is None:
             return
+        if self.config.world and self._states_without_arm and not self._arm_written:
+            log.warning(
+                "%s: no arm description (robot/arm/description) arrived: recorded without "
+                "/robot_model; /tf holds world → flange → tool only",
+                self._file.name,
+            )
         self._writer.add_metadata(
             "telerobot.stats",
             {
@@ -364,6 +398,11 @@ class McapSink:
             return False
         if self._limit_reached() and not self._rotate():
             return False
+        if item.key == DESCRIPTION_KEY:
+            self._description(item)
+        if not item.record:
+            self._model_due(item)
+            return True
         st = self.stats.key(item.key)
         v = schemas.view(item.key, item.payload)
         t_ns = v.t_ns if v is not None else schemas.stamp(item.payload)
@@ -374,8 +413,9 @@ class McapSink:
         else:
             cid = self._channel(item.key, schemas.ROLE_VIEW, v.schema)
             self._add(cid, item, publish_ns, schemas.dumps(v.document))
-            if self.config.world:
-                self._derive(item, v, publish_ns)
+        self._model_due(item)
+        if v is not None and self.config.world:
+            self._derive(item, v, publish_ns)
         st.written += 1
         st.bytes += len(item.payload)
         return True
@@ -391,6 +431,37 @@ class McapSink:
             self._channels[(topic, world.ROLE_DERIVED)] = cid
         return cid
 
+    def _description(self, item: Received) -> None:
+        """A robot/arm/description: the arm the 3D views draw from now on (when it differs
+        from the one they draw)."""
+        try:
+            desc = codec.decode(ArmDescription, item.payload)
+        except ProtocolError as e:
+            self.derive_errors += 1
+            log.warning("ignored an arm description that does not check out: %s", e)
+            return
+        with self.stats.lock:
+            self.stats.arm_model = desc.model
+        if not self.config.world:
+            return
+        old = self._arm.description if self._arm is not None else None
+        if old is not None and _same_arm(old, desc):
+            return
+        try:
+            self._arm = world.ArmView(desc)
+        except (ConfigError, ProtocolError, ValueError, KeyError, TypeError, RuntimeError) as e:
+            self._arm = None
+            self.derive_errors += 1
+            log.warning("cannot draw the arm %r of its description: %s", desc.model, e)
+            return
+        self._arm_written = False
+        log.info("arm %s (%d joints): /tf and /robot_model from its URDF", desc.model, desc.n)
+
+    def _model_due(self, item: Received) -> None:
+        """Write the current arm's model if this part does not have it yet."""
+        if self.config.world and self._arm is not None and not self._arm_written:
+            self._write_model(item)
+
     def _derive(self, item: Received, v: schemas.View, publish_ns: int) -> None:
         """The 3D views of a robot/state or workcell/state (`world.py`)."""
         assert self._writer is not None
@@ -398,10 +469,12 @@ class McapSink:
             return
         try:
             if item.key == keys.STATE.key:
-                doc = v.document
-                if not self._model_written:
-                    self._write_model(item, doc, publish_ns)
-                out = [(world.TF_TOPIC, world.FRAME_TRANSFORMS, world.frame_transforms(doc))]
+                if self._arm is None:
+                    if not self._states_without_arm:
+                        log.info("robot/state with no arm description yet: /tf of its poses")
+                    self._states_without_arm += 1
+                tf = world.frame_transforms(v.document, self._arm)
+                out = [(world.TF_TOPIC, world.FRAME_TRANSFORMS, tf)]
             else:
                 update = world.workcell_update(v.document, spills=self._spills)
                 out = [(world.WORKCELL_TOPIC, world.SCENE_UPDATE, update)]
@@ -413,22 +486,24 @@ class McapSink:
             cid = self._derived_channel(topic, schema, item.key)
             self._add(cid, item, publish_ns, schemas.dumps(body))
 
-    def _write_model(self, item: Received, doc: dict[str, Any], publish_ns: int) -> None:
-        """Once per file, at its first robot/state: the URDF (attachment, with this
-        state's tool placement) and its visuals locked to the link frames."""
-        assert self._writer is not None
-        Rf = np.asarray(doc["flange_R"], dtype=np.float64).reshape(3, 3)
-        eMt_p = Rf.T @ (np.asarray(doc["tool_p"], float) - np.asarray(doc["flange_p"], float))
-        eMt_R = Rf.T @ np.asarray(doc["tool_R"], float).reshape(3, 3)
-        urdf = puma_urdf(tool_p=eMt_p.tolist(), tool_R=eMt_R.reshape(9).tolist())
+    def _write_model(self, item: Received) -> None:
+        """The current arm, at `item`'s receive time: its URDF with the tool link (attached,
+        and on /robot_description) and its visuals locked to the link frames
+        (/robot_model)."""
+        assert self._writer is not None and self._arm is not None
+        arm, t_ns = self._arm, item.log_time_ns
         self._writer.add_attachment(
-            item.log_time_ns, item.log_time_ns, world.URDF_NAME, world.URDF_MEDIA_TYPE,
-            urdf.encode(),
-        )  # fmt: skip
-        cid = self._derived_channel(world.MODEL_TOPIC, world.SCENE_UPDATE, item.key)
-        model = world.robot_model(publish_ns, eMt_p.tolist())
-        self._add(cid, item, publish_ns, schemas.dumps(model))
-        self._model_written = True
+            t_ns, t_ns, arm.urdf_name, world.URDF_MEDIA_TYPE, arm.urdf.encode()
+        )
+        cid = self._derived_channel(world.DESCRIPTION_TOPIC, world.STRING, DESCRIPTION_KEY)
+        self._add(cid, item, t_ns, schemas.dumps(world.robot_description(arm)))
+        cid = self._derived_channel(world.MODEL_TOPIC, world.SCENE_UPDATE, DESCRIPTION_KEY)
+        self._add(cid, item, t_ns, schemas.dumps(world.robot_model(t_ns, arm)))
+        self._arm_written = True
+        with self.stats.lock:
+            self.stats.robot_models += 1
+        if arm.visuals_error:
+            log.warning("%s drawn without its visuals: %s", arm.urdf_name, arm.visuals_error)
 
     def tick(self) -> bool:
         """Close the chunk when `chunk_interval_s` has passed; apply the limits even when
@@ -474,6 +549,17 @@ class McapSink:
         return True
 
 
+def _same_arm(a: ArmDescription, b: ArmDescription) -> bool:
+    """The same arm with the same tool: nothing for the 3D views to change."""
+    return (a.model, a.urdf, a.base_frame, a.flange_frame, a.eMt) == (
+        b.model,
+        b.urdf,
+        b.base_frame,
+        b.flange_frame,
+        b.eMt,
+    )
+
+
 class Recorder:
     """Records the bus that `node` sees into MCAP (see the module docstring).
 
@@ -495,9 +581,26 @@ class Recorder:
         # One subscription per expression; a key inside several is taken by the first only,
         # so overlapping expressions never record a sample twice.
         owners = [schemas.key_matcher(patterns[:i]) if i else None for i in range(len(patterns))]
+        # The arm's description has a subscription of its own, with the history its
+        # publisher caches, so that a recorder started after the arm gets the current one:
+        # the ones for the key expressions leave that key to it.
+        self._record_description = self._select(DESCRIPTION_KEY)
+        self._own_description = config.world or self._record_description
+        self._description_seen: set[str] = set()
         self._subs: list[Any] = [
             node.subscribe_raw(k, self._receiver(owners[i])) for i, k in enumerate(patterns)
         ]
+        if self._own_description:
+            # Zenoh's advanced subscriber, raw (the bytes as they came, and no `rejected`
+            # event published as Node.subscribe(history=True) would): Node offers no raw
+            # subscriber with history.
+            sub = zenoh.ext.declare_advanced_subscriber(
+                node.session,
+                DESCRIPTION_KEY,
+                self._on_description,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+            )
+            self._subs.append(sub)
         self._thread = threading.Thread(target=self._run, name="record-writer", daemon=True)
         self._thread.start()
 
@@ -507,10 +610,29 @@ class Recorder:
         def on_sample(sample: zenoh.Sample) -> None:
             now = time.time_ns()
             key = str(sample.key_expr)
+            if key == DESCRIPTION_KEY and self._own_description:
+                return  # taken by the description's own subscription
             if taken_earlier is None or not taken_earlier(key):
                 self._on_sample(now, key, sample)
 
         return on_sample
+
+    def _on_description(self, sample: zenoh.Sample) -> None:
+        # Zenoh's thread. A sample both live and from the publisher's cache (a publisher
+        # detected late) is the same sample, with the same timestamp: taken once.
+        now = time.time_ns()
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        stamp = sample.timestamp
+        if stamp is not None:
+            with self._stats.lock:
+                if str(stamp) in self._description_seen:
+                    return
+                self._description_seen.add(str(stamp))
+        if self._record_description:
+            self._on_sample(now, DESCRIPTION_KEY, sample)
+        else:
+            self._inbox.put(Received(now, DESCRIPTION_KEY, sample.payload.to_bytes(), False))
 
     def _on_sample(self, now: int, key: str, sample: zenoh.Sample) -> None:
         # Zenoh's thread: stamp, filter, hand over. Never block on the writer.

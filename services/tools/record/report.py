@@ -64,9 +64,16 @@ MIN_STALL_SAMPLES = 10
 MIN_PATH_SPAN_M = 0.05
 """The path plot's axes span at least 5 cm: a still arm's µm of noise stay a dot."""
 #: streams that pause by design: commands flow only while an operator is engaged, and so do
-#: the passivity figures (each side publishes them only while it observes an engagement)
+#: the passivity figures (each side publishes them only while it observes an engagement);
+#: the arm's description comes only when it changes
 NOT_PERIODIC = frozenset(
-    {keys.CMD.key, keys.ARM_TARGET.key, keys.PASSIVITY_MASTER.key, keys.PASSIVITY_SLAVE.key}
+    {
+        keys.CMD.key,
+        keys.ARM_TARGET.key,
+        keys.ARM_DESCRIPTION.key,
+        keys.PASSIVITY_MASTER.key,
+        keys.PASSIVITY_SLAVE.key,
+    }
 )
 
 
@@ -503,9 +510,13 @@ def format_report(report: Report, max_events: int = 50) -> str:
         lines.append(f"cut short (recorder killed?): {', '.join(report.truncated)}")
     if report.recorder is not None:
         r = report.recorder
+        arm = ""
+        if "arm_model" in r:  # recorders before the arm's description did not say
+            model = r["arm_model"]
+            arm = f"; arm {model}" if model else "; no arm description (no /robot_model)"
         lines.append(
             f"recorder: {r.get('received', 0)} received, {r.get('dropped', 0)} dropped, "
-            f"{r.get('written', 0)} written"
+            f"{r.get('written', 0)} written{arm}"
         )
     lines.append("")
     head = (

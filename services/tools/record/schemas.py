@@ -172,9 +172,10 @@ def _annotation_schema(tp: Any) -> dict[str, Any]:
     out: dict[str, Any]
     if get_origin(tp) is typing.Literal:
         return {"type": "string", "enum": list(get_args(tp))}
-    size = next((m.n for m in meta if isinstance(m, Size)), None)
+    size = next((m for m in meta if isinstance(m, Size)), None)
     if size is not None:
-        out = {"type": "array", "items": {"type": "number"}, "minItems": size, "maxItems": size}
+        top = size.n if size.hi is None else size.hi
+        out = {"type": "array", "items": {"type": "number"}, "minItems": size.n, "maxItems": top}
         if any(isinstance(m, Rotation) for m in meta):
             out["description"] = "3×3 rotation, row-major"
         return out
@@ -193,6 +194,12 @@ def _annotation_schema(tp: Any) -> dict[str, Any]:
         return {"type": "string", "contentEncoding": "base64"}
     if get_origin(tp) is dict:
         return {"type": "object"}
+    if get_origin(tp) is tuple:
+        return {
+            "type": "array",
+            "items": {"type": "object"},
+            **({"maxItems": max_len} if max_len else {}),
+        }
     raise TypeError(f"no JSON Schema for annotation {tp!r}")
 
 

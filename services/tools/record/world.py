@@ -1,18 +1,22 @@
 """What a 3D viewer draws of a recording: the arm's frames, its model and the workcell.
 
 Derived from the recorded streams by the recorder's writer thread (docs/record.md, "The arm
-in 3D"), as Foxglove's well-known JSON schemas:
+in 3D"), as Foxglove's well-known JSON schemas. The arm is whatever its description
+(`robot/arm/description`, PROTOCOL.md §1) says it is: an `ArmView` is built from one
+description, with the arm's URDF, its link poses (`services.control.arm.links.LinkPoses`)
+and the tool placement eMt in use.
 
-- `/tf` (`foxglove.FrameTransforms`), one message per `robot/state`: the frame tree of the
-  URDF `services.control.arm.urdf.puma_urdf` generates from the contract's DH table, world →
-  link1 … link6 → flange → tool. Joint i's transform is the URDF's fixed origin F_{i−1}
-  followed by Rz(q_i), so world → flange is the DH forward kinematics of the recorded q;
-  flange → tool is the recorded tool pose seen from the recorded flange pose, so world →
-  tool reproduces `robot/state`'s `tool_p`/`tool_R`.
-- `/robot_model` (`foxglove.SceneUpdate`), once per file: the URDF's visuals (pedestal,
-  joint housings, links, tool shaft) as cylinders locked to those frames, so the arm is
-  drawn with no URDF layer to set up. The URDF itself is attached to the file
-  (`puma560.urdf`) for viewers that load one.
+- `/tf` (`foxglove.FrameTransforms`), one message per `robot/state`: every URDF joint's
+  parent → child transform at the recorded q (world → … → flange, and the links off the
+  chain such as fingers), then flange → tool: the recorded tool pose seen from the flange
+  pose of that q, so world → tool reproduces `robot/state`'s `tool_p`/`tool_R`. With no
+  description yet, only world → flange → tool, from the state's own poses.
+- `/robot_model` (`foxglove.SceneUpdate`), once per description and file: the URDF's visuals
+  (cylinders, boxes, spheres, and meshes embedded in the message) and the tool shaft, each
+  entity locked to its link frame, so the arm is drawn with no URDF layer to set up.
+- `/robot_description` (`std_msgs/String`, JSON `{data}`), with `/robot_model`: the URDF
+  itself with a `tool` link at eMt, which Foxglove's URDF layer reads from a topic; the same
+  text is attached to the file (`<model>.urdf`).
 - `/workcell` (`foxglove.SceneUpdate`), one message per `workcell/state`: the fixtures
   and every movable object at its pose, coloured as the scene description
   (`services.world.workcell.scene.default_scene`) colours them; a bottle shows its liquid, and
@@ -22,23 +26,23 @@ in 3D"), as Foxglove's well-known JSON schemas:
 
 from __future__ import annotations
 
+import base64
 import math
+from collections import deque
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 from numpy.typing import NDArray
 
-from services.control.arm.kinematics import PUMA560_DH, DHLink
-from services.control.arm.urdf import (
-    JOINT_LENGTH_M,
-    JOINT_RADIUS_M,
-    LINK_RADIUS_M,
-    TOOL_RADIUS_M,
-    UrdfFrames,
-)
+from services.bus.errors import ConfigError
+from services.bus.messages import ArmDescription
+from services.control.arm.links import TOOL_LINK, LinkPoses, UrdfJoint, urdf_with_tool
+from services.control.arm.model import ArmModel, model_from_description
 from services.control.vision.objects import Spills
-from services.geometry import R_from_wxyz, quat_of_rotation, quat_of_rx_rz
+from services.geometry import R_from_wxyz, quat_of_rotation
 from services.tools.record.schemas import TIME_SCHEMA
 from services.world.workcell.messages import WORKCELL_STATE, WorkcellState, objects_of
 from services.world.workcell.scene import Box, Scene, default_scene
@@ -47,16 +51,30 @@ F64 = NDArray[np.float64]
 
 FRAME_TRANSFORMS = "foxglove.FrameTransforms"
 SCENE_UPDATE = "foxglove.SceneUpdate"
+STRING = "std_msgs/String"
+"""The schema name Foxglove's URDF layer takes a URDF topic by (its `data` is the XML)."""
 TF_TOPIC = "/tf"
 MODEL_TOPIC = "/robot_model"
+DESCRIPTION_TOPIC = "/robot_description"
 WORKCELL_TOPIC = "/workcell"
-URDF_NAME = "puma560.urdf"
 URDF_MEDIA_TYPE = "application/xml"
 ROLE_DERIVED = "derived"
 WORKCELL_KEY = WORKCELL_STATE.key
-FRAMES = UrdfFrames()
+WORLD_FRAME = "world"
+"""The world frame R_w (the arm's base frame) and the workcell's."""
+FLANGE_FRAME = "flange"
+"""The flange's frame name when no description says it (the frames of `robot/state` only)."""
+TOOL_RADIUS_M = 0.012
+"""The tool shaft drawn from the flange to the tool point."""
 LIQUID_RGBA = (0.94, 0.84, 0.16, 0.9)
 """The liquid's colour (the amber the video shows)."""
+MESH_MEDIA_TYPES = {
+    ".stl": "model/stl",
+    ".dae": "model/vnd.collada+xml",
+    ".glb": "model/gltf-binary",
+    ".obj": "model/obj",
+}
+"""The mesh files a `foxglove.ModelPrimitive` embeds, by suffix (others are left out)."""
 
 # --- Foxglove's JSON Schemas (foxglove/schemas, schemas/jsonschema), the fields we write --
 _TIME = TIME_SCHEMA
@@ -114,6 +132,11 @@ _CUBE = {
     "type": "object",
     "properties": {"pose": _POSE, "size": _VECTOR3, "color": _COLOR},
 }
+_SPHERE = {
+    "title": "foxglove.SpherePrimitive",
+    "type": "object",
+    "properties": {"pose": _POSE, "size": _VECTOR3, "color": _COLOR},
+}
 _CYLINDER = {
     "title": "foxglove.CylinderPrimitive",
     "type": "object",
@@ -123,6 +146,19 @@ _CYLINDER = {
         "bottom_scale": {"type": "number"},
         "top_scale": {"type": "number"},
         "color": _COLOR,
+    },
+}
+_MODEL = {
+    "title": "foxglove.ModelPrimitive",
+    "type": "object",
+    "properties": {
+        "pose": _POSE,
+        "scale": _VECTOR3,
+        "color": _COLOR,
+        "override_color": {"type": "boolean"},
+        "url": {"type": "string"},
+        "media_type": {"type": "string"},
+        "data": {"type": "string", "contentEncoding": "base64"},
     },
 }
 SCENE_UPDATE_SCHEMA: dict[str, Any] = {
@@ -167,16 +203,25 @@ SCENE_UPDATE_SCHEMA: dict[str, Any] = {
                         },
                     },
                     "cubes": {"type": "array", "items": _CUBE},
+                    "spheres": {"type": "array", "items": _SPHERE},
                     "cylinders": {"type": "array", "items": _CYLINDER},
+                    "models": {"type": "array", "items": _MODEL},
                 },
             },
         },
     },
 }
+STRING_SCHEMA: dict[str, Any] = {
+    "title": STRING,
+    "description": "A string (here: a URDF, for Foxglove's URDF layer)",
+    "type": "object",
+    "properties": {"data": {"type": "string"}},
+}
 
 SCHEMAS: dict[str, dict[str, Any]] = {
     FRAME_TRANSFORMS: FRAME_TRANSFORMS_SCHEMA,
     SCENE_UPDATE: SCENE_UPDATE_SCHEMA,
+    STRING: STRING_SCHEMA,
 }
 
 
@@ -201,50 +246,31 @@ def _vec(v: Sequence[float] | F64) -> dict[str, float]:
     return {"x": x, "y": y, "z": z}
 
 
-def _joint_quaternion(alpha_rad: float, q_rad: float) -> dict[str, float]:
-    """The quaternion of Rx(α)·Rz(q) (w ≥ 0)."""
-    w, x, y, z = quat_of_rx_rz(alpha_rad, q_rad)
-    return {"x": x, "y": y, "z": z, "w": w}
+def _xyz(v: F64) -> dict[str, float]:
+    """`_vec` of a float64 3-vector, faster (per-state work)."""
+    x, y, z = v.tolist()
+    return {"x": x, "y": y, "z": z}
 
 
-def joint_transforms(
-    q: Sequence[float], dh: Sequence[DHLink] = PUMA560_DH
-) -> list[tuple[str, str, dict[str, float], dict[str, float]]]:
-    """(parent, child, translation, rotation quaternion) of the URDF's joints at joint
-    angles `q` (rad): world → link1 … link6 → flange. Joint i is the fixed part of DH row
-    i − 1, Tz(d)·Tx(a)·Rx(α), then Rz(q_i)."""
-    out = []
-    for i in range(1, len(dh) + 1):
-        prev = dh[i - 2] if i > 1 else DHLink(0.0, 0.0, 0.0, 0.0, 0.0)
-        out.append(
-            (
-                FRAMES.link(i - 1),
-                FRAMES.link(i),
-                {"x": prev.a_m, "y": 0.0, "z": prev.d_m},
-                _joint_quaternion(prev.alpha_rad, float(q[i - 1])),
-            )
-        )
-    last = dh[-1]
-    out.append(
-        (
-            FRAMES.link(len(dh)),
-            FRAMES.flange,
-            {"x": last.a_m, "y": 0.0, "z": last.d_m},
-            _joint_quaternion(last.alpha_rad, 0.0),
-        )
-    )
-    return out
+def _pose(M: pin.SE3) -> dict[str, Any]:
+    return {"position": _vec(M.translation), "orientation": quaternion(M.rotation)}
 
 
-def frame_transforms(state: Mapping[str, Any]) -> dict[str, Any]:
-    """The `foxglove.FrameTransforms` of one `robot/state` (its wire fields)."""
-    t = _time(int(state["t_ns"]))
-    Rf = np.asarray(state["flange_R"], dtype=np.float64).reshape(3, 3)
-    pf = np.asarray(state["flange_p"], dtype=np.float64)
+Transform = tuple[str, str, dict[str, float], dict[str, float]]
+"""(parent frame, child frame, translation, rotation quaternion)."""
+
+
+def _tool_transform(
+    flange: str, tool: str, pf: F64, Rf: F64, state: Mapping[str, Any]
+) -> Transform:
+    """flange → tool: the state's tool pose seen from the flange pose (pf, Rf)."""
     Rt = np.asarray(state["tool_R"], dtype=np.float64).reshape(3, 3)
     pt = np.asarray(state["tool_p"], dtype=np.float64)
-    tfs = joint_transforms(state["q"])
-    tfs.append((FRAMES.flange, FRAMES.tool, _vec(Rf.T @ (pt - pf)), quaternion(Rf.T @ Rt)))
+    return (flange, tool, _xyz(Rf.T @ (pt - pf)), quaternion(Rf.T @ Rt))
+
+
+def _document(t_ns: int, tfs: list[Transform]) -> dict[str, Any]:
+    t = _time(t_ns)
     return {
         "transforms": [
             {
@@ -259,13 +285,208 @@ def frame_transforms(state: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
+def _parent_first(tree: Sequence[UrdfJoint], roots: Sequence[str]) -> list[UrdfJoint]:
+    """The joints of a URDF tree ordered so that each parent link comes before its children
+    (breadth first from `roots`); joints not reached from them are left out."""
+    children: dict[str, list[UrdfJoint]] = {}
+    for j in tree:
+        children.setdefault(j.parent, []).append(j)
+    out: list[UrdfJoint] = []
+    todo = deque(roots)
+    seen = set(roots)
+    while todo:
+        for j in children.get(todo.popleft(), []):
+            if j.child not in seen:
+                seen.add(j.child)
+                out.append(j)
+                todo.append(j.child)
+    return out
+
+
+class ArmView:
+    """The 3D views of one arm, from its ArmDescription (PROTOCOL.md §1): its frame tree at
+    a recorded q, its visuals, its URDF with the tool link. ConfigError (arm.model) when the
+    description's URDF does not build. Not thread-safe (one LinkPoses)."""
+
+    def __init__(self, desc: ArmDescription) -> None:
+        self.description = desc
+        self.model: ArmModel = model_from_description(desc)
+        self.links = LinkPoses(self.model)
+        self.base = desc.base_frame
+        self.flange = desc.flange_frame
+        names = {link for j in self.links.tree for link in (j.parent, j.child)}
+        self.tool = TOOL_LINK if TOOL_LINK not in names else f"{TOOL_LINK}_eMt"
+        """The tool frame's name: `tool`, unless the arm's URDF has a link of that name."""
+        p, R = desc.eMt["p"], desc.eMt["R"]
+        self.tool_p = np.asarray(p, dtype=np.float64).reshape(3)
+        self.tool_R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+        self.urdf = urdf_with_tool(desc.urdf, self.flange, p, R, self.tool)
+        """The URDF with the tool link at eMt: what `/robot_description` and the attachment
+        hold."""
+        self.urdf_name = f"{desc.model}.urdf"
+        known = set(self.links.links)
+        self._joints = [
+            j
+            for j in _parent_first(self.links.tree, [self.base])
+            if j.parent in known and j.child in known
+        ]
+        # Only the chain's joints move (the others are fixed, or held like the fingers):
+        # the transforms of the rest are computed once.
+        moving = set(self.model.joint_names)
+        poses = self.links.poses(self.model.home)
+        self._fixed: dict[str, Transform] = {}
+        for j in self._joints:
+            if j.name not in moving:
+                M = poses[j.parent].actInv(poses[j.child])
+                self._fixed[j.name] = (
+                    j.parent,
+                    j.child,
+                    _xyz(M.translation),
+                    quaternion(M.rotation),
+                )
+        self._head: list[Transform] = []
+        if self.base != WORLD_FRAME:  # the world frame R_w is the arm's base frame
+            self._head.append((WORLD_FRAME, self.base, _vec((0, 0, 0)), quaternion(np.eye(3))))
+        self._visuals: list[tuple[str, dict[str, list[dict[str, Any]]]]] | None = None
+        self.visuals_error = ""
+        """Why the URDF's visuals are not drawn (meshes not found), or empty."""
+
+    def transforms(self, state: Mapping[str, Any]) -> list[Transform]:
+        """The frame tree at one `robot/state` (its wire fields), parents first: every URDF
+        joint at the state's q, then flange → tool from the state's tool pose. ValueError
+        when q is not the arm's n joints."""
+        poses = self.links.poses(state["q"])
+        out = list(self._head)
+        for j in self._joints:
+            fixed = self._fixed.get(j.name)
+            if fixed is None:
+                M = poses[j.parent].actInv(poses[j.child])
+                fixed = (j.parent, j.child, _xyz(M.translation), quaternion(M.rotation))
+            out.append(fixed)
+        oMf = poses[self.flange]
+        out.append(_tool_transform(self.flange, self.tool, oMf.translation, oMf.rotation, state))
+        return out
+
+    def visuals(self) -> list[tuple[str, dict[str, list[dict[str, Any]]]]]:
+        """(link, {"cubes"|"spheres"|"cylinders"|"models": primitives}) of the URDF's
+        visuals, each in its link's frame, and the tool shaft in the flange frame. Built
+        once; a model whose meshes are not found here (not a shipped model) is drawn with
+        its tool shaft only (`visuals_error` says why)."""
+        if self._visuals is None:
+            by_link: dict[str, dict[str, list[dict[str, Any]]]] = {}
+            try:
+                geom = self.model.geometry()
+            except (ConfigError, RuntimeError, ValueError, OSError) as e:
+                self.visuals_error = str(e)
+                geom = None
+            if geom is not None:
+                frames = self.model.pin_model().frames
+                for go in geom.geometryObjects:
+                    frame = frames[go.parentFrame]
+                    kind, prim = _primitive(go, frame.placement.actInv(go.placement))
+                    if prim is not None:
+                        by_link.setdefault(frame.name, {}).setdefault(kind, []).append(prim)
+            shaft = _cylinder_between((0, 0, 0), self.tool_p, TOOL_RADIUS_M, _TOOL_RGBA)
+            if shaft is not None:
+                by_link.setdefault(self.flange, {}).setdefault("cylinders", []).append(shaft)
+            self._visuals = list(by_link.items())
+        return self._visuals
+
+
+def _rgba_of(c: Sequence[float]) -> dict[str, float]:
+    r, g, b, a = (float(x) for x in c)
+    return {"r": r, "g": g, "b": b, "a": a}
+
+
+def _primitive(go: Any, M: pin.SE3) -> tuple[str, dict[str, Any] | None]:
+    """One visual of a Pinocchio GeometryObject, placed by `M` in its link frame: the kind
+    of primitive and its `foxglove.*Primitive` (None: a shape Foxglove cannot draw)."""
+    g = go.geometry
+    color = _rgba_of(go.meshColor)
+    # coal's (formerly hppfcl's) shapes, told apart by name: their module depends on pin's
+    # version.
+    shape = type(g).__name__
+    if shape == "Cylinder":
+        d = 2.0 * float(g.radius)
+        size = {"x": d, "y": d, "z": 2.0 * float(g.halfLength)}
+        body = {"pose": _pose(M), "size": size, "bottom_scale": 1.0, "top_scale": 1.0}
+        return "cylinders", {**body, "color": color}
+    if shape == "Box":
+        size = _vec(2.0 * np.asarray(g.halfSide, dtype=np.float64))
+        return "cubes", {"pose": _pose(M), "size": size, "color": color}
+    if shape == "Sphere":
+        d = 2.0 * float(g.radius)
+        return "spheres", {"pose": _pose(M), "size": {"x": d, "y": d, "z": d}, "color": color}
+    path = Path(str(go.meshPath))
+    media = MESH_MEDIA_TYPES.get(path.suffix.lower())
+    if media is None or not path.is_file():
+        return "models", None
+    return "models", {
+        "pose": _pose(M),
+        "scale": _vec(go.meshScale),
+        "color": color,
+        # An STL has no colour of its own; another format keeps its own unless the URDF
+        # gave the visual a material.
+        "override_color": media == "model/stl" or bool(go.overrideMaterial),
+        "url": "",
+        "media_type": media,
+        "data": base64.b64encode(path.read_bytes()).decode("ascii"),
+    }
+
+
+def frame_transforms(state: Mapping[str, Any], arm: ArmView | None = None) -> dict[str, Any]:
+    """The `foxglove.FrameTransforms` of one `robot/state` (its wire fields): the arm's
+    frame tree (`ArmView.transforms`), or with no arm described, world → flange → tool from
+    the state's poses. ValueError when q does not fit the arm."""
+    if arm is not None:
+        tfs = arm.transforms(state)
+    else:
+        Rf = np.asarray(state["flange_R"], dtype=np.float64).reshape(3, 3)
+        pf = np.asarray(state["flange_p"], dtype=np.float64)
+        tfs = [
+            (WORLD_FRAME, FLANGE_FRAME, _vec(pf), quaternion(Rf)),
+            _tool_transform(FLANGE_FRAME, TOOL_LINK, pf, Rf, state),
+        ]
+    return _document(int(state["t_ns"]), tfs)
+
+
+def robot_model(t_ns: int, arm: ArmView) -> dict[str, Any]:
+    """A `foxglove.SceneUpdate` drawing the arm (`ArmView.visuals`), each entity locked to
+    its link frame (so `/tf` moves it); it first deletes what an earlier one drew."""
+    t = _time(t_ns)
+    entities = [
+        {
+            "timestamp": t,
+            "frame_id": link,
+            "id": f"arm/{link}",
+            "lifetime": {"sec": 0, "nsec": 0},
+            "frame_locked": True,
+            "metadata": [{"key": "model", "value": arm.description.model}],
+            "cubes": prims.get("cubes", []),
+            "spheres": prims.get("spheres", []),
+            "cylinders": prims.get("cylinders", []),
+            "models": prims.get("models", []),
+        }
+        for link, prims in arm.visuals()
+    ]
+    return {"deletions": [{"timestamp": t, "type": 1, "id": ""}], "entities": entities}
+
+
+def robot_description(arm: ArmView) -> dict[str, Any]:
+    """The `std_msgs/String` of `/robot_description`: the URDF with the tool link."""
+    return {"data": arm.urdf}
+
+
 def _rgba(bgr: tuple[int, int, int], a: float = 1.0) -> dict[str, float]:
     b, g, r = bgr
     return {"r": r / 255.0, "g": g / 255.0, "b": b / 255.0, "a": a}
 
 
 def _cylinder_between(
-    start: Sequence[float], end: Sequence[float], radius_m: float, color: dict[str, float]
+    start: Sequence[float] | F64,
+    end: Sequence[float] | F64,
+    radius_m: float,
+    color: dict[str, float],
 ) -> dict[str, Any] | None:
     a, b = np.asarray(start, float), np.asarray(end, float)
     d = b - a
@@ -288,45 +509,7 @@ def _cylinder_between(
     }
 
 
-_LINK_RGBA = {"r": 0.85, "g": 0.85, "b": 0.8, "a": 1.0}
-_JOINT_RGBA = {"r": 0.3, "g": 0.3, "b": 0.35, "a": 1.0}
 _TOOL_RGBA = {"r": 0.9, "g": 0.45, "b": 0.1, "a": 1.0}
-
-
-def robot_model(
-    t_ns: int, tool_p: Sequence[float], dh: Sequence[DHLink] = PUMA560_DH
-) -> dict[str, Any]:
-    """A `foxglove.SceneUpdate` drawing the URDF's visuals, each entity locked to its link
-    frame (so `/tf` moves it). `tool_p`: the tool point in the flange frame."""
-    t = _time(t_ns)
-    entities = []
-
-    def entity(frame: str, cyls: list[dict[str, Any] | None]) -> None:
-        entities.append(
-            {
-                "timestamp": t,
-                "frame_id": frame,
-                "id": f"arm/{frame}",
-                "lifetime": {"sec": 0, "nsec": 0},
-                "frame_locked": True,
-                "metadata": [],
-                "cubes": [],
-                "cylinders": [c for c in cyls if c is not None],
-            }
-        )
-
-    entity(FRAMES.world, [_cylinder_between((0, 0, 0), (0, 0, dh[0].d_m), 0.08, _JOINT_RGBA)])
-    half = JOINT_LENGTH_M / 2
-    for i, link in enumerate(dh, start=1):
-        cyls = [_cylinder_between((0, 0, -half), (0, 0, half), JOINT_RADIUS_M, _JOINT_RGBA)]
-        if i > 1:
-            cyls.append(_cylinder_between((0, 0, 0), (0, 0, link.d_m), LINK_RADIUS_M, _LINK_RGBA))
-        cyls.append(
-            _cylinder_between((0, 0, link.d_m), (link.a_m, 0, link.d_m), LINK_RADIUS_M, _LINK_RGBA)
-        )
-        entity(FRAMES.link(i), cyls)
-    entity(FRAMES.flange, [_cylinder_between((0, 0, 0), tool_p, TOOL_RADIUS_M, _TOOL_RGBA)])
-    return {"deletions": [], "entities": entities}
 
 
 def _entity(
@@ -334,7 +517,7 @@ def _entity(
 ) -> dict[str, Any]:
     return {
         "timestamp": t,
-        "frame_id": FRAMES.world,
+        "frame_id": WORLD_FRAME,
         "id": f"workcell/{name}",
         "lifetime": {"sec": 0, "nsec": 0},
         "frame_locked": False,

@@ -29,18 +29,25 @@ def print_report(report: TaskReport, as_json: bool, with_log: bool = False) -> N
 def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", type=int, choices=(1, 2, 3), default=2, help="which task (default 2)")
     p.add_argument("--headless", action="store_true", help="run the whole system in-process")
+    p.add_argument(
+        "--model",
+        default=None,
+        help="with --headless: the arm model (puma560, fr3, ur5e or an arm's TOML; default "
+        "puma560); a running system has its own",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
 
 
 def start(ctx: ServiceContext) -> int:
     """Run the task (joining the running system, or `--headless` in this process), print
     its report; status 0 when it succeeded, 1 when not, 2 when it could not run."""
+    from services.control.arm.model import DEFAULT_MODEL
     from services.tools.tasks.system import Connected, run_headless
 
     args = ctx.args
     try:
         if args.headless:
-            report = run_headless(args.task, abort=ctx.stop)
+            report = run_headless(args.task, abort=ctx.stop, model=args.model or DEFAULT_MODEL)
         else:
             with Connected(ctx.node_config, abort=ctx.stop) as run:
                 report = run.run(args.task)

@@ -51,6 +51,10 @@ IDENTITY9: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
 READY = ("ready", "moving")
 
 
+CALL_TIMEOUT_S = 5.0
+"""How long the person waits for the arm to answer a question (through the decision)."""
+
+
 class TaskFailed(TelerobotError):
     """The person could not do what the script asked (with what they saw)."""
 
@@ -139,7 +143,9 @@ class Observer:
     own station (master/state of `master_id`). Subscriptions only store."""
 
     def __init__(self, node: Node, master_id: str) -> None:
+        self.node = node
         self.master_id = master_id
+        self._home_R: Mat | None = None
         self.robot: Latest[RobotState] = Latest()
         self.scene: Latest[WorkcellState] = Latest()
         self.station: Latest[MasterState] = Latest(lambda m: m.master == master_id)
@@ -172,6 +178,22 @@ class Observer:
         if st is None:
             raise TaskFailed("no robot/state: the operator cannot see the arm")
         return np.asarray(st.tool_p, dtype=float), mat3(st.tool_R)
+
+    def home_R(self) -> Mat:
+        """The tool's orientation at the arm's home configuration (world): the arm's own
+        answer (its description's `home`, then `fk` of it, through the decision server),
+        asked once. The tasks hold the tool so, pointing down, whatever the arm model."""
+        if self._home_R is None:
+            try:
+                desc = self.node.call("decision", "describe", {}, CALL_TIMEOUT_S)
+                home = (desc.get("named") or {}).get("home")
+                if not isinstance(home, list):
+                    raise TaskFailed("the arm's description names no home configuration")
+                fk = self.node.call("decision", "fk", {"q": home}, CALL_TIMEOUT_S)
+            except (RpcError, Unavailable) as e:
+                raise TaskFailed(f"cannot ask the arm where home is: {e}") from None
+            self._home_R = mat3(fk["tool_R"])
+        return self._home_R
 
     def objects(self) -> dict[str, ObjectView]:
         ws = self.scene.latest

@@ -30,13 +30,18 @@ from services.world.workcell.physics import BodyState, stack_heights
 Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
 
-TOOL_DOWN: Mat = np.diag([-1.0, 1.0, -1.0])
-"""The tool z axis pointing down (the arm's home orientation)."""
 UP = np.array([0.0, 0.0, 1.0])
 
 TASK1_GOAL_P: Vec = np.array([0.68, 0.18, 0.52])
-TASK1_GOAL_R: Mat = rot_z(math.radians(30.0)) @ TOOL_DOWN @ rot_x(math.radians(12.0))
-"""Task 1's goal: 0.27 m from home, turned 30° about the vertical and tipped 12°."""
+
+
+def task1_goal_R(home_R: Mat) -> Mat:
+    """Task 1's goal orientation: the arm's home orientation (tool pointing down) turned
+    30° about the vertical and tipped 12° about the tool's x; with TASK1_GOAL_P, 0.27 m from
+    home."""
+    return rot_z(math.radians(30.0)) @ home_R @ rot_x(math.radians(12.0))
+
+
 TASK1_MAX_ERROR_M = 0.002
 TASK1_MAX_ERROR_RAD = math.radians(1.0)
 
@@ -127,9 +132,10 @@ def pick(op: Operator, name: str, travel_bottom_z: float) -> None:
     """Grasp `name` from above and lift it until its base is at `travel_bottom_z`."""
     obj = op.eyes.object(name)
     coarse(op)
-    op.reach(obj.top + (GRASP_GAP_M + APPROACH_M) * UP, TOOL_DOWN, tol_m=COARSE_TOL_M)
+    down = op.eyes.home_R()
+    op.reach(obj.top + (GRASP_GAP_M + APPROACH_M) * UP, down, tol_m=COARSE_TOL_M)
     fine(op)
-    op.reach(obj.top + GRASP_GAP_M * UP, TOOL_DOWN, tol_m=FINE_TOL_M)
+    op.reach(obj.top + GRASP_GAP_M * UP, down, tol_m=FINE_TOL_M)
     op.grasp(name)
     coarse(op)
     p_t, _ = op.eyes.tool()
@@ -163,16 +169,17 @@ def place(op: Operator, name: str, bottom: ArrayLike, turn_rad: float = 0.0) -> 
 def task1(op: Operator) -> Outcome:
     """Set the tool at TASK1_GOAL: coarse at full scale in the world frame with
     re-clutching, then fine at scale 0.25/0.5 in the tool frame; let go and measure."""
+    goal_R = task1_goal_R(op.eyes.home_R())
     op.engage()
     coarse(op)
-    op.reach(TASK1_GOAL_P + 0.02 * UP, TASK1_GOAL_R, tol_m=COARSE_TOL_M)
+    op.reach(TASK1_GOAL_P + 0.02 * UP, goal_R, tol_m=COARSE_TOL_M)
     fine(op)
     op.set_frame("tool")
-    op.reach(TASK1_GOAL_P, TASK1_GOAL_R, tol_m=0.0003, tol_rad=math.radians(0.15))
+    op.reach(TASK1_GOAL_P, goal_R, tol_m=0.0003, tol_rad=math.radians(0.15))
     op.let_go()
     p, R = op.eyes.tool()
     err_m = float(np.linalg.norm(p - TASK1_GOAL_P))
-    err_rad = angle_between(R, TASK1_GOAL_R)
+    err_rad = angle_between(R, goal_R)
     return Outcome(
         measures={
             "position_error_mm": err_m * 1e3,

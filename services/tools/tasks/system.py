@@ -24,6 +24,7 @@ from services.bus.errors import RpcError, Unavailable
 from services.bus.node import Node
 from services.bus.peers import Peers
 from services.control.arm.config import ArmConfig
+from services.control.arm.model import DEFAULT_MODEL
 from services.control.arm.service import ArmService
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
@@ -54,7 +55,7 @@ READY_TIMEOUT_S = 30.0
 
 
 class SimCell:
-    """Puma, force, decision and workcell services in this process (see the module doc).
+    """Arm, force, decision and workcell services in this process (see the module doc).
 
     `start()` connects and initializes the arm and waits until `robot/state` says ready.
     `close()` stops them in reverse order (the decision holds the arm first).
@@ -104,13 +105,14 @@ class SimCell:
         self._closers.clear()
 
 
-def light_cell(make_node: NodeFactory) -> SimCell:
-    """A SimCell with settings that keep it light on a small shared host (tests, headless
-    runs): a 500 Hz force stream without the final spin, a short simulated calibration, and
-    watchdogs that catch a service that is really gone rather than a busy CPU."""
+def light_cell(make_node: NodeFactory, model: str = DEFAULT_MODEL) -> SimCell:
+    """A SimCell of arm `model` with settings that keep it light on a small shared host
+    (tests, headless runs): a 500 Hz force stream without the final spin, a short simulated
+    calibration, and watchdogs that catch a service that is really gone rather than a busy
+    CPU."""
     return SimCell(
         make_node,
-        arm=ArmConfig(sim_calibration_s=0.05),
+        arm=ArmConfig(model=model, sim_calibration_s=0.05),
         force=ForceConfig(seed=7, period_ms=2.0),
         decision=DecisionConfig(watchdog_ms=500.0, state_stale_ms=1000.0, stale_ms=500.0),
     )
@@ -205,14 +207,18 @@ def run_task(task: int, station: Station, timeout_s: float = READY_TIMEOUT_S) ->
 
 
 def run_headless(
-    task: int, operator: OperatorConfig | None = None, abort: Abort | None = None
+    task: int,
+    operator: OperatorConfig | None = None,
+    abort: Abort | None = None,
+    model: str = DEFAULT_MODEL,
 ) -> TaskReport:
-    """Task `task` on a private in-process network: SimCell (light settings) + Station."""
+    """Task `task` on a private in-process network: SimCell (light settings, arm `model`)
+    + Station."""
     net = Peers()
     cell: SimCell | None = None
     station: Station | None = None
     try:
-        cell = light_cell(net.node)
+        cell = light_cell(net.node, model)
         cell.start()
         station = Station(net.node, operator, abort=abort)
         return run_task(task, station)

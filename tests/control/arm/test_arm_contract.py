@@ -1,5 +1,6 @@
-"""The `Arm` contract, run against every backend: SimArm and SerialArm talking to the fake
-controller over a loopback socket. Real time with deadlines: both run their own threads."""
+"""The `Arm` contract, run against every driver and model: SimArm for every shipped model, and
+SerialArm talking to the fake PUMA controller over a loopback socket. Real time with
+deadlines: both run their own threads."""
 
 from __future__ import annotations
 
@@ -17,30 +18,42 @@ import pytest
 from services.bus.errors import ConfigError
 from services.control.arm.backends import BACKENDS, open_arm
 from services.control.arm.config import ArmConfig
-from services.control.arm.driver import QN_RAD, Arm, ArmError, DriverName
+from services.control.arm.driver import Arm, ArmError, DriverName
 from services.control.arm.fake_controller import FakeController
+from services.control.arm.model import ArmModel, load_model
 from services.control.arm.serial_arm import SerialArm
 from services.control.arm.sim_arm import SimArm
 from tests.conftest import wait_until
 
-Q0 = np.array(QN_RAD)
+PUMA = load_model("puma560")
+CASES = [("puma560", "sim"), ("puma560", "serial"), ("fr3", "sim"), ("ur5e", "sim")]
 
 
 @dataclass
 class Rig:
-    """One backend under test: the arm, a way to fail it, and the truth about its joints."""
+    """One driver under test: the arm, a way to fail it, the truth about its joints, the
+    model it drives and where its joints are at power-on."""
 
     arm: Arm
     fail: Callable[[], None]
     true_q: Callable[[], np.ndarray]
+    model: ArmModel
+    q0: np.ndarray
+
+    @property
+    def n(self) -> int:
+        return self.model.n
 
 
-@pytest.fixture(params=["sim", "serial"])
+@pytest.fixture(params=CASES, ids=[f"{m}-{d}" for m, d in CASES])
 def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
-    if request.param == "sim":
-        sim = SimArm(calibration_s=0.1)
+    name, driver = request.param
+    model = load_model(name)
+    if driver == "sim":
+        q0 = np.array(model.named.get("qn", model.home))
+        sim = SimArm(q0, model=model, calibration_s=0.1)
         try:
-            yield Rig(sim, lambda: sim.inject_fault("error"), lambda: sim.q_true)
+            yield Rig(sim, lambda: sim.inject_fault("error"), lambda: sim.q_true, model, q0)
         finally:
             sim.close()
     else:
@@ -49,7 +62,8 @@ def rig(request: pytest.FixtureRequest) -> Iterator[Rig]:
         # delay a reply past 100 ms (a timeout then reads as a controller fault).
         arm = SerialArm(fake.url, cycle_ms=4.0, timeout_s=1.0)
         try:
-            yield Rig(arm, fake.garble_next_reply, lambda: fake.q)
+            q0 = np.array(PUMA.named["qn"])
+            yield Rig(arm, fake.garble_next_reply, lambda: fake.q, PUMA, q0)
         finally:
             arm.close()
             fake.close()
@@ -98,21 +112,21 @@ def test_connect_then_calibrate_then_joints_report(rig: Rig) -> None:
     rig.arm.initialize()
     assert rig.arm.status in ("initializing", "ready")
     assert wait_until(lambda: rig.arm.status == "ready", what="calibration")
-    np.testing.assert_allclose(rig.arm.read_joints(), Q0, atol=1e-6)
+    np.testing.assert_allclose(rig.arm.read_joints(), rig.q0, atol=1e-6)
 
 
 def test_setpoints_before_ready_are_ignored(rig: Rig) -> None:
     rig.arm.connect()
-    rig.arm.command(Q0 + 0.1)
+    rig.arm.command(rig.q0 + 0.1)
     rig.arm.initialize()
     assert wait_until(lambda: rig.arm.status == "ready", what="ready")
     time.sleep(0.05)  # give a wrongly queued setpoint the time to show; not a synchronisation
-    np.testing.assert_allclose(rig.true_q(), Q0, atol=1e-9)
+    np.testing.assert_allclose(rig.true_q(), rig.q0, atol=1e-9)
 
 
 def test_command_and_readback_converge(rig: Rig) -> None:
     q0 = ready(rig)
-    target = q0 + np.array([0.2, -0.15, 0.1, 0.3, -0.2, 0.25])
+    target = q0 + np.resize([0.2, -0.15, 0.1, 0.3, -0.2, 0.25], rig.n)
     stream_to(rig.arm, q0, target)
     assert wait_until(holding_at(rig.arm, target), what="convergence")
     assert rig.arm.status == "ready"
@@ -201,7 +215,9 @@ def test_fault_gives_error_then_reconnect_without_jump(rig: Rig) -> None:
 
 def test_jumping_setpoint_is_refused(rig: Rig) -> None:
     q0 = ready(rig)
-    rig.arm.command(q0 + np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0]))
+    jump = np.zeros(rig.n)
+    jump[3] = 1.0
+    rig.arm.command(q0 + jump)
     assert wait_until(lambda: rig.arm.status == "error", what="the jump to be refused")
     assert "jump" in (rig.arm.last_error or "").lower() or "STEP" in (rig.arm.last_error or "")
     time.sleep(0.05)  # look again a little later: it must not have moved
@@ -210,19 +226,21 @@ def test_jumping_setpoint_is_refused(rig: Rig) -> None:
 
 def test_setpoint_outside_the_limits_is_refused(rig: Rig) -> None:
     q0 = ready(rig)
+    hi = np.array(rig.model.q_hi)
+    j = int(np.argmin(hi - q0))  # the joint nearest its upper limit
     near = q0.copy()
-    near[4] = np.radians(100.0) - 0.1  # joint 5 close to its upper limit
+    near[j] = hi[j] - 0.1  # close to its upper limit
     # In short legs, so the arm is never far behind its setpoint even on a loaded machine.
     for leg in np.linspace(0.0, 1.0, 5)[1:]:
         q_leg = q0 + leg * (near - q0)
         stream_to(rig.arm, rig.arm.read_joints(), q_leg, n=50)
         assert wait_until(holding_at(rig.arm, q_leg), what="the next leg")
     past = near.copy()
-    past[4] = np.radians(100.0) + 0.01  # past the limit, though a small step
+    past[j] = hi[j] + 0.01  # past the limit, though a small step
     rig.arm.command(past)
     assert wait_until(lambda: rig.arm.status == "error", what="the limit to be refused")
     assert "limit" in (rig.arm.last_error or "").lower()
-    assert np.all(rig.true_q() <= np.radians(100.0) + 1e-9)
+    assert np.all(rig.true_q() <= hi + 1e-9)
 
 
 def test_initialize_needs_a_connection(rig: Rig) -> None:
@@ -234,21 +252,19 @@ def test_initialize_needs_a_connection(rig: Rig) -> None:
 def test_setpoints_outside_ready_are_counted_as_ignored(rig: Rig) -> None:
     arm = rig.arm
     assert isinstance(arm, SimArm | SerialArm)
-    arm.command(Q0)
+    arm.command(rig.q0)
     arm.connect()
-    arm.command(Q0)
+    arm.command(rig.q0)
     assert arm.setpoints_ignored == 2
     assert arm.status == "connected"
 
 
-@pytest.mark.parametrize(
-    "bad",
-    [[math.nan] * 6, [0.0] * 5, [[0.0] * 6]],
-    ids=["nan", "five", "matrix"],
-)
-def test_a_malformed_setpoint_is_an_error_and_moves_nothing(rig: Rig, bad: Any) -> None:
+@pytest.mark.parametrize("bad", ["nan", "short", "matrix"])
+def test_a_malformed_setpoint_is_an_error_and_moves_nothing(rig: Rig, bad: str) -> None:
     q0 = ready(rig)
-    rig.arm.command(bad)
+    n = rig.n
+    setpoint: Any = {"nan": [math.nan] * n, "short": [0.0] * (n - 1), "matrix": [[0.0] * n]}
+    rig.arm.command(setpoint[bad])
     assert wait_until(lambda: rig.arm.status == "error", what="the setpoint to be refused")
     assert (rig.arm.last_error or "").startswith("bad setpoint: setpoint must")
     time.sleep(0.05)  # look again a little later: it must not have moved
@@ -266,15 +282,20 @@ def test_every_arm_kind_has_a_backend() -> None:
     assert set(BACKENDS.names) == set(get_args(DriverName))
 
 
-def test_open_arm_picks_the_backend_from_the_config() -> None:
-    arm = open_arm(ArmConfig(sim_calibration_s=0.0, home_q=tuple(QN_RAD)))
-    assert isinstance(arm, SimArm)
+@pytest.mark.parametrize("name", ["puma560", "fr3"])
+def test_open_arm_picks_the_backend_and_model_from_the_config(name: str) -> None:
+    model = load_model(name)
+    arm = open_arm(ArmConfig(model=name, sim_calibration_s=0.0))
+    assert isinstance(arm, SimArm) and arm.n == model.n
     assert arm.status == "disconnected"
     arm.connect()
     arm.initialize()
     assert wait_until(lambda: arm.status == "ready", 10.0, what="the simulated arm to calibrate")
-    np.testing.assert_allclose(arm.read_joints(), Q0)
+    np.testing.assert_allclose(arm.read_joints(), model.home)  # it powers on at home
     arm.close()
+
+
+def test_open_arm_serial() -> None:
     ser = open_arm(ArmConfig(driver="serial", port="socket://127.0.0.1:9", serial_cycle_ms=10.0))
     assert isinstance(ser, SerialArm)
     assert ser.status == "disconnected"

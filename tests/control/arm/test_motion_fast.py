@@ -23,21 +23,24 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from services.control.arm.driver import ARM_MAX_JOINT_ACCEL_RAD_S2, ARM_MAX_JOINT_SPEED_RAD_S
-from services.control.arm.kinematics import (
-    DEFAULT_eMt,
-    compose_floats,
-    flange_pose_floats,
-    manipulability_floats,
-    se3_floats,
-    tool_pose_floats,
-)
+from services.control.arm.kinematics import compose_floats, se3_floats
+from services.control.arm.model import load_model
 from services.control.arm.motions import servo_target
 from services.control.arm.planning import PLAN_SPEED_MARGIN
+from services.control.arm.puma560 import (
+    DEFAULT_eMt,
+    flange_pose_floats,
+    manipulability_floats,
+    tool_pose_floats,
+)
 from services.control.arm.safety import safe_step
 from services.control.arm.sim_arm import ARRIVED_RAD, JointFollower
 from services.control.arm.trajectory import discrete_brake_speed
 from tests.control.arm.test_motion_math import KIN, LIM
+
+PUMA = load_model("puma560")
+ARM_MAX_JOINT_SPEED_RAD_S = tuple(j.max_speed for j in PUMA.joints)
+ARM_MAX_JOINT_ACCEL_RAD_S2 = tuple(j.max_accel for j in PUMA.joints)
 
 Vec = NDArray[np.float64]
 EDGE = 1e-9
@@ -294,7 +297,7 @@ def test_joint_follower_is_the_numpy_servo(
     maybe ended by a controlled stop, then maybe the approach to rest."""
     vmax, amax = np.array(ARM_MAX_JOINT_SPEED_RAD_S), np.array(ARM_MAX_JOINT_ACCEL_RAD_S2)
     ref = RefFollower(q0, vmax, amax)
-    got = JointFollower(q0, vmax, amax)
+    got = JointFollower(q0, vmax, amax, KIN.q_lo, KIN.q_hi)
     want_trace, got_trace = [], []
     for i, n in enumerate([*legs, 1200] if settle else legs):
         if i < len(legs):
@@ -317,7 +320,7 @@ def test_joint_follower_is_the_numpy_servo(
 def test_arrival_just_past_a_limit_stops_at_the_limit_and_rests() -> None:
     """Found by hypothesis: a setpoint 8e-11 rad below q_lo was snapped to on arrival."""
     vmax, amax = np.array(ARM_MAX_JOINT_SPEED_RAD_S), np.array(ARM_MAX_JOINT_ACCEL_RAD_S2)
-    got = JointFollower(KIN.q_lo.copy(), vmax, amax)
+    got = JointFollower(KIN.q_lo.copy(), vmax, amax, KIN.q_lo, KIN.q_hi)
     sp = KIN.q_lo.copy()
     sp[5] -= 7.641020038017319e-11
     got.setpoint = sp

@@ -10,13 +10,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.control.arm.config import ArmConfig
-from services.control.arm.kinematics import DEFAULT_eMt, Puma560, se3_floats
+from services.control.arm.kinematics import se3_floats
+from services.control.arm.model import load_model
+from services.control.arm.puma560 import DEFAULT_eMt, Puma560
 from services.control.arm.safety import MotionLimits, safe_step
 from services.control.arm.trajectory import SampledPath, Trapezoid, discrete_brake_speed
 from services.geometry import angle_between
 
 KIN = Puma560()
-CFG = ArmConfig()
+CFG = ArmConfig().bind(load_model())
 LIM = MotionLimits(
     q_lo=KIN.q_lo.copy(),
     q_hi=KIN.q_hi.copy(),

@@ -21,15 +21,17 @@ from hypothesis import strategies as st
 from services.bus.errors import ConfigError, RpcError
 from services.bus.messages import ArmTarget
 from services.control.arm.backends import arm_options
-from services.control.arm.config import HOME_Q_RAD, ArmConfig
-from services.control.arm.kinematics import Puma560, qn
+from services.control.arm.config import ArmConfig
+from services.control.arm.model import load_model
 from services.control.arm.proxy import ArmProxy
+from services.control.arm.puma560 import Puma560, qn
 from services.control.arm.sim_arm import SimArm
 from services.geometry import angle_between, tool_target_pose
 
 KIN = Puma560()
+HOME_Q_RAD = load_model().home
 HOME = np.array(HOME_Q_RAD)
-CFG = ArmConfig()
+CFG = ArmConfig().bind(load_model())
 DT = 1.0 / CFG.control_rate_hz
 TABLE_Z_M = 0.40
 
@@ -197,8 +199,9 @@ def test_home_q_is_tool_down_above_the_table() -> None:
     ],
 )
 def test_config_rejects_bad_values_naming_the_key(overrides: dict[str, Any], key: str) -> None:
+    # what depends on the model is checked against it (`bind`), at start-up as the rest
     with pytest.raises(ConfigError) as info:
-        ArmConfig(**overrides)
+        ArmConfig(**overrides).bind(load_model())
     assert info.value.key == key
 
 
@@ -211,7 +214,11 @@ def test_config_from_a_toml_table() -> None:
         "cycle_ms": 28.0,
         "timeout_s": 0.1,
     }
-    assert arm_options(ArmConfig()) == {"calibration_s": 0.5, "q_init": HOME_Q_RAD}
+    assert arm_options(ArmConfig()) == {
+        "calibration_s": 0.5,
+        "q_init": HOME_Q_RAD,
+        "model": load_model(),
+    }
     with pytest.raises(ConfigError) as info:
         ArmConfig.from_mapping({"state_rate": 100})
     assert info.value.key == "arm.state_rate"

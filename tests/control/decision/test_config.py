@@ -90,3 +90,26 @@ def test_the_yield_to_the_hand_is_on_for_short_round_trips_by_default() -> None:
     cfg = DecisionConfig()
     assert cfg.passivity_yield_m_s_n == YIELD_M_S_N
     assert cfg.passivity_yield_max_rtt_ms == 500.0
+
+
+def _described(**changes: object) -> object:
+    from services.bus.messages import ArmDescription
+    from services.control.arm.model import load_model
+
+    return ArmDescription(seq=1, t_ns=1, **{**load_model("fr3").description(), **changes})
+
+
+def test_the_arm_s_description_bounds_the_box_and_the_tool_speeds() -> None:
+    box = {"min": [0.3, -0.2, 0.5], "max": [0.7, 0.2, 0.9]}
+    cfg = DecisionConfig(task_speed_m_s=0.2, approach_speed_m_s=0.05)
+    bound = cfg.with_arm(_described(workspace=box, max_tool_speed_m_s=0.1))
+    assert bound.workspace_min == (0.3, -0.2, 0.5) and bound.workspace_max == (0.7, 0.2, 0.9)
+    assert bound.max_tool_speed_m_s == 0.1 and bound.task_speed_m_s == 0.1
+    assert bound.approach_speed_m_s == 0.05  # already below: unchanged
+    # a faster arm never raises the configured speeds; a box of our own wins when asked
+    own = DecisionConfig(workspace_from_arm=False)
+    fast = own.with_arm(_described(workspace=box, max_tool_speed_m_s=50.0))
+    assert fast.workspace_max == own.workspace_max
+    assert fast.max_tool_speed_m_s == own.max_tool_speed_m_s
+    # a description without a box leaves the configured one
+    assert cfg.with_arm(_described(workspace=None)).workspace_min == cfg.workspace_min

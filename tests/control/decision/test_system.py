@@ -23,8 +23,9 @@ from services.bus import keys
 from services.bus.errors import RpcError
 from services.bus.messages import IDENTITY_R, ArmTarget, Event, OperatorCommand, RobotState, vec
 from services.bus.node import Node
-from services.control.arm.config import HOME_Q_RAD, ArmConfig
-from services.control.arm.driver import QN_RAD
+from services.control.arm.config import ArmConfig
+from services.control.arm.model import load_model
+from services.control.arm.puma560 import QN_RAD
 from services.control.arm.service import ArmService
 from services.control.arm.sim_arm import SimArm
 from services.control.decision.config import DecisionConfig
@@ -33,6 +34,9 @@ from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
 from services.world.workcell.scene import TABLE
 from tests.conftest import Net, wait_until
+
+HOME_Q_RAD = load_model().home
+"""The default model's home (the PUMA 560's)."""
 
 pytestmark = [pytest.mark.system, pytest.mark.alone]
 
@@ -479,6 +483,8 @@ def test_workspace_limit_set_through_supervisor(make_cell: Callable[..., Cell]) 
         assert refused.value.code == "bad_request" and "fixed at start-up" in str(refused.value)
     reply = cell.call("supervisor", {"workspace_max": [0.95, 0.05, 1.2]})
     assert reply["settings"]["workspace_max"] == [0.95, 0.05, 1.2]
+    # the box given wins over the one the arm's description gives, now and when it comes again
+    assert reply["settings"]["workspace_from_arm"] is False
     # status keeps its settings map per configuration: the change shows at once
     assert before != [0.95, 0.05, 1.2]
     assert cell.call("status", {})["settings"]["workspace_max"] == [0.95, 0.05, 1.2]

@@ -43,7 +43,7 @@ from services.bus import keys
 from services.bus.config import NodeConfig
 from services.bus.messages import RobotState, vec
 from services.bus.node import Node
-from services.control.arm.kinematics import DEFAULT_eMt, Puma560, qn
+from services.control.arm.puma560 import DEFAULT_eMt, Puma560, qn
 
 endpoint, seconds = sys.argv[1], float(sys.argv[2])
 kin = Puma560()

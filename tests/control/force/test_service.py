@@ -10,7 +10,7 @@ import pytest
 from services.bus import keys
 from services.bus.errors import RpcError
 from services.bus.messages import ForceSample, RobotState, vec
-from services.control.arm.kinematics import DEFAULT_eMt, Puma560, qn
+from services.control.arm.puma560 import DEFAULT_eMt, Puma560, qn
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
 from tests.conftest import Net, wait_until

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from services.bus import codec, keys
-from services.bus.messages import RobotState, StereoFrame, vec
-from services.control.arm.kinematics import DEFAULT_eMt, Puma560, qn
+from services.bus.messages import ArmDescription, RobotState, StereoFrame, vec
+from services.control.arm.model import load_model
 from services.control.vision.config import VisionConfig
 from services.control.vision.service import VisionService
 from services.control.vision.sim_camera import SimStereoCamera
@@ -63,9 +63,14 @@ def test_sim_camera_draws_the_newest_robot_state_once_watched(net) -> None:
     arm = net.node("arm")
     viewer = net.node("viewer")
     svc = VisionService(vision_node, VisionConfig(width=160, height=120, fps=20.0))
-    kin = Puma560()
-    oMt = kin.fk_tool(qn, DEFAULT_eMt)
-    oMe = kin.fk_flange(qn)
+    model = load_model("fr3")
+    kin = model.kinematics()
+    q = model.home
+    oMt = kin.fk_tool(q)
+    oMe = kin.fk_flange(q)
+    # the arm it draws is the one described (with a cache: it came before the subscriber)
+    described = arm.publisher(keys.ARM_DESCRIPTION, cache=1)
+    described.put(ArmDescription(seq=1, t_ns=1, **model.description()))
     pub = arm.publisher(keys.STATE)
     camera = svc.camera
     assert isinstance(camera, SimStereoCamera)
@@ -76,7 +81,7 @@ def test_sim_camera_draws_the_newest_robot_state_once_watched(net) -> None:
                     seq=seq,
                     t_ns=seq,
                     status="ready",
-                    q=vec(qn),
+                    q=vec(q),
                     tool_p=vec(oMt.translation),
                     tool_R=vec(oMt.rotation),
                     flange_p=vec(oMe.translation),
@@ -97,6 +102,8 @@ def test_sim_camera_draws_the_newest_robot_state_once_watched(net) -> None:
         robot = camera._robot
         assert robot is not None
         assert np.allclose(robot.tool_p, oMt.translation)
+        assert np.allclose(robot.link_points, kin.link_origins(q))  # the FR3's skeleton
+        assert np.allclose(robot.link_points[0], [0.30, 0.0, 0.0])  # where it is mounted
     finally:
         svc.close()
 

@@ -6,7 +6,7 @@ sent the first camera message, and as gone when the socket closes. `FakeBrowser`
 that and reads whatever the server sends, as a page would, so the server's queue never
 backs up; with `decode=True` it unpacks viser's wire format (a zstd-compressed msgpack batch
 of messages) and keeps, per scene node and per GUI element, the newest value of every
-property the page was sent.
+property the page was sent (a removed node is forgotten, its children with it).
 """
 
 from __future__ import annotations
@@ -28,13 +28,16 @@ from tests.conftest import wait_until
 __all__ = ["FakeBrowser", "gui_uuid", "ready_state", "wait_until"]
 
 
-def ready_state(seq: int, tool_p: tuple[float, float, float]) -> RobotState:
-    """A `ready` robot/state with the tool (and the flange) at `tool_p`, axes as the world's."""
+def ready_state(
+    seq: int, tool_p: tuple[float, float, float], q: tuple[float, ...] = (0.0,) * 6
+) -> RobotState:
+    """A `ready` robot/state at joints `q` with the tool (and the flange) at `tool_p`, axes
+    as the world's (no arm is described: the console draws none)."""
     return RobotState(
         seq=seq,
         t_ns=time.time_ns(),
         status="ready",
-        q=(0.0,) * 6,
+        q=q,
         tool_p=tool_p,
         tool_R=IDENTITY_R,
         flange_p=tool_p,
@@ -94,9 +97,16 @@ class FakeBrowser:
             for m in msgpack.unpackb(inner, raw=False, strict_map_key=False)["messages"]:
                 kind = m.get("type", "")
                 if kind.endswith("Message") and "props" in m and "name" in m:
-                    self._nodes.setdefault(m["name"], {}).update(
-                        {"type": kind, **m["props"], "position": (0.0, 0.0, 0.0)}
-                    )
+                    self._nodes[m["name"]] = {
+                        "type": kind,
+                        **m["props"],
+                        "position": (0.0, 0.0, 0.0),
+                        "wxyz": (1.0, 0.0, 0.0, 0.0),
+                    }
+                elif kind == "RemoveSceneNodeMessage":
+                    gone = m["name"]
+                    for name in [n for n in self._nodes if n == gone or n.startswith(gone + "/")]:
+                        del self._nodes[name]
                 elif kind == "SetPositionMessage":
                     self._nodes.setdefault(m["name"], {})["position"] = tuple(m["position"])
                 elif kind == "SetOrientationMessage":
@@ -114,6 +124,11 @@ class FakeBrowser:
         """What the page was last told of scene node `name` (decode=True)."""
         with self._lock:
             return dict(self._nodes.get(name, {}))
+
+    def nodes(self, prefix: str) -> dict[str, dict[str, Any]]:
+        """Every scene node the page holds whose name starts with `prefix` (decode=True)."""
+        with self._lock:
+            return {k: dict(v) for k, v in self._nodes.items() if k.startswith(prefix)}
 
     def gui(self, uuid: str) -> dict[str, Any]:
         """What the page was last told of GUI element `uuid` (decode=True)."""

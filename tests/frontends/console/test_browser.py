@@ -9,6 +9,9 @@ and the robot's status show the latch, and Reset re-engages the master. The load
 indicator goes once everything has arrived; the video fills its own window, keeping its
 aspect. The page is kept as artifacts/console.png (git-ignored): docs/console.png is a
 tracked picture refreshed deliberately from it (docs/console.md, "The screenshot").
+
+With the arm service running the FR3 instead, the page draws the FR3 from the URDF visuals
+its description carries (no PUMA anywhere): artifacts/console-fr3.png.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from services.bus import keys
 from services.bus.messages import Event, RobotState
 from services.bus.node import Node, Subscription
 from services.control.arm.config import ArmConfig
+from services.control.arm.model import load_model
 from services.control.arm.service import ArmService
 from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
@@ -38,6 +42,7 @@ from services.control.vision.service import VisionService
 from services.frontends.console.app import Console
 from services.frontends.console.config import ConsoleConfig
 from services.geometry import R_from_wxyz
+from tests.conftest import wait_until
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -52,6 +57,7 @@ CHROMIUM_ARGS = [
 ]
 ROOT = Path(__file__).resolve().parents[3]
 ARTIFACT = ROOT / "artifacts" / "console.png"
+ARTIFACT_FR3 = ROOT / "artifacts" / "console-fr3.png"
 MIN_GIZMO_PX = 100.0
 """A gizmo handle at least this long on screen at the default view (1280×800)."""
 MIN_VIDEO_PX = 400.0
@@ -342,3 +348,54 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             assert console.gui_errors == 0
         finally:
             browser.close()
+
+
+def test_console_page_draws_the_fr3_from_its_description(net: Any) -> None:
+    """The arm service runs the FR3: the page draws its URDF visuals (7 joints, the hand),
+    mounted where its description puts it (x = 0.30 m, in front of the table), at home
+    (the hand pointing down at the tool point (0.55, 0, 0.65)), and says so."""
+    from playwright.sync_api import expect, sync_playwright
+
+    arm = ArmService(net.node("arm"), ArmConfig(model="fr3", sim_calibration_s=0.05))
+    console = Console(
+        net.node("console"), ConsoleConfig(port=0, gui_rate_hz=20.0, shadows=False, video_fps=5.0)
+    )
+    fr3 = load_model("fr3")
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+            try:
+                page = browser.new_page(viewport={"width": 1280, "height": 800})
+                page.goto(console.url)
+                arm_line = page.locator("#tr-arm")
+                expect(arm_line).to_have_attribute("data-arm", "visuals", timeout=60_000)
+                expect(arm_line).to_have_attribute("data-model", "fr3")
+                expect(arm_line).to_contain_text("7 joints")
+                assert console.arm is not None and console.arm.n == 7
+                n_visuals = len(fr3.geometry().geometryObjects)
+                assert len(console.arm.parts) == n_visuals
+                st = console.mirror.state.latest
+                assert st is not None and len(st.q) == 7
+                assert np.allclose(st.tool_p, HOME_TOOL_P, atol=1e-3)
+
+                cam = _camera(console)
+                canvas = _scene_canvas(page)
+                # The forearm at home, from joint 4's origin to joint 5's: drawn there.
+                origins = fr3.kinematics().link_origins(fr3.home)
+                forearm = 0.5 * (origins[4] + origins[5])
+                u, v = _project(cam, forearm)
+                x, y = int(canvas["x"] + u), int(canvas["y"] + v)
+                ARTIFACT_FR3.parent.mkdir(parents=True, exist_ok=True)
+
+                def forearm_drawn() -> bool:
+                    page.screenshot(path=str(ARTIFACT_FR3))
+                    px = _pixels(ARTIFACT_FR3.read_bytes())[y, x]
+                    return bool(px.mean() < 235)  # not the white background
+
+                assert wait_until(forearm_drawn, 60.0, poll_s=0.5), "no FR3 at its forearm"
+                assert console.gui_errors == 0
+            finally:
+                browser.close()
+    finally:
+        console.close()
+        arm.close()

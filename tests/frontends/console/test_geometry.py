@@ -1,5 +1,6 @@
-"""The console's scene geometry: quaternions, links, the commanded target, the force arrow,
-the workspace box, and the virtual master's hand mapping through eq. 5 and PROTOCOL §2."""
+"""The console's scene geometry: quaternions, cylinders between two points, the commanded
+target, the force arrow, the workspace box, and the virtual master's hand mapping through
+eq. 5 and PROTOCOL §2. (The arm itself: test_arm.py.)"""
 
 from __future__ import annotations
 
@@ -8,14 +9,12 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from services.control.arm.kinematics import Puma560
 from services.control.master.teleop import scaled_motion
 from services.frontends.console.geometry import (
     box_edges,
     cylinder_pose,
     force_arrow,
     hand_pose,
-    link_segments,
     rotation_z_to,
 )
 from services.geometry import R_from_wxyz, tool_target_pose
@@ -41,21 +40,6 @@ def test_rotation_z_to_turns_z_onto_the_direction(d: np.ndarray) -> None:
 
 def test_rotation_z_to_straight_down() -> None:
     assert np.allclose(rotation_z_to([0, 0, -2.0]) @ [0, 0, 1], [0, 0, -1])
-
-
-def test_links_of_the_arm_at_qz() -> None:
-    arm = Puma560()
-    q = np.zeros(6)
-    origins = arm.link_origins(q)
-    tool_p = arm.fk_tool(q).translation
-    segs = link_segments(origins, tool_p)
-    # pedestal, upper arm, shoulder offset, forearm, tool: the wrist's origins coincide.
-    assert len(segs) == 5
-    lengths = [float(np.linalg.norm(b - a)) for a, b in segs]
-    assert lengths == pytest.approx(
-        [0.67183, 0.4318, float(np.hypot(0.0203, 0.15005)), 0.4318, 0.2], abs=1e-9
-    )
-    assert np.allclose(segs[0][0], 0.0) and np.allclose(segs[-1][1], tool_p)
 
 
 def test_cylinder_pose_joins_the_two_points() -> None:

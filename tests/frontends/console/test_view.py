@@ -9,6 +9,8 @@ from hypothesis import strategies as st
 
 from services.bus.messages import IDENTITY_R, Event, MasterState, RobotState
 from services.frontends.console.view import (
+    NO_ARM,
+    ArmShown,
     MasterView,
     alive_html,
     estop_latched,
@@ -68,6 +70,17 @@ def test_status_panel_without_robot_or_decision() -> None:
     )
     assert 'data-status="none"' in out and 'data-mode="none"' in out
     assert "decision: unavailable" in out and "tr-master-error" in out
+
+
+def test_the_arm_line_says_what_is_drawn_escaped() -> None:
+    mview = MasterView("console", "waiting", None, None)
+    none = status_html(None, None, None, mview, "")
+    assert none == status_html(None, None, None, mview, "", NO_ARM)
+    assert 'id="tr-arm" data-arm="none" data-model=""' in none and "no arm drawn" in none
+    drawn = status_html(STATE, None, None, mview, "", ArmShown("visuals", "fr3", "fr3: 7 joints"))
+    assert 'data-arm="visuals" data-model="fr3"' in drawn and "fr3: 7 joints" in drawn
+    odd = status_html(None, None, None, mview, "", ArmShown("skeleton", '<b x="1">', "a<b"))
+    assert "<b x" not in odd and "a&lt;b" in odd and 'data-model="&lt;b x=&quot;1&quot;&gt;"' in odd
 
 
 def test_estop_is_shown() -> None:

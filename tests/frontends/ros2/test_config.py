@@ -34,7 +34,10 @@ def test_profiles_enable_the_bridge(profile: str) -> None:
         ({"target_timeout_s": float("inf")}, "ros2.target_timeout_s"),
         ({"master_rate_hz": 10.0}, "ros2.master_rate_hz"),
         ({"master_id": "a/b"}, "ros2.master_id"),
-        ({"tool_frame": "world"}, "ros2"),
+        ({"tool_frame": "stereo_left"}, "ros2"),
+        # the world and the arm's frames are the URDF's (the arm's description), not ours
+        ({"world_frame": "world"}, "ros2.world_frame"),
+        ({"flange_frame": "flange"}, "ros2.flange_frame"),
         ({"typo_hz": 1.0}, "ros2.typo_hz"),
     ],
 )

@@ -8,8 +8,21 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import pinocchio as pin
+from numpy.typing import ArrayLike
+
 from services.bus import codec, keys
-from services.bus.messages import IDENTITY_R, Event, ForceSample, OperatorCommand, RobotState
+from services.bus.messages import (
+    IDENTITY_R,
+    ArmDescription,
+    Event,
+    ForceSample,
+    OperatorCommand,
+    RobotState,
+    vec,
+)
+from services.control.arm.model import ArmModel
 from services.tools.record.recorder import McapSink, Received, RecorderConfig
 
 T0_NS = 1_700_000_000_000_000_000
@@ -32,6 +45,40 @@ def state(seq: int, p: Sequence[float] = (0.5, 0.0, 0.6), status: str = "ready")
             tool_R=IDENTITY_R,
             flange_p=tuple(p),
             flange_R=IDENTITY_R,
+            engage=0,
+            cmd_seq=0,
+        )
+    )
+
+
+def description(
+    model: ArmModel,
+    seq: int = 1,
+    tool_p: Sequence[float] | None = None,
+    tool_R: Sequence[float] | None = None,
+) -> bytes:
+    """The arm's robot/arm/description as the arm service publishes it (its default tool,
+    or the one given)."""
+    desc = model.description(
+        None if tool_p is None else tuple(tool_p),  # type: ignore[arg-type]
+        None if tool_R is None else tuple(tool_R),  # type: ignore[arg-type]
+    )
+    return codec.encode(ArmDescription(seq=seq, t_ns=T0_NS + seq, **desc))
+
+
+def arm_state(seq: int, q: ArrayLike, oMe: pin.SE3, eMt: pin.SE3) -> bytes:
+    """A robot/state at joints q whose flange is at oMe and tool at oMe·eMt."""
+    oMt = oMe * eMt
+    return codec.encode(
+        RobotState(
+            seq=seq,
+            t_ns=T0_NS + seq,
+            status="ready",
+            q=vec(np.asarray(q, dtype=np.float64)),
+            tool_p=vec(oMt.translation),
+            tool_R=vec(oMt.rotation),
+            flange_p=vec(oMe.translation),
+            flange_R=vec(oMe.rotation),
             engage=0,
             cmd_seq=0,
         )

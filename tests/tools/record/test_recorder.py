@@ -14,7 +14,8 @@ import pytest
 from mcap.reader import make_reader
 
 from services.bus import codec, keys
-from services.bus.messages import Event, StereoFrame
+from services.bus.messages import ArmDescription, Event, StereoFrame
+from services.control.arm.model import load_model
 from services.tools.record import recorder as recorder_mod
 from services.tools.record.archive import Recording
 from services.tools.record.recorder import Recorder, RecorderConfig
@@ -130,6 +131,36 @@ def test_a_namespaced_recorder_records_keys_without_the_namespace(
     r = Recording(tmp_path / "ns.mcap")
     assert [m.key for m in r.raw()] == ["robot/events"]
     assert r.metadata["telerobot.recording"]["ns"] == "cell2"
+
+
+def test_a_recorder_started_after_the_arm_gets_its_description_from_the_arm_s_cache(
+    net: Net, tmp_path: Path
+) -> None:
+    """The arm published its description before any recorder listened: each recorder gets
+    it from the publisher's cache. One that records every key records it (the exact bytes,
+    once); one whose key filter leaves it out still draws the arm, and records no such key."""
+    arm = net.node("arm")
+    desc = ArmDescription(seq=1, t_ns=time.time_ns(), **load_model("fr3").description())
+    arm.publisher(keys.ARM_DESCRIPTION, cache=1).put(desc)
+    everything = Recorder(net.node("record-all"), RecorderConfig(output=str(tmp_path / "a.mcap")))
+    states_only = Recorder(
+        net.node("record-states"),
+        RecorderConfig(output=str(tmp_path / "s.mcap"), keys=("robot/state",)),
+    )
+    assert wait_until(
+        lambda: everything.stats().robot_models == 1 and states_only.stats().robot_models == 1,
+        what="both recorders drew the arm",
+    )
+    sa, ss = everything.stop(), states_only.stop()
+    key = keys.ARM_DESCRIPTION.key
+    assert sa.keys[key].received == sa.keys[key].written == 1 and sa.arm_model == "fr3"
+    assert key not in ss.keys and ss.arm_model == "fr3" and ss.written == 0
+    assert [m.payload for m in Recording(tmp_path / "a.mcap").raw()] == [codec.encode(desc)]
+    for name in ("a.mcap", "s.mcap"):
+        with (tmp_path / name).open("rb") as fh:
+            topics = [c.topic for _, c, _ in make_reader(fh).iter_messages()]
+        assert topics.count("/robot_model") == topics.count("/robot_description") == 1
+    assert Recording(tmp_path / "s.mcap").raw_keys() == []
 
 
 def test_a_stalled_writer_never_blocks_the_stream_it_drops_and_counts(

@@ -15,6 +15,7 @@ from services.bus import codec, keys
 from services.bus.errors import ConfigError
 from services.bus.messages import (
     ALL_MESSAGES,
+    ArmDescription,
     ArmTarget,
     ForceSample,
     OperatorCommand,
@@ -38,8 +39,8 @@ def test_every_contract_message_has_a_schema_generated_from_its_annotations() ->
     assert s["properties"]["q"] == {
         "type": "array",
         "items": {"type": "number"},
-        "minItems": 6,
-        "maxItems": 6,
+        "minItems": 1,
+        "maxItems": 32,
     }
     assert s["properties"]["status"]["enum"] == [
         "disconnected",
@@ -54,6 +55,29 @@ def test_every_contract_message_has_a_schema_generated_from_its_annotations() ->
     frame = schemas.message_schema(StereoFrame)["properties"]["data"]
     assert frame == {"type": "string", "contentEncoding": "base64"}
     json.dumps(s)  # the schema itself is JSON
+
+
+def test_the_arm_s_new_messages_have_the_wire_s_schemas() -> None:
+    """ArmTarget (robot/arm/target) and ArmDescription (robot/arm/description, with the
+    URDF): the channel schema follows the annotations, and a real arm's description (the
+    FR3's, 7 joints) is a view that conforms to it."""
+    from services.control.arm.model import load_model
+
+    s = schemas.message_schema(ArmTarget)
+    assert s["properties"]["p"]["minItems"] == s["properties"]["p"]["maxItems"] == 3
+    assert s["properties"]["R"]["maxItems"] == 9
+    assert {"origin_t_ns", "master", "engage", "p", "R"} <= set(s["required"])
+    assert keys.topic_for(keys.ARM_TARGET.key) is keys.ARM_TARGET
+    s = schemas.message_schema(ArmDescription)
+    assert s["properties"]["n"] == {"type": "integer", "minimum": 1, "maximum": 32}
+    assert s["properties"]["joints"]["items"] == {"type": "object"}
+    assert s["properties"]["urdf"]["type"] == "string"
+    fr3 = load_model("fr3")
+    payload = codec.encode(ArmDescription(seq=1, t_ns=5, **fr3.description()))
+    v = schemas.view(keys.ARM_DESCRIPTION.key, payload)
+    assert v is not None and v.schema == "telerobot.ArmDescription" and v.t_ns == 5
+    assert conforms(schemas.json_schema(v.schema), v.document) == []
+    assert v.document["urdf"] == fr3.urdf and len(v.document["joints"]) == 7
 
 
 @pytest.mark.parametrize("msg", [m for m, _ in GOLDEN], ids=lambda m: type(m).name)

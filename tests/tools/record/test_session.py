@@ -46,6 +46,7 @@ pytestmark = pytest.mark.system
 SESSION_KEYS = {
     "robot/cmd",
     "robot/arm/target",
+    "robot/arm/description",
     "robot/state",
     "robot/force",
     "robot/events",
@@ -123,8 +124,12 @@ def test_the_recording_is_valid_mcap_with_every_stream(session: Session) -> None
     for key in SESSION_KEYS:
         assert counts[key] == counts[schemas.raw_topic(key)] == session.stats.keys[key].written
     assert decoded == counts["robot/state"]
-    assert checked == SESSION_KEYS | {"/tf", "/robot_model"}
-    assert counts["/tf"] == counts["robot/state"] and counts["/robot_model"] == 1
+    assert checked == SESSION_KEYS | {"/tf", "/robot_model", "/robot_description"}
+    assert counts["/tf"] == counts["robot/state"]
+    # the arm described itself once (at start-up), the recorder already listening
+    assert counts["robot/arm/description"] == 1
+    assert counts["/robot_model"] == counts["/robot_description"] == 1
+    assert session.stats.arm_model == "puma560" and session.stats.robot_models == 1
 
 
 def test_replay_republishes_the_same_bytes_in_the_same_order_per_key(
@@ -201,8 +206,11 @@ def test_the_report_matches_the_recording_and_draws_the_plots(
         mine = [m for m in msgs if m.key == key]
         k = report.key(key)
         assert k.count == len(mine) and k.rejected == 0
-        span_s = (mine[-1].log_time_ns - mine[0].log_time_ns) / 1e9
-        assert k.rate_hz == pytest.approx((len(mine) - 1) / span_s)
+        if len(mine) > 1:  # the description comes once
+            span_s = (mine[-1].log_time_ns - mine[0].log_time_ns) / 1e9
+            assert k.rate_hz == pytest.approx((len(mine) - 1) / span_s)
+        else:
+            assert k.rate_hz == 0.0
         topic = keys.topic_for(key)
         assert topic is not None
         decoded = [codec.decode(topic.type, m.payload) for m in mine]
@@ -292,9 +300,10 @@ def test_telerobot_replay_command(session: Session) -> None:
 
 
 def test_the_live_arm_s_transforms_reproduce_its_tool_pose(session: Session) -> None:
-    """Over the real arm's states: each /tf message composes (world → … → tool) to the
-    tool pose of the robot/state it was derived from, within 1e-6."""
-    from services.control.arm.kinematics import Puma560
+    """Over the real arm's states: each /tf message (from the arm's description) composes
+    (world → … → tool) to the tool pose of the robot/state it was derived from, within
+    1e-9, and its flange is the PUMA's closed-form FK of the recorded q."""
+    from services.control.arm.puma560 import Puma560
 
     from .test_world import _compose
 
@@ -309,9 +318,13 @@ def test_the_live_arm_s_transforms_reproduce_its_tool_pose(session: Session) -> 
         if len(both) != 2:
             continue
         st = json.loads(both["robot/state"])
-        poses = _compose(json.loads(both["/tf"])["transforms"])
-        assert np.allclose(poses["tool"][0], st["tool_p"], atol=1e-6)
-        assert np.allclose(poses["tool"][1], np.reshape(st["tool_R"], (3, 3)), atol=1e-6)
+        tfs = json.loads(both["/tf"])["transforms"]
+        if len(tfs) == 2:
+            continue  # a state before the description arrived: its own poses only
+        poses = _compose(tfs)
+        assert np.allclose(poses["tool"][0], st["tool_p"], atol=1e-9)
+        assert np.allclose(poses["tool"][1], np.reshape(st["tool_R"], (3, 3)), atol=1e-9)
         assert np.allclose(poses["flange"][0], kin.fk_flange(st["q"]).translation, atol=1e-9)
+        assert np.allclose(poses["flange"][0], st["flange_p"], atol=1e-9)
         checked += 1
     assert checked > 10

@@ -1,53 +1,58 @@
-"""The 3D views a recording holds: /tf (FK of the recorded joints), /robot_model, /workcell."""
+"""The 3D views a recording holds, for any arm its description describes: /tf (the URDF's
+frames at the recorded joints), /robot_model and /robot_description, /workcell."""
 
 from __future__ import annotations
 
+import base64
 import json
+import logging
 import xml.etree.ElementTree as ET
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 import pytest
 from mcap.reader import make_reader
 
-from services.bus import codec
-from services.bus.messages import RobotState, vec
-from services.control.arm.kinematics import DEFAULT_eMt, Puma560, qn
-from services.geometry import rot_x
+from services.bus import codec, keys
+from services.bus.messages import vec
+from services.control.arm.links import LinkPoses, urdf_tree, urdf_with_tool
+from services.control.arm.model import ArmModel, load_model
+from services.control.arm.puma560 import DEFAULT_eMt, Puma560, qn
+from services.geometry import rot_x, rot_z
 from services.tools.record import world
+from services.tools.record.recorder import McapSink, Received, RecorderConfig
 from services.world.workcell.messages import WORKCELL_STATE, WorkcellState
 from services.world.workcell.scene import default_scene
 
-from .helpers import T0_NS, conforms, write_file
+from .helpers import T0_NS, FakeClock, arm_state, conforms, description, state, write_file
 
+PUMA = load_model("puma560")
+FR3 = load_model("fr3")
 KIN = Puma560()
 SCENE = default_scene()
 RNG = np.random.default_rng(7)
 QS = [np.asarray(qn)] + [
     KIN.q_lo + RNG.uniform(0.05, 0.95, 6) * (KIN.q_hi - KIN.q_lo) for _ in range(9)
 ]
+DESC = keys.ARM_DESCRIPTION.key
 
 
 def robot_state(seq: int, q: np.ndarray) -> bytes:
-    oMe = KIN.fk_flange(q)
-    oMt = KIN.fk_tool(q, DEFAULT_eMt)
-    return codec.encode(
-        RobotState(
-            seq=seq,
-            t_ns=T0_NS + seq,
-            status="ready",
-            q=vec(q),
-            tool_p=vec(oMt.translation),
-            tool_R=vec(oMt.rotation),
-            flange_p=vec(oMe.translation),
-            flange_R=vec(oMe.rotation),
-            engage=0,
-            cmd_seq=0,
-            grip=0.0,
-        )
-    )
+    """A PUMA state, its poses in closed form (the DH table, not the URDF)."""
+    return arm_state(seq, q, KIN.fk_flange(q), DEFAULT_eMt)
+
+
+def random_q(model: ArmModel, n: int, seed: int = 3) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(model.q_lo), np.asarray(model.q_hi)
+    return [lo + rng.uniform(0.05, 0.95, model.n) * (hi - lo) for _ in range(n)]
+
+
+def tool_se3(p: Any, R: Any) -> pin.SE3:
+    return pin.SE3(np.reshape(np.asarray(R, dtype=float), (3, 3)), np.asarray(p, dtype=float))
 
 
 def _rx(deg: float) -> np.ndarray:
@@ -113,12 +118,23 @@ def _compose(tfs: list[dict[str, Any]]) -> dict[str, tuple[np.ndarray, np.ndarra
     return poses
 
 
-def test_transforms_reproduce_fk_of_the_recorded_joints_and_the_tool_pose(
+def _joints(urdf: str) -> set[tuple[str, str]]:
+    return {(j.parent, j.child) for j in urdf_tree(urdf)}
+
+
+def _doc(message: Any) -> Any:
+    return json.loads(message.data)
+
+
+def test_puma_frames_reproduce_its_dh_forward_kinematics_and_the_tool_pose(
     tmp_path: Path,
 ) -> None:
+    """The PUMA's description drives the scene: its URDF's frames at the recorded q are the
+    contract's DH frames (closed-form FK, not the URDF's), and world → tool is the state's."""
     path = tmp_path / "arm.mcap"
-    items = [("robot/state", robot_state(i + 1, q)) for i, q in enumerate(QS)]
-    write_file(path, items)
+    items = [(DESC, description(PUMA))]
+    items += [("robot/state", robot_state(i + 1, q)) for i, q in enumerate(QS)]
+    sink, written = write_file(path, items)
     topics, attachments = _read(path)
     tf_msgs = topics[world.TF_TOPIC]
     assert len(tf_msgs) == len(QS) == len(topics["robot/state"])
@@ -127,7 +143,7 @@ def test_transforms_reproduce_fk_of_the_recorded_joints_and_the_tool_pose(
     ):
         assert schema.name == world.FRAME_TRANSFORMS and schema.encoding == "jsonschema"
         assert channel.message_encoding == "json"
-        doc = json.loads(message.data)
+        doc = _doc(message)
         assert conforms(json.loads(schema.data), doc) == []
         assert message.publish_time == state_msg.publish_time
         assert [tf["child_frame_id"] for tf in doc["transforms"]] == [
@@ -136,32 +152,300 @@ def test_transforms_reproduce_fk_of_the_recorded_joints_and_the_tool_pose(
         stamp = doc["transforms"][0]["timestamp"]
         assert stamp["sec"] * 1_000_000_000 + stamp["nsec"] == state_msg.publish_time
         poses = _compose(doc["transforms"])
-        # world → link i is DH frame i−1 turned by q_i: its origin is DH frame i−1's.
+        # world → link i is DH frame i−1 turned by q_i: its origin is joint i's.
         origins = KIN.link_origins(q)
         for i in range(1, 7):
-            assert np.allclose(poses[f"link{i}"][0], origins[i - 1], atol=1e-9)
+            assert np.allclose(poses[f"link{i}"][0], origins[i], atol=1e-9)
         oMe = KIN.fk_flange(q)
         assert np.allclose(poses["flange"][0], oMe.translation, atol=1e-9)
         assert np.allclose(poses["flange"][1], oMe.rotation, atol=1e-9)
-        st = json.loads(state_msg.data)
-        assert np.allclose(poses["tool"][0], st["tool_p"], atol=1e-6)
-        assert np.allclose(poses["tool"][1], np.reshape(st["tool_R"], (3, 3)), atol=1e-6)
-    # The model: drawn once, each entity locked to a frame /tf moves.
-    ((schema, _, message),) = topics[world.MODEL_TOPIC]
-    model = json.loads(message.data)
+        st = _doc(state_msg)
+        assert np.allclose(poses["tool"][0], st["tool_p"], atol=1e-9)
+        assert np.allclose(poses["tool"][1], np.reshape(st["tool_R"], (3, 3)), atol=1e-9)
+    # The model: drawn once, each entity locked to a frame /tf moves; written right after
+    # the description, at its receive time.
+    ((schema, channel, message),) = topics[world.MODEL_TOPIC]
+    assert channel.metadata == {"key": DESC, "role": "derived", "type": world.SCENE_UPDATE}
+    assert message.log_time == message.publish_time == written[0].log_time_ns
+    model = _doc(message)
     assert conforms(json.loads(schema.data), model) == []
     frames = {e["frame_id"] for e in model["entities"]}
     assert frames == {"world", "link1", "link2", "link3", "link4", "link5", "link6", "flange"}
     assert all(e["frame_locked"] for e in model["entities"])
-    # The URDF attached names the same frame tree.
-    (urdf,) = [a for a in attachments if a.name == world.URDF_NAME]
-    robot = ET.fromstring(urdf.data)
-    joints = {
-        (j.find("parent").attrib["link"], j.find("child").attrib["link"])  # type: ignore[union-attr]
-        for j in robot.iter("joint")
-    }
+    # the tool shaft, flange → tool point
+    (flange,) = [e for e in model["entities"] if e["frame_id"] == "flange"]
+    (shaft,) = flange["cylinders"]
+    assert shaft["size"]["z"] == pytest.approx(np.linalg.norm(DEFAULT_eMt.translation))
+    # The URDF, on /robot_description and attached: the description's, with the tool link,
+    # naming the same frame tree as /tf.
+    want = urdf_with_tool(PUMA.urdf, "flange", PUMA.tool_p, PUMA.tool_R)
+    ((schema, _, message),) = topics[world.DESCRIPTION_TOPIC]
+    assert schema.name == "std_msgs/String" and _doc(message) == {"data": want}
+    assert conforms(json.loads(schema.data), _doc(message)) == []
+    (urdf,) = [a for a in attachments if a.name == "puma560.urdf"]
+    assert urdf.data.decode() == want and urdf.media_type == "application/xml"
     tf_pairs = {(tf["parent_frame_id"], tf["child_frame_id"]) for tf in doc["transforms"]}
-    assert joints == tf_pairs
+    assert _joints(want) == tf_pairs
+    assert sink.stats.arm_model == "puma560" and sink.stats.robot_models == 1
+    assert sink.derive_errors == 0
+
+
+def test_fr3_frames_compose_to_its_tool_pose_and_its_model_is_its_urdf(tmp_path: Path) -> None:
+    """A 7-joint arm with a mount, fixed links and fingers: every frame of its URDF at the
+    recorded q, world → tool the states' tool poses within 1e-9, and its visuals (meshes
+    embedded) where Pinocchio places them."""
+    kin = FR3.kinematics()
+    eMt = tool_se3(FR3.tool_p, FR3.tool_R)
+    qs = [np.asarray(FR3.home), *random_q(FR3, 7)]
+    items = [(DESC, description(FR3))]
+    items += [("robot/state", arm_state(i + 1, q, kin.fk_flange(q), eMt)) for i, q in enumerate(qs)]
+    sink, _ = write_file(tmp_path / "fr3.mcap", items)
+    topics, attachments = _read(tmp_path / "fr3.mcap")
+    assert sink.derive_errors == 0 and sink.stats.arm_model == "fr3"
+    want = urdf_with_tool(FR3.urdf, FR3.flange_frame, FR3.tool_p, FR3.tool_R)
+    ((_, _, message),) = topics[world.DESCRIPTION_TOPIC]
+    assert _doc(message)["data"] == want
+    (urdf,) = [a for a in attachments if a.name == "fr3.urdf"]
+    assert urdf.data.decode() == want
+    links = {e.get("name") for e in ET.fromstring(want).iter("link")}
+    assert {"fr3_link0", "fr3_link8", "fr3_leftfinger", "tool"} <= links
+
+    lp = LinkPoses(FR3)
+    tf_msgs = topics[world.TF_TOPIC]
+    assert len(tf_msgs) == len(qs)
+    for (schema, _, message), q, (_, _, st_msg) in zip(
+        tf_msgs, qs, topics["robot/state"], strict=True
+    ):
+        doc = _doc(message)
+        assert conforms(json.loads(schema.data), doc) == []
+        assert _joints(want) == {
+            (tf["parent_frame_id"], tf["child_frame_id"]) for tf in doc["transforms"]
+        }
+        poses = _compose(doc["transforms"])
+        assert set(poses) == links
+        st = _doc(st_msg)
+        assert np.allclose(poses["tool"][0], st["tool_p"], atol=1e-9)
+        assert np.allclose(poses["tool"][1], np.reshape(st["tool_R"], (3, 3)), atol=1e-9)
+        oMe = kin.fk_flange(q)
+        assert np.allclose(poses["fr3_link8"][0], oMe.translation, atol=1e-9)
+        assert np.allclose(poses["fr3_link8"][1], oMe.rotation, atol=1e-9)
+        for link, oMl in lp.poses(q.tolist()).items():
+            assert np.allclose(poses[link][0], oMl.translation, atol=1e-9), link
+            assert np.allclose(poses[link][1], oMl.rotation, atol=1e-9), link
+
+    # The visuals: each where Pinocchio's geometry placement puts it, at the last q.
+    ((schema, _, message),) = topics[world.MODEL_TOPIC]
+    model = _doc(message)
+    assert conforms(json.loads(schema.data), model) == []
+    pm = FR3.pin_model()
+    geom = FR3.geometry()
+    data, gdata = pm.createData(), geom.createData()
+    pin.forwardKinematics(pm, data, np.asarray(q))
+    pin.updateGeometryPlacements(pm, data, geom, gdata)
+    placed = [gdata.oMg[i] for i in range(len(geom.geometryObjects))]
+    drawn = []
+    for e in model["entities"]:
+        p0, R0 = poses[e["frame_id"]]
+        for kind in ("cubes", "models"):
+            for prim in e[kind]:
+                pos = prim["pose"]["position"]
+                R = world.rotation(prim["pose"]["orientation"])
+                drawn.append((p0 + R0 @ np.array([pos["x"], pos["y"], pos["z"]]), R0 @ R))
+                if kind == "models":
+                    assert prim["media_type"] == "model/stl" and prim["override_color"]
+    assert len(drawn) == len(placed) == 9 + 8  # 8 links and the hand; 4 boxes per finger
+    for oMg in placed:
+        assert any(
+            np.allclose(p, oMg.translation, atol=1e-9) and np.allclose(R, oMg.rotation, atol=1e-9)
+            for p, R in drawn
+        )
+    meshes = [m for e in model["entities"] for m in e["models"]]
+    files = {
+        Path(g.meshPath).read_bytes() for g in geom.geometryObjects if Path(g.meshPath).is_file()
+    }
+    assert {base64.b64decode(m["data"]) for m in meshes} <= files and len(meshes) == 9
+
+
+def test_without_a_description_there_is_no_robot_model_and_the_stats_say_so(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An old system (or a recording of keys without the description): /tf is what the
+    states themselves say, world → flange → tool; no model, no URDF."""
+    path = tmp_path / "old.mcap"
+    with caplog.at_level(logging.INFO, logger="telerobot.record"):
+        sink, _ = write_file(
+            path, [("robot/state", robot_state(i + 1, q)) for i, q in enumerate(QS)]
+        )
+    topics, attachments = _read(path)
+    assert world.MODEL_TOPIC not in topics and world.DESCRIPTION_TOPIC not in topics
+    assert attachments == []
+    for (_, _, message), (_, _, st_msg) in zip(
+        topics[world.TF_TOPIC], topics["robot/state"], strict=True
+    ):
+        doc = _doc(message)
+        assert [(t["parent_frame_id"], t["child_frame_id"]) for t in doc["transforms"]] == [
+            ("world", "flange"),
+            ("flange", "tool"),
+        ]
+        poses, st = _compose(doc["transforms"]), _doc(st_msg)
+        assert np.allclose(poses["flange"][0], st["flange_p"], atol=1e-12)
+        assert np.allclose(poses["tool"][0], st["tool_p"], atol=1e-12)
+        assert np.allclose(poses["tool"][1], np.reshape(st["tool_R"], (3, 3)), atol=1e-12)
+    assert sink.stats.arm_model == "" and sink.stats.robot_models == 0
+    summary = sink.stats.snapshot().as_dict()
+    assert summary["arm_model"] is None and summary["robot_models"] == 0
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("no arm description" in r.getMessage() for r in warned)
+    assert any("/robot_model" in r.getMessage() for r in warned)
+
+
+def test_a_description_after_the_first_states_takes_over_from_there(tmp_path: Path) -> None:
+    """The recorder started before the arm: the first states have only their own poses;
+    from the description on, the arm's frames."""
+    items = [("robot/state", robot_state(1, QS[0])), (DESC, description(PUMA))]
+    items += [("robot/state", robot_state(2, QS[1]))]
+    sink, _ = write_file(tmp_path / "late.mcap", items)
+    topics, _ = _read(tmp_path / "late.mcap")
+    first, second = (_doc(m) for _, _, m in topics[world.TF_TOPIC])
+    assert len(first["transforms"]) == 2 and len(second["transforms"]) == 8
+    assert len(topics[world.MODEL_TOPIC]) == 1 and sink.stats.robot_models == 1
+
+
+def test_a_new_tool_rewrites_the_model_and_each_part_has_its_own(tmp_path: Path) -> None:
+    """set_tool re-publishes the description: the model and URDF follow the new eMt (the same
+    description again changes nothing); a new part of a split recording starts with the
+    current model."""
+    clock = FakeClock()
+    sink = McapSink(
+        RecorderConfig(output=str(tmp_path / "t.mcap"), max_duration_s=1.0, split=True),
+        monotonic_s=clock,
+    )
+    new_p, new_R = (0.0, 0.05, 0.25), vec(rot_z(0.5))
+    new_eMt = tool_se3(new_p, new_R)
+    seq = 0
+
+    def put(t_s: float, key: str, payload: bytes) -> None:
+        nonlocal seq
+        seq += 1
+        clock.now_s = t_s
+        assert sink.write(Received(T0_NS + seq * 1_000_000, key, payload))
+
+    put(0.0, DESC, description(PUMA, 1))
+    put(0.1, "robot/state", robot_state(1, QS[0]))
+    put(0.2, DESC, description(PUMA, 2))  # the same arm and tool: nothing new to draw
+    put(0.3, DESC, description(PUMA, 3, new_p, new_R))
+    put(0.4, "robot/state", arm_state(2, QS[1], KIN.fk_flange(QS[1]), new_eMt))
+    put(1.5, "robot/state", arm_state(3, QS[2], KIN.fk_flange(QS[2]), new_eMt))  # part 2
+    sink.close()
+    first, second = sink.stats.files
+    topics, attachments = _read(first)
+    assert len(topics["/raw/" + DESC]) == 3
+    models = [_doc(m) for _, _, m in topics[world.MODEL_TOPIC]]
+    urdfs = [_doc(m)["data"] for _, _, m in topics[world.DESCRIPTION_TOPIC]]
+    assert len(models) == len(urdfs) == len(attachments) == 2
+    assert urdfs[1] == urdf_with_tool(PUMA.urdf, "flange", new_p, new_R)
+    assert [a.data.decode() for a in attachments] == urdfs
+    assert models[1]["deletions"] == [{"timestamp": models[1]["entities"][0]["timestamp"],
+                                       "type": 1, "id": ""}]  # fmt: skip
+    (shaft,) = next(e for e in models[1]["entities"] if e["frame_id"] == "flange")["cylinders"]
+    assert shaft["size"]["z"] == pytest.approx(np.linalg.norm(new_p))
+    tool_tf = _doc(topics[world.TF_TOPIC][-1][2])["transforms"][-1]
+    assert tool_tf["child_frame_id"] == "tool"
+    t = tool_tf["translation"]
+    assert np.allclose([t["x"], t["y"], t["z"]], new_p, atol=1e-9)
+    assert np.allclose(world.rotation(tool_tf["rotation"]), new_eMt.rotation, atol=1e-9)
+    # the second part: no description of its own, the model all the same, before its /tf
+    topics, attachments = _read(second)
+    assert "/raw/" + DESC not in topics
+    (model_msg,) = [m for _, _, m in topics[world.MODEL_TOPIC]]
+    ((_, _, tf_msg),) = topics[world.TF_TOPIC]
+    assert model_msg.log_time == tf_msg.log_time
+    assert [_doc(m)["data"] for _, _, m in topics[world.DESCRIPTION_TOPIC]] == [urdfs[1]]
+    assert [a.name for a in attachments] == ["puma560.urdf"]
+    assert sink.stats.robot_models == 3
+
+
+def test_an_arm_of_the_user_s_own_is_drawn_from_its_description_alone(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Not a shipped model: a PUMA whose URDF root is `pedestal` (world → pedestal is then
+    the identity) is drawn from its URDF's primitives; a UR5e under another name, whose
+    meshes this checkout does not have, with its tool shaft only (and a warning)."""
+    urdf = PUMA.urdf.replace('"world"', '"pedestal"')
+    mine = codec.pack(
+        {
+            **codec.unpack(description(PUMA)),
+            "model": "my_puma",
+            "urdf": urdf,
+            "base_frame": "pedestal",
+        }
+    )
+    ur = codec.pack({**codec.unpack(description(load_model("ur5e"))), "model": "my_ur"})
+    items = [(DESC, mine), ("robot/state", robot_state(1, QS[3])), (DESC, ur)]
+    with caplog.at_level(logging.WARNING, logger="telerobot.record"):
+        sink, _ = write_file(tmp_path / "own.mcap", items)
+    topics, attachments = _read(tmp_path / "own.mcap")
+    assert sink.derive_errors == 0
+    tfs = _doc(topics[world.TF_TOPIC][0][2])["transforms"]
+    assert (tfs[0]["parent_frame_id"], tfs[0]["child_frame_id"]) == ("world", "pedestal")
+    assert world.rotation(tfs[0]["rotation"]).tolist() == np.eye(3).tolist()
+    poses, st = _compose(tfs), _doc(topics["robot/state"][0][2])
+    assert np.allclose(poses["tool"][0], st["tool_p"], atol=1e-9)
+    assert np.allclose(poses["flange"][0], KIN.fk_flange(QS[3]).translation, atol=1e-9)
+    puma_model, ur_model = (_doc(m) for _, _, m in topics[world.MODEL_TOPIC])
+    assert {e["frame_id"] for e in puma_model["entities"]} >= {"pedestal", "link2", "flange"}
+    assert [e["frame_id"] for e in ur_model["entities"]] == ["tool0"]  # the shaft alone
+    assert [a.name for a in attachments] == ["my_puma.urdf", "my_ur.urdf"]
+    assert any("my_ur.urdf drawn without its visuals" in r.getMessage() for r in caplog.records)
+
+
+def test_a_description_outside_the_key_filter_still_draws_the_arm(tmp_path: Path) -> None:
+    sink = McapSink(RecorderConfig(output=str(tmp_path / "f.mcap"), keys=("robot/state",)))
+    assert sink.write(Received(T0_NS, DESC, description(FR3), record=False))
+    kin, eMt = FR3.kinematics(), tool_se3(FR3.tool_p, FR3.tool_R)
+    q = np.asarray(FR3.home)
+    assert sink.write(Received(T0_NS + 1, "robot/state", arm_state(1, q, kin.fk_flange(q), eMt)))
+    sink.close()
+    topics, _ = _read(tmp_path / "f.mcap")
+    assert DESC not in topics and "/raw/" + DESC not in topics and DESC not in sink.stats.keys
+    assert len(topics[world.MODEL_TOPIC]) == 1 and len(topics[world.TF_TOPIC]) == 1
+    assert sink.stats.written == 1 and sink.stats.arm_model == "fr3"
+
+
+def test_states_that_do_not_fit_the_arm_and_bad_descriptions_are_counted(
+    tmp_path: Path,
+) -> None:
+    """A state of another arm (7 joints for the 6 described) has no /tf; a description that
+    does not check out is kept raw and changes nothing."""
+    kin, eMt = FR3.kinematics(), tool_se3(FR3.tool_p, FR3.tool_R)
+    q7 = np.asarray(FR3.home)
+    items = [
+        (DESC, description(PUMA)),
+        ("robot/state", arm_state(1, q7, kin.fk_flange(q7), eMt)),
+        (DESC, codec.pack({"seq": 9, "t_ns": T0_NS, "model": "fr3"})),
+        ("robot/state", robot_state(2, QS[0])),
+    ]
+    sink, _ = write_file(tmp_path / "bad.mcap", items)
+    topics, _ = _read(tmp_path / "bad.mcap")
+    assert len(topics["/raw/" + DESC]) == 2 and len(topics[DESC]) == 1
+    assert len(topics[world.TF_TOPIC]) == 1 and len(topics[world.MODEL_TOPIC]) == 1
+    assert sink.derive_errors == 2 and sink.stats.arm_model == "puma560"
+    assert sink.stats.keys[DESC].no_view == 1
+
+
+def test_the_view_of_an_old_six_joint_state_still_has_its_schema(tmp_path: Path) -> None:
+    """RobotState.q is 1 … 32 floats on the wire: the helper's 6 zeros and the FR3's 7
+    both conform to the channel's schema."""
+    kin, eMt = FR3.kinematics(), tool_se3(FR3.tool_p, FR3.tool_R)
+    q7 = np.asarray(FR3.home)
+    items = [("robot/state", state(1)), ("robot/state", arm_state(2, q7, kin.fk_flange(q7), eMt))]
+    write_file(tmp_path / "q.mcap", items)
+    topics, _ = _read(tmp_path / "q.mcap")
+    for schema, _, message in topics["robot/state"]:
+        q_schema = json.loads(schema.data)["properties"]["q"]
+        assert (q_schema["minItems"], q_schema["maxItems"]) == (1, 32)
+        assert conforms(json.loads(schema.data), _doc(message)) == []
+    assert [len(_doc(m)["q"]) for _, _, m in topics["robot/state"]] == [6, 7]
 
 
 def test_workcell_objects_match_workcell_state(tmp_path: Path) -> None:
@@ -235,10 +519,16 @@ def test_no_3d_writes_only_the_bus_channels(tmp_path: Path) -> None:
 
     assert parser().parse_args(["-o", "s.mcap", "--no-3d"]).no_3d
     path = tmp_path / "plain.mcap"
-    items = [("robot/state", robot_state(1, QS[0])), (WORKCELL_STATE.key, workcell_state(1))]
-    write_file(path, items, world=False)
+    items = [
+        (DESC, description(PUMA)),
+        ("robot/state", robot_state(1, QS[0])),
+        (WORKCELL_STATE.key, workcell_state(1)),
+    ]
+    sink, _ = write_file(path, items, world=False)
     topics, attachments = _read(path)
     assert set(topics) == {
-        "robot/state", "/raw/robot/state", WORKCELL_STATE.key, "/raw/" + WORKCELL_STATE.key
+        DESC, "/raw/" + DESC, "robot/state", "/raw/robot/state",
+        WORKCELL_STATE.key, "/raw/" + WORKCELL_STATE.key,
     }  # fmt: skip
     assert attachments == []
+    assert sink.stats.arm_model == "puma560" and sink.stats.robot_models == 0

@@ -16,7 +16,8 @@ import pinocchio as pin
 import pytest
 from numpy.typing import NDArray
 
-from services.control.arm.kinematics import (
+from services.control.arm.kinematics import IkSolution
+from services.control.arm.puma560 import (
     A2_M,
     A3_M,
     D1_M,
@@ -26,7 +27,6 @@ from services.control.arm.kinematics import (
     FOREARM_M,
     PUMA560_DH,
     DEFAULT_eMt,
-    IkSolution,
     Puma560,
     config_of,
     dh_transform,

@@ -11,17 +11,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.typing import NDArray
 
-from services.control.arm.kinematics import (
-    DEFAULT_eMt,
-    IkSolution,
-    Puma560,
-    Unreachable,
-    bench_ik,
-    qn,
-    qr,
-    qs,
-    qz,
-)
+from services.control.arm.kinematics import IkSolution, Unreachable
+from services.control.arm.puma560 import DEFAULT_eMt, Puma560, qn, qr, qs, qz
 
 Mat = NDArray[np.float64]
 
@@ -136,9 +127,10 @@ def test_fk_of_named_configurations_matches_the_dh_product(name: str) -> None:
     eMt = pin.SE3(pin.utils.rotate("y", 0.7), np.array([0.05, -0.02, 0.18]))
     assert se3_close(ARM.fk_tool(q, eMt), frames[6] @ eMt.homogeneous, 1e-9)
     assert se3_close(ARM.fk_tool(q), frames[6] @ trans(0, 0, 0.2), 1e-9)
+    # the world origin, each joint's frame origin (joint i turns in DH frame i − 1), the flange
     origins = ARM.link_origins(q)
-    assert origins.shape == (7, 3)
-    assert np.allclose(origins, [T[:3, 3] for T in frames], atol=1e-9)
+    assert origins.shape == (8, 3)
+    assert np.allclose(origins[1:], [T[:3, 3] for T in frames], atol=1e-9)
 
 
 def test_fk_of_qz_hand_worked() -> None:
@@ -453,8 +445,3 @@ def test_solve_result_is_within_limits_and_bounded(seed: int, spread: float) -> 
     assert np.max(np.abs(s.q - q_now)) <= 0.25 + 1e-9
     if s.method == "analytic":
         assert se3_close(ARM.fk_tool(s.q), target.homogeneous, 1e-9)
-
-
-def test_bench_ik_reports_rates() -> None:
-    r = bench_ik(20)
-    assert r["analytic_ik_per_s"] > 0 and r["dls_steps_per_s"] > 0 and r["n"] == 20
