@@ -210,17 +210,6 @@ def quat_of_rotation(r: Sequence[float]) -> Quat:
     return (k * w, k * x, k * y, k * z)
 
 
-def quat_of_rx_rz(alpha_rad: float, angle_rad: float) -> Quat:
-    """The unit quaternion (w, x, y, z), w ≥ 0, of Rx(alpha)·Rz(angle) in closed form: a
-    DH link's fixed twist then its joint turn (the URDF's and /tf's joint frames)."""
-    ca, sa = math.cos(0.5 * alpha_rad), math.sin(0.5 * alpha_rad)
-    cq, sq = math.cos(0.5 * angle_rad), math.sin(0.5 * angle_rad)
-    # (ca, sa, 0, 0) ⊗ (cq, 0, 0, sq)
-    w, x, y, z = ca * cq, sa * cq, -sa * sq, ca * sq
-    k = -1.0 if w < 0.0 else 1.0
-    return (k * w, k * x, k * y, k * z)
-
-
 def rotation_of_quat(w: float, x: float, y: float, z: float) -> tuple[float, ...]:
     """The row-major rotation of the quaternion w + xi + yj + zk, normalised first (so one
     that drifted off unit length still gives a proper rotation). ValueError for a null or

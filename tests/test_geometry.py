@@ -27,7 +27,6 @@ from services.geometry import (
     ortho9,
     orthonormalize,
     quat_of_rotation,
-    quat_of_rx_rz,
     rot_x,
     rot_y,
     rot_z,
@@ -313,14 +312,6 @@ def test_orthonormalize_leaves_a_clean_rotation_untouched_and_repairs_drift() ->
 
 
 # --- quaternions --------------------------------------------------------------------------
-
-
-@settings(max_examples=200, deadline=None)
-@given(alpha=st.floats(-4.0, 4.0), q=st.floats(-5.0, 5.0))
-def test_dh_joint_quaternion_is_rx_then_rz(alpha: float, q: float) -> None:
-    wxyz = quat_of_rx_rz(alpha, q)
-    assert wxyz[0] >= 0.0
-    np.testing.assert_allclose(R_from_wxyz(wxyz), rot_x(alpha) @ rot_z(q), atol=1e-12)
 
 
 @settings(max_examples=200, deadline=None)

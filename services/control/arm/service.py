@@ -1,10 +1,13 @@
 """The `arm` service on the bus: IProxyRobot at robot/arm/rpc, `robot/state`, `robot/arm/target`,
 and the arm's description (`describe`, `robot/arm/description`, cached for late subscribers).
 
-One control thread owns the arm (franka-node's rule). It is woken, not polled: the target
-subscription stores the newest target (latest-wins) and wakes it, and it applies the target
-and ticks the proxy at once, so the arm gets the new setpoint one IK and one safety step
-after the target arrived. While a motion, brake or servo runs it ticks at
+One tick at a time owns the arm (franka-node's rule: `_tick_lock`). A target is applied on
+arrival, in Zenoh's callback while the arm keeps up (`Node.batches`): the newest of what
+came is checked, solved and ticked at once, so the arm gets the new setpoint one IK and one
+safety step after the target arrived, with no thread to wake. A target that comes while the
+control thread ticks, or behind a backlog, is stored (latest wins) for that thread, which
+takes it next. Between targets the control thread runs alone: while a motion, brake or
+servo runs it ticks at
 `control_rate_hz` and publishes `robot/state` at `state_rate_hz`; at rest it only watches the
 arm and publishes the (unchanged, cached) state at `idle_state_rate_hz` (≥ 100 Hz, the
 contract's floor). Methods that do not block run in Zenoh's callback, the others on the
@@ -73,11 +76,14 @@ class ArmService:
         self._pending: tuple[ArmTarget, int] | None = None
         self._wake = threading.Event()
         self._stop = threading.Event()
+        self._tick_lock = threading.Lock()
+        """Held by whoever applies a target or ticks the proxy: one at a time."""
+        self._last_tick = self._next_tick = time.monotonic()
         self.late_ticks = 0
         self.late_max_ms = 0.0
         self._requests: OrderedDict[str, dict[str, Any]] = OrderedDict()
         self._requests_lock = threading.Lock()
-        node.subscribe(keys.ARM_TARGET, self._on_target)
+        self._targets = node.batches(keys.ARM_TARGET, self._on_targets)
         methods: dict[str, Any] = {
             name: getattr(self.proxy, f"rpc_{name}")
             for name in (
@@ -126,11 +132,34 @@ class ArmService:
     def _emit(self, kind: str, message: str, data: dict[str, Any]) -> None:
         self.node.event(kind, message, data)
 
-    # --- targets (latest wins; applied by the control thread) -------------------------
-    def _on_target(self, tgt: ArmTarget) -> None:
+    # --- targets (latest wins; applied on arrival, else by the control thread) ----------
+    def _on_targets(self, targets: tuple[ArmTarget, ...]) -> None:
+        """The newest of what arrived (in order) supersedes the rest: applied and ticked
+        at once, unless a tick is running; then the control thread takes it next."""
+        pending = (targets[-1], time.time_ns())
+        if self._tick_lock.acquire(blocking=False):
+            try:
+                with self._cmd_lock:
+                    self._pending = None  # older than this one
+                self._apply(pending, time.monotonic())
+            finally:
+                self._tick_lock.release()
+            return
         with self._cmd_lock:
-            self._pending = (tgt, time.time_ns())
+            self._pending = pending
         self._wake.set()
+
+    def _apply(self, pending: tuple[ArmTarget, int], now: float) -> None:
+        """Apply a target and tick (the caller holds `_tick_lock`)."""
+        tgt, rx_ns = pending
+        self.proxy.on_target(tgt, rx_ns)
+        self._tick(now)
+
+    def _tick(self, now: float) -> None:
+        """One tick of the proxy (the caller holds `_tick_lock`)."""
+        self.proxy.tick(min(max(now - self._last_tick, MIN_TICK_S), MAX_TICK_S))
+        self._last_tick = now
+        self._next_tick = now + 1.0 / self.config.control_rate_hz
 
     def _waking(self, handler: Any) -> Any:
         """A method handler that wakes the control loop afterwards: it may have started,
@@ -145,39 +174,35 @@ class ArmService:
 
         return run
 
-    def _apply_pending(self) -> bool:
+    def _take_pending(self) -> tuple[ArmTarget, int] | None:
         with self._cmd_lock:
             pending, self._pending = self._pending, None
-        if pending is None:
-            return False
-        tgt, rx_ns = pending
-        self.proxy.on_target(tgt, rx_ns)
-        return True
+        return pending
 
     # --- the control loop -------------------------------------------------------------
     def _loop(self) -> None:
         period_s = 1.0 / self.config.control_rate_hz
         busy_state_s = 1.0 / self.config.state_rate_hz
         idle_state_s = 1.0 / min(IDLE_STATE_RATE_HZ, self.config.state_rate_hz)
-        now = time.monotonic()
-        last_tick = now
-        next_tick = now
-        next_state = now
+        next_state = time.monotonic()
         try:
             while not self._stop.is_set():
                 self._wake.clear()
-                now = time.monotonic()
-                commanded = self._apply_pending()
-                busy = self.proxy.needs_tick
-                state_due = now >= next_state
-                # At rest the loop only watches the arm, once per state it publishes.
-                if commanded or (busy and now >= next_tick) or (state_due and not busy):
-                    if busy and not commanded and now - next_tick > period_s:
-                        self._count_late(now - next_tick)
-                    self.proxy.tick(min(max(now - last_tick, MIN_TICK_S), MAX_TICK_S))
-                    last_tick = now
-                    next_tick = now + period_s
+                with self._tick_lock:
+                    now = time.monotonic()
+                    pending = self._take_pending()
                     busy = self.proxy.needs_tick
+                    state_due = now >= next_state
+                    next_tick = self._next_tick
+                    if pending is not None:
+                        self._apply(pending, now)
+                    # At rest the loop only watches the arm, once per state it publishes.
+                    elif (busy and now >= next_tick) or (state_due and not busy):
+                        if busy and now - next_tick > period_s:
+                            self._count_late(now - next_tick)
+                        self._tick(now)
+                    busy = self.proxy.needs_tick
+                    next_tick = self._next_tick
                 if state_due:
                     self._publish_state()
                     next_state += busy_state_s if busy else idle_state_s

@@ -41,6 +41,8 @@ class BenchOptions:
     cpu_settle_s: float = 5.0
     """After the sim profile's services are up, before the idle CPU window (s)."""
     teleop_rate_hz: float = 1000.0
+    model: str = "puma560"
+    """The arm model the arm service runs (`telerobot arm --model`)."""
 
     @staticmethod
     def quick_options(**overrides: Any) -> BenchOptions:

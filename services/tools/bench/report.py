@@ -545,7 +545,7 @@ def table(doc: Mapping[str, Any]) -> str:
     lines = [
         f"Machine: {m['nproc']} CPUs, {m['cpu_model']}, Python {m['python']}, "
         f"eclipse-zenoh {m['zenoh']}; {shared}; phases of {s.get('phase_s', 'n/a')} s"
-        f"{' (--quick)' if s.get('quick') else ''}.",
+        f"{' (--quick)' if s.get('quick') else ''}; arm model {s.get('model', 'puma560')}.",
         "",
         TABLE_HEADER,
         "|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---|",

@@ -102,6 +102,7 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
         "force_priority": opts.force_priority,
         "cpu_settle_s": opts.cpu_settle_s,
         "teleop_rate_hz": opts.teleop_rate_hz,
+        "model": opts.model,
         "loadavg_start": _loadavg(),
     }
 
@@ -183,7 +184,7 @@ def _start_services(
     station.write_text(
         f'[master]\ndevice = "virtual"\nmaster_id = "{STATION_ID}"\nengage_on_start = false\n'
     )
-    kids.spawn("arm", telerobot_argv("arm", "--autostart", *zargs))
+    kids.spawn("arm", telerobot_argv("arm", "--autostart", "--model", opts.model, *zargs))
     kids.spawn("force", telerobot_argv("force", "--priority", opts.force_priority, *zargs))
     kids.spawn("decision", telerobot_argv("decision", *zargs))
     kids.spawn("master", telerobot_argv("master", "--config", str(station), *zargs))

@@ -55,6 +55,12 @@ def main(argv: list[str] | None = None) -> int:
         choices=["lowest", "below_normal", "normal", "above_normal", "highest"],
         help="the force sampler's priority (default: highest, as deploy/robot.toml)",
     )
+    p.add_argument(
+        "--model",
+        default="puma560",
+        metavar="MODEL",
+        help="the arm model: puma560 (default), fr3, ur5e or the path of an arm's TOML",
+    )
     p.add_argument("--json", default="artifacts/bench.json", metavar="FILE")
     p.add_argument(
         "--plot",
@@ -83,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     overrides["port"] = args.port
     overrides["force_priority"] = args.force_priority
     overrides["logs_dir"] = Path(args.logs)
+    overrides["model"] = args.model
     opts = BenchOptions.quick_options(**overrides) if args.quick else BenchOptions(**overrides)
     if opts.phase_s <= 0 or opts.rpc_calls < 1 or opts.ik_n < 1:
         p.error("--phase-s, --rpc-calls and --ik-n must be positive")

@@ -83,7 +83,7 @@ def test_table_header_reports_the_cpu_split() -> None:
         "other processes took 7% of the CPUs during the run (the bench and its services 50%)"
         in text
     )
-    assert "phases of 20.0 s." in text
+    assert "phases of 20.0 s; arm model puma560." in text
 
 
 def test_parse_pid_stat_reads_group_and_times_past_an_odd_name() -> None:
