@@ -2,8 +2,8 @@
 
 Every simulated part of the system reads geometry from here: the force service's contact
 model, the vision service's renderer, the decision server's guarded moves and the task
-scenarios. Frames: world (R_w: z up, floor at z = 0; an arm's model says where its base stands in it).
-Units: m.
+scenarios. Frames: world (R_w: z up, floor at z = 0; an arm's model says where its base
+stands in it). Units: m.
 """
 
 from __future__ import annotations
