@@ -290,9 +290,20 @@ class Node:
         self._decls.append(handle)
         return handle
 
-    def subscribe_raw(self, keyexpr: str, on_sample: Callable[[zenoh.Sample], None]) -> Any:
-        """An untyped subscription (introspection tools). Keep the returned handle."""
-        handle = self.session.declare_subscriber(keyexpr, on_sample)
+    def subscribe_raw(
+        self, keyexpr: str, on_sample: Callable[[zenoh.Sample], None], history: bool = False
+    ) -> Any:
+        """An untyped subscription (introspection tools). Keep the returned handle.
+        `history`: also what cached publishers kept (robot/arm/description)."""
+        if history:
+            handle = zenoh.ext.declare_advanced_subscriber(
+                self.session,
+                keyexpr,
+                on_sample,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+            )
+        else:
+            handle = self.session.declare_subscriber(keyexpr, on_sample)
         self._decls.append(handle)
         return handle
 

@@ -204,7 +204,7 @@ def config_of(q: ArrayLike) -> str:
 # --- plain-float kernels ---------------------------------------------------------------
 # `solve` runs once per operator command and `ik` up to 8 branches per call: with numpy a
 # call on a 6-vector costs ~1 µs, so the per-branch work below is scalar Python floats
-# (about 25× faster here than the numpy version; docs/kinematics.md "Throughput"). They
+# (about 25× faster here than the numpy version; docs/puma560.md "Throughput"). They
 # use the same IEEE operations as `wrap_pi` and numpy's clip/ceil/floor/round, so limits
 # and config letters come out the same bit for bit.
 

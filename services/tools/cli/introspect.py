@@ -83,7 +83,9 @@ def cmd_echo(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     start = time.monotonic()
     hinted = args.hint_after <= 0
     with Node("cli", tool_config(args)) as node:
-        node.subscribe_raw(args.key, on_sample)
+        # history: a cached sample (robot/arm/description) is echoed too, as it would be
+        # to any late subscriber of the contract
+        node.subscribe_raw(args.key, on_sample, history=True)
         deadline = start + args.timeout if args.timeout else None
         while not (done.is_set() or stop.is_set()):
             now = time.monotonic()

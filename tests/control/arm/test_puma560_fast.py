@@ -42,7 +42,7 @@ ARM = Puma560()
 LO, HI = np.array(ARM.q_lo), np.array(ARM.q_hi)
 
 
-# --- the reference: Paul & Zhang with numpy matrices, as docs/kinematics.md states it ---
+# --- the reference: Paul & Zhang with numpy matrices, as docs/puma560.md states it ---
 
 
 def ref_representatives(q: Mat, ref: Mat) -> Mat | None:

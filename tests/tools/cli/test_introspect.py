@@ -125,6 +125,23 @@ def test_topic_echo_with_a_wildcard_names_keys_and_shows_rejections(
         assert r["_rejected"].startswith("payload: not valid msgpack")
 
 
+def test_topic_echo_gets_the_cached_arm_description_published_before_it_came(
+    net: Net, service: Node
+) -> None:
+    from services.bus.messages import ArmDescription
+    from services.control.arm.model import load_model
+
+    fields = load_model("ur5e").description()
+    service.publisher(keys.ARM_DESCRIPTION, cache=1).put(ArmDescription(seq=3, t_ns=7, **fields))
+    code, rows = run_cli(
+        net, "topic", "echo", "robot/arm/description", "--count", "1", "--timeout", "20"
+    )
+    assert code == 0 and len(rows) == 1
+    got = rows[0]
+    assert (got["seq"], got["model"], got["n"]) == (3, "ur5e", 6)
+    assert [j["name"] for j in got["joints"]] == list(load_model("ur5e").joint_names)
+
+
 def test_topic_echo_times_out_with_exit_1(net: Net, service: Node) -> None:
     code, rows = run_cli(net, "topic", "echo", "robot/state", "--count", "1", "--timeout", "0.5")
     assert code == 1 and rows == []

@@ -21,9 +21,9 @@ from tests.conftest import Net
 pytestmark = pytest.mark.system
 
 
-@pytest.fixture
-def station(net: Net) -> Iterator[Station]:
-    cell: SimCell = light_cell(net.node)
+@pytest.fixture(params=["puma560"])
+def station(net: Net, request: pytest.FixtureRequest) -> Iterator[Station]:
+    cell: SimCell = light_cell(net.node, request.param)
     st: Station | None = None
     try:
         cell.start()
@@ -52,6 +52,7 @@ def common_checks(report: TaskReport) -> None:
     assert "SUCCESS" in report.table()
 
 
+@pytest.mark.parametrize("station", ["puma560", "fr3"], indirect=True)
 def test_task1_tool_pose_within_2_mm_and_1_degree(station: Station) -> None:
     report = run_task(1, station)
     common_checks(report)
