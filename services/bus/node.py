@@ -295,6 +295,7 @@ class Node:
     ) -> Any:
         """An untyped subscription (introspection tools). Keep the returned handle.
         `history`: also what cached publishers kept (robot/arm/description)."""
+        handle: Any
         if history:
             handle = zenoh.ext.declare_advanced_subscriber(
                 self.session,
