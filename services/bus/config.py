@@ -9,6 +9,7 @@ named. Command-line flags override the file.
 from __future__ import annotations
 
 import argparse
+import difflib
 import json
 import tomllib
 import types
@@ -18,6 +19,7 @@ from dataclasses import MISSING, dataclass, fields, is_dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar, get_args, get_origin, get_type_hints
 
+from services.bus.bounds import short
 from services.bus.errors import ConfigError
 
 if TYPE_CHECKING:  # zenoh is imported where a session is configured: `--help` stays instant
@@ -218,18 +220,42 @@ def add_node_args(parser: argparse.ArgumentParser) -> None:
     )
 
 
+TABLES = frozenset(
+    {"zenoh", "router", "up", "arm", "force", "decision", "vision", "console", "master", "ros2"}
+    | {"workcell", "record", "physics"}
+)
+"""The tables a deployment file may have: one per service, `[zenoh]` for every session,
+`[router]` and `[up]` for the launcher. Any other is refused: a misspelt `[decison]` would
+otherwise drop its safety settings without a word."""
+
+
 def load_deploy(path: str | Path | None) -> dict[str, Any]:
-    """The deployment TOML as a dict (empty when no file)."""
+    """The deployment TOML as a dict (empty when no file). A table not in `TABLES`, or a
+    top-level key outside a table, is a ConfigError naming it and the known ones."""
     if not path:
         return {}
     p = Path(path)
     try:
         with p.open("rb") as f:
-            return tomllib.load(f)
+            data = tomllib.load(f)
     except FileNotFoundError:
         raise ConfigError("--config", f"no such file {str(p)!r}") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError("--config", f"{p}: {e}") from None
+    for name, value in data.items():
+        if not isinstance(value, dict):
+            raise ConfigError(
+                short(name, 40), f"{p}: a key outside any table; put it in its [service]"
+            )
+        if name not in TABLES:
+            near = difflib.get_close_matches(name, sorted(TABLES), n=1)
+            hint = f" (did you mean [{near[0]}]?)" if near else ""
+            raise ConfigError(
+                short(name, 40),
+                f"{p}: unknown table [{short(name, 40)}]{hint}; known: "
+                + ", ".join(f"[{t}]" for t in sorted(TABLES)),
+            )
+    return data
 
 
 def node_config(

@@ -312,7 +312,7 @@ def test_load_deploy_without_a_file_is_empty() -> None:
 
 def test_service_config_reads_its_table_and_overrides(tmp_path: Path) -> None:
     f = tmp_path / "deploy.toml"
-    f.write_text('[arm]\nport = "/dev/ttyUSB0"\nrate_hz = 50.0\n[other]\nx = 1\n')
+    f.write_text('[arm]\nport = "/dev/ttyUSB0"\nrate_hz = 50.0\n[force]\nx = 1\n')
     args = _parse("--config", str(f))
     s = service_config(ArmSection, args, "arm", {"rate_hz": 200.0, "simulate": None})
     assert s.port == "/dev/ttyUSB0" and s.rate_hz == 200.0 and s.simulate is False
@@ -337,8 +337,8 @@ class Tables:
 def test_section_reads_free_form_tables(tmp_path: Path) -> None:
     """Tables such as `[up.commands]` are read as dicts, values checked by their type."""
     f = tmp_path / "deploy.toml"
-    f.write_text('[t.commands]\nrec = ["telerobot", "record"]\n[t.rates_hz]\nforce = 1000\n')
-    t = section(Tables, load_deploy(f)["t"], "t")
+    f.write_text('[up.commands]\nrec = ["telerobot", "record"]\n[up.rates_hz]\nforce = 1000\n')
+    t = section(Tables, load_deploy(f)["up"], "t")
     assert t.commands == {"rec": ["telerobot", "record"]} and t.rates_hz == {"force": 1000.0}
     with pytest.raises(ConfigError) as info:
         section(Tables, {"rates_hz": {"force": "fast"}}, "t")
@@ -346,3 +346,40 @@ def test_section_reads_free_form_tables(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
         section(Tables, {"commands": ["rec"]}, "t")
     assert info.value.key == "t.commands"
+
+
+def test_a_misspelt_table_is_refused_naming_it_and_the_known_ones(tmp_path: Path) -> None:
+    """`[decison] max_force_n = 30.0` used to be ignored: the decision ran with 40 N."""
+    f = tmp_path / "typo.toml"
+    f.write_text("[decison]\nmax_force_n = 30.0\n")
+    with pytest.raises(ConfigError) as info:
+        load_deploy(f)
+    assert info.value.key == "decison"
+    assert "unknown table [decison] (did you mean [decision]?)" in str(info.value)
+    assert "[force]" in str(info.value) and "typo.toml" in str(info.value)
+
+
+def test_a_key_outside_any_table_is_refused(tmp_path: Path) -> None:
+    f = tmp_path / "loose.toml"
+    f.write_text("max_force_n = 30.0\n[decision]\nwatchdog_ms = 100\n")
+    with pytest.raises(ConfigError) as info:
+        load_deploy(f)
+    assert info.value.key == "max_force_n" and "outside any table" in str(info.value)
+
+
+def test_a_huge_table_name_is_not_echoed_whole(tmp_path: Path) -> None:
+    f = tmp_path / "huge.toml"
+    f.write_text(f"[{'x' * 5000}]\na = 1\n")
+    with pytest.raises(ConfigError) as info:
+        load_deploy(f)
+    assert len(str(info.value)) < 600
+
+
+def test_every_shipped_profile_has_only_known_tables() -> None:
+    from services.bus.config import TABLES
+
+    root = Path(__file__).resolve().parents[2] / "deploy"
+    profiles = sorted(root.glob("*.toml"))
+    assert len(profiles) >= 3
+    for p in profiles:
+        assert set(load_deploy(p)) <= TABLES, p
