@@ -58,3 +58,8 @@ class ConfigError(TelerobotError, ValueError):
         super().__init__(f"config key {key!r}: {message}")
         self.key = key
         self.reason = message
+
+
+class AlreadyRunning(TelerobotError):
+    """A singleton service found another instance of itself alive in the same cell (the same
+    Zenoh network and namespace) at start-up, and refuses to start beside it."""

@@ -18,10 +18,13 @@ from types import FrameType
 from typing import TYPE_CHECKING, Any, Protocol
 
 from services.bus.config import LOCAL_ROUTER, NodeConfig, add_node_args, load_deploy, node_config
-from services.bus.errors import ConfigError
+from services.bus.errors import AlreadyRunning, ConfigError
 
 if TYPE_CHECKING:  # zenoh is imported when a session opens: `--help` stays instant
     from services.bus.node import Node
+
+#: services of which a cell runs one (a master: one per id): a second refuses to start
+SINGLETONS = frozenset({"arm", "decision", "force", "vision", "workcell", "ros2"})
 
 #: the exit status of a process whose configuration is wrong; `telerobot up` does not
 #: restart a child that exits with it (a restart cannot mend a bad key)
@@ -121,13 +124,25 @@ class ServiceContext:
         """The node's configuration: the service's default router < `[zenoh]` < flags."""
         return node_config(self.args, self.deploy, connect=self._connect)
 
-    def open(self, cfg: NodeConfig | None = None, name: str = "", instance: str = "") -> Node:
+    def open(
+        self,
+        cfg: NodeConfig | None = None,
+        name: str = "",
+        instance: str = "",
+        singleton: bool | None = None,
+    ) -> Node:
         """Open a session (`cfg`, default `node_config`) as `name` (default the service's),
-        closed when the service ends."""
+        closed when the service ends. A singleton (by default the services of `SINGLETONS`,
+        and a master by its id) first makes sure no other one runs in the cell
+        (`Node.claim`: `AlreadyRunning` otherwise) and then reports later contenders."""
         from services.bus.node import Node
 
-        node = Node(name or self.name, cfg or self.node_config, instance=instance)
-        return self._stack.enter_context(node)
+        name = name or self.name
+        node = self._stack.enter_context(Node(name, cfg or self.node_config, instance=instance))
+        if singleton if singleton is not None else (name in SINGLETONS or name == "master"):
+            node.claim()
+            node.watch_claims()
+        return node
 
     def closing(self, service: Closeable) -> None:
         """Close `service` when the service ends (before the sessions opened earlier)."""
@@ -185,6 +200,9 @@ def run_service(
                 return status
             stop.wait()
     except ConfigError as e:
+        print(f"telerobot {name}: {e}", file=sys.stderr, flush=True)
+        return CONFIG_EXIT
+    except AlreadyRunning as e:
         print(f"telerobot {name}: {e}", file=sys.stderr, flush=True)
         return CONFIG_EXIT
     log.info("%s stopped", name)

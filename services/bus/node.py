@@ -17,6 +17,8 @@ Rules it enforces so services do not have to remember them (ZENOH_NOTES.md):
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import threading
 import time
 import traceback
@@ -32,6 +34,7 @@ from services.bus.bounds import MAX_PAYLOAD_BYTES, short
 from services.bus.config import NodeConfig
 from services.bus.errors import (
     ERROR_CODES,
+    AlreadyRunning,
     ProtocolError,
     RpcError,
     TelerobotError,
@@ -67,6 +70,12 @@ MAX_EVENT_DATA_BYTES = 16 * 1024
 CALL_RETRY_S = 0.02
 ZENOH_TIMEOUT = b"Timeout"
 """The error reply Zenoh itself gives a `get` whose queryable did not answer in time."""
+
+
+CLAIM_PREFIX = "robot/claim"
+"""Where a starting singleton shows itself while it asks who runs (Node.claim)."""
+CLAIM_TIMEOUT_S = 1.0
+"""How long a start-up waits for Zenoh's answer to "who holds alive/<service>"."""
 
 
 class AliveSet:
@@ -164,6 +173,49 @@ class Node:
             self._token = self.session.liveliness().declare_token(
                 alive_key(self.name, self.instance)
             )
+
+    def claim(self, timeout_s: float = CLAIM_TIMEOUT_S) -> None:
+        """Be the only one of this service in the cell (its namespace), or raise
+        `AlreadyRunning` naming the one that is: a second decision or arm beside the running
+        one would answer calls and publish robot/state in its stead. Asks Zenoh who holds
+        `alive/<service>` (a liveliness query: the tokens of every reachable session), and
+        meanwhile shows a claim token `robot/claim/<service>/<who>`, which the holder reports
+        as an event (`watch_claims`). Call before touching hardware, announce after."""
+        key = alive_key(self.name, self.instance)
+        who = f"{os.getpid()}@{socket.gethostname()}"[:64].replace("/", "_").replace("*", "_")
+        claim = self.session.liveliness().declare_token(f"{CLAIM_PREFIX}/{key[6:]}/{who}")
+        try:
+            holders = [
+                str(r.ok.key_expr)
+                for r in self.session.liveliness().get(key, timeout=timeout_s)
+                if r.ok is not None
+            ]
+        finally:
+            claim.undeclare()
+        if holders:
+            raise AlreadyRunning(
+                f"{key[6:]} already runs in this cell ({key} is held by another process): "
+                "stop that one first, or start this one in another namespace (--ns)"
+            )
+
+    def watch_claims(self) -> None:
+        """Report, as an `error` event, every other process that tried to start as this
+        service in the cell and was refused (`claim`)."""
+        prefix = f"{CLAIM_PREFIX}/{alive_key(self.name, self.instance)[6:]}/"
+
+        def on_claim(sample: zenoh.Sample) -> None:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            who = str(sample.key_expr)[len(prefix) :]
+            log.warning("another %s (%s) tried to start in this cell: refused", self.name, who)
+            self.event(
+                "error",
+                f"another {self.name} ({short(who, 64)}) tried to start in this cell: it was "
+                "refused; this one keeps the cell",
+                {"code": "already_running", "contender": short(who, 64)},
+            )
+
+        self._decls.append(self.session.liveliness().declare_subscriber(prefix + "*", on_claim))
 
     def close(self) -> None:
         with self._lock:
