@@ -18,6 +18,7 @@ import time
 from collections import defaultdict, deque
 from typing import TYPE_CHECKING, Any, TextIO
 
+from services.bus.bounds import short
 from services.bus.config import LOCAL_ROUTER, NodeConfig, add_node_args, node_config
 from services.bus.lifecycle import Shutdown
 
@@ -291,6 +292,8 @@ def cmd_call(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         left = max(args.timeout - (time.monotonic() - start), 0.5)
         try:
             reply = node.call(service, args.method, call_args, timeout_s=left)
+        except KeyboardInterrupt:
+            return _interrupted(node, service, args.method, out)
         except RpcError as e:
             _error(out, e.code, e.message)
             return 1
@@ -304,6 +307,37 @@ def cmd_call(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
 
     out.write(json.dumps(codec.jsonable(reply), ensure_ascii=False) + "\n")
     return 0
+
+
+MOTIONS = frozenset({"move_joints", "move_pose", "move_relative", "home", "initialize"})
+"""Methods that start a motion: Ctrl-C on a call of one stops it (`stop` of the same
+service); a `task` is cancelled (`task {"name": "cancel"}`)."""
+INTERRUPTED_EXIT = 130
+
+
+def _interrupted(node: Any, service: str, method: str, out: TextIO) -> int:
+    """Ctrl-C during a call: what it started is stopped, and the answer says so plainly."""
+    import signal
+
+    if method not in MOTIONS and method != "task":
+        _error(out, "interrupted", f"Ctrl-C: stopped waiting for {service} {method}")
+        return INTERRUPTED_EXIT
+    stop, stop_args = ("task", {"name": "cancel"}) if method == "task" else ("stop", {})
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C: same answer
+    try:
+        node.call(service, stop, stop_args, timeout_s=2.0)
+    except Exception as e:  # any failure is reported, with the way out
+        _error(
+            out,
+            "interrupted",
+            f"Ctrl-C: the {method} may still be moving: {stop} failed ({short(str(e))}); "
+            f"stop it with `telerobot call {service} stop` or the e-stop",
+        )
+        return INTERRUPTED_EXIT
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    _error(out, "interrupted", f"Ctrl-C: the {method} was stopped ({service} {stop})")
+    return INTERRUPTED_EXIT
 
 
 def cmd_alive(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:

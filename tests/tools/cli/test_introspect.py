@@ -278,3 +278,37 @@ def test_zenoh_cli_codec_shows_a_rejection_instead_of_failing() -> None:
 )
 def test_zenoh_cli_codec_strips_a_namespace(key: str, plain: str) -> None:
     assert zenoh_cli_codec._plain_key(key) == plain
+
+
+def test_ctrl_c_on_a_waiting_motion_call_stops_the_motion(net: Net) -> None:
+    """`telerobot call decision move_relative '{…, "wait": true}'`, then Ctrl-C: the motion
+    it started is stopped (the service's `stop`), one line says so, no traceback."""
+    import signal
+
+    node = net.node("decision")
+    started, stopped = threading.Event(), threading.Event()
+
+    def move_relative(args: dict[str, Any]) -> dict[str, Any]:
+        started.set()
+        stopped.wait(DEADLINE_S)  # a motion with "wait": true, until it is stopped
+        return {"status": "stopped"}
+
+    def stop(args: dict[str, Any]) -> dict[str, Any]:
+        stopped.set()
+        return {"status": "ready"}
+
+    node.serve("decision", {"move_relative": move_relative, "stop": stop})
+    node.announce()
+    argv = telerobot(
+        "call", "decision", "move_relative", '{"dp": [-0.3, 0, -0.1], "wait": true}',
+        "--timeout", "60", "--connect", net.endpoint,
+    )  # fmt: skip
+    with spawned(argv) as child:
+        assert started.wait(DEADLINE_S), "the call never reached the service"
+        child.proc.send_signal(signal.SIGINT)
+        assert child.wait(DEADLINE_S) == 130
+        out = "\n".join(child.rest())
+    assert stopped.is_set(), "Ctrl-C left the motion running"
+    assert "Traceback" not in out and "KeyboardInterrupt" not in out, out
+    reply = json.loads(out.strip().splitlines()[-1])
+    assert reply["error"] == "interrupted" and "was stopped" in reply["message"]
