@@ -63,3 +63,8 @@ class ConfigError(TelerobotError, ValueError):
 class AlreadyRunning(TelerobotError):
     """A singleton service found another instance of itself alive in the same cell (the same
     Zenoh network and namespace) at start-up, and refuses to start beside it."""
+
+
+class ConnectFailed(TelerobotError):
+    """A session could not be opened: nothing answered at the endpoints, or the router
+    refused the login. The message is one line with the cause and what to check."""

@@ -18,7 +18,7 @@ from types import FrameType
 from typing import TYPE_CHECKING, Any, Protocol
 
 from services.bus.config import LOCAL_ROUTER, NodeConfig, add_node_args, load_deploy, node_config
-from services.bus.errors import AlreadyRunning, ConfigError
+from services.bus.errors import AlreadyRunning, ConfigError, ConnectFailed
 
 if TYPE_CHECKING:  # zenoh is imported when a session opens: `--help` stays instant
     from services.bus.node import Node
@@ -205,5 +205,8 @@ def run_service(
     except AlreadyRunning as e:
         print(f"telerobot {name}: {e}", file=sys.stderr, flush=True)
         return CONFIG_EXIT
+    except ConnectFailed as e:
+        print(f"telerobot {name}: {e}", file=sys.stderr, flush=True)
+        return 1
     log.info("%s stopped", name)
     return 0

@@ -35,6 +35,7 @@ from services.bus.config import NodeConfig
 from services.bus.errors import (
     ERROR_CODES,
     AlreadyRunning,
+    ConnectFailed,
     ProtocolError,
     RpcError,
     TelerobotError,
@@ -70,6 +71,22 @@ MAX_EVENT_DATA_BYTES = 16 * 1024
 CALL_RETRY_S = 0.02
 ZENOH_TIMEOUT = b"Timeout"
 """The error reply Zenoh itself gives a `get` whose queryable did not answer in time."""
+
+
+def open_session(config: NodeConfig) -> zenoh.Session:
+    """`zenoh.open`, with a failure turned into one clear line (ConnectFailed): which
+    endpoints, the cause without Zenoh's source location, and what to check."""
+    try:
+        return zenoh.open(config.to_zenoh())
+    except zenoh.ZError as e:
+        cause = str(e).split("  at ")[0].strip().rstrip("!")
+        where = ", ".join(config.connect) or "(no endpoint)"
+        raise ConnectFailed(
+            f"cannot connect to {where}: {short(cause, 120)}. Is the router up "
+            "(`telerobot router`, or `telerobot up` which starts one)? Is the endpoint "
+            "right, and does the router accept this login (user/password, certificate: "
+            "--zenoh-config)?"
+        ) from None
 
 
 CLAIM_PREFIX = "robot/claim"
@@ -145,7 +162,7 @@ class Node:
         self.name = name
         self.instance = instance
         self.config = config or NodeConfig()
-        self.session = zenoh.open(self.config.to_zenoh())
+        self.session = open_session(self.config)
         self._lock = threading.Lock()
         self._closed = False
         self._token: Any = None
@@ -552,13 +569,20 @@ class Node:
         self, service: str, key: str, payload: bytes, deadline: float
     ) -> dict[str, Any]:
         """The `get` loop after a first attempt saw no reply (pitfall 5). No reply from a
-        service that is gone is `Unavailable`; from one still alive at the deadline,
-        `TimedOut` (what was asked may still be under way)."""
+        service that is gone is `Unavailable`; none from one still alive at the deadline is
+        `Unavailable` too, saying the call never reached it (an ACL, a missing method):
+        only Zenoh's own timeout reply means it was delivered and may still be running
+        (`TimedOut`)."""
         while True:
             if not self.alive.is_alive(service):
                 raise Unavailable(f"no reply from {key}: the service is gone")
             if time.monotonic() >= deadline:
-                raise TimedOut(f"{key}: timed out with no reply; it may still be running")
+                # Every get ended with no reply at all: no queryable of it was reached.
+                raise Unavailable(
+                    f"{key}: {service} is alive but the call never reached it, so nothing "
+                    "ran: the router's access control may not let this login call it, or "
+                    f"{service} has no such method"
+                )
             time.sleep(min(CALL_RETRY_S, max(deadline - time.monotonic(), 0.0)))
             left = deadline - time.monotonic()
             replies = list(

@@ -25,7 +25,7 @@ from services.bus.lifecycle import Shutdown
 if TYPE_CHECKING:
     import zenoh
 
-    from services.bus.node import AliveSet
+    from services.bus.node import AliveSet, Node
 
 #: `topic echo` says it is still waiting when nothing came within this (s)
 HINT_AFTER_S = 3.0
@@ -38,6 +38,32 @@ def tool_config(args: argparse.Namespace) -> NodeConfig:
     """Tools default to a peer that connects to the local router and listens on loopback
     only (Zenoh's default listener is every interface: a tool need not be reachable)."""
     return node_config(args, connect=(LOCAL_ROUTER,), listen=("tcp/127.0.0.1:0",))
+
+
+LINK_WAIT_S = 3.0
+"""How long a tool waits for a router or peer to be linked before saying none is."""
+
+
+def tool_node(args: argparse.Namespace, cfg: NodeConfig | None = None) -> Node:
+    """The tool's session, linked to a router or a peer, or ConnectFailed saying none is
+    reachable (a peer session opens without anyone to talk to, and would print nothing)."""
+    from services.bus.errors import ConnectFailed
+    from services.bus.node import Node
+
+    cfg = cfg or tool_config(args)
+    node = Node("cli", cfg)
+    deadline = time.monotonic() + LINK_WAIT_S
+    info = node.session.info
+    while not (info.routers_zid() or info.peers_zid()):
+        if time.monotonic() >= deadline:
+            node.close()
+            where = ", ".join(cfg.connect) or "(no endpoint)"
+            raise ConnectFailed(
+                f"no Zenoh router or peer reachable at {where} within {LINK_WAIT_S:g} s: is "
+                "the router up (`telerobot router`, or `telerobot up`)? Is --connect right?"
+            )
+        time.sleep(0.02)  # polling Zenoh's link table: it has no event for a new link
+    return node
 
 
 def decode_sample(key: str, payload: bytes) -> Any:
@@ -57,7 +83,6 @@ def _say(text: str) -> None:
 
 
 def cmd_echo(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
-    from services.bus.node import Node
     from services.bus.zenoh_cli_codec import readable  # here, not in the first callback
 
     stop = Shutdown()
@@ -83,7 +108,7 @@ def cmd_echo(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
 
     start = time.monotonic()
     hinted = args.hint_after <= 0
-    with Node("cli", tool_config(args)) as node:
+    with tool_node(args) as node:
         # history: a cached sample (robot/arm/description) is echoed too, as it would be
         # to any late subscriber of the contract
         node.subscribe_raw(args.key, on_sample, history=True)
@@ -128,7 +153,6 @@ def _hz_row(key: str, times: deque[float], lock: threading.Lock, window: float, 
 def cmd_hz(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     """Reports the rate every `--window` s; ends after `--duration` s, `--count` samples
     or `--reports` reports, whichever comes first (or on Ctrl-C)."""
-    from services.bus.node import Node
 
     stop = Shutdown()
     times: deque[float] = deque(maxlen=100_000)
@@ -151,7 +175,7 @@ def cmd_hz(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
 
     start = time.monotonic()
     end = start + args.duration if args.duration > 0 else float("inf")
-    with Node("cli", tool_config(args)) as node:
+    with tool_node(args) as node:
         node.subscribe_raw(args.key, on_sample)
         reports = 0
         next_report = start + args.window
@@ -180,7 +204,6 @@ def cmd_hz(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
 
 def cmd_list(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     from services.bus import keys
-    from services.bus.node import Node
 
     counts: dict[str, int] = defaultdict(int)
     lock = threading.Lock()
@@ -190,7 +213,7 @@ def cmd_list(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
             counts[str(sample.key_expr)] += 1
 
     cfg = tool_config(args)
-    with Node("cli", cfg) as node:
+    with tool_node(args, cfg) as node:
         node.subscribe_raw("**", on_sample)
         Shutdown().wait(args.duration)
     rows = []
@@ -271,9 +294,8 @@ def cmd_call(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     cfg = tool_config(args)
 
     from services.bus.errors import RpcError, TimedOut, Unavailable
-    from services.bus.node import Node
 
-    with Node("cli", cfg) as node:
+    with tool_node(args, cfg) as node:
         start = time.monotonic()
         try:
             service = resolve_service(node.alive, args.service, args.timeout)
@@ -341,9 +363,8 @@ def _interrupted(node: Any, service: str, method: str, out: TextIO) -> int:
 
 
 def cmd_alive(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
-    from services.bus.node import Node
 
-    with Node("cli", tool_config(args)) as node:
+    with tool_node(args) as node:
         # A liveliness get right after connecting reaches only the peers linked so far
         # (ZENOH_NOTES pitfall 5) and missed half the tokens of a peer mesh; a history
         # subscriber keeps collecting for the whole timeout, peers found by gossip included.

@@ -12,7 +12,7 @@ import importlib
 import importlib.util
 import sys
 
-from services.bus.errors import ConfigError
+from services.bus.errors import ConfigError, ConnectFailed
 
 #: subcommand → module with `main(argv) -> int`
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -108,12 +108,18 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError as e:
             print(f"telerobot {argv[0]}: {e}", file=sys.stderr)
             return 2
+        except ConnectFailed as e:
+            print(f"telerobot {argv[0]}: {e}", file=sys.stderr)
+            return 1
     args = build_parser(commands).parse_args(argv)
     try:
         return int(args.func(args))
     except ConfigError as e:
         print(f"telerobot: {e}", file=sys.stderr)
         return 2
+    except ConnectFailed as e:
+        print(f"telerobot {argv[0] if argv else ''}: {e}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -222,3 +222,14 @@ def test_call_that_times_out_says_the_request_may_be_running(net: Net) -> None:
         release.set()
     assert started.is_set() and code == 2 and len(rows) == 1
     assert rows[0]["error"] == "timed_out" and "may still be running" in rows[0]["message"]
+
+
+def test_a_call_that_never_reaches_the_service_says_nothing_ran(net: Net) -> None:
+    """What a call dropped by the router's ACL looks like from the caller: the service is
+    alive, yet no queryable answers. Not "timed out, may still be running": nothing ran."""
+    node = net.node("arm")
+    node.announce()  # alive, but serving no methods at all
+    code, rows, _ = run(net, "call", "arm", "move_joints", "--timeout", "1")
+    assert code == 2 and len(rows) == 1 and rows[0]["error"] == "unavailable"
+    assert "never reached it, so nothing ran" in rows[0]["message"]
+    assert "access control" in rows[0]["message"]

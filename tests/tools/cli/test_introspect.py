@@ -312,3 +312,30 @@ def test_ctrl_c_on_a_waiting_motion_call_stops_the_motion(net: Net) -> None:
     assert "Traceback" not in out and "KeyboardInterrupt" not in out, out
     reply = json.loads(out.strip().splitlines()[-1])
     assert reply["error"] == "interrupted" and "was stopped" in reply["message"]
+
+
+def test_without_a_reachable_router_the_tools_say_so_and_exit_non_zero() -> None:
+    """`telerobot alive` / `topic list` with no router used to print nothing and exit 0."""
+    from tests.conftest import free_port
+
+    nowhere = f"tcp/127.0.0.1:{free_port()}"
+    for args in (("alive", "--timeout", "1"), ("topic", "list", "--duration", "1")):
+        with spawned(telerobot(*args, "--connect", nowhere), merge_stderr=True) as child:
+            assert child.wait(DEADLINE_S) == 1
+            lines = child.rest()
+        text = "\n".join(lines)
+        assert f"no Zenoh router or peer reachable at {nowhere}" in text, text
+        assert "Traceback" not in text
+
+
+def test_a_service_that_cannot_connect_says_why_in_one_line() -> None:
+    from tests.conftest import free_port
+
+    nowhere = f"tcp/127.0.0.1:{free_port()}"
+    argv = telerobot("decision", "--mode", "client", "--connect", nowhere)
+    with spawned(argv, merge_stderr=True) as child:
+        assert child.wait(DEADLINE_S) == 1
+        lines = [line for line in child.rest() if line.strip()]
+    assert len(lines) == 1, lines
+    assert lines[0].startswith(f"telerobot decision: cannot connect to {nowhere}: Unable to")
+    assert "Is the router up" in lines[0]
