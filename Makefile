@@ -5,7 +5,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: install demo test lint typecheck pytest system-deps bench clean
+.PHONY: install demo test lint typecheck pytest system-deps bench clean compose-deps compose-test zenohd
 
 $(STAMP): pyproject.toml setup.py
 	$(PYTHON) -m venv $(VENV)
@@ -58,6 +58,57 @@ pytest: install system-deps
 	$(BIN)/pytest -q -m "alone"
 
 test: lint typecheck pytest
+
+# The compose run (tests/deploy/test_compose.py, docs/deploy.md "Docker"): Docker's engine
+# (Debian's docker.io), Compose v2 and debootstrap, for a base image made from Debian's
+# packages where no image registry answers. Installed with apt-get only when missing, like
+# system-deps; the test starts dockerd itself when it is not running. Where apt has only
+# Compose v1 (bookworm's docker-compose 1.29, which refuses the files' top-level `name:`),
+# Compose v2 is built from its Go module (go install) as Docker's CLI plugin.
+COMPOSE_VERSION ?= v2.29.7
+COMPOSE_PLUGIN  := /usr/local/lib/docker/cli-plugins/docker-compose
+compose-deps:
+	@missing=""; \
+	command -v dockerd >/dev/null 2>&1 || missing="$$missing docker.io"; \
+	command -v debootstrap >/dev/null 2>&1 || missing="$$missing debootstrap"; \
+	docker compose version >/dev/null 2>&1 || command -v go >/dev/null 2>&1 \
+	  || missing="$$missing golang-go"; \
+	if [ -n "$$missing" ] && command -v apt-get >/dev/null 2>&1; then \
+	  echo "installing:$$missing"; \
+	  ($(SUDO) apt-get update -qq && $(SUDO) DEBIAN_FRONTEND=noninteractive \
+	    apt-get install -y -qq --no-install-recommends $$missing >/dev/null) \
+	  || echo "could not install$$missing; the compose test will say what is missing"; \
+	fi; \
+	if ! docker compose version >/dev/null 2>&1 && command -v go >/dev/null 2>&1; then \
+	  echo "building Compose $(COMPOSE_VERSION) (go install) into $(COMPOSE_PLUGIN)"; \
+	  tmp=$$(mktemp -d); \
+	  GOBIN=$$tmp go install -ldflags "-s -w -X github.com/docker/compose/v2/internal.Version=$(COMPOSE_VERSION)" \
+	    github.com/docker/compose/v2/cmd@$(COMPOSE_VERSION) \
+	  && $(SUDO) install -D -m 0755 $$tmp/cmd $(COMPOSE_PLUGIN) \
+	  || echo "could not build Compose $(COMPOSE_VERSION); the compose test will say so"; \
+	  rm -rf $$tmp; \
+	fi
+
+# Both compose stacks built and brought up on this host, checked from outside (minutes:
+# the image build, then the stacks). Its own target, not part of `make test`.
+compose-test: install compose-deps
+	TELEROBOT_COMPOSE_TEST=1 $(BIN)/pytest -q -p no:xdist -s tests/deploy/test_compose.py
+
+# zenohd, the Rust router (labs, rmw_zenoh, the eclipse/zenoh image), of the same release as
+# the installed eclipse-zenoh, built once from the crate registry into ZENOHD_ROOT, where
+# tests/deploy/test_zenohd.py and the compose test look for it. Needs cargo (rustup, or
+# Debian's cargo if new enough); tens of minutes on two cores the first time.
+ZENOHD_ROOT ?= $(HOME)/.cache/telerobot/zenohd-$$v
+zenohd: install
+	@v=$$($(BIN)/python -c 'from importlib.metadata import version; print(version("eclipse-zenoh"))'); \
+	root="$(ZENOHD_ROOT)"; \
+	if [ -x "$$root/bin/zenohd" ]; then echo "zenohd $$v: $$root/bin/zenohd"; \
+	elif ! command -v cargo >/dev/null 2>&1; then \
+	  echo "no cargo: zenohd $$v not built; tests/deploy/test_zenohd.py will be skipped"; \
+	else echo "building zenohd $$v into $$root (cargo install)"; \
+	  cargo install --quiet --locked --root "$$root" zenohd --version "$$v" \
+	  || echo "cargo install zenohd $$v failed; tests/deploy/test_zenohd.py will be skipped"; \
+	fi
 
 bench: install
 	$(BIN)/telerobot bench --quick

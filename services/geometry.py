@@ -8,6 +8,10 @@ point in the world. Angles in rad, positions in m. Matrices are 3×3 numpy float
 unless a function says "row-major": those take and give 9 plain floats, for the per-message
 paths (codec, ROS conversion) where a numpy call costs more than the arithmetic.
 
+One pose, two forms: numpy `Array3`/`Mat3` (and Pinocchio's `pin.SE3`, 4×4) at the edges —
+configuration, planning, drawing, the reference models; `V3`/`M9` tuples of floats, and
+`PoseFloats` for a (p, R) pair, on the per-sample and per-command paths.
+
 This module imports nothing from `services`: every layer, `services.bus` included, may use it.
 """
 
@@ -20,10 +24,14 @@ from typing import Literal, cast
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-Vec3 = NDArray[np.float64]
+Array3 = NDArray[np.float64]
+"""A numpy 3-vector (the edges' form; `V3` is the per-message paths' form). Not the wire's
+`services.bus.messages.Vec3`, which is a tuple of floats."""
 Mat3 = NDArray[np.float64]
+"""A numpy 3×3 matrix (`M9` is its row-major plain-float form)."""
 TeleopFrame = Literal["world", "tool"]
 Quat = tuple[float, float, float, float]
+"""A unit quaternion, scalar first (w, x, y, z): viser's order (ROS's is `rosmsg.msgs.QuatXyzw`)."""
 
 ROTATION_TOL = 1e-6
 """PROTOCOL.md conventions: a rotation with ‖RᵀR − I‖_F > 1e-6 or det R < 0 is rejected.
@@ -124,7 +132,7 @@ def skew(w: ArrayLike) -> Mat3:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def vee(m: ArrayLike) -> Vec3:
+def vee(m: ArrayLike) -> Array3:
     """The vector of the skew-symmetric part of m (inverse of `skew`)."""
     a = np.asarray(m, dtype=float)
     return 0.5 * np.array([a[2, 1] - a[1, 2], a[0, 2] - a[2, 0], a[1, 0] - a[0, 1]])
@@ -135,7 +143,7 @@ def exp_so3(w: ArrayLike) -> Mat3:
     return np.array(exp9(_floats3(w))).reshape(3, 3)
 
 
-def log_so3(R: ArrayLike) -> Vec3:
+def log_so3(R: ArrayLike) -> Array3:
     """The rotation vector w (axis·angle, |w| ≤ π) with exp_so3(w) == R."""
     r: list[float] = np.asarray(R, dtype=float).reshape(9).tolist()
     return np.array(log9(r))
@@ -245,7 +253,7 @@ def rxyz(angles_rad: ArrayLike) -> Mat3:
     return rot_x(float(a[0])) @ rot_y(float(a[1])) @ rot_z(float(a[2]))
 
 
-def _branch_from_ax(R: Mat3, ax: float) -> Vec3:
+def _branch_from_ax(R: Mat3, ax: float) -> Array3:
     """Given a_x, the remaining angles follow exactly from Rx(a_x)ᵀ·R = Ry(a_y)·Rz(a_z)."""
     Q = rot_x(ax).T @ R
     ay = math.atan2(Q[0, 2], Q[2, 2])
@@ -253,7 +261,7 @@ def _branch_from_ax(R: Mat3, ax: float) -> Vec3:
     return np.array([ax, ay, az])
 
 
-def rxyz_inv(R: ArrayLike) -> Vec3:
+def rxyz_inv(R: ArrayLike) -> Array3:
     """Principal inverse of Rxyz (eq. 5): angles with a_y ∈ [−π/2, π/2], a_x, a_z ∈ (−π, π].
 
     At gimbal lock (a_y = ±π/2) only a_x ± a_z is defined; a_x = 0 is chosen.
@@ -267,11 +275,11 @@ def rxyz_inv(R: ArrayLike) -> Vec3:
     return a
 
 
-def _unwrap_near(a: Vec3, ref: Vec3) -> Vec3:
+def _unwrap_near(a: Array3, ref: Array3) -> Array3:
     return a + 2.0 * math.pi * np.round((ref - a) / (2.0 * math.pi))
 
 
-def rxyz_inv_near(R: ArrayLike, near_rad: ArrayLike) -> Vec3:
+def rxyz_inv_near(R: ArrayLike, near_rad: ArrayLike) -> Array3:
     """Inverse of Rxyz (eq. 5) on the branch closest to `near_rad`.
 
     Rxyz⁻¹ is multi-valued: (a_x, a_y, a_z) and (a_x + π, π − a_y, a_z + π), each up to 2π
@@ -298,6 +306,9 @@ V3 = tuple[float, float, float]
 M9 = tuple[float, float, float, float, float, float, float, float, float]
 """A 3×3 matrix as 9 floats, row-major."""
 I9: M9 = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+PoseFloats = tuple[Sequence[float], Sequence[float]]
+"""A frame's pose (p, R) as plain floats: p 3 floats (m), R 9 floats row-major — a (V3, M9),
+or lists of the same numbers (the arm's tick builds them as lists: `Kinematics.se3_floats`)."""
 
 
 def v3(v: ArrayLike) -> V3:
@@ -451,7 +462,7 @@ def log9(r: Sequence[float]) -> V3:
 
 def tool_target_point(
     p_world_tool0: ArrayLike, R_world_tool0: ArrayLike, dp: ArrayLike, frame: TeleopFrame
-) -> Vec3:
+) -> Array3:
     """The tool point an operator command asks for (the paper's eq. 2, tool-point form):
     p0 + dp in frame "world" (ΔT_w), p0 + R0·dp in frame "tool" (M_w^t ΔT_t), where
     (p0, R0) = (p_world_tool0, R_world_tool0) is the tool pose at the engagement."""
@@ -470,7 +481,7 @@ def tool_target_pose(
     dp: ArrayLike,
     dR_tool: ArrayLike,
     frame: TeleopFrame,
-) -> tuple[Vec3, Mat3]:
+) -> tuple[Array3, Mat3]:
     """The tool pose (p_world_tool, R_world_tool) an operator command asks for, from the
     engagement pose (PROTOCOL §2): R = R0·dR (dR = ΔM_t, a rotation in the tool frame) and
     p as `tool_target_point`; eq. (3) gives the same tool rotation at the effector."""

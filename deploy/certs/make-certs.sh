@@ -10,19 +10,23 @@
 #   (tls/ROBOT_HOST:7448), e.g. `robot.lab.example.org 192.168.10.5`. Each one goes into the
 #   router certificate's subjectAltName (DNS or IP), because clients check the name they dialled
 #   against it (Zenoh's `verify_name_on_connect`, on by default).
-# -c CLIENT: a client certificate whose common name is CLIENT (repeatable; default: operator and
-#   observer). With mTLS the router's ACL matches these names (`cert_common_names`).
+# -c CLIENT: a client certificate CLIENT.pem (repeatable; default: operator and observer).
+#   Its common name is the role the router's ACL matches (`cert_common_names`, with the
+#   login of the same name): a CLIENT that starts with `operator` or `observer`
+#   (operator1, observer-lab2) gets that role as its CN and its own name as its OU; any
+#   other CLIENT is its own CN (add it to the ACL's `cert_common_names` to let it in).
 # -o DIR: where to write (default: the current directory). An existing CA there is reused, so
 #   the script can be run again to add a client or renew the router certificate without
 #   re-issuing everyone's.
 # -d DAYS: validity of the new leaf certificates (default 825, the longest most clients accept).
+## The certificates serve TLS and QUIC alike (QUIC carries TLS 1.3 and reads the same files).
 #
 # Writes, in DIR: ca.pem, ca.key (keep the key offline), router.pem, router.key, and
 # CLIENT.pem, CLIENT.key per client. Keys are ECDSA P-256 in PKCS#8, which Zenoh (rustls) reads.
 set -euo pipefail
 
 usage() {
-  sed -n '2,21p' "$0" | sed 's/^# \{0,1\}//' >&2
+  sed -n '2,25p' "$0" | sed 's/^# \{0,1\}//' >&2
   exit "${1:-2}"
 }
 
@@ -113,23 +117,35 @@ else
   echo "new CA: $out/ca.pem"
 fi
 
-# sign NAME CN EXTENSIONS: NAME.key + NAME.pem signed by the CA.
+# sign NAME SUBJECT EXTENSIONS [NOTE]: NAME.key + NAME.pem signed by the CA.
 sign() {
-  local name="$1" cn="$2" ext="$3"
+  local name="$1" subj="$2" ext="$3"
   newkey "$out/$name.key"
-  openssl req -new -key "$out/$name.key" -subj "/CN=$cn" -out "$work/$name.csr"
+  openssl req -new -key "$out/$name.key" -subj "$subj" -out "$work/$name.csr"
   printf '%b\n' "$ext" >"$work/$name.ext"
   # -CAcreateserial with a fresh serial file: a random serial number per certificate
   openssl x509 -req -in "$work/$name.csr" -CA "$out/ca.pem" -CAkey "$out/ca.key" \
     -CAcreateserial -CAserial "$work/ca.srl" -sha256 -days "$days" \
     -extfile "$work/$name.ext" -out "$out/$name.pem" 2>/dev/null
-  echo "$name.pem: CN=$cn${4:+, $4}"
+  echo "$name.pem: ${subj#/}${4:+, $4}"
 }
 
 leaf="basicConstraints=critical,CA:FALSE\nkeyUsage=critical,digitalSignature\nsubjectKeyIdentifier=hash\nauthorityKeyIdentifier=keyid"
-sign router telerobot-router "$leaf\nextendedKeyUsage=serverAuth\nsubjectAltName=$san" "SAN $san"
+sign router /CN=telerobot-router "$leaf\nextendedKeyUsage=serverAuth\nsubjectAltName=$san" "SAN $san"
+# A station's certificate names its role (the ACL's cert_common_names and the login of the
+# same name in users.txt); the station itself is the OU, so `-c operator1` and `-c operator2`
+# both command and stay apart in the certificates.
 for client in "${clients[@]}"; do
-  sign "$client" "$client" "$leaf\nextendedKeyUsage=clientAuth"
+  case "$client" in
+    operator | observer) subj="/CN=$client" note="" ;;
+    operator* | observer*)
+      role="${client:0:8}"
+      subj="/OU=$client/CN=$role"
+      note="the ACL's $role role: install as $role.pem/$role.key on that station"
+      ;;
+    *) subj="/CN=$client" note="not a shipped role: add $client to an ACL subject's cert_common_names" ;;
+  esac
+  sign "$client" "$subj" "$leaf\nextendedKeyUsage=clientAuth" "$note"
 done
 
 # Certificates are public; keys stay 0600. Group-readable keys are set by the installer.

@@ -44,37 +44,95 @@ class QoS(Enum):
     RELIABLE = "reliable"
 
 
+class Delivery(Enum):
+    """Reliability of a stream on the link (Zenoh's `Reliability`, docs/deploy.md "QUIC").
+
+    Over TCP and TLS every sample rides one ordered byte stream whatever this says; it
+    matters on QUIC with `mixed_rel=1` (best-effort on QUIC datagrams, reliable on streams)
+    and on UDP: a lost best-effort sample is gone, and nothing queues behind its
+    retransmission."""
+
+    #: latest-wins streams: a lost sample is superseded by the next one within a period
+    BEST_EFFORT = "best_effort"
+    #: what must arrive whole and once: events, the description, replies, recordings
+    RELIABLE = "reliable"
+
+
 @dataclass(frozen=True, slots=True)
 class Topic(Generic[M]):
-    """A pub/sub key with its payload type, delivery class and largest payload (bytes):
-    anything larger is refused before it is decoded."""
+    """A pub/sub key with its payload type, delivery class, largest payload (bytes):
+    anything larger is refused before it is decoded, and its reliability on the link."""
 
     key: str
     type: type[M]
     qos: QoS
     latest_wins: bool
     max_bytes: int = MAX_PAYLOAD_BYTES
+    delivery: Delivery = Delivery.RELIABLE
 
 
-CMD = Topic("robot/cmd", OperatorCommand, QoS.CONTROL, latest_wins=True)
-ARM_TARGET = Topic("robot/arm/target", ArmTarget, QoS.CONTROL, latest_wins=True)
+# Reliability, per stream (Delivery): best-effort for the latest-wins control and state
+# streams, which a retransmission would only deliver late behind fresher samples (at
+# 700 ms round trip and 1 % loss over TCP: 2–3 s); reliable for what must arrive whole.
+#
+# robot/cmd: 500 Hz–1 kHz, each one absolute relative to its engagement, the next supersedes
+CMD = Topic(
+    "robot/cmd", OperatorCommand, QoS.CONTROL, latest_wins=True, delivery=Delivery.BEST_EFFORT
+)
+# robot/arm/target: absolute and re-sent on every command and hold; robot-host loopback
+ARM_TARGET = Topic(
+    "robot/arm/target", ArmTarget, QoS.CONTROL, latest_wins=True, delivery=Delivery.BEST_EFFORT
+)
 # The arm's description (PROTOCOL §1): on change only, kept in the publisher's cache for a
-# late subscriber; reliable, as events are. Large: it carries the URDF.
+# late subscriber; reliable, as events are: sent on change only, a lost one is never
+# re-sent. Large: it carries the URDF.
 ARM_DESCRIPTION = Topic(
     "robot/arm/description", ArmDescription, QoS.RELIABLE, latest_wins=True, max_bytes=2 << 20
 )
-STATE = Topic("robot/state", RobotState, QoS.STATE, latest_wins=True)
-FORCE = Topic("robot/force", ForceSample, QoS.CONTROL, latest_wins=True)
+# robot/state: at the arm's state rate, each a whole state
+STATE = Topic("robot/state", RobotState, QoS.STATE, latest_wins=True, delivery=Delivery.BEST_EFFORT)
+# robot/force: 1 kHz; a lost sample is one millisecond of a continuous signal
+FORCE = Topic(
+    "robot/force", ForceSample, QoS.CONTROL, latest_wins=True, delivery=Delivery.BEST_EFFORT
+)
+# robot/events: each one says something once (a fault, a level change): never lost
 EVENTS = Topic("robot/events", Event, QoS.RELIABLE, latest_wins=False)
-STEREO_L = Topic("vision/stereo/l", StereoFrame, QoS.BULK, True, MAX_FRAME_BYTES + 4096)
-STEREO_R = Topic("vision/stereo/r", StereoFrame, QoS.BULK, True, MAX_FRAME_BYTES + 4096)
-MASTER_STATE = Topic("master/state", MasterState, QoS.STATE, latest_wins=True)
+# video: a frame that comes late is worse than none; the next one is a full JPEG
+STEREO_L = Topic(
+    "vision/stereo/l",
+    StereoFrame,
+    QoS.BULK,
+    True,
+    MAX_FRAME_BYTES + 4096,
+    delivery=Delivery.BEST_EFFORT,
+)
+STEREO_R = Topic(
+    "vision/stereo/r",
+    StereoFrame,
+    QoS.BULK,
+    True,
+    MAX_FRAME_BYTES + 4096,
+    delivery=Delivery.BEST_EFFORT,
+)
+# master/state: at the master's rate, each a whole state of the device
+MASTER_STATE = Topic(
+    "master/state", MasterState, QoS.STATE, latest_wins=True, delivery=Delivery.BEST_EFFORT
+)
+# vision/stats: 1 Hz, carries the video level the console shows; reliable as documented
 VISION_STATS = Topic("vision/stats", VisionStats, QoS.RELIABLE, latest_wins=True)
-MASTER_FEEDBACK = Topic("master/feedback", MasterFeedback, QoS.STATE, latest_wins=True)
+# master/feedback: with each master/state, superseded by the next
+MASTER_FEEDBACK = Topic(
+    "master/feedback", MasterFeedback, QoS.STATE, latest_wins=True, delivery=Delivery.BEST_EFFORT
+)
 # Time-domain passivity (docs/passivity.md): each side's cumulative port energies, at its
 # control rate, on the control class like the command and force they ride along with.
-PASSIVITY_MASTER = Topic("robot/passivity/master", PassivityState, QoS.CONTROL, latest_wins=True)
-PASSIVITY_SLAVE = Topic("robot/passivity/slave", PassivityState, QoS.CONTROL, latest_wins=True)
+# Cumulative energies: the newest one carries everything the lost ones did (best-effort).
+PASSIVITY_MASTER = Topic(
+    "robot/passivity/master", PassivityState, QoS.CONTROL, True, delivery=Delivery.BEST_EFFORT
+)
+PASSIVITY_SLAVE = Topic(
+    "robot/passivity/slave", PassivityState, QoS.CONTROL, True, delivery=Delivery.BEST_EFFORT
+)
 
 TOPICS: tuple[Topic[Any], ...] = (
     CMD,

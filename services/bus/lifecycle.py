@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from services.bus.config import LOCAL_ROUTER, NodeConfig, add_node_args, load_deploy, node_config
 from services.bus.errors import AlreadyRunning, ConfigError, ConnectFailed
+from services.bus.sched import claim_cpu_share
 
 if TYPE_CHECKING:  # zenoh is imported when a session opens: `--help` stays instant
     from services.bus.node import Node
@@ -192,6 +193,7 @@ def run_service(
     p = service_parser(name, description, add_arguments, prog, verbose_help)
     args = p.parse_args(argv)
     log = setup_logging(name, args.verbose)
+    claim_cpu_share()  # a busy host's other sessions must not starve the control loops
     stop = Shutdown()
     try:
         with contextlib.ExitStack() as stack:

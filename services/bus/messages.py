@@ -179,6 +179,9 @@ class ArmDescription(Message):
     max_tool_speed_m_s: Annotated[float, Range(0.0, 100.0)] | None = None
     max_tool_rot_speed_rad_s: Annotated[float, Range(0.0, 100.0)] | None = None
     """Extension: the tool speeds the arm holds every setpoint to (its `limits`)."""
+    packages: dict[str, str] | None = None
+    """Extension: the URDF's `package://` roots on the arm's host (name → absolute folder),
+    for a consumer on that host that loads its meshes (the simulated cell's physics)."""
 
     def __post_init__(self) -> None:
         try:
@@ -242,6 +245,9 @@ class ForceSample(Message):
     f: Vec3
     c: Vec3
     raw: Vec6 | None = None
+    estimate: bool | None = None
+    """Extension: true when `f` and `c` are an estimate, not a wrist sensor's measurement
+    (a Franka's external wrench estimate from its joint torques, docs/franka.md)."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -29,25 +29,23 @@ from typing import Any, TypeVar
 
 import zenoh
 
-from services.bus import codec
-from services.bus.bounds import MAX_PAYLOAD_BYTES, short
+from services.bus import codec, rpc
+from services.bus.bounds import short
 from services.bus.config import NodeConfig
 from services.bus.errors import (
-    ERROR_CODES,
     AlreadyRunning,
     ConnectFailed,
     ProtocolError,
     RpcError,
     TelerobotError,
-    TimedOut,
     Unavailable,
 )
 from services.bus.events import EventLimiter
 from services.bus.intake import Intake
-from services.bus.keys import ALIVE_PREFIX, EVENTS, Topic, alive_key, rpc_key
+from services.bus.keys import ALIVE_PREFIX, EVENTS, Topic, alive_key
 from services.bus.messages import MAX_TEXT, Event, Message
+from services.bus.rpc import Handler, PendingCall
 from services.bus.streams import (
-    ZENOH_ENCODING,
     Latest,
     Publisher,
     Subscription,
@@ -58,7 +56,6 @@ from services.bus.streams import (
 log = logging.getLogger("telerobot.bus")
 
 M = TypeVar("M", bound=Message)
-Handler = Callable[[dict[str, Any]], dict[str, Any]]
 
 REJECT_REPORT_INTERVAL_S = 1.0
 REJECT_EVENTS_PER_S = 5
@@ -68,9 +65,6 @@ MAX_REJECT_KEYS = 256
 OTHER_KEY = "(other keys)"
 MAX_EVENT_DATA_BYTES = 16 * 1024
 """An event's data larger than this (packed) is replaced by a short summary."""
-CALL_RETRY_S = 0.02
-ZENOH_TIMEOUT = b"Timeout"
-"""The error reply Zenoh itself gives a `get` whose queryable did not answer in time."""
 
 
 def open_session(config: NodeConfig) -> zenoh.Session:
@@ -425,7 +419,7 @@ class Node:
             {"key": where, "reason": reason, "count": n, "suppressed": suppressed},
         )
 
-    # --- methods ---------------------------------------------------------------------
+    # --- methods (services/bus/rpc.py) -------------------------------------------------
     def serve(
         self,
         service: str,
@@ -434,94 +428,10 @@ class Node:
         first: Mapping[str, Callable[[], None]] | None = None,
         inline_try: Mapping[str, Callable[[dict[str, Any]], dict[str, Any] | None]] | None = None,
     ) -> None:
-        """Serve `robot/<service>/rpc/<method>` for each handler.
-
-        A handler takes the decoded argument map and returns the reply map. Handlers named in
-        `inline` never block (no I/O, no waiting, only short locks): they run in Zenoh's
-        callback, which saves the hand-over to a worker (the floor of a call). Every other
-        handler runs on a worker thread, so a `"wait": true` motion or a nested call can
-        block until done. `first[method]`, if given, runs before the arguments are read or
-        checked (an e-stop latches whatever its call carries). `inline_try[method]`, for a
-        method that usually answers from what it keeps: tried first in Zenoh's callback; it
-        never blocks, and returns None when it would have to wait, and then `methods[method]`
-        answers on a worker. Arguments above MAX_PAYLOAD_BYTES are refused unread.
-        `ProtocolError` → `bad_request`, `RpcError` → its code, anything else → `internal`
-        (and an event); a reply's message is short.
-        """
-        table = dict(methods)
-        tries = dict(inline_try or {})
-        unknown = (set(inline) | set(first or {}) | set(tries)) - set(table)
-        if unknown:
-            raise ValueError(f"inline or first-action methods not served: {sorted(unknown)}")
-        if set(tries) & set(first or {}):
-            raise ValueError("a method with a first action cannot have an inline try")
-        direct = frozenset(inline)
-        before = dict(first or {})
-        prefix = rpc_key(service, "")
-
-        def run(query: zenoh.Query, method: str, attempt: bool = False) -> bool:
-            """Answer `query`; False (nothing sent) when the inline try would wait."""
-            answered = True
-            try:
-                handler = tries[method] if attempt else table.get(method)
-                if handler is None:
-                    raise RpcError(
-                        "bad_request",
-                        f"no method {short(method, 64)!r} on {service} "
-                        f"(methods: {', '.join(sorted(table))})",
-                    )
-                act = before.get(method)
-                if act is not None:
-                    act()  # before anything can fail: an e-stop latches whatever it carries
-                payload = query.payload
-                args = codec.unpack(payload_bytes(payload, MAX_PAYLOAD_BYTES)) if payload else {}
-                if args is None:
-                    args = {}
-                if not isinstance(args, dict):
-                    raise ProtocolError("args", "expected a msgpack map of arguments")
-                result = handler(args)
-                if result is None:  # only an inline try: the worker answers
-                    answered = False
-                    return False
-                query.reply(query.key_expr, codec.pack(result), encoding=ZENOH_ENCODING)
-            except (ProtocolError, RpcError) as e:
-                code = e.code if isinstance(e, RpcError) else "bad_request"
-                msg = short(e.message if isinstance(e, RpcError) else str(e))
-                if code == "bad_request":
-                    self.report_rejected(str(query.key_expr), msg)
-                query.reply_err(
-                    codec.pack({"error": code, "message": msg}), encoding=ZENOH_ENCODING
-                )
-            except Exception as e:  # any bug becomes an `internal` reply, never a dead service
-                log.exception("method %s/%s failed", service, short(method, 64))
-                self.event(
-                    "error",
-                    short(f"{service}.{method} failed: {e}"),
-                    {"method": short(method, 64), "traceback": traceback.format_exc(limit=8)},
-                )
-                query.reply_err(
-                    codec.pack({"error": "internal", "message": short(e)}), encoding=ZENOH_ENCODING
-                )
-            finally:
-                if answered:
-                    query.drop()
-            return True
-
-        def callback(query: zenoh.Query) -> None:
-            method = str(query.key_expr)[len(prefix) :]
-            if "/" in method and method.split("/", 1)[0] in table:
-                method = method.split("/", 1)[0]
-            if method in direct or method not in table:
-                run(query, method)  # never blocks; an unknown method is answered at once
-                return
-            if method in tries and run(query, method, attempt=True):
-                return  # answered from what the service keeps
-            try:
-                self._rpc_pool.submit(run, query, method)
-            except RuntimeError:  # pool shut down: the node is closing
-                query.drop()
-
-        self._decls.append(self.session.declare_queryable(rpc_key(service, "**"), callback))
+        """Serve `robot/<service>/rpc/<method>` for each handler (`rpc.serve` says how:
+        `inline`, `first` and `inline_try`, and what each error replies)."""
+        queryable = rpc.serve(self, self._rpc_pool, service, methods, inline, first, inline_try)
+        self._decls.append(queryable)
 
     @property
     def alive(self) -> AliveSet:
@@ -557,65 +467,7 @@ class Node:
         Calls started one after the other run concurrently: the decision's `status` asks
         arm and force at the same time.
         """
-        deadline = time.monotonic() + timeout_s
-        if not self.alive.wait(service, timeout_s):
-            raise Unavailable(f"service {service!r} is not alive (no alive/{service} token)")
-        payload = codec.pack(dict(args or {}))
-        key = rpc_key(service, method)
-        replies = self.session.get(key, payload=payload, encoding=ZENOH_ENCODING, timeout=timeout_s)
-        return PendingCall(self, service, key, payload, deadline, replies)
-
-    def _call_retry(
-        self, service: str, key: str, payload: bytes, deadline: float
-    ) -> dict[str, Any]:
-        """The `get` loop after a first attempt saw no reply (pitfall 5). No reply from a
-        service that is gone is `Unavailable`; none from one still alive at the deadline is
-        `Unavailable` too, saying the call never reached it (an ACL, a missing method):
-        only Zenoh's own timeout reply means it was delivered and may still be running
-        (`TimedOut`)."""
-        while True:
-            if not self.alive.is_alive(service):
-                raise Unavailable(f"no reply from {key}: the service is gone")
-            if time.monotonic() >= deadline:
-                # Every get ended with no reply at all: no queryable of it was reached.
-                raise Unavailable(
-                    f"{key}: {service} is alive but the call never reached it, so nothing "
-                    "ran: the router's access control may not let this login call it, or "
-                    f"{service} has no such method"
-                )
-            time.sleep(min(CALL_RETRY_S, max(deadline - time.monotonic(), 0.0)))
-            left = deadline - time.monotonic()
-            replies = list(
-                self.session.get(
-                    key, payload=payload, encoding=ZENOH_ENCODING, timeout=max(left, 0.05)
-                )
-            )
-            if replies:
-                return _reply_map(replies[0], key)
-
-
-class PendingCall:
-    """A method call under way (`Node.call_start`); `result()` gives its reply once."""
-
-    def __init__(
-        self, node: Node, service: str, key: str, payload: bytes, deadline: float, replies: Any
-    ) -> None:
-        self._node = node
-        self._service = service
-        self._key = key
-        self._payload = payload
-        self._deadline = deadline
-        self._replies = replies
-
-    def result(self) -> dict[str, Any]:
-        """The reply map, or `RpcError` with the contract's code; `Unavailable` when no
-        reply came before the deadline."""
-        replies = list(self._replies)
-        if replies:
-            return _reply_map(replies[0], self._key)
-        # Pitfall 5: right after (re)connecting a get may see no queryable yet. Retry while
-        # the service is alive and time is left; otherwise it is absent.
-        return self._node._call_retry(self._service, self._key, self._payload, self._deadline)
+        return rpc.call_start(self, service, method, args, timeout_s)
 
 
 def _small(data: dict[str, Any]) -> bool:
@@ -624,25 +476,6 @@ def _small(data: dict[str, Any]) -> bool:
         return len(codec.pack(data)) <= MAX_EVENT_DATA_BYTES
     except (TypeError, ValueError, OverflowError):
         return False
-
-
-def _reply_map(reply: zenoh.Reply, key: str) -> dict[str, Any]:
-    if reply.ok is not None:
-        data = codec.unpack(reply.ok.payload.to_bytes())
-        if not isinstance(data, dict):
-            raise RpcError("internal", f"{key} replied with a non-map")
-        return data
-    err = reply.err
-    try:
-        body = codec.unpack(err.payload.to_bytes()) if err is not None else None
-    except ProtocolError:
-        body = None
-    if isinstance(body, dict) and body.get("error") in ERROR_CODES:
-        raise RpcError(body["error"], str(body.get("message", "")))
-    raw = err.payload.to_bytes() if err is not None else b""
-    if raw == ZENOH_TIMEOUT:
-        raise TimedOut(f"{key}: timed out with no reply; it may still be running")
-    raise RpcError("internal", f"{key}: {short(raw.decode('utf-8', 'replace'))}")
 
 
 @contextmanager

@@ -17,7 +17,7 @@ import zenoh
 
 from services.bus import codec
 from services.bus.errors import ProtocolError
-from services.bus.keys import ENCODING, QoS, Topic
+from services.bus.keys import ENCODING, Delivery, QoS, Topic
 from services.bus.messages import Message
 
 if TYPE_CHECKING:
@@ -54,6 +54,18 @@ _QOS: dict[QoS, dict[str, Any]] = {
 }
 
 
+_RELIABILITY: dict[Delivery, zenoh.Reliability] = {
+    Delivery.BEST_EFFORT: zenoh.Reliability.BEST_EFFORT,
+    Delivery.RELIABLE: zenoh.Reliability.RELIABLE,
+}
+
+
+def publisher_qos(topic: Topic[Any]) -> dict[str, Any]:
+    """The Zenoh publisher options of a topic: its class's priority, express and congestion
+    control, and its own reliability (keys.py says why per key)."""
+    return {**_QOS[topic.qos], "reliability": _RELIABILITY[topic.delivery]}
+
+
 class Publisher(Generic[M]):
     """A typed publisher: `put(msg)` validates, encodes and sends with the topic's QoS.
 
@@ -63,7 +75,7 @@ class Publisher(Generic[M]):
 
     def __init__(self, session: zenoh.Session, topic: Topic[M], cache: int = 0) -> None:
         self.topic = topic
-        qos = _QOS[topic.qos]
+        qos = publisher_qos(topic)
         if cache > 0:
             self._pub: Any = zenoh.ext.declare_advanced_publisher(
                 session,
@@ -81,9 +93,13 @@ class Publisher(Generic[M]):
         self._pub.put(codec.encode(msg))
         self.sent += 1
 
-    def put_bytes(self, payload: bytes) -> None:
-        """Send an already-encoded payload (replay, fuzzing)."""
-        self._pub.put(payload)
+    def put_bytes(self, payload: bytes, attachment: bytes | None = None) -> None:
+        """Send an already-encoded payload (replay, fuzzing), with a Zenoh attachment when
+        given (the replayer marks what it sends: `replay`)."""
+        if attachment is None:
+            self._pub.put(payload)
+        else:
+            self._pub.put(payload, attachment=attachment)
         self.sent += 1
 
     def undeclare(self) -> None:

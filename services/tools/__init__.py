@@ -1,2 +1,3 @@
-"""Tools a person runs: the `telerobot` command, the bench, the paper's evaluation tasks,
-recording, replay and reports."""
+"""Tools a person runs: the `telerobot` command (`cli`), the bench, the paper's evaluation
+tasks, recording, replay and reports (`record`), and the cell layer they and the tests share
+to run the system (`cell`: the in-process sim cell, child processes, waits, ports)."""

@@ -115,6 +115,7 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "workspace": {"min": [0.0, -0.5, 0.0], "max": [0.8, 0.5, 0.8]},
         "max_tool_speed_m_s": 0.5,
         "max_tool_rot_speed_rad_s": 1.5,
+        "packages": {"two_link_description": "/opt/two_link"},
     },
     ForceSample: {
         "seq": 1,
@@ -122,6 +123,7 @@ VALID: dict[type[Message], dict[str, Any]] = {
         "f": [1.0, 2.0, 3.0],
         "c": [0.1, 0.2, 0.3],
         "raw": [1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
+        "estimate": True,
     },
     Event: {
         "seq": 1,
@@ -224,8 +226,9 @@ OPTIONAL: dict[type[Message], set[str]] = {
         "workspace",
         "max_tool_speed_m_s",
         "max_tool_rot_speed_rad_s",
+        "packages",
     },
-    ForceSample: {"raw"},
+    ForceSample: {"raw", "estimate"},
     Event: {"data"},
     StereoFrame: {"fx", "fy", "cx", "cy", "baseline"},
     MasterState: set(),

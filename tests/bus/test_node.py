@@ -23,6 +23,7 @@ from services.bus.errors import ProtocolError, RpcError, Unavailable
 from services.bus.messages import IDENTITY_R, Event, ForceSample, OperatorCommand, Vec6
 from services.bus.node import Node, Publisher, Subscription, opened
 from services.bus.rate import RateLoop
+from services.bus.streams import publisher_qos
 from tests.conftest import Net, wait_until
 
 DEADLINE_S = 10.0
@@ -81,20 +82,26 @@ class Events:
 
 
 def test_pub_sub_delivers_every_sample_in_order(net: Net) -> None:
+    """On a reliable key (robot/events; the latest-wins streams are best-effort by design,
+    keys.py, and a loaded host may drop one of theirs)."""
     a, b = net.node("force"), net.node("watch")
     seen: list[int] = []
-    sub = b.subscribe(keys.FORCE, lambda m: seen.append(m.seq))
-    pub = a.publisher(keys.FORCE)
+    sub = b.subscribe(keys.EVENTS, lambda m: seen.append(m.seq))
+    pub = a.publisher(keys.EVENTS)
     wait_matched(pub)
     n = 300
+
+    def event(i: int) -> Event:
+        return Event(seq=i, t_ns=i, source="force", kind="status", message=f"n{i}")
+
     for i in range(1, n + 1):
-        pub.put(force(i))
+        pub.put(event(i))
     assert sub.wait_count(n, DEADLINE_S), sub.received
     # `received` counts before on_message runs: wait for the handler of the last one too.
     assert wait_until(lambda: len(seen) == n)
     assert seen == list(range(1, n + 1))
     assert sub.received == n and sub.rejected == 0 and pub.sent == n
-    assert sub.latest == force(n) and sub.get() == force(n)
+    assert sub.get() == event(n)
 
 
 @pytest.mark.parametrize(
@@ -166,7 +173,9 @@ def test_latest_with_each_hands_every_queued_message_over_in_order_then_the_newe
     wait_matched(pub)
     for i in range(1, 21):
         pub.put(force(i))
-    a.session.put(keys.FORCE.key, b"\xc1 garbage")
+    # with the publisher's own QoS: on another priority it may land after seq 40
+    qos = {k: v for k, v in publisher_qos(keys.FORCE).items() if k != "reliability"}
+    a.session.put(keys.FORCE.key, b"\xc1 garbage", **qos)
     for i in range(21, 41):
         pub.put(force(i))
     assert wait_until(lambda: (r := latest.read()) is not None and r[0].seq == 40)
@@ -288,19 +297,30 @@ def test_a_failing_on_message_handler_reports_and_the_stream_flows(net: Net) -> 
     watcher, a, b = net.node("console"), net.node("force"), net.node("arm")
     events = Events(watcher, b)
     got: list[int] = []
+    failed: list[int] = []
 
     def handler(m: ForceSample) -> None:
-        if m.seq == 2:
+        if not failed and m.seq >= 2:
+            failed.append(m.seq)
             raise ValueError("handler bug")
         got.append(m.seq)
 
-    sub = b.subscribe(keys.FORCE, handler)
+    b.subscribe(keys.FORCE, handler)
     pub = a.publisher(keys.FORCE)
     wait_matched(pub)
-    for i in (1, 2, 3):
-        pub.put(force(i))
-    assert sub.wait_count(3, DEADLINE_S)
-    assert wait_until(lambda: got == [1, 3])
+    # robot/force is best-effort (keys.py): a loaded host may drop a sample, so the stream
+    # goes on until the handler has failed once (on the first sample after seq 1) and
+    # samples after that one flow
+    seq = 0
+
+    def flowing() -> bool:
+        nonlocal seq
+        seq += 1
+        pub.put(force(seq))
+        return bool(failed) and any(s > failed[0] for s in got)
+
+    assert wait_until(flowing, DEADLINE_S)
+    assert failed[0] not in got and got == sorted(got) and got[-1] > failed[0]
     ev = events.wait(lambda e: e.kind == "error")
     assert ev.source == "arm" and "robot/force" in ev.message
     assert ev.data is not None and "handler bug" in ev.data["traceback"]

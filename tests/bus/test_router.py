@@ -7,14 +7,10 @@ are always terminated in `finally`.
 
 from __future__ import annotations
 
-import os
-import queue
 import re
 import signal
 import subprocess
 import sys
-import threading
-import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -26,6 +22,8 @@ from services.bus.config import NodeConfig
 from services.bus.errors import ConnectFailed
 from services.bus.messages import ForceSample
 from services.bus.node import Node
+from services.tools.cell.procs import Child
+from services.tools.cell.procs import telerobot_argv as telerobot
 from tests.bus.test_node import wait_matched
 from tests.conftest import free_port
 
@@ -33,100 +31,35 @@ REPO = Path(__file__).resolve().parents[2]
 DEADLINE_S = 20.0
 
 
-class ChildProcess:
-    """A spawned child whose stdout+stderr lines are read by a thread, awaited with deadlines."""
+class ChildProcess(Child):
+    """The cell layer's `Child`, started at once the way these tests spawn: from the
+    repository with it on PYTHONPATH, standard input closed, in our process group (signals
+    to its pid), its lines read by a thread (standard error among them, or apart in
+    `errors`) and awaited with `DEADLINE_S` unless told."""
+
+    proc: subprocess.Popen[bytes]  # started in __init__
 
     def __init__(self, argv: list[str], merge_stderr: bool = True) -> None:
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(REPO)}
-        self.argv = argv
-        self.proc = subprocess.Popen(
+        super().__init__(
+            Path(argv[0]).name,
             argv,
+            lines=True,
+            errors_apart=not merge_stderr,
             cwd=REPO,
-            env=env,
+            env={"PYTHONPATH": str(REPO)},
             stdin=subprocess.DEVNULL,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT if merge_stderr else subprocess.PIPE,
-            text=True,
-            bufsize=1,
+            own_group=False,
         )
-        self.lines: list[str] = []
-        #: stderr lines when not merged into stdout (diagnostics for failed assertions)
-        self.errors: list[str] = []
-        self._queue: queue.Queue[str | None] = queue.Queue()
-        self._readers = [threading.Thread(target=self._read, daemon=True)]
-        if not merge_stderr:
-            self._readers.append(threading.Thread(target=self._read_errors, daemon=True))
-        for t in self._readers:
-            t.start()
-
-    def _read(self) -> None:
-        assert self.proc.stdout is not None
-        for line in self.proc.stdout:
-            self._queue.put(line.rstrip("\n"))
-        self._queue.put(None)
-
-    def _read_errors(self) -> None:
-        assert self.proc.stderr is not None
-        for line in self.proc.stderr:
-            self.errors.append(line.rstrip("\n"))
+        self.start()
 
     def expect(self, pred: Callable[[str], bool] | str, timeout_s: float = DEADLINE_S) -> str:
-        """The first line so far or to come that satisfies `pred` (or starts with it).
-
-        Lines already read count too: children print in their own order.
-        """
-        test = pred if callable(pred) else (lambda s, p=pred: s.startswith(p))
-        for line in self.lines:
-            if test(line):
-                return line
-        deadline = time.monotonic() + timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise AssertionError(
-                    f"no line matching {pred!r} from {self.argv[:4]}: {self.lines} {self.errors}"
-                )
-            try:
-                got = self._queue.get(timeout=left)
-            except queue.Empty:
-                continue
-            if got is None:
-                self._queue.put(None)
-                raise AssertionError(f"{self.argv[:4]} ended: {self.lines} {self.errors}")
-            self.lines.append(got)
-            if test(got):
-                return got
+        return super().expect(pred, timeout_s)
 
     def rest(self, timeout_s: float = DEADLINE_S) -> list[str]:
-        """Every remaining line, once the child has closed its output."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                line = self._queue.get(timeout=max(deadline - time.monotonic(), 0.01))
-            except queue.Empty as e:
-                raise AssertionError(f"{self.argv[:4]} still writing: {self.lines}") from e
-            if line is None:
-                self._queue.put(None)
-                return self.lines
-            self.lines.append(line)
+        return super().rest(timeout_s)
 
     def wait(self, timeout_s: float = DEADLINE_S) -> int:
         return self.proc.wait(timeout=timeout_s)
-
-    def stop(self) -> None:
-        """SIGTERM, then SIGKILL if it does not go within the deadline."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=5.0)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=5.0)
-        for t in self._readers:
-            t.join(timeout=5.0)
-        for pipe in (self.proc.stdout, self.proc.stderr):
-            if pipe is not None:  # closed here, never left to the collector (a warning)
-                pipe.close()
 
 
 @contextmanager
@@ -136,10 +69,6 @@ def spawned(argv: list[str], merge_stderr: bool = True) -> Iterator[ChildProcess
         yield child
     finally:
         child.stop()
-
-
-def telerobot(*args: str) -> list[str]:
-    return [sys.executable, "-m", "services.tools.cli.main", *args]
 
 
 # A client-mode session that counts ForceSamples and prints what it got.
@@ -152,13 +81,13 @@ from services.bus.node import Node
 endpoint, n = sys.argv[1], int(sys.argv[2])
 cond, seqs = threading.Condition(), []
 
-def on_force(m):
+def on_event(m):
     with cond:
         seqs.append(m.seq)
         cond.notify_all()
 
 with Node("counter", NodeConfig(mode="client", connect=(endpoint,))) as node:
-    node.subscribe(keys.FORCE, on_force)
+    node.subscribe(keys.EVENTS, on_event)
     node.announce()
     print("ready", flush=True)
     with cond:
@@ -168,17 +97,18 @@ with Node("counter", NodeConfig(mode="client", connect=(endpoint,))) as node:
     print("seqs", ",".join(map(str, got)), flush=True)
 """
 
-# A client-mode session that publishes N ForceSamples once the counter is there.
+# A client-mode session that publishes N events once the counter is there: a reliable key
+# (the latest-wins streams are best-effort, keys.py: a starved router may drop some of theirs).
 PUBLISHER = r"""
 import sys, time
 from services.bus import keys
 from services.bus.config import NodeConfig
-from services.bus.messages import ForceSample
+from services.bus.messages import Event
 from services.bus.node import Node
 
 endpoint, n = sys.argv[1], int(sys.argv[2])
 with Node("force", NodeConfig(mode="client", connect=(endpoint,))) as node:
-    pub = node.publisher(keys.FORCE)
+    pub = node.publisher(keys.EVENTS)
     assert node.alive.wait("counter", 30), "counter never came up"
     deadline = time.monotonic() + 30
     # the router must have told us about the counter's subscriber before the first put
@@ -186,12 +116,25 @@ with Node("force", NodeConfig(mode="client", connect=(endpoint,))) as node:
         assert time.monotonic() < deadline, "no matching subscriber"
         time.sleep(0.005)
     for i in range(1, n + 1):
-        pub.put(ForceSample(seq=i, t_ns=time.time_ns(), f=(i, 0.0, -1.0), c=(0.0, 0.0, 0.0)))
+        pub.put(Event(seq=i, t_ns=time.time_ns(), source="force", kind="status", message="n"))
     print("sent", n, flush=True)
     # stay connected until the counter is done, so nothing in flight is cut off
     while node.alive.is_alive("counter") and time.monotonic() < deadline:
         time.sleep(0.01)
 """
+
+
+def test_a_spawned_child_that_ignores_sigterm_is_killed_on_leaving() -> None:
+    stubborn = (
+        "import signal, time\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "print('ignoring SIGTERM', flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    with spawned([sys.executable, "-c", stubborn]) as child:
+        child.expect("ignoring SIGTERM")
+        child.stop_timeout_s = 0.5
+    assert child.proc.returncode == -signal.SIGKILL
 
 
 def test_router_relays_between_client_processes() -> None:

@@ -108,7 +108,11 @@ def test_router_files_deny_by_default_with_consistent_rules(path: Path) -> None:
                     assert not ke.startswith("robot/arm"), (rid, ke)
                 assert not ke.startswith(("robot/arm/rpc", "robot/force/rpc")), (rid, ke)
     assert cfg["transport"]["auth"]["usrpwd"]["dictionary_file"] == "/etc/telerobot/zenoh/users.txt"
-    assert cfg["listen"]["endpoints"] == ["tcp/0.0.0.0:7447", "tls/0.0.0.0:7448"]
+    assert cfg["listen"]["endpoints"] == [
+        "tcp/0.0.0.0:7447",
+        "tls/0.0.0.0:7448",
+        "quic/0.0.0.0:7449?mixed_rel=1",
+    ]
 
 
 @pytest.mark.parametrize("path", ROUTER_FILES, ids=lambda p: p.name)
@@ -159,7 +163,7 @@ def test_mtls_variant_differs_only_in_tls_and_the_operator_subject() -> None:
     assert tls["enable_mtls"] is True and tls["root_ca_certificate"].endswith("/ca.pem")
     op = next(s for s in mtls["access_control"]["subjects"] if s["id"] == "operator")
     assert op["cert_common_names"] == ["operator"] and op["usernames"] == ["operator"]
-    assert op["link_protocols"] == ["tls"]
+    assert op["link_protocols"] == ["tls", "quic"]
     for cfg in (plain, mtls):
         cfg["transport"]["link"].pop("tls")
         cfg["access_control"].pop("subjects")
@@ -217,9 +221,13 @@ def test_robot_profile_router_listens_where_its_json5_does(tmp_path: Path) -> No
 
 
 def test_profiles_name_only_installed_paths() -> None:
-    for name in ("robot.toml", "operator.toml"):
+    for name in ("robot.toml", "operator.toml", "operator-quic.toml"):
         text = (DEPLOY / name).read_text()
-        for path in re.findall(r'"(/etc/telerobot/[^"]+)"', text):
+        paths = re.findall(r'"(/etc/telerobot/[^"]+)"', text)
+        # each profile names its Zenoh config there: none found means the pattern no longer
+        # matches how the profiles write paths, and the loop below would check nothing
+        assert paths, f"{name}: no /etc/telerobot path found"
+        for path in paths:
             rel = Path(path).relative_to("/etc/telerobot")
             shipped = DEPLOY / ("router" if "router" in rel.name else rel.parts[0]) / rel.name
             assert shipped.is_file(), f"{name} names {path}; nothing in deploy/ installs it"
@@ -332,3 +340,18 @@ def test_dockerfile_copies_what_exists() -> None:
         for part in src.split():
             assert (REPO / part).exists(), part
     assert 'ENTRYPOINT ["telerobot"]' in text and "USER telerobot" in text
+
+
+def test_the_quic_profile_is_the_operator_profile_over_quic(tmp_path: Path) -> None:
+    """operator-quic.toml differs from operator.toml in its link only, and dials the QUIC
+    listener of robot.toml's router with the same `mixed_rel` (else no connection)."""
+    cell = install(tmp_path)
+    tls = load_deploy(cell.profile("operator"))
+    quic = load_deploy(cell.profile("operator-quic"))
+    assert quic["zenoh"].pop("connect") == ["quic/robot.lab.example:7449?mixed_rel=1"]
+    assert tls["zenoh"].pop("connect") == ["tls/robot.lab.example:7448"]
+    assert quic == tls
+    listen = load_deploy(cell.profile("robot"))["router"]["listen"]
+    assert "quic/0.0.0.0:7449?mixed_rel=1" in listen
+    MasterConfig.from_mapping(quic["master"])
+    assert section(NodeConfig, quic["zenoh"] | {"connect": ["quic/h:1?mixed_rel=1"]}, "zenoh")

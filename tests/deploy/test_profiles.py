@@ -19,7 +19,7 @@ from services.bus.config import NodeConfig
 from services.bus.node import Node
 from tests.bus.test_router import ChildProcess, spawned, telerobot
 from tests.conftest import free_port, wait_until
-from tests.deploy.cell import Cell, install
+from tests.deploy.cell import install, without_hardware
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(120)]
 
@@ -27,32 +27,6 @@ DEADLINE_S = 45.0
 STOP_S = 30.0
 ROBOT_SERVICES = {"arm", "force", "decision", "vision"}
 STATION = {"master/station1", "console", "master/console"}
-
-
-def edit(path: Path, *pairs: tuple[str, str]) -> None:
-    text = path.read_text()
-    for old, new in pairs:
-        assert old in text, f"{path.name} has no {old!r}"
-        text = text.replace(old, new)
-    path.write_text(text)
-
-
-def without_hardware(cell: Cell) -> None:
-    edit(
-        cell.profile("robot"),
-        ('driver = "serial"', 'driver = "sim"'),
-        ('sensor = "serial"', 'sensor = "sim"'),
-        # SCHED_FIFO on a shared 2-core test machine is not ours to take
-        ('priority = "highest"', 'priority = "normal"'),
-        ('camera = "opencv"', 'camera = "sim"'),
-        ("devices = [0, 2]\n", ""),
-    )
-    edit(
-        cell.profile("operator"),
-        ('device = "spacemouse"', 'device = "scripted"'),
-        ("port = 8080", f"port = {free_port()}"),
-        ("tls/robot.lab.example:7448", f"tls/localhost:{cell.tls_port}"),
-    )
 
 
 def stop(launcher: ChildProcess) -> int:
@@ -64,7 +38,7 @@ def stop(launcher: ChildProcess) -> int:
 
 def test_robot_and_operator_profiles_come_up_together(tmp_path: Path) -> None:
     cell = install(tmp_path, ports=(free_port(), free_port()))
-    without_hardware(cell)
+    without_hardware(cell, free_port())
     with spawned(telerobot("up", str(cell.profile("robot")))) as robot:
         with spawned(telerobot("up", str(cell.profile("operator")))) as station:
             cfg = NodeConfig(

@@ -132,6 +132,8 @@ class Router:
         self.child = child
         self.tcp = f"tcp/127.0.0.1:{cell.tcp_port}"
         self.tls = f"tls/localhost:{cell.tls_port}"
+        # as deploy/operator-quic.toml dials it: the listener's `mixed_rel=1` too
+        self.quic = f"quic/localhost:{cell.quic_port}?mixed_rel=1"
 
     def node(
         self, name: str, client_file: Path, endpoint: str, instance: str | None = None
@@ -150,8 +152,10 @@ class Router:
         return self.node(name, self.cell.client_file("robot-local"), self.tcp)
 
 
-def start_router(root: Path, router_file: str | None = None) -> Iterator[Router]:
-    cell = install(root, ports=(free_port(), free_port()))
+def start_router(
+    root: Path, router_file: str | None = None, clients: tuple[str, ...] = ()
+) -> Iterator[Router]:
+    cell = install(root, ports=(free_port(), free_port()), clients=clients)
     profile = cell.profile("robot")
     if router_file is not None:
         text = profile.read_text().replace("robot-router.json5", router_file)
@@ -159,6 +163,7 @@ def start_router(root: Path, router_file: str | None = None) -> Iterator[Router]
     with spawned(telerobot("router", "--config", str(profile))) as child:
         line = child.expect("router up")
         assert f"tls/127.0.0.1:{cell.tls_port}" in line, line
+        assert f"quic/127.0.0.1:{cell.quic_port}?mixed_rel=1" in line, line
         yield Router(cell, child)
 
 
@@ -169,7 +174,12 @@ def router(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Router]:
 
 @pytest.fixture(scope="module")
 def mtls_router(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Router]:
-    yield from start_router(tmp_path_factory.mktemp("cell-mtls"), "robot-router-mtls.json5")
+    # `operator1` as the README makes it (make-certs.sh … -c operator1), beside the defaults
+    yield from start_router(
+        tmp_path_factory.mktemp("cell-mtls"),
+        "robot-router-mtls.json5",
+        clients=("operator", "observer", "operator1"),
+    )
 
 
 class RobotSide:
@@ -202,15 +212,21 @@ def denied_call(node: Node, service: str) -> None:
         node.call(service, "status", {}, 1.0)
 
 
-def test_operator_commands_through_decision_but_never_the_arm_directly(router: Router) -> None:
+@pytest.mark.parametrize("link", ["tls", "quic"])
+def test_operator_commands_through_decision_but_never_the_arm_directly(
+    router: Router, link: str
+) -> None:
+    """Over TLS and over QUIC with mixed reliability (deploy/operator-quic.toml): the same
+    login, the same CA, the same rights."""
     with ExitStack() as stack:
         side = RobotSide(stack, router)
         robot, cmd, arm_target = side.node, side.cmd, side.arm_target
+        op_id = f"op1-{link}"
         op = stack.enter_context(
-            router.station(router.cell.client_file("operator-client"), router.tls, "op1")
+            router.station(router.cell.client_file("operator-client"), getattr(router, link), op_id)
         )
         assert op.alive.wait("decision", DEADLINE_S), "the operator sees the robot's services"
-        assert robot.alive.wait("master/op1", DEADLINE_S), "the robot sees the operator's token"
+        assert robot.alive.wait(f"master/{op_id}", DEADLINE_S), "the robot sees its token"
         rounds = interleave((op, "operator", cmd), [(op, keys.ARM_TARGET.key, "op-to-arm")])
         assert rounds >= DELIVERED
         assert arm_target.by_master == {}, "a put to robot/arm/target from off the robot host"
@@ -249,15 +265,23 @@ def test_observer_may_watch_but_not_command(router: Router) -> None:
         interleave((op, "operator", cmd), denied)
         assert cmd.count("observer-tls") == 0 and cmd.count("observer-tcp") == 0, cmd.by_master
 
-        # Their subscriptions to the robot's state work.
+        # Their subscriptions to the robot's state work: every state over plain TCP (a LAN
+        # observer), at most 50 a second over TLS (the router's `state-to-stations`
+        # downsampling); a state after a pause of a period gets through either way.
         state_pub = robot.publisher(keys.STATE)
         n = 30
+        t0 = time.monotonic()
         for i in range(1, n + 1):
             state_pub.put(state(i))
             time.sleep(0.002)
+        burst_s = time.monotonic() - t0
+        time.sleep(0.05)
+        state_pub.put(state(n + 1))
         for sub in states:
-            assert sub.wait_for(lambda m: m.seq == n, DEADLINE_S) is not None
-            assert sub.received >= 1
+            assert sub.wait_for(lambda m: m.seq == n + 1, DEADLINE_S) is not None
+        tls, tcp = states
+        assert tcp.received == n + 1, "plain TCP: every state"
+        assert 2 <= tls.received <= 50.0 * burst_s + 3, (tls.received, burst_s)
 
         # …and they call nothing, not even the decision server.
         for _, watcher in watchers:
@@ -316,12 +340,18 @@ def test_client_without_the_ca_cannot_connect_over_tls(router: Router) -> None:
     router.node("master", cell.client_file("operator-client"), router.tls).close()
 
 
-def test_mutual_tls_needs_the_operator_certificate_and_login(mtls_router: Router) -> None:
+@pytest.mark.parametrize("link", ["tls", "quic"])
+def test_mutual_tls_needs_the_operator_certificate_and_login(
+    mtls_router: Router, link: str
+) -> None:
+    """mTLS and the ACL hold on QUIC as on TLS: the authorised station commands, one with
+    another role's certificate gets nothing through, one without a certificate no link."""
     cell = mtls_router.cell
+    endpoint = getattr(mtls_router, link)
     with ExitStack() as stack:
         cmd = RobotSide(stack, mtls_router).cmd
         op = stack.enter_context(
-            mtls_router.node("master", cell.client_file("operator-client-mtls"), mtls_router.tls)
+            mtls_router.node("master", cell.client_file("operator-client-mtls"), endpoint)
         )
         # A client certificate of the cell, but the observer's: the operator's password
         # with it commands nothing (the ACL wants CN `operator` AND user `operator`).
@@ -330,12 +360,35 @@ def test_mutual_tls_needs_the_operator_certificate_and_login(mtls_router: Router
             lambda t: t.replace("certs/operator.", "certs/observer."),
             "observer-cert.json5",
         )
-        imp = stack.enter_context(mtls_router.node("master", wrong_cn, mtls_router.tls, "imp"))
-        interleave((op, "operator", cmd), [(imp, keys.CMD.key, "imposter")])
-        assert cmd.count("imposter") == 0, cmd.by_master
+        imp = stack.enter_context(mtls_router.node("master", wrong_cn, endpoint, "imp"))
+        # and the operator's certificate over plain TCP: no TLS, no operator subject
+        tcp = stack.enter_context(
+            mtls_router.node(
+                "master", cell.client_file("operator-client-mtls"), mtls_router.tcp, "tcp"
+            )
+        )
+        interleave(
+            (op, "operator", cmd), [(imp, keys.CMD.key, "imposter"), (tcp, keys.CMD.key, "tcp")]
+        )
+        assert cmd.count("imposter") == 0 and cmd.count("tcp") == 0, cmd.by_master
     # Without any client certificate the TLS handshake fails.
     with pytest.raises(ConnectFailed, match="Unable to connect"):
-        mtls_router.node("master", cell.client_file("operator-client"), mtls_router.tls).close()
+        mtls_router.node("master", cell.client_file("operator-client"), endpoint).close()
+
+
+def test_the_readme_s_operator1_certificate_commands_over_mutual_tls(mtls_router: Router) -> None:
+    """`make-certs.sh … -c operator1` (the README's step) makes a certificate the shipped
+    mTLS router's ACL accepts with the `operator` login (its CN is the role)."""
+    cell = mtls_router.cell
+    station1 = cell.variant(
+        "operator-client-mtls.json5",
+        lambda t: t.replace("certs/operator.", "certs/operator1."),
+        "operator1-mtls.json5",
+    )
+    with ExitStack() as stack:
+        cmd = RobotSide(stack, mtls_router).cmd
+        op = stack.enter_context(mtls_router.node("master", station1, mtls_router.quic, "s1"))
+        assert interleave((op, "operator", cmd), []) >= DELIVERED
 
 
 def test_stations_and_observers_read_the_arm_s_description_but_never_publish_one(

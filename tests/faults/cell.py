@@ -17,10 +17,11 @@ import numpy as np
 
 from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import RobotState
-from services.control.master.scripted import generate_motion, save_trajectory
+from services.control.master.devices.scripted import generate_motion, save_trajectory
+from services.tools.cell.procs import Child
 from tests.conftest import wait_until
 from tests.faults.observe import Observer
-from tests.faults.procs import Cell, Proc
+from tests.faults.procs import Cell
 
 MASTER_ID = "master"
 START_TIMEOUT_S = 60.0
@@ -53,11 +54,11 @@ class FaultCell:
         self.recoveries: list[str] = []
 
     # --- processes -------------------------------------------------------------------
-    def __getitem__(self, name: str) -> Proc:
+    def __getitem__(self, name: str) -> Child:
         return self.cell[name]
 
     @property
-    def router(self) -> Proc:
+    def router(self) -> Child:
         return self.cell.router
 
     def kill(self, name: str) -> None:
@@ -69,9 +70,9 @@ class FaultCell:
         self.expected_down.discard(name)
         self.cell[name].start()
 
-    def replace(self, name: str, service: str, *extra: str) -> Proc:
+    def replace(self, name: str, service: str, *extra: str) -> Child:
         """Stop `name` (SIGTERM) and declare a new process under that name (not started)."""
-        self.cell[name].terminate()
+        self.cell[name].stop()
         self.expected_down.add(name)
         return self.cell.add(name, service, *extra)
 
@@ -146,7 +147,7 @@ class FaultCell:
         for attempt in range(attempts):
             self.wait_ready()
             if master.alive and self.mode() != "follow":
-                master.terminate()  # its engagement is held for good: a new one needs a restart
+                master.stop()  # its engagement is held for good: a new one needs a restart
             if not master.alive:
                 self.start(MASTER_ID)
             if wait_until(lambda: self.mode() == "follow", FOLLOW_TIMEOUT_S, 0.1):

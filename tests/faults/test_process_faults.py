@@ -26,6 +26,7 @@ from services.bus.messages import RobotState
 from services.control.arm.config import ArmConfig
 from services.control.arm.fake_controller import FakeController
 from services.control.arm.model import load_model
+from services.tools.cell.procs import Child
 from tests.conftest import wait_until
 from tests.faults.cell import MASTER_ID, FaultCell, path_length
 from tests.faults.observe import (
@@ -36,7 +37,6 @@ from tests.faults.observe import (
     record,
     tool_steps,
 )
-from tests.faults.procs import Proc
 from tests.faults.rogue import MARK
 
 HOME_Q_RAD = load_model().home
@@ -240,7 +240,7 @@ def test_kill_force_with_compliance_holds_and_a_restart_resumes_streaming(
     cell.assert_no_crash()
 
 
-def _rogue(cell: FaultCell, seconds: float) -> Proc:
+def _rogue(cell: FaultCell, seconds: float) -> Child:
     argv = [
         sys.executable,
         "-m",
@@ -291,11 +291,11 @@ def test_flood_of_commands_leaves_decision_responsive_and_force_streaming(
     try:
         ok, failed, slowest = 0, 0, 0.0
         t_limit = time.monotonic() + 60.0
-        while MARK not in rogue.log_tail(5) and rogue.alive and time.monotonic() < t_limit:
+        while MARK not in rogue.tail(5) and rogue.alive and time.monotonic() < t_limit:
             o, f, s = _status_calls(cell, time.monotonic() + 0.25)
             ok, failed, slowest = ok + o, failed + f, max(slowest, s)
-        lines = [ln for ln in rogue.log_tail(50).splitlines() if ln.startswith(MARK)]
-        assert lines, f"the rogue did not finish its flood\n{rogue.log_tail()}"
+        lines = [ln for ln in rogue.tail(50).splitlines() if ln.startswith(MARK)]
+        assert lines, f"the rogue did not finish its flood\n{rogue.tail()}"
         result = json.loads(lines[-1][len(MARK) :])
         # The decision takes robot/cmd through its intake (Node.batches): under a flood what
         # waits is bounded (64, the oldest dropped unread), so it counts what it read, never
@@ -311,7 +311,7 @@ def test_flood_of_commands_leaves_decision_responsive_and_force_streaming(
         status = cell.call("status")
     finally:
         cell.expected_down.add("rogue")
-        rogue.terminate()
+        rogue.stop()
     drain_ms = (time.monotonic() - t_end) * 1e3
     stats1 = status["supervisor"]["stats"]
     # The rogue's wall-clock window on this process's monotonic clock (one host, one clock).

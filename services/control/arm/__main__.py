@@ -22,6 +22,7 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--driver", choices=list(get_args(DriverName)), default=None)
     p.add_argument("--port", default=None, help="serial URL (/dev/ttyUSB0, socket://host:port)")
     p.add_argument("--baudrate", type=int, default=None)
+    p.add_argument("--robot-ip", default=None, help="the Franka's FCI address (libfranka)")
     p.add_argument(
         "--autostart",
         action="store_true",
@@ -36,6 +37,7 @@ def start(ctx: ServiceContext) -> None:
         "driver": args.driver,
         "port": args.port,
         "baudrate": args.baudrate,
+        "robot_ip": args.robot_ip,
     }
     table = service_table(ctx.deploy, "arm", overrides)
     autostart = bool(table.pop("autostart", False)) or args.autostart

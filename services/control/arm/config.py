@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Any, get_args
+from typing import Any, Literal, get_args
 
 from services.bus.bounds import check_config
 from services.bus.config import section
@@ -33,6 +33,7 @@ _KINDS: dict[str, str] = {
     "max_dp_m": "displacement_m",
     "teleop_settle_s": "duration_s",
     "event_interval_s": "duration_s",
+    "franka_watchdog_s": "timeout_s",
 }
 
 
@@ -51,6 +52,14 @@ class ArmConfig:
     `home_q` (default: the model's `home`) is where `home` goes and the simulated arm powers
     on. `max_target_step_m` / `max_target_step_rad` (default: the model's): a streamed
     target further than this from the previous one is refused.
+
+    `sim_physics` (driver `sim`): whose physics the simulated arm's joints are: `own` (the
+    arm alone, in this process) or `workcell` (the cell's, owned by the `workcell` service:
+    the arm then touches the objects; docs/sim.md).
+    `libfranka` (a Franka FR3 or Panda, docs/franka.md) needs `robot_ip`; `franka_realtime`
+    is libfranka's real-time check (`auto`: on where the kernel has a real-time policy, else
+    off and said at start-up), `franka_watchdog_s` how long without the robot's state is a
+    lost link, `franka_gripper` whether to drive the Franka Hand.
     """
 
     model: str = DEFAULT_MODEL
@@ -67,12 +76,17 @@ class ArmConfig:
     serial_cycle_ms: float = 28.0
     serial_timeout_s: float = 0.1
     sim_calibration_s: float = 0.5
+    sim_physics: str = "own"
     max_following_error_rad: float = 0.35
     max_dp_m: float = 2.0
     max_target_step_m: float = 0.0
     max_target_step_rad: float = 0.0
     teleop_settle_s: float = 0.2
     event_interval_s: float = 1.0
+    robot_ip: str | None = None
+    franka_realtime: Literal["auto", "enforce", "ignore"] = "auto"
+    franka_watchdog_s: float = 0.5
+    franka_gripper: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.model, str) or not self.model:
@@ -115,6 +129,15 @@ class ArmConfig:
         if self.serial_cycle_ms > 28.0:
             raise ConfigError("arm.serial_cycle_ms", "must be ≤ 28 ms (the PUMA setpoint cycle)")
         _non_negative(self, "sim_calibration_s")
+        if self.sim_physics not in ("own", "workcell"):
+            raise ConfigError(
+                "arm.sim_physics", f"must be own or workcell, got {self.sim_physics!r}"
+            )
+        _positive(self, "franka_watchdog_s")
+        if self.robot_ip is not None and not _host(self.robot_ip):
+            raise ConfigError("arm.robot_ip", "must be an IP address or a host name")
+        if self.driver == "libfranka" and self.robot_ip is None:
+            raise ConfigError("arm.robot_ip", "the libfranka driver needs the robot's address")
         check_config("arm", self, _KINDS)
 
     @classmethod
@@ -126,6 +149,10 @@ class ArmConfig:
     def bind(self, model: ArmModel) -> ArmConfig:
         """This configuration with everything the model decides filled in and checked
         against it (n values each, within its limits): ConfigError naming the key."""
+        if self.driver == "libfranka" and model.n != 7:
+            raise ConfigError(
+                "arm.driver", f"libfranka drives Franka's 7-joint arms, not {model.name}"
+            )
         if self.driver == "serial" and model.name != "puma560":
             raise ConfigError(
                 "arm.driver", f"the serial driver is the PUMA 560 controller's, not {model.name}"
@@ -143,6 +170,15 @@ class ArmConfig:
             max_target_step_m=self.max_target_step_m or model.max_target_step_m,
             max_target_step_rad=self.max_target_step_rad or model.max_target_step_rad,
         )
+
+
+def _host(value: Any) -> bool:
+    """An address libfranka can dial: a host name or IP, no spaces, ≤ 253 characters."""
+    return (
+        isinstance(value, str)
+        and 0 < len(value) <= 253
+        and all(c.isalnum() or c in ".-_:" for c in value)
+    )
 
 
 def _number(key: str, value: Any) -> float:

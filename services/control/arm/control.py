@@ -11,8 +11,8 @@ Frames: world R_w (the model's base frame), flange R_e (the model's flange frame
 (placed in R_e by `eMt`, set with `set_tool`). Units: m, rad, s.
 
 The per-tick and per-target state is plain floats (joint vectors: lists of n; the tool pose:
-`safety.ToolPose`): at 1 kHz of targets a numpy call on a few joints costs more than the
-arithmetic. Arrays appear only at the boundaries (the arm, planning, the methods' replies).
+`services.geometry.PoseFloats`): at 1 kHz of targets a numpy call on a few joints costs more
+than the arithmetic. Arrays appear only at the boundaries (the arm, planning, the methods' replies).
 
 Who calls what: `tick(dt_s)` is called by the service's fixed-rate loop and is the only
 place that talks to the arm's setpoint stream; `on_target` and the proxy's methods may be
@@ -43,7 +43,7 @@ from services.bus.events import EventLimiter
 from services.bus.messages import ArmTarget
 from services.control.arm.arguments import RelFrame, is_number, too_long
 from services.control.arm.config import ArmConfig
-from services.control.arm.driver import Arm, ArmError
+from services.control.arm.driver import Arm, ArmError, Gripping
 from services.control.arm.kinematics import Kinematics, Unreachable, se3_floats, tool_se3
 from services.control.arm.model import ArmModel, load_model
 from services.control.arm.motions import (
@@ -55,14 +55,21 @@ from services.control.arm.motions import (
     Servo,
     servo_target,
 )
-from services.control.arm.safety import MotionLimits, ToolPose, safe_step
-from services.geometry import angle9, rotation_problem
+from services.control.arm.safety import MotionLimits, safe_step
+from services.geometry import PoseFloats, angle9, rotation_problem
 
 Vec = NDArray[np.float64]
 Status = Literal["disconnected", "connected", "initializing", "ready", "moving", "error"]
 EmitFn = Callable[[str, str, dict[str, Any]], None]
 
 MAX_MOTION_HISTORY = 128
+SAME_TARGET_M = 1e-6
+SAME_TARGET_R = 1e-6
+"""A streamed target within these of the one aimed at (each coordinate in m, each rotation
+entry) is that one re-sent: nothing to solve, and the motion may settle. A supervisor whose
+target is rebuilt every tick from what the arm measures (compliance on at rest) sends poses
+that differ in their last bits; compared exactly, each restarted the settle time and an arm
+at rest read `moving` forever (the compose run's new engagement waited for `ready`)."""
 
 
 class ProxyControl:
@@ -108,18 +115,20 @@ class ProxyControl:
         self._q_cmd: list[float] = list(config.home_q)
         self._qd_cmd: list[float] = [0.0] * self.n
         self._q_meas: list[float] | None = None
-        self._pose_memo: tuple[list[float], ToolPose] | None = None
-        self._pose_cmd: ToolPose = self._tool_pose(self._q_cmd)
+        self._pose_memo: tuple[list[float], PoseFloats] | None = None
+        self._pose_cmd: PoseFloats = self._tool_pose(self._q_cmd)
         self._gen: Generator | None = None
         self._motion: Motion | None = None
         self._motions: OrderedDict[int, Motion] = OrderedDict()
         self._next_id = 1
         self._last_seq = -1
         self._engage: int | None = None
-        self._target_ref: ToolPose | None = None
+        self._target_ref: PoseFloats | None = None
         """The last target applied in this engagement (None: the next one is measured
         from the commanded pose): the step bound's reference."""
         self._grip: float | None = None
+        self._gripper: Gripping | None = arm if isinstance(arm, Gripping) else None
+        """The driver's gripper, when it has one: an accepted target's grip goes to it."""
         self._last_cmd_t_ns = 0
         self._cmd_rx_ns: int | None = None
         self._cmd_origin_t_ns: int | None = None
@@ -257,6 +266,20 @@ class ProxyControl:
                 self._qd_cmd = [0.0] * self.n
                 self._end_motion("completed")
 
+    def _halt_here(self) -> None:
+        """End the motion holding the measured joints at once (a contact stop: braking
+        would carry the tool on into what it touches). The setpoint steps back to where the
+        arm is, never ahead of it; within the joint limits, as the arm is."""
+        q = list(self._q_meas or self._q_cmd)
+        if len(q) != self.n or not all(math.isfinite(x) for x in q):
+            q = list(self._q_cmd)
+        joints = self.limits.joints
+        self._q_cmd = [min(max(x, j[0]), j[1]) for x, j in zip(q, joints, strict=True)]
+        self._qd_cmd = [0.0] * self.n
+        self._pose_cmd = self._tool_pose(self._q_cmd)
+        self.arm.command(np.array(self._q_cmd))
+        self._end_motion("stopped")
+
     def _end_motion(self, reason: str) -> None:
         motion = self._motion
         self._gen = None
@@ -379,8 +402,10 @@ class ProxyControl:
         self._awaiting_setpoint = True
         if tgt.grip is not None:
             self._grip = float(tgt.grip)
+            if self._gripper is not None:
+                self._gripper.grip(self._grip)
         ref = self._target_ref
-        if ref is not None and ref[0] == tgt.p and ref[1] == tgt.R:
+        if ref is not None and _same_pose(ref, tgt.p, tgt.R):
             return  # the pose already aimed at (a hold re-sent): nothing to solve or restart
         target = pin.SE3(np.array(tgt.R, dtype=np.float64).reshape(3, 3), np.array(tgt.p))
         gen = self._gen
@@ -433,7 +458,7 @@ class ProxyControl:
 
     # --- internals --------------------------------------------------------------------------
 
-    def _tool_pose(self, q: list[float]) -> ToolPose:
+    def _tool_pose(self, q: list[float]) -> PoseFloats:
         """The tool pose at joints q. The last one is kept: a tick that holds or settles
         asks again for the pose of the setpoint it already has (twice)."""
         memo = self._pose_memo
@@ -530,3 +555,12 @@ class ProxyControl:
 def _max_diff(a: Sequence[float], b: Sequence[float]) -> float:
     """max |a − b| over the joints."""
     return max(abs(x - y) for x, y in zip(a, b, strict=True))
+
+
+def _same_pose(
+    ref: tuple[Sequence[float], Sequence[float]], p: Sequence[float], R: Sequence[float]
+) -> bool:
+    """Whether target (p, R) is `ref` re-sent, within SAME_TARGET_M and SAME_TARGET_R."""
+    return all(abs(a - b) <= SAME_TARGET_M for a, b in zip(ref[0], p, strict=True)) and all(
+        abs(a - b) <= SAME_TARGET_R for a, b in zip(ref[1], R, strict=True)
+    )

@@ -32,7 +32,7 @@ from services.bus.errors import TelerobotError
 
 ArmStatus = Literal["disconnected", "connected", "initializing", "ready", "error"]
 ARM_STATUSES: frozenset[str] = frozenset(get_args(ArmStatus))
-DriverName = Literal["sim", "serial"]
+DriverName = Literal["sim", "serial", "libfranka"]
 
 Q = NDArray[np.float64]
 
@@ -47,6 +47,10 @@ class Arm(Protocol):
 
     Thread safety: every method may be called from any thread; `command` is called once per
     control cycle by the proxy's loop and never blocks on I/O.
+
+    A driver may also offer `preflight() -> str | None`: what is plainly missing before
+    `connect` (a serial device that does not exist, no robot address), said by the service
+    at start-up as a warning and an `error` event.
     """
 
     @property
@@ -101,4 +105,26 @@ class Arm(Protocol):
 
     def close(self) -> None:
         """Hold and release the link; status `disconnected`. Idempotent."""
+        ...
+
+
+@runtime_checkable
+class Gripping(Protocol):
+    """An arm driver that also drives a gripper (the Franka Hand): an optional capability,
+    checked once with `isinstance`."""
+
+    def grip(self, grip: float) -> None:
+        """Close the gripper to `grip` (0 open … 1 closed; the newest wins). Never blocks;
+        ignored unless the arm is `ready`."""
+        ...
+
+
+@runtime_checkable
+class Clocked(Protocol):
+    """An arm driver whose robot keeps its own clock (franky-sim runs slower than real time
+    on a loaded machine): the service's control loop advances motions by the robot's time,
+    so its setpoints never run ahead of what the robot can follow. Optional, checked once."""
+
+    def robot_elapsed_s(self, wall_dt_s: float) -> float:
+        """The robot's time since the last call (s); `wall_dt_s` when it keeps none now."""
         ...

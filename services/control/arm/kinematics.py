@@ -36,14 +36,12 @@ from eigenpy import LLT
 from numpy.typing import ArrayLike, NDArray
 
 from services.bus.errors import ConfigError, TelerobotError
-from services.geometry import M9, V3, mul9, mv9
+from services.geometry import M9, V3, PoseFloats, mul9, mv9
 
 if TYPE_CHECKING:
     from services.control.arm.model import ArmModel
 
 Vec = NDArray[np.float64]
-PoseFloats = tuple[list[float], list[float]]
-"""(p, R) of a frame: position (3 floats, m) and rotation (9 floats, row-major)."""
 
 LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 DAMPING2 = 1e-6

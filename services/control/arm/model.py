@@ -274,6 +274,8 @@ class ArmModel:
             "max_target_step_m": self.max_target_step_m,
             "max_target_step_rad": self.max_target_step_rad,
         }
+        if self.package_dirs:
+            out["packages"] = {k: str(v) for k, v in self.package_dirs.items()}
         if self.workspace_min is not None and self.workspace_max is not None:
             out["workspace"] = {"min": list(self.workspace_min), "max": list(self.workspace_max)}
         return out

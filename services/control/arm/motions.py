@@ -15,8 +15,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.control.arm.planning import PLAN_SPEED_MARGIN
-from services.control.arm.safety import MotionLimits, ToolPose, ToolPoseFn, tool_motion
+from services.control.arm.safety import MotionLimits, ToolPoseFn, tool_motion
 from services.control.arm.trajectory import Trapezoid, discrete_brake_speed
+from services.geometry import PoseFloats
 
 Vec = NDArray[np.float64]
 
@@ -115,7 +116,7 @@ def servo_target(
     goal: Sequence[float],
     q: Sequence[float],
     qd: Sequence[float],
-    pose_now: ToolPose,
+    pose_now: PoseFloats,
     dt_s: float,
     lim: MotionLimits,
     tool_pose: ToolPoseFn,
@@ -124,8 +125,8 @@ def servo_target(
     still stop at the goal, within the acceleration box around the present velocity, and
     with the tool kept under 90 % of its speeds (so `safe_step` has nothing to cut).
 
-    Joint vectors are n plain floats (rad, rad/s) and the pose is a `safety.ToolPose`: this
-    runs every tick of a streamed motion."""
+    Joint vectors are n plain floats (rad, rad/s) and the pose is a
+    `services.geometry.PoseFloats`: this runs every tick of a streamed motion."""
     v_des: list[float] = []
     v_lo: list[float] = []
     v_hi: list[float] = []

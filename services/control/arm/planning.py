@@ -71,7 +71,13 @@ def tool_speed_bound(lim: MotionLimits, lin: float, ang: float, speed: float) ->
 
 
 def plan_pose(
-    kin: Kinematics, lim: MotionLimits, q0: Vec, target: pin.SE3, eMt: pin.SE3, config: str | None
+    kin: Kinematics,
+    lim: MotionLimits,
+    q0: Vec,
+    target: pin.SE3,
+    eMt: pin.SE3,
+    config: str | None,
+    speed: float = 1.0,
 ) -> Plan:
     sols = kin.ik(target, eMt, q_ref=q0)
     if not sols:
@@ -88,17 +94,18 @@ def plan_pose(
         if best is None:
             raise RpcError("limit", "every solution is outside the joint limits")
     if config is None or config == kin.config(q0):
-        line = plan_line(kin, lim, q0, target, eMt)
+        line = plan_line(kin, lim, q0, target, eMt, speed)
         if line is not None:
             return line
-    return plan_joint(kin, lim, q0, best.q, eMt, 1.0)
+    return plan_joint(kin, lim, q0, best.q, eMt, speed)
 
 
 def plan_line(
-    kin: Kinematics, lim: MotionLimits, q0: Vec, target: pin.SE3, eMt: pin.SE3
+    kin: Kinematics, lim: MotionLimits, q0: Vec, target: pin.SE3, eMt: pin.SE3, speed: float = 1.0
 ) -> Plan | None:
-    """A straight tool line (position lerp, rotation slerp), or None if it leaves the
-    workspace or the joint limits or needs a joint jump on the way."""
+    """A straight tool line (position lerp, rotation slerp) at `speed` (a fraction of the
+    limits), or None if it leaves the workspace or the joint limits or needs a joint jump on
+    the way."""
     start = kin.fk_tool(q0, eMt)
     dp = target.translation - start.translation
     w = pin.log3(start.rotation.T @ target.rotation)
@@ -116,11 +123,11 @@ def plan_line(
     if length == 0.0 and angle == 0.0:
         return (lambda s: q0), Trapezoid(0.0, 1.0, 0.0, 0.0), q0.copy(), "cartesian"
     d1, d2 = path.derivative_bounds()
-    v_max = tool_speed_bound(lim, length, angle, 1.0)
+    v_max = tool_speed_bound(lim, length, angle, speed)
     a_max = math.inf
     for j in range(kin.n):
         if d1[j] > 0.0:
-            v_max = min(v_max, PLAN_SPEED_MARGIN * lim.vmax[j] / d1[j])
+            v_max = min(v_max, speed * PLAN_SPEED_MARGIN * lim.vmax[j] / d1[j])
             a_max = min(a_max, PLAN_ACCEL_SHARE * lim.amax[j] / d1[j])
         if d2[j] > 0.0:
             v_max = min(v_max, math.sqrt(PLAN_ACCEL_SHARE * lim.amax[j] / d2[j]))

@@ -113,8 +113,9 @@ class ArmProxy(ProxyControl):
                 try:
                     self.arm.connect()
                 except ArmError as e:
-                    self._fail("internal", f"connect failed: {e}")
-                    raise RpcError("internal", f"connect failed: {e}") from None
+                    # the controller is absent or silent: not a fault of ours (`internal`)
+                    self._fail("not_ready", f"connect failed: {e}")
+                    raise RpcError("not_ready", f"connect failed: {e}") from None
                 self._estopped = False
                 self._last_error = None
                 self._set_status("connected")
@@ -180,7 +181,8 @@ class ArmProxy(ProxyControl):
         )
 
     def rpc_move_pose(self, args: Mapping[str, Any]) -> dict[str, Any]:
-        """Move the tool frame to `{p, R}` (world). A straight line when the target is on the
+        """Move the tool frame to `{p, R}` (world) at `speed` (fraction of the limits, default
+        1; an extension, docs/protocol-extensions.md). A straight line when the target is on the
         current branch and the line is clear of singularities, else joint-interpolated to the
         IK solution of branch `config` (default: the one nearest the current joints)."""
         p = arg_vector(args, "p", 3)
@@ -191,9 +193,11 @@ class ArmProxy(ProxyControl):
             raise RpcError(
                 "bad_request", f"config: {self.model.name} has no analytic IK, hence no branches"
             )
+        speed = arg_fraction(args, "speed")
         target = pin.SE3(R, p)
         return self._move(
-            "move_pose", lambda kin, q0, eMt: plan_pose(kin, self.limits, q0, target, eMt, config)
+            "move_pose",
+            lambda kin, q0, eMt: plan_pose(kin, self.limits, q0, target, eMt, config, speed),
         )
 
     def rpc_move_relative(self, args: Mapping[str, Any]) -> dict[str, Any]:
@@ -207,6 +211,7 @@ class ArmProxy(ProxyControl):
             raise RpcError("bad_request", f"dp: |dp| above {self.config.max_dp_m} m")
         dR_arg = opt_rotation(args, "dR")
         dR = np.eye(3) if dR_arg is None else dR_arg
+        speed = arg_fraction(args, "speed")
         frame_arg = opt_frame(args)
         with self._lock:
             frame: RelFrame = frame_arg or self._frame
@@ -216,16 +221,26 @@ class ArmProxy(ProxyControl):
             oMt = oMe * eMt
             R_f = {"world": np.eye(3), "wrist": oMe.rotation, "tool": oMt.rotation}[frame]
             target = pin.SE3(R_f @ dR @ R_f.T @ oMt.rotation, oMt.translation + R_f @ dp)
-            return plan_pose(kin, self.limits, q0, target, eMt, None)
+            return plan_pose(kin, self.limits, q0, target, eMt, None, speed)
 
         return self._move("move_relative", plan)
 
     def rpc_stop(self, args: Mapping[str, Any]) -> dict[str, Any]:
-        """Brake any motion to rest (within the acceleration limits). → `{status, motion}`."""
+        """Brake any motion to rest (within the acceleration limits). → `{status, motion}`.
+
+        `now: true` (docs/protocol-extensions.md, the decision's contact stop): the arm
+        holds where it measurably is at once, not after a braking distance; nothing latches.
+        """
+        now = args.get("now", False)
+        if not isinstance(now, bool):
+            raise RpcError("bad_request", "stop: now must be true or false")
         with self._lock:
             motion = self._motion
-            if self._status == "moving" and not isinstance(self._gen, Brake):
-                self._gen = Brake()
+            if self._status == "moving":
+                if now:
+                    self._halt_here()
+                elif not isinstance(self._gen, Brake):
+                    self._gen = Brake()
             status = self._status
         self._flush()
         return {"status": status, "motion": motion.id if motion else None}

@@ -29,13 +29,13 @@ from numpy.typing import ArrayLike, NDArray
 from services.control.arm.kinematics import (
     IkSolution,
     Kinematics,
-    PoseFloats,
     Solve,
     Unreachable,
     compose_floats,
     tool_se3,
 )
 from services.control.arm.model import ArmModel, load_model
+from services.geometry import PoseFloats
 
 Vec = NDArray[np.float64]
 

@@ -20,13 +20,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from services.geometry import angle9
+from services.geometry import PoseFloats, angle9
 
 Vec = NDArray[np.float64]
-ToolPose = tuple[Sequence[float], Sequence[float]]
-"""(p, R) of the tool in the world: position (3 floats, m), rotation (9 floats, row-major)."""
-ToolPoseFn = Callable[[list[float]], ToolPose]
-"""The tool pose at a joint vector (n floats, rad)."""
+ToolPoseFn = Callable[[list[float]], PoseFloats]
+"""The tool pose in the world (p, R floats) at a joint vector (n floats, rad)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,7 +58,7 @@ class MotionLimits:
 @dataclass(frozen=True, slots=True)
 class SafeStep:
     """One filtered setpoint: joints (rad), velocity (rad/s), the tool pose there (p, R as
-    in `ToolPose`), and which limits acted (`joint_limit`, `joint_speed`, `joint_accel`,
+    in `PoseFloats`), and which limits acted (`joint_limit`, `joint_speed`, `joint_accel`,
     `tool_speed`)."""
 
     q: list[float]
@@ -70,7 +68,7 @@ class SafeStep:
     limited: frozenset[str]
 
 
-def tool_motion(pose0: ToolPose, pose1: ToolPose, max_dp_m: float, max_dth_rad: float) -> float:
+def tool_motion(pose0: PoseFloats, pose1: PoseFloats, max_dp_m: float, max_dth_rad: float) -> float:
     """How far the tool moves from `pose0` to `pose1` as a share of what is allowed: the
     larger of |p1 − p0| / max_dp_m and angle(R0ᵀR1) / max_dth_rad (≤ 1: within both).
 
@@ -87,7 +85,7 @@ def safe_step(
     dt_s: float,
     lim: MotionLimits,
     tool_pose: ToolPoseFn,
-    pose_now: ToolPose,
+    pose_now: PoseFloats,
 ) -> SafeStep:
     """The next setpoint towards `q_des` that honours `lim`, from setpoint `q` moving at `qd`.
 

@@ -19,6 +19,7 @@ pyserial is imported only by `connect()`: the codec and the fake controller do n
 from __future__ import annotations
 
 import contextlib
+import os
 import threading
 import time
 from collections import deque
@@ -208,6 +209,17 @@ class SerialArm(ArmBase):
         self.max_transaction_s = 0.0
 
     # --- Arm ---------------------------------------------------------------------------
+
+    def preflight(self) -> str | None:
+        """What is plainly missing before any byte is sent (a device path that does not
+        exist), in words an operator can act on; None when nothing is (URLs are not checked:
+        only `connect` can tell whether something answers there)."""
+        if "://" in self.port or os.path.exists(self.port):
+            return None
+        return (
+            f"no serial port {self.port}: is the arm controller's cable plugged in and "
+            "powered? (set [arm] port or --port; `ls /dev/serial/by-id/` lists what is there)"
+        )
 
     def connect(self) -> None:
         import serial  # lazy: sim and tests of pure logic never load pyserial

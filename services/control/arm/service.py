@@ -30,6 +30,7 @@ from services.bus.messages import ArmDescription, ArmTarget, MaxLen, RobotState
 from services.bus.node import Node
 from services.control.arm.backends import open_arm
 from services.control.arm.config import ArmConfig
+from services.control.arm.driver import Clocked
 from services.control.arm.model import ArmModel, load_model
 from services.control.arm.proxy import ArmProxy
 
@@ -66,8 +67,10 @@ class ArmService:
         # the liveliness watch starts now, not at the first motion call: a set created on
         # demand has not yet heard of a decision that is already alive (unsupervised moves)
         _ = node.alive
-        self.arm = arm if arm is not None else open_arm(self.config, self.model)
+        self.arm = arm if arm is not None else open_arm(self.config, self.model, node)
         self.proxy = ArmProxy(self.arm, self.config, self._emit, self.model)
+        self._clock: Clocked | None = self.arm if isinstance(self.arm, Clocked) else None
+        """A driver with a robot clock of its own: ticks advance by it (docs/franka.md)."""
         self._state_pub = node.publisher(keys.STATE)
         self._description_pub = node.publisher(keys.ARM_DESCRIPTION, cache=1)
         self._description_seq = 0
@@ -114,6 +117,15 @@ class ArmService:
         self._thread.start()
         self._publish_description()
         node.announce()
+        self._preflight()
+
+    def _preflight(self) -> None:
+        """Missing hardware is said at start-up, not first at `connect` (see `Arm`)."""
+        check = getattr(self.arm, "preflight", None)
+        problem = check() if callable(check) else None
+        if problem:
+            log.warning("%s", problem)
+            self.node.event("error", problem, {"code": "not_ready", "driver": self.config.driver})
 
     def _publish_description(self) -> None:
         """robot/arm/description: at start-up and after every tool change (cached: a late
@@ -157,7 +169,10 @@ class ArmService:
 
     def _tick(self, now: float) -> None:
         """One tick of the proxy (the caller holds `_tick_lock`)."""
-        self.proxy.tick(min(max(now - self._last_tick, MIN_TICK_S), MAX_TICK_S))
+        dt = now - self._last_tick
+        if self._clock is not None:
+            dt = self._clock.robot_elapsed_s(dt)
+        self.proxy.tick(min(max(dt, MIN_TICK_S), MAX_TICK_S))
         self._last_tick = now
         self._next_tick = now + 1.0 / self.config.control_rate_hz
 

@@ -1,13 +1,22 @@
-"""A simulated joint controller for any arm model: the default `Arm`.
+"""The simulated joint controller of any arm model (the default `Arm`): the arm in MuJoCo.
 
-The simulated servo (`JointFollower`) tracks the streamed setpoint like a position loop
-with the model's per-joint limits (positions, speeds, accelerations); it is stepped at 1 kHz,
-either by its own thread (`SimArm()`, for the service) or by the caller through `step(dt_s)`
-(`threaded=False`, deterministic, for tests). Calibration takes `calibration_s` of simulated
-time. Faults can be injected to exercise the proxy's error paths.
+`SimArm` streams its joint setpoints to the arm's position servos in the cell's physics and
+reads the joints back from it (services/world/workcell/engine.py, docs/sim.md). The physics
+is either
 
-The same follower also moves the fake serial controller (`fake_controller.py`), so both
-backends behave alike under the contract test.
+- **the workcell's** (`node` given: the arm service's): setpoints on `sim/arm/cmd`, joints
+  from `sim/arm/state`, both published by the one process that owns the physics (the
+  `workcell` service), which also moves the objects the arm touches; or
+- **its own** (no node: the arm alone, for the contract suite, the proxy's tests and a
+  standalone `telerobot arm`): a `CellPhysics` of the arm in an empty cell, stepped at 1 kHz
+  by its own thread (`threaded=True`) or by the caller through `step(dt_s)`
+  (`threaded=False`, deterministic).
+
+Calibration takes `calibration_s` (simulated time with its own physics, wall time with the
+workcell's). Faults can be injected to exercise the proxy's error paths.
+
+`JointFollower`, below, is the servo of the fake PUMA serial controller
+(`fake_controller.py`), the real controller's counterpart; the simulation does not use it.
 """
 
 from __future__ import annotations
@@ -16,13 +25,19 @@ import math
 import threading
 import time
 from collections.abc import Sequence
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from services.control.arm.arm_base import ArmBase, as_joint_vector
 from services.control.arm.driver import ArmError, ArmStatus, Q
 from services.control.arm.model import ArmModel, load_model
+from services.world.workcell.engine import CellPhysics
+from services.world.workcell.messages import SIM_ARM_CMD, SIM_ARM_STATE, SimArmCmd
+from services.world.workcell.scene import Scene
+
+if TYPE_CHECKING:
+    from services.bus.node import Node
 
 FaultKind = Literal["stall", "disconnect", "error"]
 
@@ -32,12 +47,15 @@ ARRIVED_RAD = 1e-9
 """The servo's exponential approach ends here: joints this close to the setpoint, and this
 slow (rad/s), are at the setpoint and at rest (far below any encoder's resolution)."""
 IDLE_WAIT_S = 1.0
+PHYSICS_LOST_S = 0.5
+"""No `sim/arm/state` for this long (the workcell publishes at ≥ 20 Hz): the link to the
+physics is lost, the arm errs (a lost link stops motion)."""
 
-Joints = tuple[float, ...]
+JointFloats = tuple[float, ...]
 """The n joint values (rad or rad/s), joint 1 first."""
 
 
-def _joints(value: Sequence[float] | Q, n: int) -> Joints:
+def _joints(value: Sequence[float] | Q, n: int) -> JointFloats:
     """n joint values as a tuple of floats (ValueError unless n)."""
     if isinstance(value, np.ndarray):
         return tuple(np.asarray(value, dtype=np.float64).reshape(n).tolist())
@@ -70,10 +88,10 @@ class JointFollower:
         kp_1_s: float = 50.0,
     ) -> None:
         n = self.n = len(q)
-        self._q: Joints = _joints(as_joint_vector(q, "q", n), n)
-        self._rest: Joints = (0.0,) * n
-        self._v: Joints = self._rest
-        self._sp: Joints = self._q
+        self._q: JointFloats = _joints(as_joint_vector(q, "q", n), n)
+        self._rest: JointFloats = (0.0,) * n
+        self._v: JointFloats = self._rest
+        self._sp: JointFloats = self._q
         self.vmax = as_joint_vector(vmax, "vmax", n)
         self.amax = as_joint_vector(amax, "amax", n)
         self.q_lo = as_joint_vector(q_lo, "q_lo", n)
@@ -120,7 +138,7 @@ class JointFollower:
         self._q = _joints(value, self.n)
 
     @property
-    def q_rad(self) -> Joints:
+    def q_rad(self) -> JointFloats:
         """The joints (rad) as a tuple: no copy needed, it never changes in place."""
         return self._q
 
@@ -214,20 +232,109 @@ class JointFollower:
         return not any(self._v) and self._q == self._sp
 
 
-class SimArm(ArmBase):
-    """A simulated joint controller of an arm model (implements `Arm`; default: the PUMA 560).
+class _Link:
+    """Where the joints are: the setpoint goes in, the joints come back."""
 
-    The servo's limits are the model's capabilities (the URDF's joint ranges and velocities,
-    the model file's accelerations) unless given. `q_init` (rad) is where the joints are at
-    power-on (default: the model's `home`). `calibration_s` is the simulated
-    duration of `initialize()`. `threaded=True` steps the servo at 1 kHz of wall time in a
-    thread started by `connect()` while anything moves, and sleeps while the joints rest at
-    the setpoint (a new setpoint, a fault or a calibration wakes it); `threaded=False`
-    leaves stepping to `step(dt_s)`.
-    A setpoint further than `max_setpoint_step_rad` from the measured joints, or outside
-    the joint limits, is refused and puts the arm in `error` (the controller never jumps).
-    A joint whose servo position and actual position differ by more than
-    `stall_threshold_rad` is stalled: `error`.
+    stepping = False
+
+    def command(self, q: JointFloats, halt: bool = False) -> None:
+        raise NotImplementedError
+
+    def joints(self) -> tuple[JointFloats, JointFloats] | None:
+        """(q, qd) now, or None before the physics has said."""
+        raise NotImplementedError
+
+    def step(self, dt_s: float) -> float:
+        """Advance the physics (own physics only); the simulated time it advanced (s)."""
+        return 0.0
+
+    def lost(self) -> bool:
+        """The physics said something once and then nothing for PHYSICS_LOST_S."""
+        return False
+
+    def close(self) -> None:
+        pass
+
+
+class _OwnPhysics(_Link):
+    """The arm alone in an empty cell, in this process."""
+
+    stepping = True
+
+    def __init__(self, model: ArmModel, q0: Sequence[float]) -> None:
+        self.physics = CellPhysics(model, Scene(), q0=q0)
+        self._dt = float(self.physics.model.opt.timestep)
+        self._q: JointFloats = tuple(q0)
+        self._sp: JointFloats = tuple(q0)
+        self._read()
+
+    def _read(self) -> None:
+        self._q = tuple(self.physics.q.tolist())
+        self._qd: JointFloats = tuple(self.physics.qd.tolist())
+
+    def command(self, q: JointFloats, halt: bool = False) -> None:
+        if halt:
+            self.physics.brake()
+            self._read()
+        else:
+            self.physics.command(q)
+        self._sp = q
+
+    def joints(self) -> tuple[JointFloats, JointFloats]:
+        return self._q, self._qd
+
+    def step(self, dt_s: float) -> float:
+        n = max(1, round(dt_s / self._dt))
+        if self._q == self._sp and not any(self._qd):
+            return n * self._dt  # at rest exactly at the setpoint, alone: nothing to do
+        self.physics.step(n)
+        self._read()
+        return n * self._dt
+
+    def at_rest(self, sp: JointFloats) -> bool:
+        return max(map(abs, self._qd)) < ARRIVED_RAD and all(
+            abs(a - b) < 1e-9 for a, b in zip(sp, self._q, strict=True)
+        )
+
+
+class _WorkcellPhysics(_Link):
+    """The workcell's physics over the bus: `sim/arm/cmd` out, `sim/arm/state` in."""
+
+    def __init__(self, node: Node, n: int) -> None:
+        self._n = n
+        self._pub = node.publisher(SIM_ARM_CMD)
+        self._state = node.latest(SIM_ARM_STATE)
+        self._seq = 0
+        self._rx_ns = 0
+
+    def command(self, q: JointFloats, halt: bool = False) -> None:
+        self._seq += 1
+        self._pub.put(SimArmCmd(seq=self._seq, t_ns=time.time_ns(), q=q, halt=halt))
+
+    def joints(self) -> tuple[JointFloats, JointFloats] | None:
+        got = self._state.read()
+        if got is None or len(got[0].q) != self._n:
+            return None
+        st = got[0]
+        self._rx_ns = got[1]
+        return tuple(st.q), tuple(st.qd)
+
+    def lost(self) -> bool:
+        self.joints()
+        return self._rx_ns > 0 and time.monotonic_ns() - self._rx_ns > PHYSICS_LOST_S * 1e9
+
+
+class SimArm(ArmBase):
+    """The simulated joint controller of an arm model (implements `Arm`; default: the PUMA
+    560): its joints are the physics' (see the module docstring).
+
+    `q_init` (rad): where the joints are at power-on in its own physics (default: the
+    model's `home`; the workcell's physics keeps the arm where it is). A setpoint further
+    than `max_setpoint_step_rad` from the measured joints, or outside the joint limits, is
+    refused and puts the arm in `error` (the controller never jumps). A joint whose setpoint
+    and actual position differ by more than `stall_threshold_rad` while it is stalled is an
+    error. `stop()` holds at the point the joints reach at their maximum deceleration;
+    `estop()` brakes them where they are.
     """
 
     def __init__(
@@ -243,32 +350,39 @@ class SimArm(ArmBase):
         stall_threshold_rad: float = 0.02,
         q_lo: Sequence[float] | None = None,
         q_hi: Sequence[float] | None = None,
+        node: Node | None = None,
     ) -> None:
         if calibration_s < 0.0:
             raise ValueError("calibration_s must be ≥ 0")
         arm = model if model is not None else load_model()
         self.model = arm
-        self.n = arm.n
+        n = self.n = arm.n
         self._lock = threading.RLock()
-        self._servo = JointFollower.of(
-            arm, q_init, max_joint_speed_rad_s, max_joint_accel_rad_s2, q_lo, q_hi
+        self._lo: JointFloats = tuple(
+            as_joint_vector(arm.q_lo if q_lo is None else q_lo, "q_lo", n)
         )
-        self._lo: Joints = tuple(self._servo.q_lo.tolist())
-        self._hi: Joints = tuple(self._servo.q_hi.tolist())
-        q0 = self._servo.q_rad
+        self._hi: JointFloats = tuple(
+            as_joint_vector(arm.q_hi if q_hi is None else q_hi, "q_hi", n)
+        )
+        amax = (
+            [j.max_accel for j in arm.joints]
+            if max_joint_accel_rad_s2 is None
+            else max_joint_accel_rad_s2
+        )
+        self._amax: JointFloats = tuple(as_joint_vector(amax, "amax", n).tolist())
+        q0 = _joints(as_joint_vector(arm.home if q_init is None else q_init, "q", n), n)
         if any(q < lo or q > hi for q, lo, hi in zip(q0, self._lo, self._hi, strict=True)):
             raise ValueError("q_init is outside the joint limits")
-        # The actual joints differ from the servo's model only when a joint stalls. Joint
-        # tuples never change in place: they are shared, not copied.
-        self._q_actual: Joints = q0
-        self._q_read: Joints = q0
+        self._link: _Link = _OwnPhysics(arm, q0) if node is None else _WorkcellPhysics(node, n)
+        self._q_read: JointFloats = q0
+        self._sp: JointFloats = q0
         self._calibration_s = float(calibration_s)
         self._cal_left_s = 0.0
         self._calibrated = False
         self._status: ArmStatus = "disconnected"
         self._last_error: str | None = None
         self._link_up = False
-        self._stalled_joint: int | None = None
+        self._stalled: tuple[int, float] | None = None
         self._max_step_rad = float(max_setpoint_step_rad)
         self._stall_threshold_rad = float(stall_threshold_rad)
         self._t_s = 0.0
@@ -279,14 +393,43 @@ class SimArm(ArmBase):
         self.setpoints_accepted = 0
         self.setpoints_ignored = 0
 
+    # --- the physics --------------------------------------------------------------------
+
+    def _joints_now(self) -> tuple[JointFloats, JointFloats] | None:
+        return self._link.joints()
+
+    def _q_now(self) -> JointFloats:
+        j = self._link.joints()
+        return j[0] if j is not None else self._q_read
+
+    def _send(self, sp: JointFloats, halt: bool = False) -> None:
+        """The setpoint to the servos (a stalled joint stays where it stalled)."""
+        self._sp = sp
+        if self._stalled is not None:
+            j, qj = self._stalled
+            sp = tuple(qj if i == j else x for i, x in enumerate(sp))
+        self._link.command(sp, halt)
+
+    def _hold(self) -> None:
+        """The setpoint where the joints stop at their maximum deceleration."""
+        now = self._link.joints()
+        if now is None:
+            return
+        q, qd = now
+        sp = []
+        for x, v, a, lo, hi in zip(q, qd, self._amax, self._lo, self._hi, strict=True):
+            y = x + v * abs(v) / (2.0 * a)
+            sp.append(lo if y < lo else hi if y > hi else y)
+        self._send(tuple(sp))
+
     # --- Arm ---------------------------------------------------------------------------
 
     def connect(self) -> None:
         with self._lock:
             # A simulated fault is one event: re-connecting is the recovery from it.
-            self._stalled_joint = None
+            self._stalled = None
             self._link_up = True
-            self._servo.hold()
+            self._hold()
             self._status = "connected"
         if self._threaded and self._thread is None:
             self._running.set()
@@ -298,7 +441,7 @@ class SimArm(ArmBase):
             self._check_can_initialize()
             self._status = "initializing"
             self._cal_left_s = self._calibration_s
-            self._servo.hold()
+            self._hold()
             if self._calibration_s == 0.0:
                 self._finish_calibration()
         self._kick.set()
@@ -308,7 +451,8 @@ class SimArm(ArmBase):
             if not self._calibrated:
                 raise ArmError("joint angles unknown: the arm was never calibrated")
             if self._link_up:
-                self._q_read = self._q_actual
+                self._q_read = self._q_now()
+                self._check_stall()
             return np.array(self._q_read)
 
     def command(self, q_setpoint: Q) -> None:
@@ -321,32 +465,33 @@ class SimArm(ArmBase):
                 if x < lo or x > hi:
                     self._fail_locked(f"setpoint q{j + 1}={x:.4f} rad outside the joint limits")
                     return
-            jump = [abs(x - q) for x, q in zip(sp, self._q_actual, strict=True)]
+            q = self._q_now()
+            jump = [abs(x - y) for x, y in zip(sp, q, strict=True)]
             worst = max(jump)
             if worst > self._max_step_rad:
                 j = jump.index(worst)
                 self._fail_locked(f"setpoint jump of {worst:.3f} rad on q{j + 1} refused")
                 return
-            self._servo.setpoint = sp
+            self._send(sp)
             self.setpoints_accepted += 1
         self._kick.set()
 
     def stop(self) -> None:
         with self._lock:
-            self._servo.hold()
+            self._hold()
         self._kick.set()
 
     def estop(self) -> None:
         with self._lock:
-            self._servo.halt()
-            self._q_actual = self._servo.q_rad
+            self._send(self._q_now(), halt=True)
             self._status = "error"
             self._last_error = "emergency stop"
         self._kick.set()
 
     def close(self) -> None:
         with self._lock:
-            self._servo.hold()
+            if self._link_up:
+                self._hold()
             self._link_up = False
             self._status = "disconnected"
         thread, self._thread = self._thread, None
@@ -367,16 +512,19 @@ class SimArm(ArmBase):
     def q_true(self) -> Q:
         """The actual joint angles (rad), whatever the link: for tests."""
         with self._lock:
-            return np.array(self._q_actual)
+            return np.array(self._q_now())
 
     @property
     def qd_true(self) -> Q:
         """The actual joint velocities (rad/s): for tests."""
         with self._lock:
-            v = self._servo.v
-            if self._stalled_joint is not None:
-                v[self._stalled_joint] = 0.0
-            return v
+            j = self._link.joints()
+            return np.zeros(self.n) if j is None else np.array(j[1])
+
+    @property
+    def physics(self) -> CellPhysics | None:
+        """Its own physics (None: the workcell's)."""
+        return self._link.physics if isinstance(self._link, _OwnPhysics) else None
 
     def inject_fault(self, kind: FaultKind, joint: int = 2) -> None:
         """Inject a fault; `connect()` clears it.
@@ -394,37 +542,36 @@ class SimArm(ArmBase):
             elif kind == "stall":
                 if not 1 <= joint <= self.n:
                     raise ValueError(f"joint must be 1 … {self.n}")
-                self._stalled_joint = joint - 1
+                self._stalled = (joint - 1, self._q_now()[joint - 1])
+                self._send(self._sp)
             else:
                 raise ValueError(f"unknown fault {kind!r}")
         self._kick.set()
 
     def step(self, dt_s: float) -> None:
-        """Advance the simulation by `dt_s` (s), in servo substeps of at most 1 ms."""
+        """Advance the simulation by `dt_s` (s): its own physics in 1 ms steps."""
         if not dt_s > 0.0:
             raise ValueError("dt_s must be > 0")
         with self._lock:
-            n = max(1, math.ceil(dt_s / SERVO_DT_S - 1e-9))
-            h = dt_s / n
-            for _ in range(n):
-                self._substep(h)
+            h = self._link.step(dt_s) if self._link.stepping else dt_s
+            self._t_s += h
+            if self._status == "initializing":
+                self._cal_left_s -= h
+                if self._cal_left_s <= 0.0 and self._link.joints() is not None:
+                    self._finish_calibration()
+            self._check_stall()
 
-    def _substep(self, h: float) -> None:
-        self._t_s += h
-        if self._status == "initializing":
-            self._cal_left_s -= h
-            if self._cal_left_s <= 0.0:
-                self._finish_calibration()
-        self._servo.step(h)
-        j = self._stalled_joint
-        q_servo = self._servo.q_rad
-        if j is None:
-            self._q_actual = q_servo
+    def _check_stall(self) -> None:
+        if self._status == "error":
             return
-        q = list(q_servo)
-        q[j] = self._q_actual[j]
-        self._q_actual = tuple(q)
-        if abs(q_servo[j] - q[j]) > self._stall_threshold_rad:
+        if self._link_up and self._link.lost():
+            self._fail_locked("the workcell's physics stopped answering (no sim/arm/state)")
+            self._link_up = False  # the readback freezes where it was last heard
+            return
+        if self._stalled is None:
+            return
+        j = self._stalled[0]
+        if abs(self._sp[j] - self._q_now()[j]) > self._stall_threshold_rad:
             self._fail_locked(
                 f"joint {j + 1} stalled: following error above {self._stall_threshold_rad} rad"
             )
@@ -432,26 +579,30 @@ class SimArm(ArmBase):
     def _finish_calibration(self) -> None:
         self._calibrated = True
         self._status = "ready"
-        self._q_read = self._q_actual
+        self._q_read = self._q_now()
 
     def _fail_locked(self, why: str) -> None:
-        """Error: the servo holds where the joints really are and takes no setpoint."""
-        self._servo.q = self._q_actual
-        if self._stalled_joint is not None:
-            self._servo.stop_joint(self._stalled_joint)
-        self._servo.hold()
+        """Error: the servos hold where the joints really are and take no setpoint."""
+        if self._link_up:
+            self._hold()
         if self._status != "error":
             self._last_error = why
         self._status = "error"
 
     def _resting(self) -> bool:
         with self._lock:
-            return self._status != "initializing" and self._servo.at_rest()
+            link = self._link
+            return (
+                self._status != "initializing"
+                and isinstance(link, _OwnPhysics)
+                and link.at_rest(self._sp if self._stalled is None else link.joints()[0])
+            )
 
     def _run(self) -> None:
         next_t = time.monotonic()
+        period = SERVO_DT_S if self._link.stepping else 0.01
         while self._running.is_set():
-            self.step(SERVO_DT_S)
+            self.step(period)
             if self._resting():
                 # Nothing moves: sleep until a setpoint, fault or calibration wakes us.
                 slept = time.monotonic()
@@ -462,7 +613,7 @@ class SimArm(ArmBase):
                     self._t_s += now - slept
                 next_t = now
                 continue
-            next_t += SERVO_DT_S
+            next_t += period
             delay = next_t - time.monotonic()
             if delay > 0.0:
                 time.sleep(delay)

@@ -16,8 +16,7 @@ from typing import Any
 
 from services.bus.bounds import check_config
 from services.bus.errors import ConfigError
-
-Vec3T = tuple[float, float, float]
+from services.geometry import V3
 
 #: settings fixed at start-up: the `supervisor` method refuses to change them.
 #: (`passivity`: the slave port's energies are counted from the service's start.)
@@ -39,6 +38,7 @@ _POSITIVE = (
     "state_stale_ms",
     "max_force_n",
     "max_torque_nm",
+    "contact_stiffness_n_per_m",
     "max_tool_speed_m_s",
     "max_tool_rot_speed_rad_s",
     "rpc_timeout_s",
@@ -48,6 +48,7 @@ _POSITIVE = (
     "guarded_max_force_n",
     "guarded_max_distance_m",
     "approach_speed_m_s",
+    "motion_guard_speed_m_s",
     "arrive_tol_m",
     "event_interval_s",
     "passivity_yield_max_rtt_ms",
@@ -60,6 +61,7 @@ _NON_NEGATIVE = (
     "tool_tip_radius_m",
     "grip_time_s",
     "approach_zone_m",
+    "motion_guard_zone_m",
     "passivity_yield_m_s_n",
 )
 
@@ -72,6 +74,7 @@ _KINDS: dict[str, str] = {
     "state_stale_ms": "watchdog_ms",
     "max_force_n": "force_n",
     "max_torque_nm": "torque_nm",
+    "contact_stiffness_n_per_m": "stiffness_n_m",
     "admittance_m_per_n_s": "admittance_m_n_s",
     "passivity_yield_m_s_n": "admittance_m_n_s",
     "passivity_yield_max_rtt_ms": "watchdog_ms",
@@ -84,6 +87,8 @@ _KINDS: dict[str, str] = {
     "max_tool_rot_speed_rad_s": "rot_speed_rad_s",
     "approach_zone_m": "distance_m",
     "approach_speed_m_s": "speed_m_s",
+    "motion_guard_zone_m": "distance_m",
+    "motion_guard_speed_m_s": "speed_m_s",
     "rpc_timeout_s": "timeout_s",
     "wait_timeout_s": "timeout_s",
     "task_speed_m_s": "speed_m_s",
@@ -110,6 +115,15 @@ class DecisionConfig:
 
     Supervision (§2.1.4's "active compliance … as supervisory functions"):
       max_force_n, max_torque_nm: above these the motion into the contact is removed.
+        A watched motion (`move_*`, `home`) is stopped at once when the force, or the
+        force it rises to within the reaction time (`watch.CONTACT_REACT_S`), would pass
+        max_force_n; after such a stop the arm backs off along the contact force until the
+        force is under the limit; a motion that lowers a contact force is never stopped
+        for it (docs/decision.md "Contact").
+      contact_stiffness_n_per_m: the stiffest contact the cell expects (default 20 000,
+        the simulated blocks'; a real cell's steel fixture is stiffer, a foam pad softer):
+        teleoperation slows into a touched contact so the force can stop within the limit,
+        and a back-off travels force / stiffness.
       passivity: time-domain passivity on the slave port (docs/passivity.md): the
         command's motion into a contact is bounded by the energy the operator put in.
       passivity_yield_m_s_n: with passivity on, the tool backs out of a contact at this
@@ -135,6 +149,11 @@ class DecisionConfig:
         workspace box, the target moves towards that face at most at approach_speed_m_s
         (guarded approach: the floor is the table top, so a tool that touches it arrives
         slowly and the impact stays small). 0 (the default): off.
+      motion_guard_zone_m, motion_guard_speed_m_s: a forwarded motion (`move_*`) whose
+        goal lies within motion_guard_zone_m above the workspace floor, where the table's
+        objects are, is planned at most at motion_guard_speed_m_s (default 0.10 m, 0.05 m/s:
+        the speed from which the arm stops against a 20 kN/m block within 1.5 × max_force_n;
+        docs/decision.md "Contact"). 0: off.
 
     Methods and tasks:
       rpc_timeout_s: timeout of a forwarded call; wait_timeout_s: of one with "wait": true.
@@ -156,18 +175,21 @@ class DecisionConfig:
     state_stale_ms: float = 200.0
     max_force_n: float = 40.0
     max_torque_nm: float = 4.0
+    contact_stiffness_n_per_m: float = 20_000.0
     compliance: bool = False
     admittance_m_per_n_s: float = 0.002
     admittance_rad_per_nm_s: float = 0.02
     admittance_deadband_n: float = 2.0
     admittance_deadband_nm: float = 0.2
-    workspace_min: Vec3T = (0.25, -0.5, 0.40)
-    workspace_max: Vec3T = (0.95, 0.5, 1.2)
+    workspace_min: V3 = (0.25, -0.5, 0.40)
+    workspace_max: V3 = (0.95, 0.5, 1.2)
     workspace_from_arm: bool = True
     max_tool_speed_m_s: float = 0.25
     max_tool_rot_speed_rad_s: float = 1.0
     approach_zone_m: float = 0.0
     approach_speed_m_s: float = 0.02
+    motion_guard_zone_m: float = 0.10
+    motion_guard_speed_m_s: float = 0.05
     rpc_timeout_s: float = 2.0
     wait_timeout_s: float = 60.0
     task_speed_m_s: float = 0.05
@@ -221,7 +243,12 @@ class DecisionConfig:
         top = arm.max_tool_speed_m_s
         if top is not None and top < self.max_tool_speed_m_s:
             changes["max_tool_speed_m_s"] = top
-            for key in ("task_speed_m_s", "guarded_speed_m_s", "approach_speed_m_s"):
+            for key in (
+                "task_speed_m_s",
+                "guarded_speed_m_s",
+                "approach_speed_m_s",
+                "motion_guard_speed_m_s",
+            ):
                 changes[key] = min(getattr(self, key), top)
         turn = arm.max_tool_rot_speed_rad_s
         if turn is not None and turn < self.max_tool_rot_speed_rad_s:

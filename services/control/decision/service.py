@@ -30,6 +30,7 @@ from collections.abc import Callable, Mapping
 from functools import partial
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from services.bus.bounds import out_of_bounds, short
@@ -43,6 +44,7 @@ from services.bus.messages import (
     ForceSample,
     OperatorCommand,
     RobotState,
+    mat3,
 )
 from services.bus.node import Node
 from services.control.decision.config import STARTUP_ONLY, DecisionConfig
@@ -53,7 +55,7 @@ from services.control.decision.peeks import Peek, read_sample, stamped
 from services.control.decision.supervisor import Inputs, Mode, Supervisor
 from services.control.decision.taskrun import TaskRun
 from services.control.decision.tasks import TASK_NAMES, TaskPlan, plan_task
-from services.control.decision.watch import forwarded_target, target_problem
+from services.control.decision.watch import Watch, forwarded_target, target_problem
 from services.control.decision.watchdogs import fresh
 
 log = logging.getLogger("telerobot.decision")
@@ -90,6 +92,11 @@ FORCE_METHODS: tuple[str, ...] = (
 #: (busy) and under the e-stop latch (estop)
 MOTION_METHODS: frozenset[str] = frozenset({"move_joints", "move_pose", "move_relative", "home"})
 SUPERVISED_BY = "supervised_by"
+BACKOFF_MOVES = 5
+"""A contact stop is backed off in at most this many moves (each force / stiffness)."""
+BACKOFF_SETTLE_S = 0.1
+"""The force is judged this long after a contact stop or a back-off move: the servo's own
+deceleration carries the tool on a little after it is told to hold."""
 """The argument the decision adds to the motion calls it forwards (its service name): while a
 decision server is alive, the arm refuses motion calls without it."""
 ALIVE_WAIT_S = 0.5
@@ -284,8 +291,8 @@ class DecisionService:
                     cmd, self._operator(inp), inp.state, self._fresh_force(inp), inp.now_ns
                 )
             self._put(cmd)
-        if res.stop_arm:
-            self._stop_arm_soon()
+        if res.stop_arm is not None:
+            self._stop_arm_soon(res.stop_arm)
         self._watch_force()
         return res.notices
 
@@ -305,17 +312,91 @@ class DecisionService:
             return None
         return inp.force
 
-    def _stop_arm_soon(self) -> None:
-        """A watched motion broke a limit: the arm's `stop`, from a worker (never from the
-        tick, which holds the lock)."""
+    def _stop_arm_soon(self, args: dict[str, Any]) -> None:
+        """A watched motion broke a limit: the arm's `stop` (at once, `now`, at a contact,
+        and then the back-off), from a worker (never from the tick, which holds the lock)."""
 
         def stop() -> None:
             try:
-                self._forward("arm", "stop", {})
+                self._forward("arm", "stop", args)
             except RpcError as e:
                 log.warning("could not stop a forwarded motion: %s", e.message)
+                return
+            if args.get("now") is True:
+                self._back_off()
 
         threading.Thread(target=stop, name="decision-stop", daemon=True).start()
+
+    def _back_off(self) -> None:
+        """After a contact stop: while the arm still presses harder than max_force_n, move
+        it back along the contact force, force / contact_stiffness_n_per_m each time (so the
+        force falls to about half the limit), at most BACKOFF_MOVES moves. Each is a watched
+        motion like any other; it gives way to anything that claims the arm meanwhile (a
+        motion call, a task, an operator): it never takes over another motion's watch."""
+        cfg = self.config
+        mine: Watch | None = None
+        for attempt in range(BACKOFF_MOVES):
+            with self._cond:
+                # the servo comes to rest and the force settles after a stop (or a move)
+                self._cond.wait_for(lambda: self._closed, BACKOFF_SETTLE_S)
+                sup = self.supervisor
+                if self._closed or sup.mode in (Mode.FOLLOW, Mode.TASK, Mode.ESTOP):
+                    return
+                if sup.watch is not None and sup.watch is not mine:
+                    return  # someone else's motion runs: theirs, and watched
+                try:
+                    sup.claim("move_relative", time.monotonic_ns(), guarded=True)
+                except RpcError:
+                    return  # a task or an operator has the arm: theirs to release it
+                mine = sup.watch
+                self._watch_force()
+                self._force.wait_fresh(self._cond, cfg.stale_ms, FORCE_WAIT_S)
+                if sup.watch is not mine:
+                    return  # claimed by a call while the force came
+                state, force = self._state.read(), self._force.read()
+                if state is None or force is None:
+                    sup.end_watch(mine)
+                    return
+                f_w = mat3(state[0].tool_R) @ np.asarray(force[0].f, dtype=float)
+                f_n = float(np.linalg.norm(f_w))
+                if f_n <= cfg.max_force_n:
+                    sup.end_watch(mine)
+                    if attempt:
+                        self._event(
+                            "contact",
+                            f"backed off the contact: {f_n:.1f} N ≤ {cfg.max_force_n:g} N",
+                            {"reason": "backoff", "force_n": f_n, "moves": attempt},
+                        )
+                    return
+                self._cond.notify_all()
+            d = min(max((f_n - 0.5 * cfg.max_force_n) / cfg.contact_stiffness_n_per_m, 5e-4), 0.02)
+            dp = [float(x) for x in f_w / f_n * d]
+            with self._cond:
+                if mine is not None:  # along the force: the watch lets it leave the contact
+                    g = np.asarray(state[0].tool_p, dtype=float) + f_w / f_n * d
+                    mine.goal = (float(g[0]), float(g[1]), float(g[2]))
+            self._event(
+                "contact",
+                f"backing off a contact of {f_n:.1f} N > {cfg.max_force_n:g} N by {d * 1e3:.1f} mm",
+                {"reason": "backoff", "force_n": f_n, "dp": dp},
+            )
+            try:
+                self._forward(
+                    "arm",
+                    "move_relative",
+                    {
+                        "dp": dp,
+                        "frame": "world",
+                        "speed": self._guard_fraction(),
+                        "wait": True,
+                        SUPERVISED_BY: SERVICE,
+                    },
+                )
+            except RpcError as e:
+                with self._cond:
+                    self.supervisor.end_watch(mine)
+                log.warning("could not back off a contact: %s", e.message)
+                return
 
     def _timer(self) -> None:
         """Sleep until the supervisor's next deadline (or an input re-plans it); tick."""
@@ -399,16 +480,30 @@ class DecisionService:
     def _arm_method(self, method: str, args: dict[str, Any]) -> dict[str, Any]:
         # `stop` held already, before its arguments were read (`_hold_first`).
         if method in MOTION_METHODS:
-            self._check_target(method, args)
+            goal = self._check_target(method, args)
+            args, guarded = self._guarded(method, args, goal)
             with self._cond:
-                self.supervisor.claim(method, time.monotonic_ns())
+                self.supervisor.claim(method, time.monotonic_ns(), guarded=guarded, goal=goal)
+                mine = self.supervisor.watch
                 self._watch_force()  # the watch stops the motion on a contact
+                if guarded and not self._force.wait_fresh(
+                    self._cond, self.config.stale_ms, FORCE_WAIT_S
+                ):
+                    self.supervisor.end_watch(mine)
+                    raise RpcError(
+                        "not_ready",
+                        f"{method} refused: its goal is near the table and no force comes "
+                        "from the wrist (is the force service running?)",
+                    )
+                if guarded and mine is not None:
+                    # the watch's start-up allowance counts from the forward, not the wait
+                    mine.since_ns = time.monotonic_ns()
                 self._cond.notify_all()  # the timer watches the motion
             try:
                 return self._forward("arm", method, {**args, SUPERVISED_BY: SERVICE})
             except RpcError:
                 with self._cond:
-                    self.supervisor.end_watch()
+                    self.supervisor.end_watch(mine)
                 raise
         elif method == "set_tool":
             with self._cond:
@@ -416,7 +511,7 @@ class DecisionService:
                     raise RpcError("busy", "set_tool refused: the supervisor is commanding the arm")
         return self._forward("arm", method, args)
 
-    def _check_target(self, method: str, args: Mapping[str, Any]) -> None:
+    def _check_target(self, method: str, args: Mapping[str, Any]) -> list[float] | None:
         """Refuse (`limit`) a forwarded motion whose target tool point lies outside the
         workspace box (watch.forwarded_target; what the arm would refuse is left to it)."""
 
@@ -433,11 +528,36 @@ class DecisionService:
 
         p = forwarded_target(method, args, newest_state, ask_arm)
         if p is None:
-            return
+            return None
         with self._cond:
             why = target_problem(self.config, method, p)
         if why is not None:
             raise RpcError("limit", why)
+        return p
+
+    def _guarded(
+        self, method: str, args: dict[str, Any], p: list[float] | None
+    ) -> tuple[dict[str, Any], bool]:
+        """(`args`, guarded): the motion's speed lowered to motion_guard_speed_m_s when its
+        goal `p` lies within motion_guard_zone_m above the workspace floor (objects stand
+        there: a contact met faster could not be stopped within the force limit). The arm's
+        `speed` is a fraction of the tool speed it plans with (its description's)."""
+        cfg = self.config
+        if p is None or method == "home" or cfg.motion_guard_zone_m <= 0.0:
+            return args, False
+        if p[2] - cfg.workspace_min[2] >= cfg.motion_guard_zone_m:
+            return args, False
+        asked = args.get("speed")
+        asked = float(asked) if isinstance(asked, int | float) and 0.0 < asked <= 1.0 else 1.0
+        speed = min(asked, self._guard_fraction())
+        return ({**args, "speed": speed} if speed < asked else args), True
+
+    def _guard_fraction(self) -> float:
+        """motion_guard_speed_m_s as a fraction of the tool speed the arm plans with."""
+        with self._cond:
+            top = None if self._arm is None else self._arm.max_tool_speed_m_s
+            cfg = self.config
+        return min(1.0, cfg.motion_guard_speed_m_s / (top or cfg.max_tool_speed_m_s))
 
     def rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
         """The superset status: robot (robot/state and arm's `status`), sensor (robot/force

@@ -39,7 +39,7 @@ one lock.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
@@ -108,8 +108,9 @@ class TickResult:
     command: ArmTarget | None
     notices: tuple[Notice, ...]
     finished: tuple[TaskRun, ...]
-    stop_arm: bool = False
-    """A forwarded motion broke a limit: the service must call the arm's `stop` now."""
+    stop_arm: dict[str, Any] | None = None
+    """A forwarded motion broke a limit: the arm's `stop` arguments (`now` at a contact:
+    hold at once) for the service to call it with now; None: nothing to stop."""
 
 
 class Supervisor:
@@ -150,7 +151,7 @@ class Supervisor:
         self._state_rx_ns = 0
         self._force_rx_ns = 0
         self.watch: Watch | None = None
-        self._stop_arm = False
+        self._stop_arm: dict[str, Any] | None = None
 
     # --- settings ----------------------------------------------------------------------
     @property
@@ -207,7 +208,7 @@ class Supervisor:
             out = self._command(inp, active=False)
         if self.watch is not None:
             self._watch_step(inp, state_ok, force_ok)
-        stop_arm, self._stop_arm = self._stop_arm, False
+        stop_arm, self._stop_arm = self._stop_arm, None
         return TickResult(out, self.notices.drain(), self.tasks.drain(), stop_arm)
 
     def next_wake_ns(self) -> int | None:
@@ -381,7 +382,12 @@ class Supervisor:
             self._notice(
                 "lease",
                 f"master {cmd.master!r}: engagement {cmd.engage} was held; engage again to move",
-                {"master": cmd.master, "engage": cmd.engage, "reason": "engagement_held"},
+                {
+                    "master": cmd.master,
+                    "engage": cmd.engage,
+                    "reason": "engagement_held",
+                    "held_by": self.hold_reason,
+                },
                 limit_key=f"held:{cmd.master}",
             )
             return
@@ -467,11 +473,19 @@ class Supervisor:
         otherwise the event is informative only (`notify` false: none)."""
         if self.mode is Mode.TASK and self.tasks.current is not None:
             self._finish_task(self.tasks.current, error=(task_error, message))
+        holder = self.lease
+        rec = None if holder is None else self.masters.get(holder)
         self._release_lease(reason)
         self._settle()
         self.hold_reason = reason
         self.stats["holds"] += 1
-        data = {"reason": reason, "engage": self.target.engage_out}
+        # `engage` is the master's own engagement that was held (what the master shows and
+        # must leave to move again); `engage_out` the arm-side counter of robot/arm/target
+        data: dict[str, Any] = {"reason": reason, "engage_out": self.target.engage_out}
+        if holder is not None:
+            data["master"] = holder
+        if rec is not None:
+            data["engage"] = rec.engage
         if intervention:
             self._intervene(kind, message, data, limit_key=f"hold:{reason}")
         elif notify:
@@ -568,7 +582,13 @@ class Supervisor:
             code, why = self._busy_reason()
             raise RpcError(code, f"{what} refused: {why}")
 
-    def claim(self, method: str, now_ns: int | None = None) -> None:
+    def claim(
+        self,
+        method: str,
+        now_ns: int | None = None,
+        guarded: bool = False,
+        goal: Sequence[float] | None = None,
+    ) -> None:
         """Before forwarding a motion method: refuse it while the supervisor commands the
         arm, otherwise stop re-sending the hold so the arm's own motion is not disturbed,
         and watch the motion (contact, workspace) until it is over."""
@@ -578,11 +598,14 @@ class Supervisor:
         if self.mode is Mode.FOLLOW:
             raise RpcError("busy", f"{method} refused: master {self.lease!r} is teleoperating")
         self.mode = Mode.IDLE
-        self.watch = Watch(method, self._now_ns)
+        to = None if goal is None else (float(goal[0]), float(goal[1]), float(goal[2]))
+        self.watch = Watch(method, self._now_ns, guarded=guarded, goal=to)
 
-    def end_watch(self) -> None:
-        """The forwarded motion never started (its call failed): nothing to watch."""
-        self.watch = None
+    def end_watch(self, watch: Watch | None = None) -> None:
+        """The forwarded motion never started (its call failed): nothing to watch. With
+        `watch`, only if it is still that one (a later claim's watch stays)."""
+        if watch is None or self.watch is watch:
+            self.watch = None
 
     def _watch_step(self, inp: Inputs, state_ok: bool, force_ok: bool) -> None:
         """A forwarded motion: over once the robot shows it ended; stopped (the service
@@ -598,7 +621,7 @@ class Supervisor:
         verdict = watch_step(watch, self._cfg, inp.now_ns, state, force)
         if isinstance(verdict, WatchStop):
             self.watch = None
-            self._stop_arm = True
+            self._stop_arm = {"now": verdict.data.get("now") is True}
             self._intervene(verdict.kind, verdict.message, verdict.data, f"watch:{verdict.kind}")
         elif verdict is None:
             self.watch = None

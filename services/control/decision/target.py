@@ -252,9 +252,13 @@ class SupervisedTarget:
                 n = scale3(1.0 / f_n, f_w)
                 behind = dot3(sub3(v3(state.tool_p), p_sup), n)
                 ahead = dot3(inc, n)
+                # The arm lags its target: pull the target back to the tool, so the arm
+                # stops where the force crossed the threshold instead of pressing on, and
+                # out of the contact by what the force is above the limit over the
+                # contact's stiffness, so the press comes down to the limit (measured from
+                # the tool each tick, never accumulated while the arm catches up).
+                behind += (f_n - cfg.max_force_n) / cfg.contact_stiffness_n_per_m
                 if behind > ahead:
-                    # The arm lags its target: pull the target back to the tool, so the arm
-                    # stops where the force crossed the threshold instead of pressing on.
                     inc = add3(inc, scale3(behind - ahead, n))
                     removed += behind - ahead
                 notices.edge(

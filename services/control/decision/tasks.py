@@ -22,12 +22,11 @@ from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import Unit, Vec3
 from services.control.decision.config import DecisionConfig
 from services.control.decision.filters import in_box
-
-Vec3T = tuple[float, float, float]
+from services.geometry import V3
 
 #: every `task` name: streamed (built here), forwarded (`home`) and control (`cancel`)
 TASK_NAMES: tuple[str, ...] = ("guarded_move", "pick_place", "home", "cancel")
-DOWN: Vec3T = (0.0, 0.0, -1.0)
+DOWN: V3 = (0.0, 0.0, -1.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -36,7 +35,7 @@ class MoveTo:
     tool's orientation. With `guard_force_n`, a change of the wrist force by more than that
     since the step started aborts the task (error `limit`): an unexpected contact."""
 
-    p: Vec3T
+    p: V3
     speed_m_s: float
     guard_force_n: float | None = None
 
@@ -47,7 +46,7 @@ class GuardedMove:
     changed by more than `max_force_n` since the step started (contact) or `max_distance_m`
     was travelled. Its outcome (contact point, force) is the task's reply."""
 
-    direction: Vec3T
+    direction: V3
     speed_m_s: float
     max_force_n: float
     max_distance_m: float
@@ -95,7 +94,7 @@ def _wait(args: Mapping[str, Any]) -> bool:
     return bool(arg(args, "wait", bool, True))
 
 
-def _unit(name: str, v: tuple[float, ...]) -> Vec3T:
+def _unit(name: str, v: tuple[float, ...]) -> V3:
     check_norm(name, v, "direction")  # before the norm: 1e308² would overflow
     a = np.asarray(v, dtype=float)
     n = float(np.linalg.norm(a))
@@ -105,12 +104,12 @@ def _unit(name: str, v: tuple[float, ...]) -> Vec3T:
     return (float(u[0]), float(u[1]), float(u[2]))
 
 
-def _point(args: Mapping[str, Any], name: str) -> Vec3T:
+def _point(args: Mapping[str, Any], name: str) -> V3:
     v = check_each(name, arg(args, name, Vec3), "position_m")
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
-def _inside(name: str, p: Vec3T, cfg: DecisionConfig) -> None:
+def _inside(name: str, p: V3, cfg: DecisionConfig) -> None:
     if not in_box(p, cfg.workspace_min, cfg.workspace_max):
         raise RpcError(
             "limit",
@@ -153,8 +152,8 @@ def pick_place_plan(args: Mapping[str, Any], cfg: DecisionConfig) -> TaskPlan:
     depth = check("place_depth_m", float(arg(args, "place_depth_m", float, 0.02)), "distance_m")
     closed = float(arg(args, "grip_closed", Unit, 1.0))
     opened = float(arg(args, "grip_open", Unit, 0.0))
-    above_pick: Vec3T = (pick[0], pick[1], pick[2] + up)
-    above_place: Vec3T = (place[0], place[1], place[2] + up)
+    above_pick: V3 = (pick[0], pick[1], pick[2] + up)
+    above_place: V3 = (place[0], place[1], place[2] + up)
     for name, p in (
         ("pick", pick),
         ("place", place),

@@ -11,7 +11,7 @@ from services.control.force.config import ForceConfig
 
 
 def arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--sensor", choices=["sim", "serial", "netft"], default=None)
+    p.add_argument("--sensor", choices=["sim", "serial", "netft", "franka"], default=None)
     p.add_argument("--port", default=None, help="serial URL (/dev/ttyUSB0, socket://host:port)")
     p.add_argument("--host", default=None, help="Net F/T address")
     p.add_argument("--period-ms", type=float, default=None)

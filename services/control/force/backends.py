@@ -6,7 +6,8 @@ configuration to the class's constructor arguments.
 
 Backends: `SimSensor` (sim_sensor.py, the default: contact with the simulated workcell),
 `SerialSensor` (serial_sensor.py, six ADC channels as checksummed ASCII lines,
-docs/serial-force-protocol.md), `NetFTSensor` (netft.py, ATI Net F/T RDT over UDP).
+docs/serial-force-protocol.md), `NetFTSensor` (netft.py, ATI Net F/T RDT over UDP),
+`FrankaWrenchSource` (franka_source.py, a Franka's own wrench estimate, docs/franka.md).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ BACKENDS: BackendRegistry[ForceSensor] = BackendRegistry(
         "sim": "services.control.force.sim_sensor:SimSensor",
         "serial": "services.control.force.serial_sensor:SerialSensor",
         "netft": "services.control.force.netft:NetFTSensor",
+        "franka": "services.control.force.franka_source:FrankaWrenchSource",
     },
 )
 """Backend name (`force.sensor`) → class, constructed with `sensor_options(config)`."""
@@ -33,6 +35,8 @@ def sensor_options(config: ForceConfig) -> dict[str, Any]:
     """The constructor arguments of the backend `config.sensor`."""
     if config.sensor == "serial":
         return {"port": config.port, "baudrate": config.baudrate}
+    if config.sensor == "franka":
+        return {"robot_ip": config.host}
     if config.sensor == "netft":
         return {
             "host": config.host,
@@ -45,13 +49,8 @@ def sensor_options(config: ForceConfig) -> dict[str, Any]:
         "load": config.tool_load(),
         "noise_n": config.noise_n,
         "noise_nm": config.noise_nm,
-        "probe_radius_m": config.probe_radius_m,
         "seed": config.seed,
-        "block_density_kg_m3": config.block_density_kg_m3,
-        "bottle_mass_kg": config.bottle_mass_kg,
         "inertia": config.inertia,
-        "carried_contact": config.carried_contact,
-        "torsion_nm_rad": config.torsion_nm_rad,
     }
 
 

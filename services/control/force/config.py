@@ -25,9 +25,13 @@ from services.control.force.model import (
 from services.control.force.priority import PRIORITY_LEVELS, PriorityLevel
 from services.control.force.sampler import HANDOFFS, PERIOD_MAX_MS, PERIOD_MIN_MS, Handoff
 from services.control.force.sensors import SENSOR_KINDS, SensorKind
+from services.geometry import V3
 
-Vec3T = tuple[float, float, float]
 IDENTITY_R: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+
+
+DEFAULT_HOST = "192.168.1.1"
+"""`host`'s default: the Net F/T's factory address."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -44,48 +48,46 @@ class ForceConfig:
     the plate motion (ΔS m, θ rad) of eq. (4). `K_l_n_per_m`, `K_r_nm_per_rad`: wrist
     stiffness, a number (isotropic) or three (per axis of the tool frame).
 
+    `host`: the Net F/T's address, or with `sensor = "franka"` the robot's (the arm's
+    `robot_ip`): the robot's own wrench estimate, no gravity compensation of ours.
+
     `handoff`: "inline" publishes each sample from the sampling thread (no queue, no extra
     thread per sample); "queue" hands it to a publisher thread through `queue_len`.
     `spin_us`: the final spin before each deadline, used only when `priority = "highest"`
-    got a real-time policy. Sim only: `block_density_kg_m3` and `bottle_mass_kg` (empty;
-    its liquid adds 1 g/ml) give a carried object's mass; `inertia` adds its inertial
-    force from the tool's acceleration; `carried_contact` lets what it touches push on the
-    wrist through it; `torsion_nm_rad` > 0 makes a contact resist a turn about its normal
-    (N·m/rad; 0, the default: a contact has no moment).
+    got a real-time policy. Sim only: `inertia` (default off) adds the tool's inertial
+    force from its acceleration while no physics wrench arrives (an arm on its own physics:
+    the wrist in free space; with the workcell's physics its solver's wrench is the
+    wrist's, docs/sim.md); off because nothing compensates it yet, and with compliance on
+    the tool's own acceleration then drives the admittance (sim_sensor.SimSensor).
     """
 
     sensor: SensorKind = "sim"
     port: str = "/dev/ttyUSB0"
     baudrate: int = 921_600
-    host: str = "192.168.1.1"
+    host: str = DEFAULT_HOST
     netft_port: int = 49152
     counts_per_force: float = 1_000_000.0
     counts_per_torque: float = 1_000_000.0
     period_ms: float = 1.0
     priority: PriorityLevel = "normal"
     autostart: bool = True
-    K_l_n_per_m: float | Vec3T = 10_000.0
-    K_r_nm_per_rad: float | Vec3T = 50.0
+    K_l_n_per_m: float | V3 = 10_000.0
+    K_r_nm_per_rad: float | V3 = 50.0
     calibration: Literal["identity"] | tuple[float, ...] = "identity"
     rotation: RotationMode = "exact"
-    sensor_p_m: Vec3T = (0.0, 0.0, 0.0)
+    sensor_p_m: V3 = (0.0, 0.0, 0.0)
     sensor_R: tuple[float, ...] = IDENTITY_R
-    tool_p_m: Vec3T = (0.0, 0.0, 0.2)
+    tool_p_m: V3 = (0.0, 0.0, 0.2)
     tool_R: tuple[float, ...] = IDENTITY_R
     tool_mass_kg: float = 0.25
-    tool_com_m: Vec3T = (0.0, 0.0, -0.1)
+    tool_com_m: V3 = (0.0, 0.0, -0.1)
     gravity_mps2: float = STANDARD_GRAVITY_MPS2
     noise_n: float = 0.02
     noise_nm: float = 0.002
-    probe_radius_m: float = 0.005
     seed: int | None = None
     queue_len: int = 256
     handoff: Handoff = "inline"
-    block_density_kg_m3: float = 700.0
-    bottle_mass_kg: float = 0.1
-    inertia: bool = True
-    carried_contact: bool = True
-    torsion_nm_rad: float = 0.0
+    inertia: bool = False
     stale_after_periods: int = 5
     bias_samples: int = 16
     event_interval_s: float = 1.0
@@ -102,6 +104,8 @@ class ForceConfig:
             _bad("port", "a serial device or pyserial URL is required")
         if self.sensor == "netft" and not self.host:
             _bad("host", "the Net F/T address is required")
+        if self.sensor == "franka" and (not self.host or self.host == DEFAULT_HOST):
+            _bad("host", "the Franka's address (the arm's robot_ip) is required")
         _int_in("baudrate", self.baudrate, 300, 20_000_000)
         _int_in("netft_port", self.netft_port, 1, 65535)
         _int_in("queue_len", self.queue_len, 1, 1_000_000)
@@ -114,18 +118,12 @@ class ForceConfig:
         _num_in("gravity_mps2", self.gravity_mps2, 0.0, 100.0)
         _num_in("noise_n", self.noise_n, 0.0, 1000.0)
         _num_in("noise_nm", self.noise_nm, 0.0, 1000.0)
-        _num_in("probe_radius_m", self.probe_radius_m, 0.0, 1.0)
         _num_in("event_interval_s", self.event_interval_s, 0.0, 3600.0)
         _num_in("spin_us", self.spin_us, 0.0, 10_000.0)
         if self.handoff not in HANDOFFS:
             _bad("handoff", f"one of {list(HANDOFFS)}, got {self.handoff!r}")
-        _num_in("block_density_kg_m3", self.block_density_kg_m3, 0.0, 25_000.0)
-        _num_in("bottle_mass_kg", self.bottle_mass_kg, 0.0, 100.0)
-        _num_in("torsion_nm_rad", self.torsion_nm_rad, 0.0, 10_000.0)
         if not isinstance(self.inertia, bool):
             _bad("inertia", f"true or false, got {self.inertia!r}")
-        if not isinstance(self.carried_contact, bool):
-            _bad("carried_contact", f"true or false, got {self.carried_contact!r}")
         for key in ("sensor_p_m", "tool_p_m", "tool_com_m"):
             v = getattr(self, key)
             if len(v) != 3 or not all(_finite(x) for x in v):
@@ -159,7 +157,9 @@ class ForceConfig:
         )
 
     def tool_load(self) -> ToolLoad:
-        return ToolLoad(self.tool_mass_kg, self.tool_com_m, self.gravity_mps2)
+        # A Franka's wrench estimate has the load the robot was told of taken out already.
+        mass = 0.0 if self.sensor == "franka" else self.tool_mass_kg
+        return ToolLoad(mass, self.tool_com_m, self.gravity_mps2)
 
 
 def _bad(key: str, message: str) -> None:

@@ -22,15 +22,13 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from services.bus import codec
-from services.bus.bounds import BOUNDS, check_each, short
+from services.bus.bounds import check_each, short
 from services.bus.errors import ProtocolError, RpcError
 from services.bus.messages import ForceSample
 from services.control.force.backends import open_force_sensor
 from services.control.force.config import ForceConfig
 from services.control.force.events import EventSink, EventThrottle
 from services.control.force.kernel import (
-    F3,
-    M3,
     ZERO3,
     WristKernel,
     mat9,
@@ -44,20 +42,17 @@ from services.control.force.priority import PRIORITY_LEVELS
 from services.control.force.sampler import MonotonicClock, Sampler, SamplerClock, check_period_ms
 from services.control.force.sensors import (
     ForceSensor,
+    IdlingSensor,
     PoseAwareSensor,
     SensorError,
     WorldAwareSensor,
 )
-from services.world.workcell.messages import WorkcellState, objects_of
+from services.geometry import M9, V3
 
 IDLE_PERIOD_MS = 20.0
 """The simulated sensor's period while nobody uses the samples (`ForceCore.set_unused`)."""
 TOOL_CHANGE_TOL = 1e-6
 """m and rad: a flange→tool placement from robot/state that differs more is a new tool."""
-WORLD_MIN_M, WORLD_MAX_M = BOUNDS["position_m"].lo, BOUNDS["position_m"].hi
-"""A workcell object's position (m, world, per axis) must be within these."""
-OBJECT_MAX_M = 2.0
-"""A workcell object's bounding size (m, per axis) must be within (0, this]."""
 
 
 class _BiasRequest:
@@ -70,7 +65,7 @@ class _BiasRequest:
         self.c_sum = [0.0, 0.0, 0.0]
         self.done = threading.Event()
 
-    def add(self, f: F3, c: F3) -> bool:
+    def add(self, f: V3, c: V3) -> bool:
         fs, cs = self.f_sum, self.c_sum
         for i in range(3):
             fs[i] += f[i]
@@ -78,7 +73,7 @@ class _BiasRequest:
         self.count += 1
         return self.count >= self.n
 
-    def mean(self) -> tuple[F3, F3]:
+    def mean(self) -> tuple[V3, V3]:
         n = self.n
         fs, cs = self.f_sum, self.c_sum
         return (fs[0] / n, fs[1] / n, fs[2] / n), (cs[0] / n, cs[1] / n, cs[2] / n)
@@ -106,20 +101,20 @@ class ForceCore:
         self._config = config
         self._model = config.wrist_model()
         self._kernel = WristKernel(self._model)
-        self._tool_eMt: tuple[F3, M3] = (vec3(self._model.p_et), mat9(self._model.R_et))
+        self._tool_eMt: tuple[V3, M9] = (vec3(self._model.p_et), mat9(self._model.R_et))
         self._load = config.tool_load()
-        self._load_com: F3 = vec3(self._load.com_m)
+        self._load_com: V3 = vec3(self._load.com_m)
         self._posed: PoseAwareSensor | None = (
             sensor if isinstance(sensor, PoseAwareSensor) else None
         )
         self._worldly: WorldAwareSensor | None = (
             sensor if isinstance(sensor, WorldAwareSensor) else None
         )
-        self._tool_R: M3 | None = None
+        self._may_idle = isinstance(sensor, IdlingSensor) and bool(sensor.may_idle)
+        self._tool_R: M9 | None = None
         # The tool's weight in the tool frame for the latest orientation (None: unknown).
-        self._gravity: tuple[F3, F3] | None = None
-        self._bias: tuple[F3, F3] = (ZERO3, ZERO3)
-        self._last_world: tuple[str, dict[str, Any]] | None = None
+        self._gravity: tuple[V3, V3] | None = None
+        self._bias: tuple[V3, V3] = (ZERO3, ZERO3)
         self._bias_req: _BiasRequest | None = None
         self._seq = 0
         self._latest: ForceSample | None = None
@@ -171,7 +166,7 @@ class ForceCore:
             self._apply_idle()
 
     def _apply_idle(self) -> None:
-        idle = self._unused and self._bias_req is None and getattr(self._sensor, "may_idle", False)
+        idle = self._unused and self._bias_req is None and self._may_idle
         self._sampler.set_slow(IDLE_PERIOD_MS if idle else None)
 
     @property
@@ -210,7 +205,7 @@ class ForceCore:
             R = as_rotation(tool_R, "tool_R")
         except ValueError as e:
             raise ProtocolError("tool_R", str(e)) from None
-        flange: tuple[F3, M3] | None = None
+        flange: tuple[V3, M9] | None = None
         if flange_p is not None and flange_R is not None:
             fp = np.asarray(flange_p, dtype=float).reshape(3)
             if not np.all(np.isfinite(fp)):
@@ -222,7 +217,7 @@ class ForceCore:
         self.update_robot_state_checked(vec3(p), mat9(R), flange, t_ns)
 
     def update_robot_state_checked(
-        self, p: F3, R: M3, flange: tuple[F3, M3] | None = None, t_ns: int | None = None
+        self, p: V3, R: M9, flange: tuple[V3, M9] | None = None, t_ns: int | None = None
     ) -> None:
         """`update_robot_state` for values already validated (finite, R a rotation), as a
         decoded RobotState's: plain floats, nothing recomputed per sample."""
@@ -253,29 +248,16 @@ class ForceCore:
         ):
             self.set_tool(np.asarray(p_et), np.asarray(R_et).reshape(3, 3))
 
-    def update_workcell(self, state: WorkcellState) -> None:
-        """The simulated workcell now (`workcell/state`): a simulated sensor senses its moved
-        objects and what the gripper carries. Other sensors ignore it. A malformed object
-        raises ProtocolError naming its field (the world stays as it was)."""
-        if self._worldly is None:
-            return
-        # The workcell publishes at 50 Hz whether or not anything moved: an unchanged
-        # world (same objects, same grasp) costs one dict comparison, not a rebuild.
-        if self._last_world == (state.held, state.objects):
-            return
-        objects = objects_of(state)
-        where = f"outside {WORLD_MIN_M}…{WORLD_MAX_M} m"
-        if not all(WORLD_MIN_M <= x <= WORLD_MAX_M for x in state.tool_p):
-            raise ProtocolError("tool_p", where)
-        for name, o in objects.items():
-            if not all(WORLD_MIN_M <= x <= WORLD_MAX_M for x in o.p):
-                raise ProtocolError(f"objects.{short(name, 40)}.p", where)
-            if not all(0.0 < x <= OBJECT_MAX_M for x in o.size):
-                raise ProtocolError(
-                    f"objects.{short(name, 40)}.size", f"not within (0, {OBJECT_MAX_M}] m"
-                )
-        self._worldly.update_workcell(objects, state.held, vec3(state.tool_p))
-        self._last_world = (state.held, state.objects)
+    def update_physics(self, f_t: V3, c_t: V3) -> None:
+        """The wrench the cell's physics computes on the tool now (`sim/arm/state`, tool
+        frame): what a simulated sensor reads. Other sensors ignore it."""
+        if self._worldly is not None:
+            self._worldly.update_physics(f_t, c_t)
+
+    @property
+    def physics_updates(self) -> int:
+        """Physics wrenches the sensor took (0: a real sensor, or no cell's physics yet)."""
+        return self._worldly.physics_updates if self._worldly is not None else 0
 
     def set_tool(self, p: ArrayLike, R: ArrayLike) -> None:
         """The tool placement eMt in the flange frame (m; R flange←tool), as arm's set_tool."""
@@ -457,6 +439,7 @@ class ForceCore:
             (f[0] - bx, f[1] - by, f[2] - bz),
             (c[0] - dx, c[1] - dy, c[2] - dz),
             v,
+            True if reading.estimate else None,
         )
         self._latest = sample
         return sample

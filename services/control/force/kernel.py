@@ -18,18 +18,15 @@ from collections.abc import Sequence
 import numpy as np
 
 from services.control.force.model import WristModel
+from services.control.force.sensors import Six
+from services.geometry import M9, V3
 
-F3 = tuple[float, float, float]
-Six = tuple[float, float, float, float, float, float]
-M3 = tuple[float, float, float, float, float, float, float, float, float]
-"""A 3×3 matrix as 9 row-major floats."""
-
-ZERO3: F3 = (0.0, 0.0, 0.0)
+ZERO3: V3 = (0.0, 0.0, 0.0)
 _WRAP_RAD = math.pi - 1e-3
 """Rotation vectors at least this long go through the numpy model (exact wrap at π)."""
 
 
-def mat9(m: object) -> M3:
+def mat9(m: object) -> M9:
     """9 row-major floats of a 3×3 array or a sequence of 9."""
     a = np.asarray(m, dtype=float).reshape(9)
     return (
@@ -45,16 +42,16 @@ def mat9(m: object) -> M3:
     )
 
 
-def vec3(v: object) -> F3:
+def vec3(v: object) -> V3:
     a = np.asarray(v, dtype=float).reshape(3)
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
-def transpose(m: M3) -> M3:
+def transpose(m: M9) -> M9:
     return (m[0], m[3], m[6], m[1], m[4], m[7], m[2], m[5], m[8])
 
 
-def mul(m: M3, x: float, y: float, z: float) -> F3:
+def mul(m: M9, x: float, y: float, z: float) -> V3:
     """m · (x, y, z)."""
     return (
         m[0] * x + m[1] * y + m[2] * z,
@@ -63,11 +60,11 @@ def mul(m: M3, x: float, y: float, z: float) -> F3:
     )
 
 
-def cross(a: F3, b: F3) -> F3:
+def cross(a: V3, b: V3) -> V3:
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-def weight_wrench(mass_kg: float, gravity_mps2: float, com_t: F3, tool_R: M3) -> tuple[F3, F3]:
+def weight_wrench(mass_kg: float, gravity_mps2: float, com_t: V3, tool_R: M9) -> tuple[V3, V3]:
     """A mass's weight at the tool point, tool frame (plain-float `ToolLoad.wrench`).
 
     F_g = m (M_w^t)ᵀ (0, 0, −g) = −m g · (third row of M_w^t),  C_g = c × F_g.
@@ -111,7 +108,7 @@ class WristKernel:
         self._cal = tuple(tuple(float(x) for x in row) for row in model.calibration)
         self._cal_inv = tuple(tuple(float(x) for x in row) for row in model.calibration_inv)
 
-    def _rotate(self, th: F3, v: F3, sign: float) -> F3:
+    def _rotate(self, th: V3, v: V3, sign: float) -> V3:
         """ΔM v (sign +1) or ΔM⁻¹ v (sign −1), ΔM = rot(θ) in the model's rotation mode."""
         tx, ty, tz = th
         vx, vy, vz = v
@@ -133,7 +130,7 @@ class WristKernel:
             s = -s
         return (vx + s * kx + c * kkx, vy + s * ky + c * kky, vz + s * kz + c * kkz)
 
-    def wrench_from_signals(self, sig: Sequence[float]) -> tuple[F3, F3]:
+    def wrench_from_signals(self, sig: Sequence[float]) -> tuple[V3, V3]:
         """Six sensing signals → (F_t (N), C_t (N·m)): eq. (4), as `WristModel`'s.
 
         ΔT_t = M_t^s ΔM⁻¹ (ΔS − p_st) + M_t^s p_st,   C_t = K_r · M_t^s θ.
@@ -163,7 +160,7 @@ class WristKernel:
             (Kr[0] * r[0], Kr[1] * r[1], Kr[2] * r[2]),
         )
 
-    def signals_from_wrench(self, f: F3, c: F3) -> Six:
+    def signals_from_wrench(self, f: V3, c: V3) -> Six:
         """(F_t, C_t) → the six signals: eq. (4) inverted, as `WristModel`'s.
 
         θ = M_s^t (C_t / K_r),  ΔS = ΔM (M_s^t (F_t / K_l) − p_st) + p_st.
@@ -183,7 +180,7 @@ class WristKernel:
             for r in self._cal_inv
         )
 
-    def wrench_from_sensor_wrench(self, fs: F3, cs: F3) -> tuple[F3, F3]:
+    def wrench_from_sensor_wrench(self, fs: V3, cs: V3) -> tuple[V3, V3]:
         """A wrench at the sensor origin in R_s → at the tool point in R_t (a Net F/T).
 
         F_t = M_t^s F_s,   C_t = M_t^s (C_s − s_p_t × F_s)

@@ -449,10 +449,17 @@ class Sampler(Generic[S]):
                 stalled_ns = now - last_data_ns
                 if not self._stale and stalled_ns >= self._stale_after * period_ns:
                     self._stale = True
+                    never = self._samples == 0
                     self.post_event(
                         "stale",
-                        f"no data from the force sensor for {stalled_ns / 1e6:.1f} ms",
-                        {"stale": True, "periods": stalled_ns / period_ns},
+                        (
+                            "the force sensor has sent nothing since sampling started "
+                            f"({stalled_ns / 1e6:.1f} ms): is it connected, powered and "
+                            "configured (port, host)?"
+                        )
+                        if never
+                        else f"no data from the force sensor for {stalled_ns / 1e6:.1f} ms",
+                        {"stale": True, "periods": stalled_ns / period_ns, "never": never},
                     )
             else:
                 if self._stale:

@@ -5,20 +5,16 @@ imports it lazily; `accounting.py` what the streaming backends share.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
+from typing import Literal, Protocol, runtime_checkable
 
 from numpy.typing import ArrayLike
 
 from services.bus.errors import TelerobotError
 from services.control.force.events import EventSink
 
-if TYPE_CHECKING:
-    from services.world.workcell.messages import ObjectView
-
-SensorKind = Literal["sim", "serial", "netft"]
-SENSOR_KINDS: tuple[SensorKind, ...] = ("sim", "serial", "netft")
+SensorKind = Literal["sim", "serial", "netft", "franka"]
+SENSOR_KINDS: tuple[SensorKind, ...] = ("sim", "serial", "netft", "franka")
 
 Six = tuple[float, float, float, float, float, float]
 
@@ -41,6 +37,8 @@ class Reading:
     kind: Literal["signals", "wrench"]
     values: Six
     device_seq: int | None = None
+    estimate: bool = False
+    """The wrench is estimated (a robot's, from its joint torques), not measured."""
 
 
 @runtime_checkable
@@ -94,8 +92,20 @@ class PoseAwareSensor(Protocol):
 
 
 @runtime_checkable
+class IdlingSensor(Protocol):
+    """A sensor whose data is computed, not streamed by a device (the simulated one):
+    `may_idle` says it may be sampled slower while nobody uses the samples."""
+
+    may_idle: bool
+
+
+@runtime_checkable
 class WorldAwareSensor(Protocol):
-    """A sensor of the simulated workcell: it follows the moved objects and the load."""
+    """A sensor of the simulated cell: it follows the tool's pose (validated) and takes
+    the wrench the cell's physics computes at the wrist, counting those it took in
+    `physics_updates`."""
+
+    physics_updates: int
 
     def update_pose_checked(
         self,
@@ -107,9 +117,9 @@ class WorldAwareSensor(Protocol):
         world←tool), from robot/state stamped `t_ns` (ns)."""
         ...
 
-    def update_workcell(
-        self, objects: Mapping[str, ObjectView], held: str, tool_p: tuple[float, float, float]
+    def update_physics(
+        self, f_t: tuple[float, float, float], c_t: tuple[float, float, float]
     ) -> None:
-        """The workcell's objects (validated), the one in the gripper ("" for none), and
-        the tool point (m, world) the workcell stepped with."""
+        """The world's wrench on the tool (N, N·m about the tool point, tool frame) as the
+        cell's physics computes it now."""
         ...

@@ -1,24 +1,24 @@
-"""The simulated wrist sensor: contact with the live workcell, through eq. (4) inverted.
+"""The simulated wrist sensor: the cell's physics at the wrist, through eq. (4) inverted.
 
-Each `read()` takes the latest tool pose (from robot/state, via `update_pose`), the contact
-force of the workcell on a probe sphere at the tool point, the weight of the tool and of
-what the gripper carries (and its inertia), an optional external push and small noise, and
-turns that wrench (tool frame) into the six sensing signals with the inverse of eq. (4):
-the simulated elastic wrist deflects, and the service recovers the wrench with the forward
-eq. (4) exactly as on the real wrist.
+With the workcell's physics running (MuJoCo, docs/sim.md), each `read()` takes the wrench
+its solver computes on the tool (`update_physics`, from `sim/arm/state`: contacts, the
+tool's and the carried object's weight and inertia, what the object touches), adds an
+optional external push and small noise, and turns it into the six sensing signals with the
+inverse of eq. (4): the simulated elastic wrist deflects, and the service recovers the
+wrench with the forward eq. (4) exactly as on the real wrist.
 
-The world is the workcell's scene at the poses of the latest `workcell/state`
-(`update_workcell`): a moved block is touched where it now is, a carried one weighs on the
-wrist. Everything that changes only with a message (the tool frame's rotation, the weights
-in the tool frame, the placed scene geometry) is computed when the message arrives; a
-sample costs the contact query, the noise and eq. (4) in plain floats.
+Without a physics wrench for `PHYSICS_STALE_S` (an arm on its own physics, `[arm]
+sim_physics = "own"`: the arm alone, no cell around it) the wrist is in free space and
+measures what a wrist in free space measures: the tool's weight and, with `inertia`, its
+inertial force from the tool's acceleration (estimated from robot/state), the optional
+push, and noise. Nothing is touched and nothing carried: contact is the cell's physics'
+alone (there is no second contact model).
 """
 
 from __future__ import annotations
 
-import math
 import threading
-from collections.abc import Mapping
+import time
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -26,8 +26,6 @@ from numpy.typing import ArrayLike
 from services.control.force.events import EventSink, ignore_event
 from services.control.force.gravity import ToolLoad
 from services.control.force.kernel import (
-    F3,
-    M3,
     ZERO3,
     WristKernel,
     cross,
@@ -39,17 +37,7 @@ from services.control.force.kernel import (
 )
 from services.control.force.model import Vec, WristModel, as_rotation
 from services.control.force.sensors import Reading, SensorError, Six
-from services.control.force.world import (
-    BASE_POINTS,
-    CarriedLoad,
-    ContactWorld,
-    Pose,
-    carried_mass_kg,
-    surface_points,
-)
-from services.geometry import log9, mul9
-from services.world.workcell.messages import ObjectView
-from services.world.workcell.scene import Scene, default_scene
+from services.geometry import M9, V3
 
 NOISE_BLOCK = 256
 """Samples' worth of Gaussian noise drawn at once."""
@@ -61,6 +49,8 @@ ACCEL_TAU_S = 0.03
 tool position at the robot/state rate are noisy)."""
 ACCEL_DT_RANGE_S = (2e-4, 0.1)
 """robot/state intervals outside this (s) restart the acceleration estimate."""
+PHYSICS_STALE_S = 0.1
+"""A physics wrench older than this (s) is not the wrist's any more."""
 
 
 class _Accel:
@@ -70,12 +60,12 @@ class _Accel:
         self.reset()
 
     def reset(self) -> None:
-        self._p: F3 | None = None
+        self._p: V3 | None = None
         self._t = 0
-        self._v: F3 | None = None
-        self.a: F3 = ZERO3
+        self._v: V3 | None = None
+        self.a: V3 = ZERO3
 
-    def update(self, p: F3, t_ns: int) -> F3:
+    def update(self, p: V3, t_ns: int) -> V3:
         lo, hi = ACCEL_DT_RANGE_S
         if self._p is None or not lo <= (t_ns - self._t) * 1e-9 <= hi:
             self.reset()
@@ -97,28 +87,24 @@ class _Accel:
 
 
 class SimSensor:
-    """A simulated compliant wrist in the simulated workcell.
+    """A simulated compliant wrist: the cell's physics at the wrist, or free space.
 
     `model` is the physical truth of the simulated wrist (its calibration, stiffness and
     placements); the service's own model may differ, as it may on a real wrist. `load` is
     the tool's weight. Noise is Gaussian, `noise_n` (N) per force axis and `noise_nm` (N·m)
-    per moment axis. Contact moments about the tool point are zero: the probe is a sphere
-    of `probe_radius_m` centred on the tool point. Without a pose there is nothing to
-    sense: `read()` returns None until the first `update_pose`.
+    per moment axis.
 
-    A carried object (`update_workcell` with `held`) adds m·(g − a) at its centre of mass:
-    its weight, and with `inertia` its inertial force from the tool's acceleration
-    (estimated from the robot/state stream). Its mass comes from the scene description:
-    `block_density_kg_m3` × a box's volume, or `bottle_mass_kg` plus the liquid left. With
-    `carried_contact`, what it touches (a table, a block under it) pushes on the wrist
-    through it, at its corners and base centre.
-
-    `torsion_nm_rad` > 0: the tool's contact resists a turn about its normal, as a tool
-    seated in a socket or a tip that does not slip: while the probe touches, the turn
-    about the contact normal since the touch began meets a moment −k·angle about that
-    normal (at the tool point); out of contact it is forgotten. 0 (default): a contact has
-    no moment, as above. What a rotational passivity port is measured against
-    (docs/passivity.md, "Rotations").
+    With a fresh physics wrench (`update_physics`, the workcell's MuJoCo solver) that
+    wrench is the wrist's: the tool's weight and inertia, every contact, a carried
+    object's weight and what it touches. Without one (the arm on its own physics) the
+    wrist is in free space: the tool's weight and, with `inertia` (off by default), m·(−a)
+    at its centre of mass from the tool's acceleration (robot/state); no contact, nothing
+    carried. Off because the force service compensates the tool's weight, not its inertia:
+    with the decision's compliance on, the tool's own acceleration read as a push moves the
+    target, which accelerates the tool again (the arm never came to rest in the compose run,
+    2026-12-02). Without
+    a pose there is nothing to sense then: `read()` returns None until the first
+    `update_pose`. `push` adds an external wrench either way.
     """
 
     #: its data is computed, not streamed by a device: sampled slower while unused
@@ -128,52 +114,34 @@ class SimSensor:
         self,
         model: WristModel | None = None,
         load: ToolLoad | None = None,
-        scene: Scene | None = None,
         *,
         noise_n: float = 0.0,
         noise_nm: float = 0.0,
-        probe_radius_m: float = 0.005,
         seed: int | None = None,
-        block_density_kg_m3: float = 700.0,
-        bottle_mass_kg: float = 0.1,
-        inertia: bool = True,
-        carried_contact: bool = True,
-        torsion_nm_rad: float = 0.0,
+        inertia: bool = False,
         on_event: EventSink = ignore_event,
     ) -> None:
-        if not (noise_n >= 0.0 and noise_nm >= 0.0 and probe_radius_m >= 0.0):
-            raise ValueError("noise_n, noise_nm and probe_radius_m must be ≥ 0")
-        if not (block_density_kg_m3 >= 0.0 and bottle_mass_kg >= 0.0):
-            raise ValueError("block_density_kg_m3 and bottle_mass_kg must be ≥ 0")
-        if not 0.0 <= torsion_nm_rad < math.inf:
-            raise ValueError("torsion_nm_rad must be ≥ 0 and finite")
-        self._torsion = torsion_nm_rad
-        self._seated: M3 | None = None  # the tool's orientation when the touch began
+        if not (noise_n >= 0.0 and noise_nm >= 0.0):
+            raise ValueError("noise_n and noise_nm must be ≥ 0")
         self.on_event = on_event
         self._model = model or WristModel()
         self._kernel = WristKernel(self._model)
         self._load = load or ToolLoad()
-        self._scene = scene or default_scene()
         self._noise_n = noise_n
         self._noise_nm = noise_nm
-        self._radius_m = probe_radius_m
-        self._density = block_density_kg_m3
-        self._bottle_kg = bottle_mass_kg
         self._inertia = inertia
-        self._carried_contact = carried_contact
         self._rng = np.random.default_rng(seed)
         self._noise: list[float] = []
         self._noise_at = 0
-        self._lock = threading.Lock()  # pose and world updates come from two bus threads
-        self._world = ContactWorld.build(self._scene, probe_radius_m)
-        self._carried: CarriedLoad | None = None
+        self._lock = threading.Lock()  # pose updates and reads come from two threads
         self._accel = _Accel()
-        # Per pose: (p, Rᵀ, the weights' force and moment in the tool frame).
-        self._pose: tuple[F3, M3, F3, F3] | None = None
-        self._R: M3 | None = None
-        self._push: tuple[F3, F3] = (ZERO3, ZERO3)
+        # Per pose: (p, Rᵀ, the tool's weight and inertia: force and moment, tool frame).
+        self._pose: tuple[V3, M9, V3, V3] | None = None
+        self._push: tuple[V3, V3] = (ZERO3, ZERO3)
         self._open = False
         self._count = 0
+        self._physics: tuple[V3, V3, float] | None = None
+        self.physics_updates = 0
 
     @property
     def name(self) -> str:
@@ -192,18 +160,15 @@ class SimSensor:
         return self._model
 
     @property
-    def world(self) -> ContactWorld:
-        return self._world
-
-    @property
-    def acceleration(self) -> F3:
+    def acceleration(self) -> V3:
         """The tool point's estimated acceleration (m/s², world) from robot/state."""
         return self._accel.a
 
     @property
-    def carried(self) -> CarriedLoad | None:
-        """What the gripper holds now (None: nothing)."""
-        return self._carried
+    def physics_fresh(self) -> bool:
+        """A physics wrench arrived within `PHYSICS_STALE_S`: the wrist is the cell's."""
+        ph = self._physics
+        return ph is not None and time.monotonic() - ph[2] <= PHYSICS_STALE_S
 
     def open(self) -> None:
         self._open = True
@@ -218,76 +183,25 @@ class SimSensor:
         R = mat9(as_rotation(tool_R, "tool_R"))
         self._set_pose(p, R, t_ns)
 
-    def update_pose_checked(self, p: F3, R: M3, t_ns: int | None = None) -> None:
+    def update_pose_checked(self, p: V3, R: M9, t_ns: int | None = None) -> None:
         """`update_pose` for a pose already validated (a decoded RobotState)."""
         self._set_pose(p, R, t_ns)
 
-    def _set_pose(self, p: F3, R: M3, t_ns: int | None) -> None:
+    def _set_pose(self, p: V3, R: M9, t_ns: int | None) -> None:
         with self._lock:
             a = self._accel.update(p, t_ns) if t_ns is not None else ZERO3
-            self._R = R
-            f, c = self._weights(R, a)
+            f, c = self._free(R, a if self._inertia else ZERO3)
             self._pose = (p, transpose(R), f, c)
 
-    def _weights(self, R: M3, a: F3) -> tuple[F3, F3]:
-        """The tool's and the carried object's weight (and inertia), tool frame."""
+    def _free(self, R: M9, a: V3) -> tuple[V3, V3]:
+        """The tool's weight and inertia in free space, tool frame: m (g⃗ − a⃗) at its
+        centre of mass."""
         load = self._load
-        f, c = weight_wrench(load.mass_kg, load.gravity_mps2, vec3(load.com_m), R)
-        held = self._carried
-        if held is None or held.mass_kg == 0.0:
-            return f, c
-        g = self._load.gravity_mps2
-        m = held.mass_kg
-        if not self._inertia:
-            a = ZERO3
-        # m (g⃗ − a⃗) in the world, then in the tool frame.
+        m, g = load.mass_kg, load.gravity_mps2
+        if a == ZERO3:
+            return weight_wrench(m, g, vec3(load.com_m), R)
         fo = mul(transpose(R), -m * a[0], -m * a[1], -m * (g + a[2]))
-        co = cross(held.com_t, fo)
-        return (f[0] + fo[0], f[1] + fo[1], f[2] + fo[2]), (
-            c[0] + co[0],
-            c[1] + co[1],
-            c[2] + co[2],
-        )
-
-    def update_workcell(self, objects: Mapping[str, ObjectView], held: str, tool_p: F3) -> None:
-        """The workcell's objects now (a validated `workcell/state`): contact uses their
-        poses; `held` (the gripper's object, "" for none) weighs on the wrist. `tool_p` is
-        the tool point the workcell stepped with (m, world): the carried object's centre of
-        mass is placed relative to it."""
-        poses = {n: Pose(vec3(o.p), mat9(o.R)) for n, o in objects.items()}
-        world = ContactWorld.build(self._scene, self._radius_m, poses, exclude=held)
-        carried: CarriedLoad | None = None
-        if held and held in objects:
-            obj = objects[held]
-            try:
-                solid = self._scene.solid(held)
-            except KeyError:
-                solid = None
-            if solid is not None:
-                mass = carried_mass_kg(solid, obj.liquid_ml, self._density, self._bottle_kg)
-                with self._lock:
-                    R = self._R
-                if R is not None:
-                    Rt = transpose(R)
-                    tx, ty, tz = tool_p
-
-                    def in_tool(x: F3) -> F3:
-                        return mul(Rt, x[0] - tx, x[1] - ty, x[2] - tz)
-
-                    pts = surface_points(obj.kind, vec3(obj.p), mat9(obj.R), vec3(obj.size))
-                    points = tuple(in_tool(x) for x in pts) if self._carried_contact else ()
-                    centre = in_tool(vec3(obj.centre))
-                    reach = max((math.dist(q, centre) for q in points), default=0.0)
-                    carried = CarriedLoad(held, mass, centre, points, centre, reach)
-                else:
-                    carried = CarriedLoad(held, mass)
-        with self._lock:
-            self._world = world
-            self._carried = carried
-            if self._R is not None and self._pose is not None:
-                f, c = self._weights(self._R, self._accel.a)
-                p, Rt, _, _ = self._pose
-                self._pose = (p, Rt, f, c)
+        return fo, cross(vec3(load.com_m), fo)
 
     def set_tool(self, p_et: ArrayLike, R_et: ArrayLike) -> None:
         """The simulated tool is mounted at a new placement eMt in the flange frame."""
@@ -306,66 +220,27 @@ class SimSensor:
             return None
         return np.array(w[0]), np.array(w[1])
 
-    def _wrench(self) -> tuple[F3, F3] | None:
+    def update_physics(self, f_t: V3, c_t: V3) -> None:
+        """The wrench of the world on the tool (N, N·m about the tool point, tool frame) as
+        the cell's physics computes it now (validated: a decoded `sim/arm/state`)."""
+        self._physics = (
+            (float(f_t[0]), float(f_t[1]), float(f_t[2])),
+            (float(c_t[0]), float(c_t[1]), float(c_t[2])),
+            time.monotonic(),
+        )
+        self.physics_updates += 1
+
+    def _wrench(self) -> tuple[V3, V3] | None:
+        ph = self._physics
+        (px, py, pz), (qx, qy, qz) = self._push
+        if ph is not None and time.monotonic() - ph[2] <= PHYSICS_STALE_S:
+            (fx, fy, fz), (cx, cy, cz) = ph[0], ph[1]
+            return (fx + px, fy + py, fz + pz), (cx + qx, cy + qy, cz + qz)
         pose = self._pose
         if pose is None:
             return None
-        p, Rt, wf, wc = pose
-        world = self._world
-        fw = world.force(p[0], p[1], p[2])
-        ft = mul(Rt, *fw)
-        (px, py, pz), (qx, qy, qz) = self._push
-        f = (ft[0] + wf[0] + px, ft[1] + wf[1] + py, ft[2] + wf[2] + pz)
-        c = (wc[0] + qx, wc[1] + qy, wc[2] + qz)
-        if self._torsion > 0.0:
-            tc = self._twist(fw, transpose(Rt))
-            c = (c[0] + tc[0], c[1] + tc[1], c[2] + tc[2])
-        held = self._carried
-        if held is None or not held.points_t:
-            return f, c
-        # What the carried object touches pushes on the wrist through it: each surface
-        # point is a point probe of stiffness k / 5, so its base (4 corners or rim points
-        # and its centre) pressed flat onto a surface gives k · depth.
-        R = transpose(Rt)
-        cw = mul(R, *held.centre_t)
-        near = world.near(p[0] + cw[0], p[1] + cw[1], p[2] + cw[2], held.reach_m)
-        if near is None:  # in free space: one rotation and a bounds test per solid
-            return f, c
-        share = 1.0 / BASE_POINTS
-        fx = fy = fz = mx = my = mz = 0.0
-        for q in held.points_t:
-            qw = mul(R, *q)
-            g = world.point_force(near, p[0] + qw[0], p[1] + qw[1], p[2] + qw[2])
-            if g[0] or g[1] or g[2]:
-                fx += share * g[0]
-                fy += share * g[1]
-                fz += share * g[2]
-                mx += share * (qw[1] * g[2] - qw[2] * g[1])
-                my += share * (qw[2] * g[0] - qw[0] * g[2])
-                mz += share * (qw[0] * g[1] - qw[1] * g[0])
-        if not (fx or fy or fz):
-            return f, c
-        ct, mt = mul(Rt, fx, fy, fz), mul(Rt, mx, my, mz)
-        return (
-            (f[0] + ct[0], f[1] + ct[1], f[2] + ct[2]),
-            (c[0] + mt[0], c[1] + mt[1], c[2] + mt[2]),
-        )
-
-    def _twist(self, fw: F3, R: M3) -> F3:
-        """The contact's moment against a turn about its normal (tool frame, N·m), or zero
-        out of contact; remembers the orientation at the touch (`torsion_nm_rad`)."""
-        norm = math.sqrt(fw[0] * fw[0] + fw[1] * fw[1] + fw[2] * fw[2])
-        if norm == 0.0:
-            self._seated = None
-            return ZERO3
-        if self._seated is None:
-            self._seated = R
-            return ZERO3
-        n = (fw[0] / norm, fw[1] / norm, fw[2] / norm)
-        # The turn since the touch, a spatial rotation vector: log(R·R_seatedᵀ).
-        w = log9(mul9(R, transpose(self._seated)))
-        k = -self._torsion * (w[0] * n[0] + w[1] * n[1] + w[2] * n[2])
-        return mul(transpose(R), k * n[0], k * n[1], k * n[2])
+        _, _, (fx, fy, fz), (cx, cy, cz) = pose
+        return (fx + px, fy + py, fz + pz), (cx + qx, cy + qy, cz + qz)
 
     def read(self) -> Reading | None:
         if not self._open:

@@ -10,7 +10,7 @@ import sys
 from services.bus.config import service_table
 from services.bus.lifecycle import CONFIG_EXIT, ServiceContext, run_service
 from services.control.master.config import MasterConfig
-from services.control.master.devices import DeviceNotFound
+from services.control.master.device import DeviceNotFound
 
 #: command-line names → MasterConfig.device
 DEVICES = {

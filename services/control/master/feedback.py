@@ -18,13 +18,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from services.control.master.config import Frame, MasterConfig
-from services.control.master.devices import HandReading
-from services.geometry import is_rotation
-
-Vec3 = NDArray[np.float64]
+from services.control.master.device import HandReading
+from services.geometry import Array3, is_rotation
 
 
 @dataclass(frozen=True, slots=True)
@@ -32,13 +30,13 @@ class DisplayWrench:
     """What to show the operator: force f (3,) N and moment c (3,) N·m in the master frame,
     and whether each was cut down to its limit."""
 
-    f: Vec3
-    c: Vec3
+    f: Array3
+    c: Array3
     force_saturated: bool
     torque_saturated: bool
 
 
-def saturate(v: ArrayLike, max_norm: float) -> tuple[Vec3, bool]:
+def saturate(v: ArrayLike, max_norm: float) -> tuple[Array3, bool]:
     """v scaled down to norm max_norm when longer, direction kept; (v', was_saturated)."""
     x = np.asarray(v, dtype=float).reshape(3)
     norm = math.hypot(*x)  # no overflow for huge components, unlike a dot product

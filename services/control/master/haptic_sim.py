@@ -23,7 +23,7 @@ import threading
 import numpy as np
 from numpy.typing import ArrayLike
 
-from services.control.master.devices import HandReading
+from services.control.master.device import HandReading
 from services.control.passivity.dynamics import Device, Operator, press_hold_release
 from services.geometry import rot_z
 

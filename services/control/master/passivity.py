@@ -24,7 +24,7 @@ from services.bus import keys
 from services.bus.messages import PassivityState
 from services.bus.node import Node
 from services.control.master.config import DEVICE_INERTIA_KG_M2
-from services.control.master.devices import HandReading
+from services.control.master.device import HandReading
 from services.control.master.feedback import DisplayWrench
 from services.control.passivity.controller import MasterPassivity
 from services.control.passivity.rotation import RotationTrack

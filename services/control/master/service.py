@@ -31,7 +31,16 @@ from services.bus.node import Node
 from services.bus.rate import RateLoop
 from services.control.master.backends import open_master_device
 from services.control.master.config import MasterConfig
-from services.control.master.devices import DeviceLost, HandReading, MasterDevice
+from services.control.master.device import (
+    DeviceLost,
+    HandReading,
+    KeepsStats,
+    MasterDevice,
+    MayIdle,
+    ReportsRejected,
+    ShowsStatus,
+    VirtualHand,
+)
 from services.control.master.feedback import ForceDisplay, ForceFeedback, WrenchHook
 from services.control.master.passivity import MasterTdpa
 from services.control.master.status_line import ADVICE, StatusInfo
@@ -44,6 +53,14 @@ REOPEN_FIRST_S = 0.25
 REOPEN_MAX_S = 2.0
 """A lost device is reopened after 0.25 s, then 0.5, 1, 2, 2 … s until it answers."""
 HOLD_REPEATS = 3
+REENGAGE_FRESH_NS = 500_000_000
+"""A hold is re-engaged after only when the master hears of it this soon (the event's stamp
+against this host's clock): a master that was itself frozen or cut off for longer (a
+suspended laptop, SIGSTOP past its lease) waits for its operator."""
+REENGAGE_AFTER = frozenset({"command_timeout"})
+"""Holds a master re-engages after by itself while its device still asks to move: a gap in
+the command stream (a loaded host), not something the operator must act on (a stop, an
+e-stop, a robot error, a lost sensor: those wait for the operator's own re-engagement)."""
 IDLE_RATE_HZ = 50.0
 """A station whose device may idle (the virtual master), clutched and not engaged, ticks this
 often until the device wakes it: the contract's floor for robot/cmd (≥ 50 Hz) and, as
@@ -67,6 +84,13 @@ class MasterService:
         self.node = node
         self.config = config
         self.device = device if device is not None else open_master_device(config)
+        # What the device can do beyond the role, decided once (device.py's Protocols).
+        dev = self.device
+        self._status_view = dev if isinstance(dev, ShowsStatus) else None
+        self._wake = dev.wake if isinstance(dev, MayIdle) and dev.may_idle else None
+        self._rejects = dev if isinstance(dev, ReportsRejected) else None
+        self._hand = dev if isinstance(dev, VirtualHand) else None
+        self._link_stats = dev if isinstance(dev, KeepsStats) else None
         self.teleop = Teleop(config, self.device.name)
         self.passivity: MasterTdpa | None = None
         if force_hook is None and config.passivity:
@@ -92,8 +116,13 @@ class MasterService:
         self._notice_engage = 0
         self._grip: float | None = None
         self._clutched = False
-        if hasattr(self.device, "show_status"):
-            node.subscribe(keys.EVENTS, self._on_event)
+        self.holds = 0
+        self.reengages = 0
+        self.last_hold: str | None = None
+        self._held_engage = -1
+        self._hold_lock = threading.Lock()
+        # the decision's holds of this master, and its advice for a terminal's status line
+        node.subscribe(keys.EVENTS, self._on_event)
         self._stop = threading.Event()
         self._device_ok = True
         self._reopen_at = 0.0
@@ -135,11 +164,9 @@ class MasterService:
                     self._publish_state()
                 self.ticks += 1
                 if self._idle():
-                    wake = getattr(self.device, "wake", None)
-                    (wake if isinstance(wake, threading.Event) else self._stop).wait(
-                        1.0 / IDLE_RATE_HZ
-                    )
-                    if isinstance(wake, threading.Event):
+                    wake = self._wake
+                    (wake or self._stop).wait(1.0 / IDLE_RATE_HZ)
+                    if wake is not None:
                         wake.clear()
                     rate.set_rate(self.config.rate_hz)  # a fresh schedule, not a late one
                     if self.ticks % state_every:
@@ -153,7 +180,7 @@ class MasterService:
         """Not engaged, on a device that may idle (it wakes the loop on any input), and
         clutched or not to engage by itself: nothing to stream but the contract's 50 Hz."""
         return (
-            bool(getattr(self.device, "may_idle", False))
+            self._wake is not None
             and (self._clutched or not self.config.engage_on_start)
             and (not self.teleop.engaged)
         )
@@ -202,9 +229,8 @@ class MasterService:
 
     def _report_rejected(self) -> None:
         """Count and report (rate-limited) what the device refused from its own link."""
-        take = getattr(self.device, "take_rejected", None)
-        if take is not None:
-            for reason in take():
+        if self._rejects is not None:
+            for reason in self._rejects.take_rejected():
                 self.node.report_rejected(f"master/{self.config.master_id}/device", reason)
 
     def _display_force(self, reading: HandReading, dt_s: float) -> None:
@@ -238,22 +264,60 @@ class MasterService:
         self._stale = stale
 
     def _on_event(self, ev: Event) -> None:
-        """The decision's last word about this master (a hold, a refusal, a limit), for a
-        terminal's status line; a new engagement clears it."""
-        about = (ev.data or {}).get("master")
-        if ev.source == "decision" and ev.kind in ADVICE and about in (None, self.config.master_id):
+        """The decision's word about this master: a hold of its engagement (logged, counted
+        in `status`, and re-engaged after when REENGAGE_AFTER says so), and its last advice
+        (a hold, a refusal, a limit) for a terminal's status line; a new engagement clears
+        that."""
+        if ev.source != "decision":
+            return
+        data = ev.data or {}
+        about = data.get("master")
+        if about == self.config.master_id:
+            self._on_hold(ev, data)
+        if (
+            self._status_view is not None
+            and ev.kind in ADVICE
+            and about in (None, self.config.master_id)
+        ):
             self._notice = (ev.kind, ev.message)
             self._notice_engage = self.teleop.state(0).engage
 
+    def _on_hold(self, ev: Event, data: dict[str, Any]) -> None:
+        """A watchdog hold of this master's engagement, or the decision saying the
+        engagement it still streams was held (the hold's own event may have been
+        rate-limited away): said once per engagement. Re-engaged after only on the live
+        watchdog event (REENGAGE_FRESH_NS) for a gap in the stream (REENGAGE_AFTER)."""
+        engage, reason = data.get("engage"), data.get("reason")
+        if ev.kind == "watchdog":
+            why = reason
+        elif ev.kind == "lease" and reason == "engagement_held":
+            why = data.get("held_by")
+        else:
+            return
+        if not isinstance(engage, int) or isinstance(engage, bool):
+            return
+        with self._hold_lock:
+            if engage <= self._held_engage:
+                return
+            self._held_engage = engage
+            self.holds += 1
+            self.last_hold = str(why)[:64] if why is not None else "held"
+        log.warning("the decision held engagement %d: %s", engage, ev.message[:200])
+        live = ev.kind == "watchdog" and abs(time.time_ns() - ev.t_ns) < REENGAGE_FRESH_NS
+        if live and why in REENGAGE_AFTER and self.config.reengage and self.teleop.reengage(engage):
+            with self._hold_lock:
+                self.reengages += 1
+            log.info("re-engaging after the hold: the device still asks to move")
+
     def _show_status(self) -> None:
-        show = getattr(self.device, "show_status", None)
+        show = self._status_view
         if show is None:
             return
         engaged = self.teleop.engaged
         state = self.teleop.state(0)
         if engaged and self._notice is not None and state.engage > self._notice_engage:
             self._notice = None  # a new engagement since: the news is history
-        show(
+        show.show_status(
             StatusInfo(
                 device=self.device.name,
                 engaged=engaged,
@@ -309,8 +373,11 @@ class MasterService:
             "can_display_force": self.device.can_display_force,
             "ticks": self.ticks,
             "reopens": self.reopens,
+            "holds": self.holds,
+            "reengages": self.reengages,
+            "last_hold": self.last_hold,
             "loop": self._rate.stats(),
-            **_device_stats(self.device),
+            **self._device_stats(),
         }
 
     def _rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
@@ -334,14 +401,15 @@ class MasterService:
         return self._status()
 
     def _rpc_set_hand(self, args: dict[str, Any]) -> dict[str, Any]:
-        set_hand = getattr(self.device, "set_hand", None)
-        if set_hand is None:
+        if self._hand is None:
             raise RpcError("bad_request", f"device {self.device.name} is not a virtual master")
         p = codec.arg(args, "p", Vec3)
         R = codec.arg(args, "R", Rot, None)
         clutch = codec.arg(args, "clutch", bool, False)
         grip = codec.arg(args, "grip", Unit, None)
-        set_hand(p, None if R is None else [R[0:3], R[3:6], R[6:9]], clutch=clutch, grip=grip)
+        self._hand.set_hand(
+            p, None if R is None else [R[0:3], R[3:6], R[6:9]], clutch=clutch, grip=grip
+        )
         return {}
 
     def close(self) -> None:
@@ -351,10 +419,9 @@ class MasterService:
             self._hold()
         self.device.close()
 
-
-def _device_stats(device: MasterDevice) -> dict[str, Any]:
-    """A backend's link counters (`stats`, a dataclass), when it keeps some."""
-    stats = getattr(device, "stats", None)
-    if stats is None or not is_dataclass(stats) or isinstance(stats, type):
-        return {}
-    return {"device_stats": asdict(stats)}
+    def _device_stats(self) -> dict[str, Any]:
+        """A backend's link counters (`stats`, a dataclass), when it keeps some."""
+        stats = self._link_stats.stats if self._link_stats is not None else None
+        if stats is None or not is_dataclass(stats) or isinstance(stats, type):
+            return {}
+        return {"device_stats": asdict(stats)}

@@ -14,15 +14,12 @@ from dataclasses import dataclass
 from typing import cast
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
 from services.bus.messages import MasterState, OperatorCommand
 from services.control.master.config import FRAMES, Frame, MasterConfig
-from services.control.master.devices import HandReading
-from services.geometry import is_rotation, rxyz, rxyz_inv, rxyz_inv_near
-
-Vec3 = NDArray[np.float64]
-Mat3 = NDArray[np.float64]
+from services.control.master.device import HandReading
+from services.geometry import Array3, Mat3, is_rotation, rxyz, rxyz_inv, rxyz_inv_near
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,9 +27,9 @@ class ScaledMotion:
     """Eq. 5 output: dp (3,) in slave axes, m; dR (3, 3) in the tool frame; the Euler
     angles a = Rxyz⁻¹(M0ᵀ·M) (rad) before scaling."""
 
-    dp: Vec3
+    dp: Array3
     dR: Mat3
-    angles_rad: Vec3
+    angles_rad: Array3
 
 
 def scaled_motion(
@@ -209,6 +206,16 @@ class Teleop:
                 self._angles = motion.angles_rad
                 self._dp, self._dR = _vec3(motion.dp), _mat9(motion.dR)
             return self._command(reading.grip)
+
+    def reengage(self, engage: int) -> bool:
+        """After the slave held engagement `engage` for a gap in the stream (not for anything
+        the operator must see to): if the device still asks to move in that engagement, the
+        next tick starts a new one where the hand is now (no jump). Whether it will."""
+        with self._lock:
+            if not (self._engaged and self._engage == engage):
+                return False
+            self._rebase = True
+            return True
 
     def hold(self, t_ns: int, rearm: bool = False) -> OperatorCommand:
         """A command that disengages without a hand reading (device lost, operator absent):

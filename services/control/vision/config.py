@@ -10,6 +10,7 @@ from typing import Any, Literal, NoReturn, get_args
 
 from services.bus.config import section
 from services.bus.errors import ConfigError
+from services.geometry import V3
 
 CameraKind = Literal["sim", "opencv"]
 Encoding = Literal["jpeg", "bgr8"]
@@ -18,8 +19,6 @@ CAMERAS: tuple[str, ...] = get_args(CameraKind)
 
 MAX_SIZE_PX = 8192
 MAX_FPS = 240.0
-
-Vec3Tuple = tuple[float, float, float]
 
 
 @dataclass(frozen=True, slots=True)
@@ -40,6 +39,12 @@ class VisionConfig:
     files: one (side-by-side) or two (left, right) video files, played one frame per tick;
       `loop_files` rewinds them at the end instead of reporting end of file.
     reopen_s: how long the pipeline waits before reopening a failed camera (s).
+    adapt: lower the video's level (JPEG quality, then size, then rate: adapt.py) when its
+      receivers report it queueing or lost on the link, and raise it back when they report
+      it carried; false keeps `jpeg_quality`, the size and `fps` whatever the link.
+    adapt_queue_ms: how far a pair's age p90 may rise above the link's own delay before
+      the level goes down (10 … 10 000 ms).
+    adapt_up_s: how long the reports must be good before the level goes up (1 … 600 s).
     """
 
     camera: CameraKind = "sim"
@@ -49,14 +54,17 @@ class VisionConfig:
     encoding: Encoding = "jpeg"
     jpeg_quality: int = 80
     baseline_m: float = 0.065
-    rig_position_m: Vec3Tuple = (1.8, 0.0, 1.35)
-    rig_target_m: Vec3Tuple = (0.5, 0.0, 0.55)
+    rig_position_m: V3 = (1.8, 0.0, 1.35)
+    rig_target_m: V3 = (0.5, 0.0, 0.55)
     fov_deg: float = 60.0
     intrinsics: tuple[float, float, float, float] | None = None
     devices: tuple[int | str, ...] = ()
     files: tuple[str, ...] = ()
     loop_files: bool = False
     reopen_s: float = 1.0
+    adapt: bool = True
+    adapt_queue_ms: float = 150.0
+    adapt_up_s: float = 8.0
 
     def __post_init__(self) -> None:
         if self.camera not in CAMERAS:
@@ -109,6 +117,12 @@ class VisionConfig:
                 _fail(key, "give 1 (side-by-side stereo) or 2 (left, right) sources")
         if not _finite(self.reopen_s) or not 0.0 < self.reopen_s <= 60.0:
             _fail("reopen_s", f"{self.reopen_s!r} must be in (0, 60] s")
+        if not isinstance(self.adapt, bool):
+            _fail("adapt", f"{self.adapt!r} must be true or false")
+        if not _finite(self.adapt_queue_ms) or not 10.0 <= self.adapt_queue_ms <= 10_000.0:
+            _fail("adapt_queue_ms", f"{self.adapt_queue_ms!r} must be in 10 … 10000 ms")
+        if not _finite(self.adapt_up_s) or not 1.0 <= self.adapt_up_s <= 600.0:
+            _fail("adapt_up_s", f"{self.adapt_up_s!r} must be in 1 … 600 s")
 
     @property
     def period_s(self) -> float:

@@ -28,6 +28,7 @@ from typing import Any, Generic, TypeVar
 
 import numpy as np
 
+from services.control.vision.adapt import Level
 from services.control.vision.camera import Camera, Image, StereoPair
 from services.control.vision.config import VisionConfig
 
@@ -120,11 +121,32 @@ def encode_image(img: Image, encoding: str, jpeg_quality: int = 80) -> bytes:
     return buf.tobytes()
 
 
+def scaled(img: Image, scale: float) -> Image:
+    """`img` resized by `scale` (area averaging: no aliasing); itself at 1."""
+    if scale == 1.0:
+        return img
+    import cv2
+
+    h, w = img.shape[:2]
+    size = (max(16, round(w * scale)), max(16, round(h * scale)))
+    return np.asarray(cv2.resize(img, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+
+
 def frame_fields(
-    seq: int, t_ns: int, eye: str, img: Image, data: bytes, encoding: str, pair: StereoPair
+    seq: int,
+    t_ns: int,
+    eye: str,
+    img: Image,
+    data: bytes,
+    encoding: str,
+    pair: StereoPair,
+    scale: float = 1.0,
 ) -> Fields:
-    """The StereoFrame fields (PROTOCOL.md §3) of one eye."""
+    """The StereoFrame fields (PROTOCOL.md §3) of one eye; `scale`: how the image was
+    resized from the camera's (the intrinsics follow it)."""
     k = pair.intrinsics
+    sx = img.shape[1] / pair.width if scale != 1.0 else 1.0
+    sy = img.shape[0] / pair.height if scale != 1.0 else 1.0
     return {
         "seq": seq,
         "t_ns": t_ns,
@@ -133,10 +155,11 @@ def frame_fields(
         "height": int(img.shape[0]),
         "encoding": encoding,
         "data": data,
-        "fx": float(k.fx),
-        "fy": float(k.fy),
-        "cx": float(k.cx),
-        "cy": float(k.cy),
+        "fx": float(k.fx) * sx,
+        "fy": float(k.fy) * sy,
+        # pixel centres: (c + ½)·s − ½ maps the camera's principal point onto the resized grid
+        "cx": (float(k.cx) + 0.5) * sx - 0.5,
+        "cy": (float(k.cy) + 0.5) * sy - 0.5,
         "baseline": float(pair.baseline_m),
     }
 
@@ -196,6 +219,9 @@ class StereoPipeline:
         self._camera_failing = False
         self._publish_failing = False
         self._size = (config.width, config.height)
+        # The video's level (adapt.py): quality, size and rate; the encoder and the capture
+        # thread read it at each pair, `set_level` changes it.
+        self._level = Level(config.jpeg_quality, 1.0, 1)
         self._last_published_seq = -1
         self._grab_ms: deque[float] = deque(maxlen=STATS_WINDOW)
         self._encode_ms: deque[float] = deque(maxlen=STATS_WINDOW)
@@ -247,6 +273,17 @@ class StereoPipeline:
     def watched(self) -> bool:
         return self._watched
 
+    def set_level(self, level: Level) -> None:
+        """Encode from the next pair at `level`'s JPEG quality and size, and capture at the
+        configured rate divided by its stride (adapt.VideoAdapter)."""
+        with self._lock:
+            self._level = level
+
+    @property
+    def level(self) -> Level:
+        with self._lock:
+            return self._level
+
     @property
     def running(self) -> bool:
         return any(th.is_alive() for th in self._threads)
@@ -272,7 +309,10 @@ class StereoPipeline:
                 "width": self._size[0],
                 "height": self._size[1],
                 "encoding": self.config.encoding,
-                "fps_target": self.config.fps,
+                "fps_target": self.config.fps / self._level.stride,
+                "quality": self._level.quality,
+                "scale": self._level.scale,
+                "stride": self._level.stride,
                 "fps": _rate(self._publish_times),
                 "fps_captured": _rate(self._capture_times),
                 "seq": self._last_published_seq,
@@ -324,7 +364,6 @@ class StereoPipeline:
     # -- threads ---------------------------------------------------------------------------
 
     def _capture_loop(self) -> None:
-        period = self.config.period_s
         opened = False
         reopen_at = 0.0
         next_tick = time.monotonic()
@@ -371,6 +410,7 @@ class StereoPipeline:
                             self._wait_watched()
                             next_tick = time.monotonic()
                             continue
+                period = self.config.period_s * self.level.stride
                 next_tick += period
                 now = time.monotonic()
                 if now > next_tick + period:
@@ -458,10 +498,12 @@ class StereoPipeline:
             if item is None:
                 continue
             pair = item.pair
+            level = self.level
             t0 = time.perf_counter()
             try:
-                data_l = encode_image(pair.left, cfg.encoding, cfg.jpeg_quality)
-                data_r = encode_image(pair.right, cfg.encoding, cfg.jpeg_quality)
+                img_l, img_r = scaled(pair.left, level.scale), scaled(pair.right, level.scale)
+                data_l = encode_image(img_l, cfg.encoding, level.quality)
+                data_r = encode_image(img_r, cfg.encoding, level.quality)
             except Exception as exc:
                 with self._lock:
                     self._encode_errors += 1
@@ -472,13 +514,14 @@ class StereoPipeline:
             self._encode_failing = False
             encode_ms = (time.perf_counter() - t0) * 1e3
             t_ns = pair.t_ns_left
-            left = frame_fields(item.seq, t_ns, "l", pair.left, data_l, cfg.encoding, pair)
-            right = frame_fields(item.seq, t_ns, "r", pair.right, data_r, cfg.encoding, pair)
+            sc = level.scale
+            left = frame_fields(item.seq, t_ns, "l", img_l, data_l, cfg.encoding, pair, sc)
+            right = frame_fields(item.seq, t_ns, "r", img_r, data_r, cfg.encoding, pair, sc)
             with self._lock:
                 self._encoded += 1
                 self._encode_ms.append(encode_ms)
                 self._bytes.append(len(data_l) + len(data_r))
-                self._size = (pair.width, pair.height)
+                self._size = (int(img_l.shape[1]), int(img_l.shape[0]))
             self._to_publish.put(_Encoded(item.seq, t_ns, left, right))
 
     def _publish_loop(self) -> None:

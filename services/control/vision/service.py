@@ -4,7 +4,9 @@ The simulated camera follows the arm from `robot/state` (link origins from the a
 description, `robot/arm/description`)
 and the workcell's movable objects from `workcell/state` (docs/vision.md, "The moved world");
 video is published at DATA_LOW with drop-on-congestion (keys.STEREO_*), so it never delays
-force or commands.
+force or commands, and its level (JPEG quality, size, rate) follows what its receivers
+report on `vision/arrival` (adapt.py): a link that cannot carry it gets less of it, each
+change an event `video_level`.
 
 Nobody watching, no work: Zenoh's matching status tells whether anyone subscribes to
 `vision/stereo/l` or `/r`. While nobody does, the pipeline grabs, encodes and publishes
@@ -15,6 +17,7 @@ subscriber wakes the capture thread at once: its first pair is a frame period aw
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from typing import Any
@@ -24,6 +27,7 @@ from services.bus.audience import Audience
 from services.bus.errors import ConfigError, ProtocolError
 from services.bus.messages import ArmDescription, RobotState, StereoFrame, VisionStats, mat3
 from services.bus.node import Node
+from services.control.vision.adapt import VIDEO_ARRIVAL, Change, VideoAdapter, VideoArrival, ladder
 from services.control.vision.backends import open_camera
 from services.control.vision.config import VisionConfig
 from services.control.vision.pipeline import StereoPipeline
@@ -31,6 +35,7 @@ from services.control.vision.sim_camera import SimStereoCamera
 from services.world.workcell.messages import WORKCELL_STATE, WorkcellState
 
 STATS_PERIOD_S = 1.0
+log = logging.getLogger("telerobot.vision")
 
 
 class VisionService:
@@ -52,6 +57,12 @@ class VisionService:
         self.pipeline = StereoPipeline(
             self.camera, config, self._publish, self._emit, watched=False
         )
+        self.adapter = VideoAdapter(
+            ladder(config.jpeg_quality), config.adapt_queue_ms, config.adapt_up_s
+        )
+        self._adapt_lock = threading.Lock()
+        if config.adapt:
+            node.subscribe(VIDEO_ARRIVAL, self._on_arrival)
         if isinstance(self.camera, SimStereoCamera):
             # The simulated camera draws the arm the arm service describes (its skeleton
             # from the description's URDF), as soon as a description has come.
@@ -108,7 +119,58 @@ class VisionService:
             return  # no description yet, or a state of another arm than the one described
         self.camera.set_robot(kin.link_origins(st.q), st.tool_p, mat3(st.tool_R), st.grip)
 
+    def _on_arrival(self, report: VideoArrival) -> None:
+        with self._adapt_lock:
+            self.adapter.offer(report, time.monotonic())
+
+    def _adapt(self) -> None:
+        """Once a second: the adapter's decision on the fresh reports, applied."""
+        if not self.config.adapt or not self.pipeline.watched:
+            return
+        sent = float(self.pipeline.stats()["fps"])
+        with self._adapt_lock:
+            change = self.adapter.update(time.monotonic(), sent)
+            level = self.adapter.current
+        if change is not None:
+            self.pipeline.set_level(level)
+            self._report_level(change)
+
+    def _report_level(self, change: Change) -> None:
+        level = self.adapter.levels[change.new]
+        w, h = level.size(self.config.width, self.config.height)
+        fps = self.config.fps / level.stride
+        self.node.event(
+            "status",
+            f"video level {change.old} → {change.new} (JPEG {level.quality}, {w}x{h}, "
+            f"{fps:g} fps): {change.reason}",
+            {
+                "code": "video_level",
+                "level": change.new,
+                "from": change.old,
+                "levels": len(self.adapter.levels),
+                "quality": level.quality,
+                "width": w,
+                "height": h,
+                "fps": fps,
+                "reason": change.reason[:200],
+            },
+        )
+
+    def adapt_fields(self) -> dict[str, Any]:
+        """The adaptation's figures for `vision/stats` `data` and `status`."""
+        with self._adapt_lock:
+            return {
+                "adapt": self.config.adapt,
+                "level": self.adapter.level,
+                "levels": len(self.adapter.levels),
+                "adapt_seen": dict(self.adapter.last),
+            }
+
     def _on_audience(self, watched: bool) -> None:
+        if not watched:
+            with self._adapt_lock:
+                self.adapter.forget()
+            self.pipeline.set_level(self.adapter.current)
         robot = self._robot
         if watched and robot is not None:
             self._draw_robot(robot)  # the first pair shows the arm where it is now
@@ -123,15 +185,17 @@ class VisionService:
 
     def _stats_loop(self) -> None:
         while not self._stop.wait(STATS_PERIOD_S):
+            try:
+                self._adapt()
+            except Exception:  # a bug in the adaptation must not stop the stats
+                log.exception("video adaptation failed")
             self._stats_seq += 1
-            self._stats_pub.put(
-                VisionStats(
-                    seq=self._stats_seq, t_ns=time.time_ns(), **self.pipeline.stats_fields()
-                )
-            )
+            fields = self.pipeline.stats_fields()
+            fields["data"] = {**fields["data"], **self.adapt_fields()}
+            self._stats_pub.put(VisionStats(seq=self._stats_seq, t_ns=time.time_ns(), **fields))
 
     def _rpc_status(self, args: dict[str, Any]) -> dict[str, Any]:
-        return {"camera": self.camera.name, **self.pipeline.stats()}
+        return {"camera": self.camera.name, **self.pipeline.stats(), **self.adapt_fields()}
 
     def close(self) -> None:
         self._stop.set()

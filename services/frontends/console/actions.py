@@ -14,11 +14,14 @@ from typing import TYPE_CHECKING, Any, cast
 
 from services.bus.errors import RpcError, Unavailable
 from services.bus.node import Node
+from services.bus.streams import Publisher
+from services.control.vision.adapt import VideoArrival
 from services.frontends.console.config import ConsoleConfig
-from services.frontends.console.geometry import Mat, Vec, hand_pose
 from services.frontends.console.hand import HandLink
 from services.frontends.console.mirror import BusMirror
+from services.frontends.console.poses import hand_pose
 from services.frontends.console.video import VIEW_MODES, FrameGate, ViewMode
+from services.geometry import Array3, Mat3
 
 log = logging.getLogger("telerobot.console")
 
@@ -38,8 +41,10 @@ class Actions:
     mirror: BusMirror
     hand: HandLink
     _stop: threading.Event
+    _arrival_pub: Publisher[VideoArrival]
+    _arrival_sent_s: float
     _lock: threading.Lock
-    _place: tuple[Vec, Mat] | None
+    _place: tuple[Array3, Mat3] | None
     _view_mode: ViewMode
     _gate: FrameGate
     _actions: queue.Queue[tuple[str, Callable[[], str]] | None]
@@ -82,7 +87,7 @@ class Actions:
             self._view_mode = cast(ViewMode, mode)
             self._gate.reset()
 
-    def _request_place(self, p: Vec, R: Mat) -> None:
+    def _request_place(self, p: Array3, R: Mat3) -> None:
         with self._lock:
             self._place = (p, R)
 
@@ -195,4 +200,24 @@ class Actions:
                 except (RpcError, Unavailable):
                     master = None
             self.mirror.set_status(decision, error, master)
+            self._poll_link()
             self._stop.wait(self.config.status_period_s)
+
+    def _poll_link(self) -> None:
+        """The link panel's round trip (a call to the vision service, through the robot
+        host's router and back) and, once a second while video is watched, the report of
+        what arrived of it (`vision/arrival`), from which the vision service adapts."""
+        if self.node.alive.is_alive("vision"):
+            t0 = time.perf_counter()
+            try:
+                self.node.call("vision", "status", {}, min(1.0, self.config.rpc_timeout_s))
+            except (RpcError, Unavailable):
+                pass
+            else:
+                self.mirror.link.on_rtt((time.perf_counter() - t0) * 1e3)
+        now = time.monotonic()
+        if self.mirror.watching[1] and now - self._arrival_sent_s >= 1.0:
+            self._arrival_sent_s = now
+            report = self.mirror.link.report()
+            if report is not None:
+                self._arrival_pub.put(report)

@@ -17,7 +17,7 @@ the supervised command and the video are not even subscribed to (so vision, seei
 subscribe, renders nothing). An engaged virtual master is clutched when the last browser
 leaves and parked on the tool when one comes back.
 
-The page's parts are mixins of `Console`, one module each: the 3D scene (`scene.py`), the
+The page's parts are mixins of `Console`, one module each: the 3D view (`view3d.py`), the
 controls and panels (`panels.py`), the actions and the poller (`actions.py`).
 """
 
@@ -38,15 +38,15 @@ import viser
 from services.bus.messages import Event, RobotState, mat3
 from services.bus.node import Node
 from services.bus.rate import RateLoop
+from services.control.vision.adapt import VIDEO_ARRIVAL
 from services.frontends.console.actions import DECISION, Actions
 from services.frontends.console.config import ConsoleConfig
-from services.frontends.console.geometry import Mat, Vec
 from services.frontends.console.hand import HandLink, ToolPose
 from services.frontends.console.mirror import BusMirror
 from services.frontends.console.panels import Panels
-from services.frontends.console.scene import Scene
 from services.frontends.console.video import FrameGate, ViewMode
-from services.geometry import wxyz_from_R
+from services.frontends.console.view3d import View3D
+from services.geometry import Array3, Mat3, wxyz_from_R
 
 log = logging.getLogger("telerobot.console")
 
@@ -70,7 +70,7 @@ def _quiet(what: str) -> Iterator[None]:
         log.debug("%s: %s", what, buf.getvalue().strip())
 
 
-class Console(Scene, Panels, Actions):
+class Console(View3D, Panels, Actions):
     """The console page on `config.host:config.port` for the system on `node`'s network.
 
     `url` is where it is served. `close()` stops the threads and the web server; it does
@@ -87,10 +87,14 @@ class Console(Scene, Panels, Actions):
             config.events,
             force_capacity=int(1000 * config.plot_window_s * 1.5) + 64,
             tdpa_capacity=int(4 * config.gui_rate_hz * config.plot_window_s * 1.5) + 64,
+            receiver=f"console/{config.master_id}",
         )
+        # what this console gets of the video, for the vision service's level (adapt.py)
+        self._arrival_pub = node.publisher(VIDEO_ARRIVAL)
+        self._arrival_sent_s = 0.0
         self._stop = threading.Event()
         self._lock = threading.Lock()
-        self._place: tuple[Vec, Mat] | None = None
+        self._place: tuple[Array3, Mat3] | None = None
         self._view_mode: ViewMode = "side-by-side"
         self._gate = FrameGate(config.video_fps)
         self._actions: queue.Queue[tuple[str, Callable[[], str]] | None] = queue.Queue()

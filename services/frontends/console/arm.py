@@ -46,11 +46,9 @@ from services.bus.errors import ConfigError
 from services.bus.messages import ArmDescription
 from services.control.arm.links import LinkPoses
 from services.control.arm.model import ArmModel, model_from_description
-from services.frontends.console.geometry import MIN_SEGMENT_M, cylinder_pose
-from services.geometry import wxyz_from_R
+from services.frontends.console.poses import MIN_SEGMENT_M, cylinder_pose
+from services.geometry import V3, Quat, wxyz_from_R
 
-Vec3T = tuple[float, float, float]
-Quat = tuple[float, float, float, float]
 Rgb = tuple[int, int, int]
 LayoutKind = Literal["visuals", "skeleton"]
 
@@ -83,7 +81,7 @@ class Mesh:
 
 @dataclass(frozen=True, slots=True)
 class Box:
-    size: Vec3T
+    size: V3
     """Edge lengths along the part's x, y, z (m), centred on its origin."""
 
 
@@ -123,7 +121,7 @@ class Part:
     name: str
     group: int
     shape: Shape
-    p: Vec3T
+    p: V3
     wxyz: Quat
     rgb: Rgb
     opacity: float | None = None
@@ -144,7 +142,7 @@ class ArmLayout:
     why: str = ""
 
 
-def _vec3(v: Any) -> Vec3T:
+def _vec3(v: Any) -> V3:
     a = np.asarray(v, dtype=float).reshape(3)
     return (float(a[0]), float(a[1]), float(a[2]))
 

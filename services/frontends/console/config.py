@@ -7,8 +7,7 @@ import math
 from dataclasses import dataclass, fields
 
 from services.bus.errors import ConfigError
-
-Vec3T = tuple[float, float, float]
+from services.geometry import V3
 
 _ID_FORBIDDEN = set("/*$?#@ ")
 _POSITIVE = (
@@ -70,8 +69,8 @@ class ConsoleConfig:
     rpc_timeout_s: float = 3.0
     wait_timeout_s: float = 60.0
     shadows: bool = True
-    camera_position_m: Vec3T = (1.35, -0.95, 1.1)
-    camera_look_at_m: Vec3T = (0.45, 0.0, 0.55)
+    camera_position_m: V3 = (1.35, -0.95, 1.1)
+    camera_look_at_m: V3 = (0.45, 0.0, 0.55)
 
     def __post_init__(self) -> None:
         for f in fields(self):

@@ -25,11 +25,11 @@ import numpy as np
 from services.bus.errors import RpcError, Unavailable
 from services.bus.messages import MasterState, vec
 from services.bus.node import Node
-from services.frontends.console.geometry import Mat, Vec
+from services.geometry import Array3, Mat3
 
 log = logging.getLogger("telerobot.console")
 
-Pose = tuple[Vec, Mat]
+Pose = tuple[Array3, Mat3]
 SYNC_TIMEOUT_S = 1.0
 """How long a clutch step waits for the master to show it read the new hand."""
 SAME_P_M = 1e-9
@@ -39,12 +39,12 @@ SAME_P_M = 1e-9
 class ToolPose:
     """The arm's tool pose (world) and status, from the newest robot/state."""
 
-    p: Vec
-    R: Mat
+    p: Array3
+    R: Mat3
     status: str
 
 
-def _same(m: MasterState, p: Vec) -> bool:
+def _same(m: MasterState, p: Array3) -> bool:
     return bool(np.max(np.abs(np.asarray(m.hand_p) - p)) <= SAME_P_M)
 
 
@@ -66,7 +66,7 @@ class HandLink:
         master_id: str,
         master_state: Callable[[Callable[[MasterState], bool], float], MasterState | None],
         tool_pose: Callable[[], ToolPose | None],
-        place_gizmo: Callable[[Vec, Mat], None],
+        place_gizmo: Callable[[Array3, Mat3], None],
         rpc_timeout_s: float = 2.0,
     ) -> None:
         self.node = node
@@ -93,7 +93,7 @@ class HandLink:
         self._thread.start()
 
     # --- any thread: store and notify -----------------------------------------------------
-    def set_gizmo(self, p: Vec, R: Mat) -> None:
+    def set_gizmo(self, p: Array3, R: Mat3) -> None:
         """The gizmo moved (world pose)."""
         with self._cond:
             self._gizmo = (p, R)

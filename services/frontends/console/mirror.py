@@ -53,8 +53,9 @@ from services.bus.messages import (
     mat3,
 )
 from services.bus.node import Node, Subscription
-from services.frontends.console.geometry import Mat, Vec
+from services.frontends.console.link import LinkMeter
 from services.frontends.console.tdpa import PortSeen, TdpaView, newer, plot_row, tdpa_view
+from services.geometry import Array3, Mat3
 from services.world.workcell.messages import WORKCELL_STATE, WorkcellState
 
 M = TypeVar("M", bound=Message)
@@ -163,9 +164,16 @@ class BusMirror:
     """
 
     def __init__(
-        self, node: Node, events: int, force_capacity: int, tdpa_capacity: int = 1024
+        self,
+        node: Node,
+        events: int,
+        force_capacity: int,
+        tdpa_capacity: int = 1024,
+        receiver: str = "console",
     ) -> None:
         self.node = node
+        # the link panel's figures and the video's arrival report (link.py)
+        self.link = LinkMeter(receiver)
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self.force = ForceHistory(force_capacity)
@@ -254,9 +262,16 @@ class BusMirror:
             # Copied now (a memcpy), decoded later: a payload kept by reference may sit in a
             # shared-memory buffer its publisher reuses.
             data = sample.payload.to_bytes()
+            rx_ns = time.time_ns()
             with self._lock:
                 n = self._frames[eye][0]
                 self._frames[eye] = (n + 1, data)
+            if eye == "l":  # one eye per pair, for the arrival report (vision/arrival)
+                try:
+                    frame = codec.decode(StereoFrame, data)
+                except ProtocolError:
+                    return  # reported when the page decodes it (`frame`)
+                self.link.on_frame(frame.seq, frame.t_ns, rx_ns)
 
         return store
 
@@ -282,6 +297,7 @@ class BusMirror:
     # --- Zenoh's thread: store only -------------------------------------------------------
     def _on_force(self, msg: ForceSample) -> None:
         self.force.add(msg.t_ns / 1e9, msg.f, msg.c)
+        self.link.on_force(msg.seq, time.monotonic())
         self._force_latest = msg
 
     def _passivity_store(self, side: str) -> Callable[[PassivityState], None]:
@@ -371,7 +387,7 @@ class BusMirror:
                     return None
                 self._cond.wait(left)
 
-    def target(self) -> tuple[Vec, Mat, bool] | None:
+    def target(self) -> tuple[Array3, Mat3, bool] | None:
         """The tool target robot/arm/target asks for (p, R, active: false while the
         supervisor holds), or None when none arrived within TARGET_STALE_S."""
         with self._lock:

@@ -13,9 +13,10 @@ import viser
 
 from services.bus.node import Node
 from services.frontends.console.config import ConsoleConfig
-from services.frontends.console.geometry import box_edges
 from services.frontends.console.hand import HandLink
+from services.frontends.console.link import link_html
 from services.frontends.console.mirror import BusMirror, History
+from services.frontends.console.poses import box_edges
 from services.frontends.console.tdpa import TdpaView
 from services.frontends.console.video import VIEW_MODES, FrameGate, Image, ViewMode, compose, decode
 from services.frontends.console.view import (
@@ -180,6 +181,8 @@ class Panels:
                 aspect=2.2,
                 visible=False,
             )
+        with gui.add_folder("Link"):
+            self._link_html = gui.add_html(link_html(self.mirror.link.view(None)))
         with gui.add_folder("Events"):
             self._events_html = gui.add_html(events_html(()))
         with gui.add_folder("Services"):
@@ -216,6 +219,8 @@ class Panels:
         self._set_html("status", self._status_html, self._html_status())
         self._set_html("alive", self._alive_html, alive_html(self.node.alive.names()))
         self._set_html("events", self._events_html, events_html(self.mirror.events()))
+        link = self.mirror.link.view(self.mirror.vision.latest)
+        self._set_html("link", self._link_html, link_html(link))
         tdpa = self.mirror.passivity()
         self._set_html("tdpa", self._tdpa_html, passivity_html(tdpa))
         if tdpa.state != self._tdpa_state:

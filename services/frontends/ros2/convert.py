@@ -24,20 +24,20 @@ from services.bus.messages import ArmDescription, ForceSample, RobotState, Stere
 from services.control.arm.links import TOOL_LINK, LinkPoses, urdf_tree, urdf_with_tool
 from services.control.arm.model import model_from_description
 from services.frontends.rosmsg import msgs
-from services.frontends.rosmsg.msgs import Header, Quat, Vec3
-from services.geometry import quat_of_rotation, rotation_of_quat
+from services.frontends.rosmsg.msgs import Header, QuatXyzw
+from services.geometry import V3, quat_of_rotation, rotation_of_quat
 
 JPEG_FORMAT = "bgr8; jpeg compressed bgr8"
 """What compressed_image_transport writes for a colour JPEG (RViz, rqt and Foxglove read it)."""
 
 
-def quat_of(R: Sequence[float]) -> Quat:
+def quat_of(R: Sequence[float]) -> QuatXyzw:
     """The unit quaternion in ROS's order (x, y, z, w), w ≥ 0, of a row-major rotation."""
     w, x, y, z = quat_of_rotation(R)
     return (x, y, z, w)
 
 
-def rotation_of(q: Quat) -> tuple[float, ...]:
+def rotation_of(q: QuatXyzw) -> tuple[float, ...]:
     """The row-major rotation of a quaternion in ROS's order (x, y, z, w)."""
     x, y, z, w = q
     return rotation_of_quat(w, x, y, z)
@@ -45,7 +45,7 @@ def rotation_of(q: Quat) -> tuple[float, ...]:
 
 def relative_pose(
     pa: Sequence[float], Ra: Sequence[float], pb: Sequence[float], Rb: Sequence[float]
-) -> tuple[Vec3, tuple[float, ...]]:
+) -> tuple[V3, tuple[float, ...]]:
     """(p, R) of frame b in frame a, from both in the world: R = Raᵀ·Rb, p = Raᵀ·(pb − pa)."""
     d = (pb[0] - pa[0], pb[1] - pa[1], pb[2] - pa[2])
     p = (
@@ -61,7 +61,7 @@ def relative_pose(
     return p, R
 
 
-def transform_of(M: pin.SE3) -> tuple[Vec3, Quat]:
+def transform_of(M: pin.SE3) -> tuple[V3, QuatXyzw]:
     """(translation, quaternion) of a rigid transform, as TransformStamped carries them."""
     t = M.translation
     R: list[float] = np.asarray(M.rotation).reshape(9).tolist()
@@ -100,7 +100,7 @@ class ArmView:
         # The joints off the arm's chain (fixed ones, locked fingers) do not move: their
         # transforms are computed once; the chain's at each state.
         moving = set(self.joint_names)
-        self._fixed: tuple[tuple[Vec3, Quat] | None, ...] = tuple(
+        self._fixed: tuple[tuple[V3, QuatXyzw] | None, ...] = tuple(
             None if j.name in moving else transform_of(M)
             for j, M in self._poses.transforms(model.home)
         )
@@ -114,7 +114,7 @@ class ArmView:
             raise ValueError(f"robot/state has {len(st.q)} joints, {self.model} has {self.n}")
         return msgs.JointState(Header.at(st.t_ns, ""), self.joint_names, st.q)
 
-    def tool_placement(self, st: RobotState) -> tuple[Vec3, tuple[float, ...]]:
+    def tool_placement(self, st: RobotState) -> tuple[V3, tuple[float, ...]]:
         """eMt: the tool in the flange, from the state's flange and tool poses."""
         return relative_pose(st.flange_p, st.flange_R, st.tool_p, st.tool_R)
 

@@ -20,9 +20,10 @@ changes, e.g. on `set_tool`); its joint names are /joint_states'; its URDF joint
 Until a description has come, nothing about the arm is published and targets are refused
 (the world frame is not known to ROS); `status()["arm_note"]` and the log say so.
 
-The target master (services/frontends/ros2/target.py) drives the arm through the decision server
-like any master: `robot/cmd` with master id `ros2`, token `alive/master/ros2`; lease, limits
-and watchdogs apply. Every exit path sends inactive commands, so the decision holds.
+The target master (services/frontends/ros2/target_master.py) drives the arm through the
+decision server like any master: `robot/cmd` with master id `ros2`, token
+`alive/master/ros2`; lease, limits and watchdogs apply. Every exit path sends inactive
+commands, so the decision holds.
 """
 
 from __future__ import annotations
@@ -54,7 +55,7 @@ from services.bus.streams import newer
 from services.frontends.ros2 import convert, rmw
 from services.frontends.ros2.config import Ros2Config
 from services.frontends.ros2.graph import RosNode, RosPublisher
-from services.frontends.ros2.target import (
+from services.frontends.ros2.target_master import (
     HOLD_REPEATS,
     TargetLimits,
     TargetMaster,

@@ -16,9 +16,10 @@ from typing import Any, ClassVar, TypeVar, cast
 
 from services.frontends.rosmsg import defs
 from services.frontends.rosmsg.cdr import CdrError, Reader, Writer, finite
+from services.geometry import V3
 
-Vec3 = tuple[float, float, float]
-Quat = tuple[float, float, float, float]
+QuatXyzw = tuple[float, float, float, float]
+"""A ROS quaternion (x, y, z, w), w last; `services.geometry.Quat` is scalar first."""
 
 MAX_FRAME_ID = 256
 """Characters in a frame id or another short name."""
@@ -64,8 +65,8 @@ class JointState:
 class WrenchStamped:
     TYPE: ClassVar[defs.TypeDef] = defs.WRENCH_STAMPED
     header: Header
-    force: Vec3
-    torque: Vec3
+    force: V3
+    torque: V3
 
 
 @dataclass(frozen=True, slots=True)
@@ -73,8 +74,8 @@ class TransformStamped:
     TYPE: ClassVar[defs.TypeDef] = defs.TRANSFORM_STAMPED
     header: Header
     child_frame_id: str
-    translation: Vec3
-    rotation: Quat
+    translation: V3
+    rotation: QuatXyzw
 
 
 @dataclass(frozen=True, slots=True)
@@ -126,8 +127,8 @@ class CameraInfo:
 class PoseStamped:
     TYPE: ClassVar[defs.TypeDef] = defs.POSE_STAMPED
     header: Header
-    position: Vec3
-    orientation: Quat
+    position: V3
+    orientation: QuatXyzw
 
 
 # --- encoding -------------------------------------------------------------------------
@@ -232,12 +233,12 @@ def _r_finite(r: Reader, n: int, name: str) -> tuple[float, ...]:
     return v
 
 
-def _r_vec3(r: Reader, name: str) -> Vec3:
-    return cast(Vec3, _r_finite(r, 3, name))
+def _r_vec3(r: Reader, name: str) -> V3:
+    return cast(V3, _r_finite(r, 3, name))
 
 
-def _r_quat(r: Reader, name: str) -> Quat:
-    return cast(Quat, _r_finite(r, 4, name))
+def _r_quat(r: Reader, name: str) -> QuatXyzw:
+    return cast(QuatXyzw, _r_finite(r, 4, name))
 
 
 def _r_joint_state(r: Reader) -> JointState:

@@ -19,7 +19,6 @@ import socket
 import struct
 import subprocess
 import sys
-import threading
 import time
 import xmlrpc.client
 from dataclasses import dataclass
@@ -32,6 +31,7 @@ import numpy as np
 from services.bus import codec
 from services.bus.messages import ForceSample
 from services.bus.rate import RateLoop
+from services.tools.cell.procs import Child
 
 HEADER = struct.Struct(">I")
 XMLRPC_INT_MAX = 2**31 - 1
@@ -202,19 +202,25 @@ def xmlrpc_round_trips(reply: dict[str, Any], n: int, timeout_s: float = 30.0) -
     """Round trips (ms) of `n` sequential `status()` calls to a server process replying
     `reply` (made XML-RPC-safe). Each reply is checked against `reply`."""
     safe = xmlrpc_safe(reply)
-    proc = subprocess.Popen(
+    server = Child(
+        "xmlrpc-serve",
         [sys.executable, "-m", "services.tools.bench.baselines", "xmlrpc-serve"],
+        lines=True,
+        errors_apart=True,
         stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        start_new_session=True,
-        text=True,
-    )
+    ).start()
     try:
-        assert proc.stdin is not None and proc.stdout is not None
-        proc.stdin.write(json.dumps(safe))
-        proc.stdin.close()
-        line = _readline(proc, timeout_s)
+        assert server.proc is not None and server.proc.stdin is not None
+        server.proc.stdin.write(json.dumps(safe).encode())
+        server.proc.stdin.close()
+        try:
+            line = server.expect(lambda _: True, timeout_s).strip()
+        except AssertionError as e:
+            if server.wait(1.0) is None:
+                raise TimeoutError(
+                    f"no reply from the baseline server within {timeout_s:g} s"
+                ) from e
+            line = ""  # it ended without a word
         if not line.startswith("port "):
             raise RuntimeError(f"xmlrpc server did not start: {line!r}")
         port = int(line.split()[1])
@@ -228,31 +234,7 @@ def xmlrpc_round_trips(reply: dict[str, Any], n: int, timeout_s: float = 30.0) -
                     raise RuntimeError("xmlrpc status() replied something else")
         return out
     finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=5.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        for pipe in (proc.stdout, proc.stderr):
-            if pipe is not None:  # closed here, not left to the collector
-                pipe.close()
-
-
-def _readline(proc: subprocess.Popen[str], timeout_s: float) -> str:
-    stdout = proc.stdout
-    assert stdout is not None
-    result: list[str] = []
-
-    def read() -> None:
-        result.append(stdout.readline())
-
-    t = threading.Thread(target=read, daemon=True)
-    t.start()
-    t.join(timeout_s)
-    if not result:
-        raise TimeoutError(f"no reply from the baseline server within {timeout_s:g} s")
-    return result[0].strip()
+        server.stop()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,6 +12,9 @@ sample: states run slower than a 1 kHz master).
 
 from __future__ import annotations
 
+import itertools
+import subprocess
+import sys
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -95,6 +98,13 @@ def step_for(rate_hz: float, duration_s: float, sign: float) -> float:
     return sign * min(CMD_MAX_STEP_M, CMD_TRAVEL_M / n_planned)
 
 
+def _max_gap_ms(times_ns: Sequence[int]) -> float | None:
+    """The longest interval between consecutive times (ms), None for fewer than two."""
+    if len(times_ns) < 2:
+        return None
+    return max(b - a for a, b in itertools.pairwise(times_ns)) / 1e6
+
+
 def command_figures(
     rate_hz: float,
     run: CommandRun,
@@ -146,6 +156,10 @@ def command_figures(
             "apply": stats.summarize(stamped.apply_ms).as_dict(),
         },
         "arm_cmd_rate_hz": stats.rate_from_times(fwd_rx),
+        # the longest silences: of the bench master's own sending, and of the decision's
+        # targets reaching the arm (what a 100 ms watchdog would see)
+        "sent_max_gap_ms": _max_gap_ms([t for _, t in sent]),
+        "arm_cmd_max_gap_ms": _max_gap_ms(fwd_rx),
         "states_moving": sum(1 for rx, s in st_rec if rx >= t_first and s[S_STATUS] == "moving"),
         "na": na,
     }
@@ -324,3 +338,37 @@ def _ints(d: Any) -> dict[str, int]:
 def changed_counters(before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
     """What changed between two readings of counters (those that did not are left out)."""
     return {k: d for k, d in (stats.counters_delta(before, after) or {}).items() if d}
+
+
+BUSY_LOOPS = 2
+BUSY_RATE_HZ = 100.0
+
+
+def phase_busy_host(
+    node: Node, driver: CommandDriver, duration_s: float, say: Say
+) -> tuple[dict[str, Any], list[str]]:
+    """Teleoperation beside other work on the host (issue 42 item 5): a 100 Hz master for
+    `duration_s` while BUSY_LOOPS busy loops run at nice 19 in a session of their own (as
+    a compile in another terminal does: with the kernel's autogroup scheduling, nice counts
+    only within a session, so such a job weighs as much as the whole telerobot session).
+    Figures: the command phase's, plus `watchdog_holds` and the longest gaps."""
+    say(f"[busy_host] {BUSY_LOOPS} nice-19 busy loops (own session) beside a 100 Hz master …")
+    loops = [
+        subprocess.Popen(
+            ["nice", "-n", "19", sys.executable, "-c", "while True: pass"],
+            start_new_session=True,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        for _ in range(BUSY_LOOPS)
+    ]
+    try:
+        fig, notes = phase_commands(node, driver, BUSY_RATE_HZ, 1.0, duration_s, say)
+    finally:
+        for p in loops:
+            p.kill()
+        for p in loops:
+            p.wait(5.0)
+    fig["busy_loops"] = BUSY_LOOPS
+    fig["watchdog_holds"] = int(fig.get("decision_events", {}).get("watchdog", 0))
+    return fig, [n.replace("commands_100hz", "busy_host") for n in notes]

@@ -4,7 +4,6 @@ and the figures of a force window (rate, the sensor's own rate, latency, loss)."
 from __future__ import annotations
 
 import os
-import subprocess
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -20,8 +19,9 @@ from services.tools.bench.baselines import force_payload, tcp_floor
 from services.tools.bench.commands import CALL_TIMEOUT_S
 from services.tools.bench.options import BenchOptions, RunResult, Say, Trace
 from services.tools.bench.probes import StreamProbe
-from services.tools.bench.procs import ChildFailed, Children
+from services.tools.bench.procs import cpu_by_child
 from services.tools.bench.report import ms_text
+from services.tools.cell.procs import ChildFailed, Children
 
 FLOOR_DRAIN_S = 2.0
 
@@ -93,10 +93,10 @@ def phase_force(
     before = force_counters(node)
     if not probe.wait_count(1, 10.0):
         raise TimeoutError("no sample arrived on robot/force")
-    cpu_a, t0 = kids.cpu_by_child(), time.time_ns()
+    cpu_a, t0 = cpu_by_child(kids), time.time_ns()
     # The phase's length is the measurement itself, not a wait for a condition.
     time.sleep(opts.phase_s)
-    cpu_b, t1 = kids.cpu_by_child(), time.time_ns()
+    cpu_b, t1 = cpu_by_child(kids), time.time_ns()
     after = force_counters(node)
     fig, trace = force_figures(probe.stop(), t0, t1)
     fig["rejected"] = probe.rejected
@@ -162,12 +162,11 @@ def phase_zenoh_floor(
             if time.monotonic() > deadline:
                 raise TimeoutError("no sample from the bare Zenoh publisher")
         # The bench's own CPU while it receives: the subscriber's side of the floor.
-        own_a, cpu_a, t_a = cpu.process_cpu_s(os.getpid()), kids.cpu_by_child(), time.monotonic()
-        try:
-            code = pub.proc.wait(timeout=opts.phase_s + opts.startup_timeout_s)
-        except subprocess.TimeoutExpired:
-            raise TimeoutError("the bare Zenoh publisher did not finish") from None
-        own_b, cpu_b, t_b = cpu.process_cpu_s(os.getpid()), kids.cpu_by_child(), time.monotonic()
+        own_a, cpu_a, t_a = cpu.process_cpu_s(os.getpid()), cpu_by_child(kids), time.monotonic()
+        code = pub.wait(opts.phase_s + opts.startup_timeout_s)
+        if code is None:
+            raise TimeoutError("the bare Zenoh publisher did not finish")
+        own_b, cpu_b, t_b = cpu.process_cpu_s(os.getpid()), cpu_by_child(kids), time.monotonic()
         if code != 0:
             raise ChildFailed(f"the bare Zenoh publisher exited with {code}:\n{pub.tail()}")
         sent = floor.parse_sent(pub.output())

@@ -43,6 +43,13 @@ class BenchOptions:
     teleop_rate_hz: float = 1000.0
     model: str = "puma560"
     """The arm model the arm service runs (`telerobot arm --model`)."""
+    busy_s: float = 60.0
+    """The busy-host phase: a 100 Hz master this long beside two nice-19 busy loops in a
+    session of their own (0: skip it)."""
+    arm: str = "sim"
+    """`libfranka`: the FR3 through libfranka instead (services.tools.bench.franka_phase)."""
+    robot_ip: str = ""
+    """With `arm = libfranka`: the robot's address ("": franky-sim, started by the bench)."""
 
     @staticmethod
     def quick_options(**overrides: Any) -> BenchOptions:
@@ -53,6 +60,7 @@ class BenchOptions:
             "rpc_calls": 200,
             "ik_n": 2000,
             "cpu_settle_s": 3.0,
+            "busy_s": 10.0,
         }
         base.update(overrides)
         return BenchOptions(**base)

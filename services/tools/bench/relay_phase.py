@@ -29,8 +29,8 @@ from services.tools.bench.baselines import force_payload
 from services.tools.bench.force_phases import force_counters
 from services.tools.bench.options import BenchOptions, RunResult, Say
 from services.tools.bench.probes import StreamProbe
-from services.tools.bench.procs import Children, wait_log
 from services.tools.bench.report import ms_text
+from services.tools.cell.procs import Children, wait_log
 
 DRAIN_S = 2.0
 ROUTE_PUT_S = 0.01

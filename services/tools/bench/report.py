@@ -52,7 +52,10 @@ TARGETS: dict[str, float] = {
     "decision_status_p50_ms": 1.0,
     "ik_per_s": 20_000.0,  # all 8 analytic branches per pose
     "ik_numerical_per_s": 5_000.0,  # the FR3 from a warm seed
+    "physics_rtf": 1.0,  # the MuJoCo cell with the arm and five objects keeps real time
     "stereo_vga_p50_ms": 15.0,  # capture → decoded at 640×480
+    "busy_host_holds": 0.0,  # issue 42: a 100 Hz master beside two nice-19 busy loops
+    "busy_host_gap_ms": 50.0,
 }
 
 #: The services of the sim profile (deploy/sim.toml) whose CPU the bench reports, and the
@@ -345,6 +348,12 @@ SPECS: tuple[Spec, ...] = (
     *_video_specs("vga", 640, 480, 30, vga=True),
     *_command_specs(100),
     *_command_specs(1000),
+    Spec("busy_host_holds", "watchdog holds, 100 Hz master beside 2 nice-19 busy loops", "",
+         "busy_host.watchdog_holds", "lower", target="busy_host_holds"),
+    Spec("busy_host_gap", "longest gap of targets at the arm, beside the busy loops", "ms",
+         "busy_host.arm_cmd_max_gap_ms", "lower", target="busy_host_gap_ms"),
+    Spec("busy_host_sent_gap", "longest gap of the master's sending, beside the busy loops",
+         "ms", "busy_host.sent_max_gap_ms", "lower"),
     Spec("rpc_decision_status_p50", "call decision status p50", "ms",
          "rpc_decision_status.p50", "lower", baseline=("baseline_xmlrpc.latency_ms.p50", XMLRPC),
          floor=_get_floor("p50"), paper="command_round_trip_ms", target="decision_status_p50_ms"),
@@ -374,6 +383,12 @@ SPECS: tuple[Spec, ...] = (
          "ik.fr3_solve_per_s", "higher", target="ik_numerical_per_s"),
     Spec("ik_ur5e_per_s", "IK solves/s, UR5e numerical, warm seed", "1/s",
          "ik.ur5e_solve_per_s", "higher"),
+    Spec("physics_puma560_rtf", "physics real-time factor, PUMA 560 + 5 objects", "×",
+         "physics.puma560_rtf", "higher", target="physics_rtf"),
+    Spec("physics_fr3_rtf", "physics real-time factor, FR3 + 5 objects", "×",
+         "physics.fr3_rtf", "higher", target="physics_rtf"),
+    Spec("physics_ur5e_rtf", "physics real-time factor, UR5e + 5 objects", "×",
+         "physics.ur5e_rtf", "higher", target="physics_rtf"),
 )  # fmt: skip
 
 FIGURE_KEYS: tuple[str, ...] = tuple(s.key for s in SPECS)
@@ -387,10 +402,12 @@ PHASE_KEYS: tuple[str, ...] = (
     "video_vga",
     "commands_100hz",
     "commands_1000hz",
+    "busy_host",
     "rpc_decision_status",
     "rpc_decision_supervisor",
     "rpc_arm_status",
     "ik",
+    "physics",
     "baseline_tcp",
     "baseline_xmlrpc",
     "baseline_zenoh",
@@ -407,7 +424,8 @@ def figures(phases: Mapping[str, Any]) -> list[Figure]:
         ours = _get(phases, s.path)
         target, target_name = None, None
         if s.target is not None:
-            target, target_name = TARGETS[s.target], "issue 16"
+            target = TARGETS[s.target]
+            target_name = "issue 42" if s.target.startswith("busy_host") else "issue 16"
         elif s.target_run is not None:
             target, target_name = _get(phases, s.target_run[0]), s.target_run[1]
         out.append(

@@ -13,8 +13,8 @@ from services.tools.bench.baselines import xmlrpc_round_trips
 from services.tools.bench.commands import CALL_TIMEOUT_S
 from services.tools.bench.options import BenchOptions, RunResult, Say
 from services.tools.bench.probes import time_calls
-from services.tools.bench.procs import Children, wait_log
 from services.tools.bench.report import ms_text
+from services.tools.cell.procs import Children, wait_log
 
 
 def _arm_status(node: Node, attempts: int = 3) -> dict[str, Any]:

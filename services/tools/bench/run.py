@@ -4,7 +4,7 @@ Topology (as deploy/robot.toml runs it): the embedded router on 127.0.0.1:PORT, 
 (sim arm, autostart), force (sim sensor, 1 kHz), decision, a master station (virtual
 device, not engaged) and, in the video phases, vision — each a separate process in client
 mode connected to the router. The bench itself is one more client: the operator's side.
-The CPU phases at the end run the sim profile's set instead (services.tools.bench.system).
+The CPU phases at the end run the sim profile's set instead (services.tools.bench.cpu_phases).
 
 Phases, in order (each `phase_s` long): IK throughput (in the bench process, before any
 child runs); force alone; the raw-TCP floor; the bare-Zenoh floor; the two-hop bare-Zenoh
@@ -24,18 +24,19 @@ from typing import Any
 
 from services.bus.config import NodeConfig
 from services.bus.errors import RpcError, Unavailable
-from services.bus.keys import STATE
 from services.bus.node import Node
-from services.tools.bench import cpu, system
-from services.tools.bench.commands import CALL_TIMEOUT_S, phase_commands
+from services.tools.bench import cpu, cpu_phases
+from services.tools.bench.commands import CALL_TIMEOUT_S, phase_busy_host, phase_commands
 from services.tools.bench.force_phases import phase_force, phase_tcp, phase_zenoh_floor
 from services.tools.bench.notes import busy_note, force_note
 from services.tools.bench.options import BenchOptions, RunResult, Say
-from services.tools.bench.probes import CommandDriver, StreamProbe
-from services.tools.bench.procs import Children, free_port, telerobot_argv, wait_alive, wait_log
+from services.tools.bench.probes import CommandDriver
+from services.tools.bench.procs import children_cpu_s, cpu_by_child, wait_arm_ready
 from services.tools.bench.relay_phase import phase_relay_floor
 from services.tools.bench.rpc_phase import phase_rpc
 from services.tools.bench.video_phase import phase_video
+from services.tools.cell.ports import free_port
+from services.tools.cell.procs import Children, telerobot_argv, wait_alive, wait_log
 
 MASTER_ID = "bench"
 STATION_ID = "station"
@@ -53,10 +54,10 @@ class CpuLog:
         self.phases: dict[str, dict[str, Any]] = {}
 
     def _now(self) -> cpu.CpuSample | None:
-        return cpu.sample(self.kids.cpu_s() if self.kids is not None else 0.0)
+        return cpu.sample(children_cpu_s(self.kids) if self.kids is not None else 0.0)
 
     def _by_child(self) -> dict[str, float]:
-        return self.kids.cpu_by_child() if self.kids is not None else {}
+        return cpu_by_child(self.kids) if self.kids is not None else {}
 
     @contextmanager
     def phase(self, name: str) -> Iterator[None]:
@@ -103,6 +104,7 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
         "cpu_settle_s": opts.cpu_settle_s,
         "teleop_rate_hz": opts.teleop_rate_hz,
         "model": opts.model,
+        "busy_s": opts.busy_s,
         "loadavg_start": _loadavg(),
     }
 
@@ -112,6 +114,11 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
 
     with log.phase("ik"):
         res.phases["ik"] = bench_ik(opts.ik_n)
+    say("physics real-time factor of the MuJoCo cell, every model …")
+    from services.tools.bench.physics_phase import bench_physics
+
+    with log.phase("physics"):
+        res.phases["physics"] = bench_physics(min(opts.phase_s, 10.0))
 
     zargs = ["--mode", "client", "--connect", endpoint]
     with Children(opts.logs_dir) as kids:
@@ -144,6 +151,12 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
                     res.phases[f"commands_{rate:.0f}hz"] = fig
                     res.notes.extend(notes)
                 kids.check()
+            if opts.busy_s > 0:
+                with log.phase("busy_host"):
+                    fig, notes = phase_busy_host(node, driver, opts.busy_s, say)
+                    res.phases["busy_host"] = fig
+                    res.notes.extend(notes)
+                kids.check()
             with log.phase("rpc"):
                 phase_rpc(kids, node, endpoint, opts, res, say)
             for key, size, fps in (
@@ -153,7 +166,7 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
                 with log.phase(f"video_{key}"):
                     phase_video(kids, node, zargs, key, size, fps, opts, res, say)
                 kids.check()
-            sim = system.SimRun(
+            sim = cpu_phases.SimRun(
                 kids, node, driver, zargs, opts.vga_size, opts.vga_fps, opts.startup_timeout_s, say
             )
             res.notes.extend(
@@ -190,17 +203,7 @@ def _start_services(
     kids.spawn("master", telerobot_argv("master", "--config", str(station), *zargs))
     for name in ("arm", "force", "decision", f"master/{STATION_ID}"):
         wait_alive(kids, node.alive.wait, name, opts.startup_timeout_s)
-    status = StreamProbe(node, STATE, lambda m: (m.status,)).start()
-    try:
-        deadline = time.monotonic() + opts.startup_timeout_s
-        while (newest := status.newest()) is None or newest[1][0] != "ready":
-            kids.check()
-            if time.monotonic() > deadline:
-                raise TimeoutError("the arm never reported ready on robot/state")
-            time.sleep(0.05)
-    finally:
-        # Undeclared at once: a subscriber left running would load the bench all along.
-        status.stop()
+    wait_arm_ready(kids, node, opts.startup_timeout_s)
     say("arm ready, force streaming, decision and master up")
 
 

@@ -20,8 +20,8 @@ from services.tools.bench.force_phases import (
 )
 from services.tools.bench.options import BenchOptions, RunResult, Say
 from services.tools.bench.probes import FrameRecord, StreamProbe, VideoProbe
-from services.tools.bench.procs import Children, telerobot_argv, wait_alive
 from services.tools.bench.report import ms_text
+from services.tools.cell.procs import Children, telerobot_argv, wait_alive
 
 VIDEO_WARMUP_S = 1.0
 

@@ -32,9 +32,13 @@ def _exit_on_sigterm(signum: int, frame: FrameType | None) -> None:
 def main(argv: list[str] | None = None) -> int:
     args_in = sys.argv[1:] if argv is None else argv
     if args_in[:1] == ["passivity"]:  # `telerobot bench passivity …` (docs/passivity.md)
-        from services.tools.bench.passivity import main as passivity_main
+        from services.tools.tdpa.sim_bench import main as passivity_main
 
         return passivity_main(args_in[1:])
+    if args_in[:1] == ["link"]:  # `telerobot bench link …` (docs/bench.md, "The link")
+        from services.tools.bench.link import main as link_main
+
+        return link_main(args_in[1:])
     p = argparse.ArgumentParser(
         prog="telerobot bench",
         description=__doc__,
@@ -48,6 +52,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--phase-s", type=float, default=None, help="length of each phase (s)")
     p.add_argument("--rpc-calls", type=int, default=None, help="calls per method")
     p.add_argument("--ik-n", type=int, default=None, help="poses for the IK throughput")
+    p.add_argument(
+        "--busy-s",
+        type=float,
+        default=None,
+        help="the busy-host phase: a 100 Hz master beside two nice-19 busy loops this long "
+        "(default 60 s, 10 s with --quick; 0: skip it)",
+    )
     p.add_argument("--port", type=int, default=0, help="router port on 127.0.0.1 (0: free)")
     p.add_argument(
         "--force-priority",
@@ -61,6 +72,15 @@ def main(argv: list[str] | None = None) -> int:
         metavar="MODEL",
         help="the arm model: puma560 (default), fr3, ur5e or the path of an arm's TOML",
     )
+    p.add_argument(
+        "--arm",
+        default="sim",
+        choices=["sim", "libfranka"],
+        help="libfranka: measure the FR3 through libfranka instead (docs/franka.md)",
+    )
+    p.add_argument(
+        "--robot-ip", default="", help="with --arm libfranka: the robot (default: franky-sim)"
+    )
     p.add_argument("--json", default="artifacts/bench.json", metavar="FILE")
     p.add_argument(
         "--plot",
@@ -73,9 +93,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from services.tools.bench.options import BenchOptions
     from services.tools.bench.plot import force_latency_plot
-    from services.tools.bench.procs import ChildFailed
     from services.tools.bench.report import document, machine, table
     from services.tools.bench.run import run_bench
+    from services.tools.cell.procs import ChildFailed
 
     overrides = {
         k: v
@@ -83,6 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             ("phase_s", args.phase_s),
             ("rpc_calls", args.rpc_calls),
             ("ik_n", args.ik_n),
+            ("busy_s", args.busy_s),
         )
         if v is not None
     }
@@ -90,9 +111,15 @@ def main(argv: list[str] | None = None) -> int:
     overrides["force_priority"] = args.force_priority
     overrides["logs_dir"] = Path(args.logs)
     overrides["model"] = args.model
+    overrides["arm"] = args.arm
+    overrides["robot_ip"] = args.robot_ip
     opts = BenchOptions.quick_options(**overrides) if args.quick else BenchOptions(**overrides)
     if opts.phase_s <= 0 or opts.rpc_calls < 1 or opts.ik_n < 1:
         p.error("--phase-s, --rpc-calls and --ik-n must be positive")
+    if not 0.0 <= opts.busy_s <= 3600.0:
+        p.error("--busy-s must be within 0 … 3600 s")
+    if opts.arm == "libfranka":
+        return _franka(opts, Path(args.json))
 
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if main_thread else None
@@ -126,6 +153,30 @@ def main(argv: list[str] | None = None) -> int:
     print(table(doc))
     wall_s = doc["settings"]["wall_s"]
     print(f"\nJSON: {json_path}  plot: {plot_path}  logs: {opts.logs_dir}  ({wall_s} s)")
+    return 0
+
+
+def _franka(opts: object, json_path: Path) -> int:
+    """`--arm libfranka`: services.tools.bench.franka_phase's run, its table and JSON."""
+    from services.tools.bench.franka_phase import run_franka, table
+    from services.tools.bench.options import BenchOptions
+    from services.tools.cell.procs import ChildFailed
+
+    assert isinstance(opts, BenchOptions)
+    t0 = time.monotonic()
+    try:
+        out = run_franka(
+            opts, say=lambda text: print(f"{time.monotonic() - t0:6.1f} s  {text}", flush=True)
+        )
+    except (ChildFailed, TimeoutError, Unavailable, RpcError, RuntimeError) as e:
+        print(f"telerobot bench: the run failed: {e}\n(children's logs: {opts.logs_dir})")
+        return 1
+    out["settings"]["wall_s"] = round(time.monotonic() - t0, 1)
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(out, indent=2, default=float) + "\n")
+    print()
+    print(table(out))
+    print(f"\nJSON: {json_path}  logs: {opts.logs_dir}")
     return 0
 
 

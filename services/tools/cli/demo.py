@@ -29,6 +29,7 @@ from services.bus.config import LOCAL_ROUTER, NodeConfig, load_deploy, section
 from services.bus.errors import TelerobotError
 from services.bus.lifecycle import Shutdown
 from services.bus.node import Node
+from services.tools.cell.procs import OUT_LOCK
 from services.tools.cli import launcher
 
 #: the console's start-up, imports included, on a loaded 2-core machine (3–13 s each for
@@ -72,7 +73,7 @@ class _Lines:
         head, sep, tail = buf.rpartition("\n")
         self._partial.text = tail
         if sep:
-            with launcher.OUT_LOCK:
+            with OUT_LOCK:
                 self.out.write(head + sep)
                 self.out.flush()
         return len(text)
@@ -110,7 +111,13 @@ def main(argv: list[str] | None = None) -> int:
     launcher.add_override_args(p)
     args = p.parse_args(argv)
     profile = launcher.resolve_profile(args.profile)
-    overrides = launcher.Overrides(listen=args.listen, ns=args.ns, model=args.model)
+    overrides = launcher.Overrides(
+        listen=args.listen,
+        ns=args.ns,
+        model=args.model,
+        driver=args.driver,
+        robot_ip=args.robot_ip,
+    )
     deploy = load_deploy(profile)
     port = int(deploy.get("console", {}).get("port", 8080))
     node_cfg = demo_node_config(deploy, overrides)

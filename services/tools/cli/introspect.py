@@ -230,9 +230,11 @@ def cmd_list(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     if args.json:
         out.write(json.dumps(rows) + "\n")
     else:
-        out.write(f"{'KEY':<28} {'TYPE':<16} {'RATE (Hz)':>9}\n")
+        # columns as wide as the longest key (the ROS bridge's run to ~190 characters)
+        width = max([28, *(len(r["key"]) for r in rows)])
+        out.write(f"{'KEY':<{width}} {'TYPE':<16} {'RATE (Hz)':>9}\n")
         for r in rows:
-            out.write(f"{r['key']:<28} {r['type']:<16} {r['rate_hz']:>9}\n")
+            out.write(f"{r['key']:<{width}} {r['type']:<16} {r['rate_hz']:>9}\n")
     return 0
 
 
@@ -327,7 +329,8 @@ def cmd_call(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
             return 2
     from services.bus import codec
 
-    out.write(json.dumps(codec.jsonable(reply), ensure_ascii=False) + "\n")
+    indent = 2 if getattr(args, "pretty", False) else None
+    out.write(json.dumps(codec.jsonable(reply), ensure_ascii=False, indent=indent) + "\n")
     return 0
 
 
@@ -473,6 +476,7 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("service", help="service name: decision, arm, force, master, master/<id>, …")
     p.add_argument("method", help="method name, e.g. status")
     p.add_argument("args", nargs="?", default="{}", help="arguments as a JSON object ({})")
+    p.add_argument("--pretty", action="store_true", help="indent the reply (2 spaces)")
     p.add_argument(
         "--timeout",
         type=_positive,

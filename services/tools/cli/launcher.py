@@ -12,8 +12,8 @@ A profile is a deployment TOML with an `[up]` table:
 Each child gets `--config PROFILE` (so it reads its own table and `[zenoh]`), its output is
 prefixed with its name, a child that crashes is restarted with exponential backoff, and
 Ctrl-C / SIGTERM stops all (SIGTERM, then SIGKILL after `stop_timeout_s`). Children stop
-one by one in reverse start order. Children are spawned, never forked (ZENOH_NOTES.md
-pitfall 3).
+one by one in reverse start order. Children (`services.tools.cell.procs.Child`) are spawned,
+never forked (ZENOH_NOTES.md pitfall 3).
 
 What stops the whole launch (everything is stopped and `up` exits non-zero):
 - before anything starts, the profile's router endpoint is taken (another Telerobot runs);
@@ -26,20 +26,16 @@ What stops the whole launch (everything is stopped and `up` exits non-zero):
 there); `--ns NS` runs every service under a namespace and, when the router endpoint is
 already taken, joins that router instead of starting one (several robots on one network);
 `--model MODEL` runs the arm service with another arm model (puma560, fr3, ur5e, or the path
-of an arm's TOML): every other service learns it from the arm's description.
+of an arm's TOML): every other service learns it from the arm's description; `--driver`
+and `--robot-ip` its driver (`--driver libfranka --robot-ip HOST`: a Franka, or franky-sim,
+docs/franka.md).
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
-import ctypes
-import ctypes.util
-import os
 import signal
-import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,20 +45,7 @@ from services.bus.config import load_deploy, section
 from services.bus.errors import ConfigError
 from services.bus.lifecycle import CONFIG_EXIT, Shutdown
 from services.bus.router import DEFAULT_LISTEN, already_running, endpoint_taken, tcp_host_port
-
-#: held while a whole line is written: children's pump threads and the demo's own output
-#: share one stream, and a line must never be cut by another's.
-OUT_LOCK = threading.RLock()
-_PR_SET_PDEATHSIG = 1
-_LIBC = ctypes.CDLL(ctypes.util.find_library("c") or None, use_errno=True)
-
-
-def _die_with_parent() -> None:
-    """In the child, before exec: SIGTERM it if the launcher dies, even by SIGKILL, so a
-    killed `up` never leaves services (and an arm proxy) running on their own. Linux only;
-    the call is a plain syscall, safe between fork and exec."""
-    _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
-
+from services.tools.cell.procs import OUT_LOCK, Child, telerobot_argv
 
 DEPLOY_DIR = Path(__file__).resolve().parents[3] / "deploy"
 
@@ -109,67 +92,15 @@ def resolve_profile(name: str) -> Path:
     raise ConfigError("profile", f"no profile {name!r} (known: {', '.join(known)})")
 
 
-class Child:
-    """One supervised child process with prefixed output."""
+class UpChild(Child):
+    """A child of `up`: its output prefixed on `out`, SIGTERM when `up` dies, and its
+    supervision state."""
 
     def __init__(self, name: str, argv: list[str], out: IO[str]) -> None:
-        self.name = name
-        self.argv = argv
-        self.out = out
-        self.proc: subprocess.Popen[str] | None = None
-        self.starts = 0
-        self.started_at = 0.0
+        super().__init__(name, argv, out=out, die_with_parent=True)
         self.next_start = 0.0
         #: exited and not to be restarted (restart = false): no longer supervised
         self.finished = False
-        #: the last non-empty line the child printed (a configuration error names its key)
-        self.last_line = ""
-        self._pump: threading.Thread | None = None
-
-    def start(self) -> None:
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        self.proc = subprocess.Popen(
-            self.argv,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-            bufsize=1,
-            env=env,
-            start_new_session=True,
-            preexec_fn=_die_with_parent,
-        )
-        self.starts += 1
-        self.started_at = time.monotonic()
-        self._pump = threading.Thread(target=self._copy, args=(self.proc,), daemon=True)
-        self._pump.start()
-        self.say(f"started pid {self.proc.pid} (start #{self.starts})")
-
-    def _copy(self, proc: subprocess.Popen[str]) -> None:
-        assert proc.stdout is not None
-        with proc.stdout:  # closed at the child's end of output, not left to the collector
-            for line in proc.stdout:
-                text = line.rstrip("\n")
-                if text.strip():
-                    self.last_line = text.strip()
-                self.say(text)
-
-    def say(self, text: str) -> None:
-        # One lock for every child: their pump threads share one output stream.
-        with OUT_LOCK:
-            self.out.write(f"[{self.name}] {text}\n")
-            self.out.flush()
-
-    def poll(self) -> int | None:
-        return None if self.proc is None else self.proc.poll()
-
-    def signal(self, sig: int) -> None:
-        if self.proc is not None and self.proc.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.proc.pid, sig)
-
-    def join_output(self) -> None:
-        if self._pump is not None:
-            self._pump.join(timeout=2.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -180,6 +111,8 @@ class Overrides:
     listen: str = ""
     ns: str = ""
     model: str = ""
+    driver: str = ""
+    robot_ip: str = ""
 
     def __post_init__(self) -> None:
         if self.listen and tcp_host_port(self.listen) is None:
@@ -201,16 +134,11 @@ def child_argv(
         extra += ["--ns", overrides.ns]
     if overrides.model and name == "arm":
         extra += ["--model", overrides.model]
-    return [
-        sys.executable,
-        "-m",
-        "services.tools.cli.main",
-        name,
-        "--config",
-        str(profile),
-        *extra,
-        *cfg.args.get(name, []),
-    ]
+    if overrides.driver and name == "arm":
+        extra += ["--driver", overrides.driver]
+    if overrides.robot_ip and name == "arm":
+        extra += ["--robot-ip", overrides.robot_ip]
+    return telerobot_argv(name, "--config", str(profile), *extra, *cfg.args.get(name, []))
 
 
 def dialable(endpoint: str) -> str:
@@ -265,7 +193,7 @@ def run(
                 f"a router already listens on {', '.join(taken)}: joining it under "
                 f"namespace {overrides.ns!r} (no router of our own)",
             )
-    children = [Child(n, child_argv(n, profile, cfg, overrides), out) for n in names]
+    children = [UpChild(n, child_argv(n, profile, cfg, overrides), out) for n in names]
     status = 0
     try:
         for c in children:
@@ -273,7 +201,7 @@ def run(
         while not stop.is_set():
             now = time.monotonic()
             for c in children:
-                code = c.poll()
+                code = c.returncode
                 if code is None or c.finished or c.next_start > now:
                     continue
                 if c.next_start:  # a scheduled restart is due
@@ -308,16 +236,11 @@ def run(
         # server leave the arm holding while the arm and the router are still there.
         for c in reversed(children):
             c.signal(signal.SIGTERM)
-            deadline = time.monotonic() + cfg.stop_timeout_s
-            while c.poll() is None and time.monotonic() < deadline:
-                time.sleep(0.05)
-            if c.poll() is None:
+            if c.proc is not None and c.wait(cfg.stop_timeout_s) is None:
                 c.say("did not stop in time; killing")
-                c.signal(signal.SIGKILL)
-                if c.proc is not None:
-                    c.proc.wait()
+                c.kill()
             c.join_output()
-            c.say(f"stopped (exit {c.poll()})")
+            c.say(f"stopped (exit {c.returncode})")
     return status
 
 
@@ -341,6 +264,8 @@ def add_override_args(p: argparse.ArgumentParser) -> None:
         default="",
         help="the arm model: puma560 (default), fr3, ur5e, or the path of an arm's TOML",
     )
+    p.add_argument("--driver", default="", help="the arm's driver: sim (default), libfranka, …")
+    p.add_argument("--robot-ip", default="", help="the Franka's address (--driver libfranka)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -357,9 +282,18 @@ def main(argv: list[str] | None = None) -> int:
     )
     add_override_args(p)
     args = p.parse_args(argv)
+    from services.bus.sched import claim_cpu_share
+
+    claim_cpu_share()  # the children share this session's autogroup (services.bus.sched)
     try:
         profile = resolve_profile(args.profile)
-        overrides = Overrides(listen=args.listen, ns=args.ns, model=args.model)
+        overrides = Overrides(
+            listen=args.listen,
+            ns=args.ns,
+            model=args.model,
+            driver=args.driver,
+            robot_ip=args.robot_ip,
+        )
     except ConfigError as e:
         print(f"telerobot up: {e}", file=sys.stderr)
         return 2

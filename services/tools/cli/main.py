@@ -26,7 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "decision": ("services.control.decision.__main__", "the DecisionServer (supervisor)"),
     "master": ("services.control.master.__main__", "the master station"),
     "haply-fake": (
-        "services.control.master.fake_haply",
+        "services.control.master.devices.haply.fake",
         "a fake Haply Inverse Service (no device)",
     ),
     "vision": ("services.control.vision.__main__", "the stereo vision service"),

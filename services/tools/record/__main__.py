@@ -30,6 +30,11 @@ def arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-video", action="store_true", help="leave out vision/stereo/*")
     p.add_argument(
+        "--ros",
+        action="store_true",
+        help="also record the ROS 2 view's copies of the streams (left out by default)",
+    )
+    p.add_argument(
         "--no-3d",
         action="store_true",
         help="leave out /tf, /robot_model, /robot_description, /workcell (what a 3D viewer "
@@ -85,7 +90,8 @@ def start(ctx: ServiceContext) -> int:
         output=args.output,
         keys=tuple(args.keys),
         video=not args.no_video,
-        world=not args.no_3d,
+        ros=args.ros,
+        view3d=not args.no_3d,
         max_size_mb=args.max_size_mb,
         max_duration_s=args.max_duration_s,
         split=args.split,

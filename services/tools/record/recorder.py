@@ -15,7 +15,7 @@ next part (FILE_000.mcap, FILE_001.mcap, …), each a complete MCAP file on its 
 The arm's description (`robot/arm/description`, cached by the arm for late subscribers) is
 taken with Zenoh's history, so a recorder started after the arm still gets it: it is
 recorded like any other key (when the key filter selects it) and gives the 3D views their
-arm (world.py: `/tf` from its URDF, `/robot_model`, `/robot_description`). With no
+arm (foxglove3d.py: `/tf` from its URDF, `/robot_model`, `/robot_description`). With no
 description, the file has no `/robot_model`; the stats (`arm_model` null, `robot_models` 0)
 and the log say so.
 """
@@ -41,7 +41,7 @@ from services.bus import codec, keys
 from services.bus.errors import ConfigError, ProtocolError
 from services.bus.messages import ArmDescription
 from services.bus.node import Node
-from services.tools.record import schemas, world
+from services.tools.record import foxglove3d, schemas
 
 log = logging.getLogger("telerobot.record")
 
@@ -65,6 +65,8 @@ class RecorderConfig:
     output: the file (`session.mcap`); with `split`, parts `session_000.mcap`, ….
     keys: Zenoh key expressions to record (empty: everything, `**`).
     video: record `vision/stereo/*` (off: `--no-video`).
+    ros: with no `keys`, record the ROS 2 view's copies of the streams too (`--ros`; by
+        default a recording of everything leaves them out: they double the data).
     max_size_mb, max_duration_s: end the recording (or the part, with `split`) when
         reached; 0 = no limit.
     queue_len, queue_mb: the inbox bound, in samples and in payload megabytes.
@@ -75,6 +77,7 @@ class RecorderConfig:
     output: str
     keys: tuple[str, ...] = ()
     video: bool = True
+    ros: bool = False
     max_size_mb: float = 0.0
     max_duration_s: float = 0.0
     split: bool = False
@@ -83,8 +86,8 @@ class RecorderConfig:
     chunk_size_kb: int = 1024
     chunk_interval_s: float = 1.0
     compression: Compression = "zstd"
-    world: bool = True
-    """Also write what a 3D viewer draws (`world.py`): `/tf`, `/robot_model`,
+    view3d: bool = True
+    """Also write what a 3D viewer draws (`foxglove3d.py`): `/tf`, `/robot_model`,
     `/robot_description`, `/workcell`."""
 
     def __post_init__(self) -> None:
@@ -273,13 +276,13 @@ class McapSink:
         self._last_flush_s = 0.0
         self._pos = 0
         self._pending = 0
-        self._arm: world.ArmView | None = None
+        self._arm: foxglove3d.ArmView | None = None
         """The arm of the newest description, over the whole recording (all parts)."""
         self._arm_written = False
         """This part has the current arm's /robot_model."""
         self._states_without_arm = 0
         """robot/states of this part derived with no arm description."""
-        self._spills = world.Spills(world.SCENE)
+        self._spills = foxglove3d.Spills(foxglove3d.SCENE)
         """Puddles of spilled liquid, over the whole recording (all parts)."""
         self.derive_errors = 0
         self.ended = False
@@ -306,6 +309,7 @@ class McapSink:
                 "ns": self.ns,
                 "keys": " ".join(self.config.keys) or "**",
                 "video": str(self.config.video).lower(),
+                "ros": str(self.config.ros).lower(),
                 "part": str(self._part),
                 "started_ns": str(self._clock_ns()),
                 "raw_prefix": schemas.RAW_PREFIX,
@@ -326,7 +330,7 @@ class McapSink:
     def _finish_part(self) -> None:
         if self._writer is None or self._file is None:
             return
-        if self.config.world and self._states_without_arm and not self._arm_written:
+        if self.config.view3d and self._states_without_arm and not self._arm_written:
             log.warning(
                 "%s: no arm description (robot/arm/description) arrived: recorded without "
                 "/robot_model; /tf holds world → flange → tool only",
@@ -355,7 +359,7 @@ class McapSink:
         assert self._writer is not None
         sid = self._schemas.get(name)
         if sid is None:
-            doc = world.SCHEMAS.get(name) or schemas.json_schema(name)
+            doc = foxglove3d.SCHEMAS.get(name) or schemas.json_schema(name)
             data = json.dumps(doc, ensure_ascii=False).encode()
             sid = self._writer.register_schema(name, schemas.SCHEMA_ENCODING, data)
             self._schemas[name] = sid
@@ -414,7 +418,7 @@ class McapSink:
             cid = self._channel(item.key, schemas.ROLE_VIEW, v.schema)
             self._add(cid, item, publish_ns, schemas.dumps(v.document))
         self._model_due(item)
-        if v is not None and self.config.world:
+        if v is not None and self.config.view3d:
             self._derive(item, v, publish_ns)
         st.written += 1
         st.bytes += len(item.payload)
@@ -422,13 +426,13 @@ class McapSink:
 
     def _derived_channel(self, topic: str, schema: str, key: str) -> int:
         assert self._writer is not None
-        cid = self._channels.get((topic, world.ROLE_DERIVED))
+        cid = self._channels.get((topic, foxglove3d.ROLE_DERIVED))
         if cid is None:
-            meta = {"key": key, "role": world.ROLE_DERIVED, "type": schema}
+            meta = {"key": key, "role": foxglove3d.ROLE_DERIVED, "type": schema}
             cid = self._writer.register_channel(
                 topic, schemas.VIEW_ENCODING, self._schema_id(schema), meta
             )
-            self._channels[(topic, world.ROLE_DERIVED)] = cid
+            self._channels[(topic, foxglove3d.ROLE_DERIVED)] = cid
         return cid
 
     def _description(self, item: Received) -> None:
@@ -442,13 +446,13 @@ class McapSink:
             return
         with self.stats.lock:
             self.stats.arm_model = desc.model
-        if not self.config.world:
+        if not self.config.view3d:
             return
         old = self._arm.description if self._arm is not None else None
         if old is not None and _same_arm(old, desc):
             return
         try:
-            self._arm = world.ArmView(desc)
+            self._arm = foxglove3d.ArmView(desc)
         except (ConfigError, ProtocolError, ValueError, KeyError, TypeError, RuntimeError) as e:
             self._arm = None
             self.derive_errors += 1
@@ -459,13 +463,13 @@ class McapSink:
 
     def _model_due(self, item: Received) -> None:
         """Write the current arm's model if this part does not have it yet."""
-        if self.config.world and self._arm is not None and not self._arm_written:
+        if self.config.view3d and self._arm is not None and not self._arm_written:
             self._write_model(item)
 
     def _derive(self, item: Received, v: schemas.View, publish_ns: int) -> None:
-        """The 3D views of a robot/state or workcell/state (`world.py`)."""
+        """The 3D views of a robot/state or workcell/state (`foxglove3d.py`)."""
         assert self._writer is not None
-        if item.key not in (keys.STATE.key, world.WORKCELL_KEY):
+        if item.key not in (keys.STATE.key, foxglove3d.WORKCELL_KEY):
             return
         try:
             if item.key == keys.STATE.key:
@@ -473,11 +477,11 @@ class McapSink:
                     if not self._states_without_arm:
                         log.info("robot/state with no arm description yet: /tf of its poses")
                     self._states_without_arm += 1
-                tf = world.frame_transforms(v.document, self._arm)
-                out = [(world.TF_TOPIC, world.FRAME_TRANSFORMS, tf)]
+                tf = foxglove3d.frame_transforms(v.document, self._arm)
+                out = [(foxglove3d.TF_TOPIC, foxglove3d.FRAME_TRANSFORMS, tf)]
             else:
-                update = world.workcell_update(v.document, spills=self._spills)
-                out = [(world.WORKCELL_TOPIC, world.SCENE_UPDATE, update)]
+                update = foxglove3d.workcell_update(v.document, spills=self._spills)
+                out = [(foxglove3d.WORKCELL_TOPIC, foxglove3d.SCENE_UPDATE, update)]
         except (ProtocolError, ValueError, KeyError, TypeError) as e:
             self.derive_errors += 1
             log.debug("no 3D view of %s: %s", item.key, e)
@@ -493,12 +497,16 @@ class McapSink:
         assert self._writer is not None and self._arm is not None
         arm, t_ns = self._arm, item.log_time_ns
         self._writer.add_attachment(
-            t_ns, t_ns, arm.urdf_name, world.URDF_MEDIA_TYPE, arm.urdf.encode()
+            t_ns, t_ns, arm.urdf_name, foxglove3d.URDF_MEDIA_TYPE, arm.urdf.encode()
         )
-        cid = self._derived_channel(world.DESCRIPTION_TOPIC, world.STRING, DESCRIPTION_KEY)
-        self._add(cid, item, t_ns, schemas.dumps(world.robot_description(arm)))
-        cid = self._derived_channel(world.MODEL_TOPIC, world.SCENE_UPDATE, DESCRIPTION_KEY)
-        self._add(cid, item, t_ns, schemas.dumps(world.robot_model(t_ns, arm)))
+        cid = self._derived_channel(
+            foxglove3d.DESCRIPTION_TOPIC, foxglove3d.STRING, DESCRIPTION_KEY
+        )
+        self._add(cid, item, t_ns, schemas.dumps(foxglove3d.robot_description(arm)))
+        cid = self._derived_channel(
+            foxglove3d.MODEL_TOPIC, foxglove3d.SCENE_UPDATE, DESCRIPTION_KEY
+        )
+        self._add(cid, item, t_ns, schemas.dumps(foxglove3d.robot_model(t_ns, arm)))
         self._arm_written = True
         with self.stats.lock:
             self.stats.robot_models += 1
@@ -573,7 +581,7 @@ class Recorder:
         self.config = config
         self.ended = threading.Event()
         self._stats = RecorderStats()
-        self._select = schemas.key_matcher(config.keys, config.video)
+        self._select = schemas.key_matcher(config.keys, config.video, config.ros)
         self._inbox = Inbox(config.queue_len, int(config.queue_mb * 1e6))
         self._sink = McapSink(config, node.config.ns, self._stats)
         self._stopped = False
@@ -585,7 +593,7 @@ class Recorder:
         # publisher caches, so that a recorder started after the arm gets the current one:
         # the ones for the key expressions leave that key to it.
         self._record_description = self._select(DESCRIPTION_KEY)
-        self._own_description = config.world or self._record_description
+        self._own_description = config.view3d or self._record_description
         self._description_seen: set[str] = set()
         self._subs: list[Any] = [
             node.subscribe_raw(k, self._receiver(owners[i])) for i, k in enumerate(patterns)

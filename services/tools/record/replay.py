@@ -6,6 +6,12 @@ Each raw message (`/raw/<key>`) is published on `<key>` — in the replaying nod
 services can be run against a real session. Before the first message the replayer waits
 (up to `--wait-s`) until every key it will publish has a subscriber, so nothing is lost to
 routes not yet set up. See docs/record.md.
+
+A recording holds the cell's own keys (robot/state, robot/events, …): published into a cell
+where the live services run, old states and events would mix with theirs. So the replayer
+refuses to start while any of LIVE_SERVICES is alive in its namespace, unless told
+`--into-live`; and it marks everything it sends with the Zenoh attachment `REPLAY_MARK`
+(and announces itself as `alive/replay`), so a subscriber can tell replayed from live.
 """
 
 from __future__ import annotations
@@ -25,7 +31,7 @@ from typing import Any, Protocol
 
 import zenoh
 
-from services.bus import keys
+from services.bus import keys, streams
 from services.bus.config import LOCAL_ROUTER, add_node_args, node_config
 from services.bus.errors import ConfigError
 from services.bus.lifecycle import Shutdown, setup_logging
@@ -37,6 +43,24 @@ log = logging.getLogger("telerobot.replay")
 
 MAX_SLEEP_S = 0.05
 MATCH_POLL_S = 0.01
+LIVE_SERVICES = ("arm", "decision", "force", "vision", "workcell")
+"""The services whose keys a recording replays: alive, they are a live cell."""
+REPLAY_MARK = b"replay"
+"""The Zenoh attachment on every sample the replayer sends."""
+LIVE_QUERY_S = 1.0
+
+
+def live_services(node: Node, timeout_s: float = LIVE_QUERY_S) -> list[str]:
+    """Which of LIVE_SERVICES hold `alive/<service>` in `node`'s namespace (a liveliness
+    query: every reachable session answers)."""
+    found = set()
+    for r in node.session.liveliness().get(f"{keys.ALIVE_PREFIX}/**", timeout=timeout_s):
+        if r.ok is None:
+            continue
+        name = str(r.ok.key_expr).split("/")[1]
+        if name in LIVE_SERVICES:
+            found.add(name)
+    return sorted(found)
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,16 +138,24 @@ class Replayer:
         self._puts: dict[str, Callable[[bytes], None]] = {}
 
     def _publisher(self, key: str) -> Callable[[bytes], None]:
+        """The put of `key`: the contract's encoding and the key's priority, but reliable and
+        blocking whatever the live stream's delivery (keys.py): a replay is for looking at
+        a session, so it loses nothing (it never runs faster than asked)."""
         put = self._puts.get(key)
         if put is None:
             topic = keys.topic_for(key)
-            if topic is not None:
-                put = self.node.publisher(topic).put_bytes
-            else:
-                raw = self.node.session.declare_publisher(
-                    key, encoding=zenoh.Encoding(keys.ENCODING)
-                )
-                put = raw.put
+            qos = {} if topic is None else streams.publisher_qos(topic)
+            qos |= {
+                "reliability": zenoh.Reliability.RELIABLE,
+                "congestion_control": zenoh.CongestionControl.BLOCK,
+            }
+            raw = self.node.session.declare_publisher(
+                key, encoding=zenoh.Encoding(keys.ENCODING), **qos
+            )
+
+            def put(payload: bytes, raw: Any = raw) -> None:
+                raw.put(payload, attachment=REPLAY_MARK)
+
             self._puts[key] = put
         return put
 
@@ -205,6 +237,12 @@ def parser() -> argparse.ArgumentParser:
         "default: all)",
     )
     p.add_argument("--wait-s", type=float, default=1.0, help="wait for subscribers up to this long")
+    p.add_argument(
+        "--into-live",
+        action="store_true",
+        help="publish even though the cell's services run in this namespace (their live "
+        "robot/state and events then mix with the recording's, marked `replay`)",
+    )
     p.add_argument("--verbose", "-v", action="store_true", help="debug logging")
     return p
 
@@ -218,6 +256,18 @@ def main(argv: list[str] | None = None) -> int:
     cfg = node_config(args, connect=(LOCAL_ROUTER,))
     stop = Shutdown()
     with Node("replay", cfg) as node:
+        live = live_services(node)
+        if live and not args.into_live:
+            print(
+                f"replay: refused: {', '.join(live)} run in this namespace — replaying would "
+                "publish the recording's old robot/state and events on their live keys. Stop "
+                "them, replay into another namespace (--ns replay), or pass --into-live.",
+                file=sys.stderr,
+            )
+            return 2
+        if live:
+            log.warning("replaying into a live cell (%s): samples marked 'replay'", ", ".join(live))
+        node.announce()
         stats = Replayer(node, args.files, options).run(stop)
     print(json.dumps(stats.as_dict()))
     return 0

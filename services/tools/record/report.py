@@ -10,7 +10,7 @@ Read from the raw channels (the exact payloads), decoded with the contract's cod
   more than one above the previous is a gap of `seq − prev − 1` missing messages; a `seq`
   not above the previous is counted as out of order (or a restarted sender);
 - stalls per periodic stream (every latest-wins key but the commands, which stop while
-  nobody is engaged): a wait of more than STALL_PERIODS median periods between two
+  nobody is engaged): a wait of more than STALL_PERIODS mean periods between two
   samples. `gaps` counts both, so a stream that stopped for a while is never "0 gaps";
 - events: every `robot/events` message;
 - tracking: the distance from the arm's tool point (`robot/state` while `ready` or
@@ -58,7 +58,7 @@ COMMAND_KEYS = {keys.ARM_TARGET.key: "supervised target", keys.CMD.key: "operato
 #: robot states whose tool pose is the arm's (before calibration it is not)
 POSED = ("ready", "moving")
 STALL_PERIODS = 10.0
-"""A periodic stream is stalled when no sample came for this many of its median periods."""
+"""A periodic stream is stalled when no sample came for this many of its mean periods."""
 MIN_STALL_SAMPLES = 10
 """Fewer samples than this give no period to judge a stall by."""
 MIN_PATH_SPAN_M = 0.05
@@ -84,12 +84,16 @@ def periodic(key: str) -> bool:
 
 
 def stalls(times_ns: Sequence[int], periods: float = STALL_PERIODS) -> tuple[int, float, float]:
-    """(number of stalls, longest stall in s, the median period in s) of receive times: a
-    stall is a wait longer than `periods` median periods."""
+    """(number of stalls, longest stall in s, the stream's period in s) of receive times: a
+    stall is a wait longer than `periods` periods. The period is the mean one (the span over
+    the samples), not the median gap: samples that arrive in bursts (Zenoh batches a few
+    1 kHz samples together under load) make the median gap a fraction of the real period,
+    and every pause between two bursts a "stall"."""
     if len(times_ns) < MIN_STALL_SAMPLES:
         return 0, 0.0, 0.0
-    dt = np.diff(np.asarray(times_ns, dtype=np.int64)).astype(np.float64) / 1e9
-    period = float(np.median(dt))
+    t = np.asarray(times_ns, dtype=np.int64)
+    dt = np.diff(t).astype(np.float64) / 1e9
+    period = float(t[-1] - t[0]) / 1e9 / dt.size
     if period <= 0.0:
         return 0, 0.0, period
     long = dt[dt > periods * period]
@@ -143,7 +147,7 @@ class KeyReport:
     out_of_order: int
     seq_gaps: int = 0
     stalls: int = 0
-    """Waits longer than STALL_PERIODS median periods (periodic streams only)."""
+    """Waits longer than STALL_PERIODS mean periods (periodic streams only)."""
     max_stall_s: float = 0.0
 
 
@@ -538,7 +542,7 @@ def format_report(report: Report, max_events: int = 50) -> str:
         "PUB→REC: the recorder's receive time − the sender's t_ns (mean, p95, max; ms):",
         "  the bus's share only, not end-to-end latency; across machines it includes clock offset.",
         "GAPS = SEQ (sequence gaps) + STALL (a periodic stream silent for more than",
-        f"  {STALL_PERIODS:g} of its median periods; longest: "
+        f"  {STALL_PERIODS:g} of its mean periods; longest: "
         + (", ".join(f"{k.key} {k.max_stall_s:.3f} s" for k in report.keys if k.stalls) or "none")
         + ").",
     ]

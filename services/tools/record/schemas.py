@@ -104,6 +104,14 @@ def raw_topic(key: str) -> str:
     return RAW_PREFIX + key
 
 
+def is_ros_copy(key: str) -> bool:
+    """A key of the ROS 2 view (`telerobot ros2`, rmw_zenoh: `<domain id>/<topic>/<type>/
+    <hash>`): copies of the cell's own streams, which a recording of everything leaves out
+    unless asked (`--ros`)."""
+    head = key.split("/", 1)[0]
+    return head.isdigit() or head == "@ros2_lv"
+
+
 def is_video(key: str) -> bool:
     """Stereo frames (the only streams `--no-video` leaves out)."""
     topic = keys.topic_for(key)
@@ -279,9 +287,12 @@ def dumps(doc: dict[str, Any]) -> bytes:
     return json.dumps(doc, separators=(",", ":"), ensure_ascii=False, allow_nan=False).encode()
 
 
-def key_matcher(patterns: Sequence[str], video: bool = True) -> Callable[[str], bool]:
+def key_matcher(
+    patterns: Sequence[str], video: bool = True, ros: bool = True
+) -> Callable[[str], bool]:
     """A predicate on keys: inside one of the Zenoh key expressions `patterns` (all keys when
-    empty), and not a stereo stream unless `video`. Raises ConfigError on a bad pattern."""
+    empty, but the ROS 2 view's copies unless `ros`), and not a stereo stream unless
+    `video`. Raises ConfigError on a bad pattern."""
     try:
         exprs = [zenoh.KeyExpr(p) for p in patterns]
     except zenoh.ZError as e:
@@ -291,7 +302,7 @@ def key_matcher(patterns: Sequence[str], video: bool = True) -> Callable[[str], 
         if not video and is_video(key):
             return False
         if not exprs:
-            return True
+            return ros or not is_ros_copy(key)
         try:
             k = zenoh.KeyExpr(key)
         except zenoh.ZError:

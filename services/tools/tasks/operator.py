@@ -38,7 +38,7 @@ from services.bus.messages import Event, MasterState, Message, RobotState, mat3,
 from services.bus.node import Node
 from services.bus.rate import RateLoop
 from services.bus.streams import wait_latest
-from services.control.master.virtual import VirtualMaster
+from services.control.master.devices.virtual import VirtualMaster
 from services.geometry import angle_between, exp_so3, rotation_angle, rxyz, rxyz_inv, slerp
 from services.world.workcell.messages import WORKCELL_STATE, ObjectView, WorkcellState, objects_of
 

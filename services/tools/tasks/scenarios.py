@@ -24,8 +24,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from services.geometry import angle_between, rot_x, rot_z
 from services.tools.tasks.operator import Operator, TaskFailed
+from services.world.workcell.bodies import BodyState, stack_heights
 from services.world.workcell.messages import ObjectView
-from services.world.workcell.physics import BodyState, stack_heights
 
 Vec = NDArray[np.float64]
 Mat = NDArray[np.float64]
@@ -223,7 +223,7 @@ def task2(op: Operator) -> Outcome:
 
 
 def stack_heights_of(objects: dict[str, ObjectView]) -> dict[str, int]:
-    """Column heights (services.world.workcell.physics.stack_heights) of what the operator sees."""
+    """Column heights (services.world.workcell.bodies.stack_heights) of what the operator sees."""
     bodies = [
         BodyState(o.name, o.kind, o.p, o.R, o.phase, o.on, o.size, 0.0, 0.0, 0.0, 0.0)
         for o in objects.values()

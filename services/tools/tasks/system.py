@@ -1,14 +1,13 @@
 """Running a task: the robot side in simulation, the operator's station, and one run.
 
-- `SimCell`: the robot side in one process, each service on a node of its own as separate
-  processes would be: arm (simulated arm, at home), force (simulated wrist), decision and
-  workcell. Used by the tests and by `python -m services.tools.tasks --headless`.
+- the robot side in simulation is `services.tools.cell.sim`'s `SimCell` (`light_cell`).
 - `Station`: the operator's side: a master service with a virtual device (id `operator`),
   the scripted person at it, and what they see.
 - `run_task()`: reset the workcell, run one scenario, and report its metrics.
 
-Nodes come from a `NodeFactory(name, instance)`, so the same code runs on a private test
-network, on a headless in-process network, or against a running system (`telerobot demo`).
+Nodes come from a `NodeFactory(name, instance)` (`services.tools.cell.sim`), so the same
+code runs on a private test network, on a headless in-process network, or against a running
+system (`telerobot demo`).
 """
 
 from __future__ import annotations
@@ -23,16 +22,11 @@ from services.bus.config import NodeConfig
 from services.bus.errors import RpcError, Unavailable
 from services.bus.node import Node
 from services.bus.peers import Peers
-from services.control.arm.config import ArmConfig
 from services.control.arm.model import DEFAULT_MODEL
-from services.control.arm.service import ArmService
-from services.control.decision.config import DecisionConfig
-from services.control.decision.service import DecisionService
-from services.control.force.config import ForceConfig
-from services.control.force.service import ForceService
 from services.control.master.config import MasterConfig
+from services.control.master.devices.virtual import VirtualMaster
 from services.control.master.service import MasterService
-from services.control.master.virtual import VirtualMaster
+from services.tools.cell.sim import READY_TIMEOUT_S, NodeFactory, SimCell, light_cell
 from services.tools.tasks.metrics import RunRecorder, TaskReport
 from services.tools.tasks.operator import (
     READY,
@@ -49,73 +43,7 @@ from services.world.workcell.service import WorkcellService
 
 log = logging.getLogger("telerobot.tasks")
 
-NodeFactory = Callable[[str, str | None], Node]
 MASTER_ID = "operator"
-READY_TIMEOUT_S = 30.0
-
-
-class SimCell:
-    """Arm, force, decision and workcell services in this process (see the module doc).
-
-    `start()` connects and initializes the arm and waits until `robot/state` says ready.
-    `close()` stops them in reverse order (the decision holds the arm first).
-    """
-
-    def __init__(
-        self,
-        make_node: NodeFactory,
-        *,
-        arm: ArmConfig | None = None,
-        force: ForceConfig | None = None,
-        decision: DecisionConfig | None = None,
-        workcell: WorkcellConfig | None = None,
-    ) -> None:
-        self._closers: list[Callable[[], None]] = []
-        try:
-            self.arm = ArmService(make_node("arm", None), arm or ArmConfig())
-            self._closers.append(self.arm.close)
-            self.force = ForceService(make_node("force", None), force or ForceConfig())
-            self._closers.append(self.force.close)
-            self.decision = DecisionService(
-                make_node("decision", None), decision or DecisionConfig()
-            )
-            self._closers.append(self.decision.close)
-            self.workcell = WorkcellService(
-                make_node("workcell", None), workcell or WorkcellConfig()
-            )
-            self._closers.append(self.workcell.close)
-        except BaseException:
-            self.close()
-            raise
-
-    def start(self, timeout_s: float = READY_TIMEOUT_S) -> None:
-        """Connect and initialize the arm (as `arm --autostart` does), wait until ready."""
-        proxy = self.arm.proxy
-        proxy.rpc_connect({})
-        proxy.rpc_initialize({})
-        deadline = time.monotonic() + timeout_s
-        while proxy.status != "ready":
-            if time.monotonic() > deadline:
-                raise TaskFailed(f"the arm did not become ready (status {proxy.status})")
-            time.sleep(0.01)  # polling the proxy's status, each round bounded by the deadline
-
-    def close(self) -> None:
-        for close in reversed(self._closers):
-            close()
-        self._closers.clear()
-
-
-def light_cell(make_node: NodeFactory, model: str = DEFAULT_MODEL) -> SimCell:
-    """A SimCell of arm `model` with settings that keep it light on a small shared host
-    (tests, headless runs): a 500 Hz force stream without the final spin, a short simulated
-    calibration, and watchdogs that catch a service that is really gone rather than a busy
-    CPU."""
-    return SimCell(
-        make_node,
-        arm=ArmConfig(model=model, sim_calibration_s=0.05),
-        force=ForceConfig(seed=7, period_ms=2.0),
-        decision=DecisionConfig(watchdog_ms=500.0, state_stale_ms=1000.0, stale_ms=500.0),
-    )
 
 
 class Station:

@@ -11,21 +11,23 @@ import math
 from dataclasses import dataclass, field
 
 from services.bus.errors import ConfigError
-from services.world.workcell.physics import PhysicsParams
+from services.world.workcell.mujoco_model import PhysicsParams
 
 
 @dataclass(frozen=True, slots=True)
 class WorkcellConfig:
     """Settings of the workcell simulation service.
 
-    rate_hz: physics steps per second (each uses the newest robot/state).
+    rate_hz: loop wake-ups per second: each takes the newest setpoint and grip, steps the
+      physics by 1 / rate_hz (in MuJoCo steps of `physics.timestep_s`) and publishes
+      `sim/arm/state`.
     publish_rate_hz: `workcell/state` messages per second (≤ rate_hz).
     state_stale_ms: with no robot/state for this long the gripper is left as it was (a
       lost robot stream must not drop what the gripper holds).
-    physics: the model's parameters (services.world.workcell.physics.PhysicsParams).
+    physics: the MuJoCo cell's parameters (services.world.workcell.mujoco_model.PhysicsParams).
     """
 
-    rate_hz: float = 100.0
+    rate_hz: float = 500.0
     publish_rate_hz: float = 50.0
     state_stale_ms: float = 500.0
     physics: PhysicsParams = field(default_factory=PhysicsParams)

@@ -19,8 +19,8 @@ from numpy.typing import NDArray
 from services.bus import codec
 from services.bus.errors import ProtocolError
 from services.bus.keys import QoS, Topic
-from services.bus.messages import Count, MaxLen, Message, Rot, Unit, Vec3, vec
-from services.world.workcell.physics import BodyState
+from services.bus.messages import Count, Joints, MaxLen, Message, Rot, Unit, Vec3, vec
+from services.world.workcell.bodies import BodyState
 
 Phase = Literal["resting", "held", "falling", "toppled"]
 ObjectKind = Literal["box", "cylinder"]
@@ -52,6 +52,47 @@ class WorkcellState(Message):
 
 WORKCELL_STATE = Topic("workcell/state", WorkcellState, QoS.STATE, latest_wins=True)
 """Published by the workcell service at `publish_rate_hz` (INTERACTIVE_HIGH, drop)."""
+
+
+@dataclass(frozen=True, slots=True)
+class SimArmCmd(Message):
+    """`sim/arm/cmd` (extension, docs/sim.md): the simulated arm's joint setpoint (rad, the
+    model's n joints), from the arm's `sim` driver to the physics. `halt`: brake the joints
+    where they are (an emergency stop) before taking `q`."""
+
+    name: ClassVar[str] = "SimArmCmd"
+    seq: Count
+    t_ns: Count
+    q: Joints
+    halt: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class SimArmState(Message):
+    """`sim/arm/state` (extension, docs/sim.md): the simulated arm as the physics has it.
+
+    `q` (rad), `qd` (rad/s): the joints; `f_t` (N), `c_t` (N·m about the tool point): the
+    wrench of the world on the tool, tool frame, as the wrist's F/T sensor measures it;
+    `tool_p` (m, world), `tool_R` (world←tool): the tool the physics holds; `sim_ns`: the
+    physics' clock (ns); `cmd_seq`: the last `sim/arm/cmd` it took."""
+
+    name: ClassVar[str] = "SimArmState"
+    seq: Count
+    t_ns: Count
+    sim_ns: Count
+    q: Joints
+    qd: Joints
+    f_t: Vec3
+    c_t: Vec3
+    tool_p: Vec3
+    tool_R: Rot
+    cmd_seq: Count = 0
+
+
+SIM_ARM_CMD = Topic("sim/arm/cmd", SimArmCmd, QoS.CONTROL, latest_wins=True)
+"""The `sim` arm driver → the physics (workcell service), once per control cycle."""
+SIM_ARM_STATE = Topic("sim/arm/state", SimArmState, QoS.CONTROL, latest_wins=True)
+"""The physics → the `sim` arm driver and the force service's `sim` sensor."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -148,8 +189,12 @@ def grip_of(value: float | None) -> float:
 
 
 __all__ = [
+    "SIM_ARM_CMD",
+    "SIM_ARM_STATE",
     "WORKCELL_STATE",
     "ObjectView",
+    "SimArmCmd",
+    "SimArmState",
     "WorkcellState",
     "grip_of",
     "object_map",

@@ -1,9 +1,9 @@
-"""The simulated workcell: one description of the scene for contact, rendering and tasks.
+"""The simulated workcell: one description of the scene for physics, rendering and tasks.
 
-Every simulated part of the system reads geometry from here: the force service's contact
-model, the vision service's renderer, the decision server's guarded moves and the task
-scenarios. Frames: world (R_w: z up, floor at z = 0; an arm's model says where its base
-stands in it). Units: m.
+Every simulated part of the system reads geometry from here: the workcell's MuJoCo cell
+(mujoco_model.py: the contacts are its solver's), the vision service's renderer, the
+decision server's guarded moves and the task scenarios. Frames: world (R_w: z up, floor
+at z = 0; an arm's model says where its base stands in it). Units: m.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-Vec3 = NDArray[np.float64]
+from services.geometry import Array3
 
 
 @dataclass(frozen=True, slots=True)
@@ -25,16 +25,15 @@ class Box:
     center: tuple[float, float, float]
     size: tuple[float, float, float]
     color: tuple[int, int, int] = (160, 160, 160)
-    stiffness_n_per_m: float = 20_000.0
-    #: an object the gripper may pick up (services.world.workcell.physics); fixtures are not
+    #: an object the gripper may pick up (the MuJoCo cell gives it a free joint); fixtures are not
     movable: bool = False
 
     @property
-    def lo(self) -> Vec3:
+    def lo(self) -> Array3:
         return np.asarray(self.center) - 0.5 * np.asarray(self.size)
 
     @property
-    def hi(self) -> Vec3:
+    def hi(self) -> Array3:
         return np.asarray(self.center) + 0.5 * np.asarray(self.size)
 
     @property
@@ -65,7 +64,6 @@ class Cylinder:
     radius: float
     height: float
     color: tuple[int, int, int] = (200, 140, 60)
-    stiffness_n_per_m: float = 20_000.0
     movable: bool = False
     liquid_height_m: float = 0.0
 
@@ -75,25 +73,10 @@ class Cylinder:
 
 
 @dataclass(frozen=True, slots=True)
-class Contact:
-    """A penetration of the probe sphere into a solid.
-
-    `depth` (m, > 0 when penetrating), `normal` (unit, world, pointing out of the solid,
-    i.e. the direction the solid pushes the probe), `force` = stiffness · depth · normal (N).
-    """
-
-    solid: str
-    depth: float
-    normal: Vec3
-    force: Vec3
-
-
-@dataclass(frozen=True, slots=True)
 class Scene:
     """The workcell: the floor plane z = `floor_z`, a table and the objects on it."""
 
     floor_z: float = 0.0
-    floor_stiffness_n_per_m: float = 50_000.0
     boxes: tuple[Box, ...] = field(default_factory=tuple)
     cylinders: tuple[Cylinder, ...] = field(default_factory=tuple)
 
@@ -138,7 +121,7 @@ class Scene:
     def moved(self, origins: Mapping[str, Sequence[float]]) -> Scene:
         """The same scene with solids moved: `origins[name]` is a box's new `center` or a
         cylinder's new `base` (m, world). Solids stay axis-aligned and upright: a renderer
-        or contact model of this scene sees a moved object at its new place, not its tilt
+        of this scene sees a moved object at its new place, not its tilt
         (the dynamic poses are in `workcell/state`, docs/tasks.md)."""
         boxes = tuple(
             replace(b, center=_triple(origins[b.name])) if b.name in origins else b
@@ -149,92 +132,6 @@ class Scene:
             for c in self.cylinders
         )
         return replace(self, boxes=boxes, cylinders=cylinders)
-
-    def contacts(self, point: Vec3, radius: float = 0.0) -> list[Contact]:
-        """Every contact of a sphere of `radius` (m) centred at `point` (world) with the scene."""
-        p = np.asarray(point, dtype=float)
-        out: list[Contact] = []
-        depth = self.floor_z - (p[2] - radius)
-        if depth > 0:
-            n = np.array([0.0, 0.0, 1.0])
-            out.append(Contact("floor", depth, n, self.floor_stiffness_n_per_m * depth * n))
-        for b in self.boxes:
-            c = _box_contact(b, p, radius)
-            if c is not None:
-                out.append(c)
-        for cyl in self.cylinders:
-            c = _cylinder_contact(cyl, p, radius)
-            if c is not None:
-                out.append(c)
-        return out
-
-    def contact_force(self, point: Vec3, radius: float = 0.0) -> Vec3:
-        """The summed contact force (N, world) on a probe sphere at `point`."""
-        total = np.zeros(3)
-        for c in self.contacts(point, radius):
-            total += c.force
-        return total
-
-
-def _box_contact(b: Box, p: Vec3, radius: float) -> Contact | None:
-    lo, hi = b.lo, b.hi
-    closest = np.clip(p, lo, hi)
-    delta = p - closest
-    dist = float(np.linalg.norm(delta))
-    if dist > 0.0:
-        if dist >= radius:
-            return None
-        n = delta / dist
-        depth = radius - dist
-    else:
-        # Centre inside the box: push out through the nearest face.
-        to_lo, to_hi = p - lo, hi - p
-        faces = np.concatenate([to_lo, to_hi])
-        k = int(np.argmin(faces))
-        n = np.zeros(3)
-        n[k % 3] = -1.0 if k < 3 else 1.0
-        depth = float(faces[k]) + radius
-    return Contact(b.name, depth, n, b.stiffness_n_per_m * depth * n)
-
-
-def _cylinder_contact(c: Cylinder, p: Vec3, radius: float) -> Contact | None:
-    base = np.asarray(c.base, dtype=float)
-    rel = p - base
-    r_xy = float(np.hypot(rel[0], rel[1]))
-    z = float(rel[2])
-    # Distance outside along the radial and axial directions.
-    out_r = r_xy - c.radius
-    out_z = max(-z, z - c.height)
-    if out_r > 0 and out_z > 0:
-        dist = float(np.hypot(out_r, out_z))
-        if dist >= radius:
-            return None
-        radial = np.array([rel[0], rel[1], 0.0]) / r_xy
-        axial = np.array([0.0, 0.0, 1.0 if z > c.height else -1.0])
-        n = (out_r * radial + out_z * axial) / dist
-        depth = radius - dist
-    elif out_r > 0 or out_z > 0:
-        dist = out_r if out_r > 0 else out_z
-        if dist >= radius:
-            return None
-        if out_r > 0:
-            n = np.array([rel[0], rel[1], 0.0]) / r_xy
-        else:
-            n = np.array([0.0, 0.0, 1.0 if z > c.height else -1.0])
-        depth = radius - dist
-    else:
-        # Inside: leave through the nearer of the side and the top/bottom.
-        if -out_r < -out_z:
-            n = (
-                np.array([rel[0], rel[1], 0.0]) / r_xy
-                if r_xy > 1e-12
-                else np.array([1.0, 0.0, 0.0])
-            )
-            depth = -out_r + radius
-        else:
-            n = np.array([0.0, 0.0, 1.0 if z > 0.5 * c.height else -1.0])
-            depth = -out_z + radius
-    return Contact(c.name, depth, n, c.stiffness_n_per_m * depth * n)
 
 
 def _triple(v: Sequence[float]) -> tuple[float, float, float]:

@@ -31,7 +31,7 @@ DT_S = 1.0 / CFG.control_rate_hz
 
 
 def tool_pose(q: Sequence[float]) -> tuple[list[float], list[float]]:
-    """(p, R row-major), as the proxy's loop measures it (`safety.ToolPose`)."""
+    """(p, R row-major), as the proxy's loop measures it (`services.geometry.PoseFloats`)."""
     return se3_floats(KIN.fk_tool(q, DEFAULT_eMt))
 
 

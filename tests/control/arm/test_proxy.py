@@ -523,6 +523,44 @@ def test_stop_brakes_to_rest_within_the_limits() -> None:
     assert rig.proxy.rpc_stop({}) == {"status": "ready", "motion": None}
 
 
+def test_stop_now_holds_the_measured_joints_at_once() -> None:
+    """The decision's contact stop: no braking distance; the setpoint steps back to where
+    the arm measurably is (never ahead of it); `now` must be a bool."""
+    rig = make_rig()
+    target = HOME + np.array([0.8, -0.5, 0.6, 1.0, 0.5, 1.2])
+    r = rig.proxy.rpc_move_joints({"q": list(target)})
+    rig.tick(300)
+    q_meas = rig.arm.read_joints().copy()
+    with pytest.raises(RpcError) as bad:
+        rig.proxy.rpc_stop({"now": "yes"})
+    assert bad.value.code == "bad_request" and rig.status() == "moving"
+    assert rig.proxy.rpc_stop({"now": True}) == {"status": "ready", "motion": r["motion"]}
+    result = rig.proxy.wait_motion(r["motion"], 0.0)
+    assert result["done"] and result["reason"] == "stopped"
+    # the joints the proxy last measured (a cycle ago): at most a cycle's travel behind the
+    # arm, never ahead of it along the motion
+    q_cmd = rig.q_cmd()
+    np.testing.assert_array_equal(rig.arm.sent[-1], q_cmd)
+    assert np.all(np.abs(q_cmd - q_meas) <= 5.0 * DT)  # ≤ vmax · one cycle
+    assert np.all((q_meas - q_cmd) * (target - HOME) >= 0.0)
+    n = len(rig.arm.sent)
+    rig.tick(20)
+    assert len(rig.arm.sent) == n  # at rest: the arm holds the measured joints
+
+
+def test_a_speed_fraction_slows_a_cartesian_move() -> None:
+    rig = make_rig()
+    fk = rig.proxy.rpc_fk({"q": list(HOME)})
+    p0 = np.asarray(fk["tool_p"])
+    full = rig.proxy.rpc_move_pose({"p": list(p0 + np.array([0.0, 0.0, -0.1])), "R": fk["tool_R"]})
+    rig.finish()
+    slow = rig.proxy.rpc_move_relative({"dp": [0.0, 0.0, 0.1], "frame": "world", "speed": 0.2})
+    rig.finish()
+    assert slow["duration_s"] > 2.0 * full["duration_s"]
+    with pytest.raises(RpcError):
+        rig.proxy.rpc_move_pose({"p": list(p0), "R": fk["tool_R"], "speed": 0.0})
+
+
 def test_wait_motion_blocks_until_the_motion_ends() -> None:
     rig = make_rig()
     r = rig.proxy.rpc_move_joints({"q": list(HOME + 0.2)})
@@ -609,6 +647,31 @@ def test_stale_targets_and_holds_do_not_move_the_arm() -> None:
     np.testing.assert_array_equal(rig.q_cmd(), q)
     assert rig.proxy.counters["commands_ignored"] == ignored + 2
     assert rig.proxy.state()["cmd_seq"] == 12
+
+
+def test_a_target_rebuilt_each_tick_to_its_last_bits_lets_the_arm_settle() -> None:
+    """A supervisor that rebuilds the target every tick from what the arm measures (the
+    decision with compliance on, at rest) sends poses that differ in their last bits: the
+    arm aims at the first, settles and says `ready`, and a real step after that moves it."""
+    rig = make_rig()
+    sup = Supervisor(rig)
+    sup.send(1, [0.02, 0.0, 0.0])
+    rig.finish()
+    q = rig.q_cmd().copy()
+    base = sup.target(2, [0.02, 0.0, 0.0])
+    for k in range(2, 200):  # 2 s of targets at 100 Hz, each off by up to 0.5 µm
+        e = 5e-7 * math.sin(k)
+        p = tuple(x + e for x in base.p)
+        R = tuple(x - e for x in base.R)
+        rig.proxy.on_target(replace(base, seq=k, t_ns=k, origin_t_ns=k, p=p, R=R))
+        rig.tick(5)
+    assert rig.status() == "ready"
+    np.testing.assert_array_equal(rig.q_cmd(), q)
+    sup.send(300, [0.02 + 1e-5, 0.0, 0.0])  # 10 µm: a step, solved and followed
+    rig.tick(5)
+    assert rig.status() == "moving"
+    rig.finish()
+    assert rig.status() == "ready" and not np.array_equal(rig.q_cmd(), q)
 
 
 def test_commands_are_ignored_unless_ready() -> None:

@@ -5,7 +5,6 @@ SerialArm under link faults — garbage, dropped bytes, a pulled cable — alway
 from __future__ import annotations
 
 import socket
-import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -28,6 +27,7 @@ from services.control.arm.serial_arm import (
     format_joints,
     parse_joints,
 )
+from tests.bus.test_router import spawned
 from tests.conftest import wait_until
 
 DEADLINE_S = 5.0
@@ -369,31 +369,14 @@ def test_fake_controller_runs_as_a_program() -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "services.control.arm.fake_controller",
-            "--port",
-            str(port),
-            "--calibration-s",
-            "0",
-        ],
-        stdout=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        assert proc.stdout is not None
-        assert (
-            proc.stdout.readline().strip() == f"fake PUMA controller on socket://127.0.0.1:{port}"
-        )
+    argv = [sys.executable, "-m", "services.control.arm.fake_controller", "--port", str(port)]
+    with spawned([*argv, "--calibration-s", "0"], merge_stderr=False) as fake:
+        first = fake.expect(lambda _: True).strip()
+        assert first == f"fake PUMA controller on socket://127.0.0.1:{port}"
         arm = SerialArm(f"socket://127.0.0.1:{port}", cycle_ms=5.0)
         arm.connect()
         assert arm.controller_id == "PUMA560,FAKE-1.0"
         arm.close()
-    finally:
-        proc.terminate()
-        proc.communicate(timeout=5)  # reaps it and closes its pipe
 
 
 def test_cleared_faults_do_not_fire_later(fake: FakeController, arm: SerialArm) -> None:
@@ -410,3 +393,45 @@ def test_cleared_faults_do_not_fire_later(fake: FakeController, arm: SerialArm) 
     np.testing.assert_allclose(arm.read_joints(), q_held, atol=1e-6)
     assert arm.status == "ready", arm.last_error
     assert sum(fake.errors_sent.values()) == 0
+
+
+def test_a_serial_port_that_does_not_exist_is_said_at_start_up_and_connect_says_why(
+    net, tmp_path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """`telerobot arm --driver serial --port /dev/ttyUSB0` with no such device: before, it
+    logged "up" and failed only at `connect`, with `internal`. Now an `error` event and a
+    warning at start-up naming the port, and `connect` fails `not_ready` saying why."""
+    import logging
+    import threading
+
+    from services.bus import keys
+    from services.bus.errors import RpcError
+    from services.bus.messages import Event
+    from services.control.arm.service import ArmService
+
+    missing = str(tmp_path / "ttyUSB0")
+    assert SerialArm("socket://127.0.0.1:1").preflight() is None  # URLs: only connect knows
+    events: list[Event] = []
+    lock = threading.Lock()
+
+    def on_event(ev: Event) -> None:
+        with lock:
+            events.append(ev)
+
+    net.node("viewer").subscribe(keys.EVENTS, on_event)
+    with caplog.at_level(logging.WARNING, logger="telerobot.arm"):
+        svc = ArmService(net.node("arm"), ArmConfig(driver="serial", port=missing))
+    try:
+
+        def said() -> bool:
+            with lock:
+                return any(e.kind == "error" and missing in e.message for e in events)
+
+        assert wait_until(said, DEADLINE_S), [(e.kind, e.message) for e in events]
+        assert any("no serial port" in r.getMessage() for r in caplog.records)
+        with pytest.raises(RpcError) as err:
+            svc.proxy.rpc_connect({})
+        assert err.value.code == "not_ready" and missing in err.value.message
+        assert svc.proxy.status == "error"
+    finally:
+        svc.close()

@@ -1,10 +1,17 @@
-"""A closed loop for the pure Supervisor: an ideal arm and the workcell's contact force.
+"""A closed loop for the pure Supervisor: an ideal arm in free space, or the PUMA in a cell.
 
-`Rig.step()` runs one tick: it feeds the supervisor the current robot state and force (the
-slave's tool pose; the sim table pushes on a probe sphere around the tool point), applies the
-published target to the slave like the arm does (goes to its pose at once, ignoring stale
-ones) and records everything, each target with its motion since its engagement began
-(`Out.dp`, `Out.dR`: p − p0 and R0ᵀ·R, p0 and R0 the supervisor's engagement pose).
+`Rig.step()` runs one tick: it feeds the supervisor the current robot state and force,
+applies the published target to the slave like the arm does (ignoring stale ones) and
+records everything, each target with its motion since its engagement began (`Out.dp`,
+`Out.dR`: p − p0 and R0ᵀ·R, p0 and R0 the supervisor's engagement pose).
+
+The slave is either ideal (`cell=False`, the default: it goes to the target's pose at once,
+in free space: the force is the test's push only) or the PUMA 560 in a MuJoCo cell of the
+table (`cell=True`, `CellSlave`: the workcell's physics, services/world/workcell/engine.py,
+each target through the arm's IK to its joint servos, 2 ms of physics per tick; the force
+is what the solver computes at the wrist, the tool's weight removed as the force service
+does, plus the push). Contact is the cell's alone: the gripper's fingertips, 35 mm below
+the tool point (`FINGER_M`), touch the table first.
 """
 
 from __future__ import annotations
@@ -20,13 +27,71 @@ from services.bus.messages import ArmTarget, ForceSample, OperatorCommand, Robot
 from services.control.decision.config import DecisionConfig
 from services.control.decision.notices import Notice
 from services.control.decision.supervisor import Inputs, Supervisor, TickResult
-from services.world.workcell.scene import Scene, default_scene
+from services.world.workcell.mujoco_model import PhysicsParams
+from services.world.workcell.scene import TABLE, Scene
 
 TOOL_DOWN: NDArray[np.float64] = np.diag([-1.0, 1.0, -1.0])
 """The home orientation of the arm config: tool z axis pointing down."""
 I3 = np.eye(3)
 TICK_NS = 2_000_000
-PROBE_RADIUS_M = 0.005
+FINGER_M = PhysicsParams().finger_length_m
+"""How far below the tool point the gripper's fingertips reach (m): they touch first."""
+TABLE_SCENE = Scene(boxes=(TABLE,))
+"""The cell of the contact tests: the table alone (cheap to step)."""
+
+
+class CellSlave:
+    """The PUMA 560 in a MuJoCo cell of `scene` (the table): a target's pose goes through
+    the arm's IK to its joint servos, and each tick steps the physics by its length."""
+
+    def __init__(self, p: Sequence[float], R: ArrayLike, scene: Scene = TABLE_SCENE) -> None:
+        import pinocchio as pin
+
+        from services.control.arm.model import load_model
+        from services.world.workcell.engine import CellPhysics
+
+        self._se3 = pin.SE3
+        arm = load_model("puma560")
+        self.kin = arm.kinematics()
+        q = np.array(arm.home, dtype=float)
+        self.R_goal = np.asarray(R, dtype=float)
+        self.p_goal = np.asarray(p, dtype=float)
+        goal = pin.SE3(self.R_goal, self.p_goal)
+        for _ in range(100):  # from home to the start, a streamed IK step at a time
+            sol = self.kin.solve(q, goal)
+            q = np.asarray(sol.q, dtype=float)
+            if sol.pos_err_m < 1e-7 and sol.rot_err_rad < 1e-7:
+                break
+        self.q = q
+        self.ph = CellPhysics(arm, scene, q0=self.q)
+        self.m = self.ph.params.tool_mass_kg
+        self.com = np.asarray(self.ph.params.tool_com_m, dtype=float)
+        self.grip = 0.0
+        self._solved = (self.p_goal.tobytes(), self.R_goal.tobytes())
+
+    def goto(self, p: NDArray[np.float64], R: NDArray[np.float64], grip: float | None) -> None:
+        self.p_goal, self.R_goal = p, R
+        if grip is not None:
+            self.grip = grip
+
+    def step(self, dt_ns: int) -> None:
+        goal = (self.p_goal.tobytes(), self.R_goal.tobytes())
+        if goal != self._solved:  # a new target: its joints (the servos hold the last)
+            self.q = np.asarray(self.kin.solve(self.q, self._se3(self.R_goal, self.p_goal)).q)
+            self._solved = goal
+        self.ph.command(self.q, self.grip, dt_ns * 1e-9)
+        self.ph.step(max(1, round(dt_ns * 1e-9 / self.ph.params.timestep_s)))
+
+    def pose(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        return self.ph.tool_pose()
+
+    def wrench_t(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The wrist's wrench (tool frame) with the tool's weight removed, as the force
+        service's gravity compensation does."""
+        f, c = self.ph.wrench_t()
+        _, R = self.ph.tool_pose()
+        w = R.T @ np.array([0.0, 0.0, -self.m * 9.81])
+        return f - w, c - np.cross(self.com, w)
 
 
 @dataclass(frozen=True)
@@ -54,7 +119,7 @@ class Rig:
         config: DecisionConfig | None = None,
         p: Sequence[float] = (0.6, 0.0, 0.6),
         R: ArrayLike = TOOL_DOWN,
-        scene: Scene | None = None,
+        cell: bool = False,
         status: str = "ready",
     ) -> None:
         self.config = config or DecisionConfig()
@@ -62,7 +127,9 @@ class Rig:
         self.now_ns = 10_000_000_000
         self.p = np.asarray(p, dtype=float)
         self.R = np.asarray(R, dtype=float)
-        self.scene = scene if scene is not None else default_scene()
+        self.cell = CellSlave(self.p, self.R) if cell else None
+        if self.cell is not None:
+            self.p, self.R = self.cell.pose()
         self.status = status
         self.push_w = np.zeros(3)
         self.push_c = np.zeros(3)
@@ -98,12 +165,16 @@ class Rig:
         )
 
     def force_w(self) -> NDArray[np.float64]:
-        return self.scene.contact_force(self.p, PROBE_RADIUS_M) + self.push_w
+        """The force on the tool (N, world): the cell's contact (with `cell`) and the push."""
+        if self.cell is None:
+            return self.push_w.copy()
+        return self.R @ self.cell.wrench_t()[0] + self.push_w
 
     def force_sample(self) -> ForceSample:
         self.force_seq += 1
         f_t = self.R.T @ self.force_w()
-        return ForceSample(seq=self.force_seq, t_ns=self.now_ns, f=vec(f_t), c=vec(self.push_c))
+        c_t = self.push_c if self.cell is None else self.cell.wrench_t()[1] + self.push_c
+        return ForceSample(seq=self.force_seq, t_ns=self.now_ns, f=vec(f_t), c=vec(c_t))
 
     def cmd(
         self,
@@ -145,6 +216,9 @@ class Rig:
         """One tick, `dt_ns` after the last. `state`/`force` False: that stream delivers
         nothing this tick."""
         self.now_ns += dt_ns
+        if self.cell is not None:
+            self.cell.step(dt_ns)
+            self.p, self.R = self.cell.pose()
         if state:
             self._state, self.state_rx_ns = self.robot_state(), self.now_ns
         if force:
@@ -189,6 +263,9 @@ class Rig:
         self.slave_engage = c.engage
         if c.grip is not None:
             self.grip = c.grip
+        if self.cell is not None:
+            self.cell.goto(np.asarray(c.p, dtype=float), mat3(c.R), c.grip)
+            return
         self.p = np.asarray(c.p, dtype=float)
         self.R = mat3(c.R)
 

@@ -54,13 +54,7 @@ def test_defaults_are_the_papers_and_the_protocols() -> None:
         ({"bias_samples": True}, "force.bias_samples"),
         ({"sensor": "serial", "port": ""}, "force.port"),
         ({"handoff": "thread"}, "force.handoff"),
-        ({"block_density_kg_m3": -1.0}, "force.block_density_kg_m3"),
-        ({"block_density_kg_m3": float("nan")}, "force.block_density_kg_m3"),
-        ({"bottle_mass_kg": 1e6}, "force.bottle_mass_kg"),
         ({"inertia": 1}, "force.inertia"),
-        ({"torsion_nm_rad": -1.0}, "force.torsion_nm_rad"),
-        ({"torsion_nm_rad": float("inf")}, "force.torsion_nm_rad"),
-        ({"carried_contact": "yes"}, "force.carried_contact"),
     ],
 )
 def test_bad_values_name_their_key(kw: dict[str, Any], key: str) -> None:

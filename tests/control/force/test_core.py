@@ -23,7 +23,7 @@ from services.bus.messages import ForceSample
 from services.control.force.config import ForceConfig
 from services.control.force.core import ForceCore, _BiasRequest
 from services.control.force.fake_serial_sensor import FakeSerialSensor
-from services.control.force.sensors import SensorError
+from services.control.force.sensors import IdlingSensor, SensorError, WorldAwareSensor
 from services.control.force.serial_sensor import SerialSensor
 from services.control.force.sim_sensor import SimSensor
 from tests.conftest import wait_until
@@ -111,19 +111,28 @@ def test_status_start_stop(sim: tuple[ForceCore, Published, Events]) -> None:
     assert [d["running"] for k, _, d in ev.items if k == "status"] == [True, False]
 
 
-def test_sim_contact_with_the_table_in_the_tool_frame(
+def press(core: ForceCore, f_z: float) -> None:
+    """A steady external force along the tool's z on the simulated wrist (N, tool frame):
+    with the tool pointing down, −z is the table pushing up."""
+    sensor = core.sensor
+    assert isinstance(sensor, SimSensor)
+    sensor.push((0.0, 0.0, f_z))
+
+
+def test_sim_external_wrench_in_the_tool_frame(
     sim: tuple[ForceCore, Published, Events],
 ) -> None:
     core, _, _ = sim
-    # Tool pointing down, its 5 mm probe 10 mm into the table top (stiffness 20 kN/m):
-    # the table pushes up, i.e. along −z of the tool.
-    core.update_robot_state((0.6, 0.3, TABLE_TOP_Z + 0.005 - 0.010), DOWN)
+    # Tool pointing down, pressed on: the push is read in the tool frame, weight removed.
+    core.update_robot_state((0.6, 0.3, TABLE_TOP_Z), DOWN)
+    press(core, -200.0)
     core.rpc_sensor_start({})
     assert wait_until(lambda: core.latest is not None and core.latest.seq > 5)
     s = core.rpc_sensor_read({})
     assert_allclose(s["f"], [0.0, 0.0, -20_000.0 * 0.010], atol=1e-6)
     assert_allclose(s["c"], [0.0, 0.0, 0.0], atol=1e-9)
-    # Back in free space, weight compensated: zero.
+    # Released, turned: weight compensated, zero.
+    press(core, 0.0)
     core.update_robot_state(FREE, rot("x", 0.7) @ DOWN)
     assert wait_until(lambda: np.allclose(core.rpc_sensor_read({})["f"], 0.0, atol=1e-9))
     assert core.rpc_sensor_status({})["gravity_compensated"] is True
@@ -154,12 +163,26 @@ def test_unused_the_sim_sensor_idles_but_a_bias_is_taken_at_full_rate(
     assert not core.idle
 
 
+def test_only_the_sim_sensor_may_idle_and_takes_the_physics() -> None:
+    """The optional capabilities the core decides once: a streaming sensor has neither."""
+    sim, serial = SimSensor(), SerialSensor("socket://127.0.0.1:1")
+    assert isinstance(sim, IdlingSensor) and sim.may_idle and isinstance(sim, WorldAwareSensor)
+    assert not isinstance(serial, IdlingSensor) and not isinstance(serial, WorldAwareSensor)
+    core = ForceCore(serial, ForceConfig(sensor="serial"), lambda s: None, lambda *a: None)
+    try:
+        core.set_unused(True)
+        assert not core.idle and core.physics_updates == 0
+    finally:
+        core.close()
+
+
 def test_bias_makes_the_current_reading_zero(sim: tuple[ForceCore, Published, Events]) -> None:
     core, _, _ = sim
     with pytest.raises(RpcError) as e:
         core.rpc_sensor_bias({})
     assert e.value.code == "not_ready"
-    core.update_robot_state((0.6, 0.3, TABLE_TOP_Z), DOWN)  # 5 mm contact: −100 N
+    core.update_robot_state((0.6, 0.3, TABLE_TOP_Z), DOWN)
+    press(core, -100.0)
     core.rpc_sensor_start({})
     out = core.rpc_sensor_bias({})
     assert out["samples"] == 16
@@ -251,7 +274,8 @@ def test_any_stiffness_is_applied_or_refused_by_name(
 def test_compliance_scales_the_measured_force() -> None:
     core, _, _ = make_core(tool_mass_kg=0.0)
     try:
-        core.update_robot_state((0.6, 0.3, TABLE_TOP_Z), DOWN)  # −100 N on the simulated wrist
+        core.update_robot_state((0.6, 0.3, TABLE_TOP_Z), DOWN)
+        press(core, -100.0)  # −100 N on the simulated wrist
         core.rpc_sensor_start({})
         assert wait_until(lambda: core.latest is not None)
         out = core.rpc_sensor_compliance({"K_l": [10_000.0, 10_000.0, 20_000.0]})

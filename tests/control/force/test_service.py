@@ -9,11 +9,11 @@ import pytest
 
 from services.bus import keys
 from services.bus.errors import RpcError
-from services.bus.messages import ForceSample, RobotState, vec
+from services.bus.messages import Event, ForceSample
 from services.control.arm.puma560 import DEFAULT_eMt, Puma560, qn
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
-from tests.conftest import Net, wait_until
+from tests.conftest import Net, ready_state, wait_until
 
 # A 1 kHz stream over Zenoh, checked for gaps: run alone in `make pytest`'s second pass.
 pytestmark = [pytest.mark.system, pytest.mark.alone]
@@ -32,20 +32,7 @@ def _publish_pose(node, svc: ForceService) -> None:  # type: ignore[no-untyped-d
 def _put_pose(pub) -> bool:  # type: ignore[no-untyped-def]
     kin = Puma560()
     oMt, oMe = kin.fk_tool(qn, DEFAULT_eMt), kin.fk_flange(qn)
-    pub.put(
-        RobotState(
-            seq=1,
-            t_ns=1,
-            status="ready",
-            q=vec(qn),
-            tool_p=vec(oMt.translation),
-            tool_R=vec(oMt.rotation),
-            flange_p=vec(oMe.translation),
-            flange_R=vec(oMe.rotation),
-            engage=0,
-            cmd_seq=0,
-        )
-    )
+    pub.put(ready_state(1, 1, qn, oMt, oMe))
     return False  # put, not yet sampled: wait_until polls again
 
 
@@ -143,3 +130,40 @@ def test_nothing_is_sent_while_nobody_subscribes_and_a_subscriber_gets_it_at_onc
         assert svc._pub.sent == sent and svc.core.idle
     finally:
         svc.close()
+
+
+def test_a_net_ft_that_never_answers_is_said_in_an_event_and_the_log(
+    net, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A Net F/T box at an address where nothing answers (a loopback port with no fake
+    behind it): `sensing … publishing` and then nothing, before. Now a `stale` event that
+    says the sensor has sent nothing, and a warning in the log, within a second."""
+    import logging
+
+    from tests.conftest import free_port
+
+    viewer = net.node("viewer")
+    events: list[Event] = []
+    lock = threading.Lock()
+
+    def on_event(ev: Event) -> None:
+        with lock:
+            events.append(ev)
+
+    viewer.subscribe(keys.EVENTS, on_event)
+    cfg = ForceConfig(sensor="netft", host="127.0.0.1", netft_port=free_port())
+    with caplog.at_level(logging.WARNING, logger="telerobot.force"):
+        svc = ForceService(net.node("force"), cfg)
+        try:
+
+            def said() -> bool:
+                with lock:
+                    return any(
+                        e.kind == "stale" and "has sent nothing" in e.message for e in events
+                    )
+
+            assert wait_until(said, 10.0), [(e.kind, e.message) for e in events]
+            assert svc.node.call("force", "status", {}, 5.0)["stale"] is True
+        finally:
+            svc.close()
+    assert any("has sent nothing" in r.getMessage() for r in caplog.records)

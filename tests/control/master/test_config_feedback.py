@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -11,8 +12,12 @@ from hypothesis import strategies as st
 from numpy.typing import ArrayLike
 
 from services.bus.errors import ConfigError
+from services.control.master.backends import DEVICES, options_class
 from services.control.master.config import Frame, MasterConfig
-from services.control.master.devices import HandReading
+from services.control.master.device import HandReading
+from services.control.master.devices.haply.backend import HaplyOptions
+from services.control.master.devices.keyboard import KeyboardOptions
+from services.control.master.devices.scripted import ScriptedOptions
 from services.control.master.feedback import (
     DisplayWrench,
     ForceDisplay,
@@ -104,18 +109,54 @@ def test_engage_on_start_defaults_by_device(device: str, engages: bool) -> None:
     ],
 )
 def test_bad_values_name_their_key(key: str, value: object) -> None:
+    """Whichever device the key is for: the chosen one, or another (checked, unused)."""
+    owner = next((name for name in DEVICES.names if key in _fields(options_class(name))), None)
+    for device in {"virtual", owner or "virtual"}:
+        with pytest.raises(ConfigError) as info:
+            MasterConfig.from_mapping({"device": device, key: value})
+        assert info.value.key == f"master.{key}"
     with pytest.raises(ConfigError) as info:
-        MasterConfig(**{key: value})  # type: ignore[arg-type]
+        if owner is None:
+            MasterConfig(**{key: value})  # type: ignore[arg-type]
+        else:
+            options_class(owner)(**{key: value})
     assert info.value.key == f"master.{key}"
+
+
+def _fields(cls: type) -> set[str]:
+    return {f.name for f in dataclasses.fields(cls)}
 
 
 @pytest.mark.parametrize("key", ["clutch_button", "grip_button"])
 def test_haply_buttons_are_a_b_or_c(key: str) -> None:
     with pytest.raises(ConfigError) as info:
-        MasterConfig(device="haply", **{key: 3})  # type: ignore[arg-type]
+        MasterConfig.from_mapping({"device": "haply", key: 3})
     assert info.value.key == f"master.{key}"
-    cfg = MasterConfig(device="haply", clutch_button=2, grip_button=0)
-    assert (cfg.clutch_button, cfg.haply_url) == (2, "ws://localhost:10001")
+    cfg = MasterConfig.from_mapping({"device": "haply", "clutch_button": 2, "grip_button": 0})
+    assert isinstance(cfg.options, HaplyOptions)
+    assert (cfg.options.clutch_button, cfg.options.haply_url) == (2, "ws://localhost:10001")
+    # the same keys for another device are its bits, 0 … 63, as before
+    cfg = MasterConfig.from_mapping({"device": "keyboard", key: 3})
+    assert isinstance(cfg.options, KeyboardOptions)
+
+
+def test_the_keys_go_to_the_chosen_device_and_another_devices_are_checked_then_unused() -> None:
+    table = {"device": "haply", "haply_url": "ws://host:1", "script": "line", "port": "/dev/x"}
+    cfg = MasterConfig.from_mapping(table)
+    assert cfg.options == HaplyOptions(haply_url="ws://host:1")
+    cfg = MasterConfig.from_mapping(
+        {"device": "scripted", "script": "line", "haply_url": "ws://h:1"}
+    )
+    assert cfg.options == ScriptedOptions(script="line") and cfg.engage_on_start is True
+    with pytest.raises(ConfigError) as info:
+        MasterConfig.from_mapping({"device": "scripted", "haply_url": "http://h:1"})
+    assert info.value.key == "master.haply_url"
+    with pytest.raises(ConfigError) as info:
+        MasterConfig.from_mapping({"device": "virtual", "options": {}})
+    assert info.value.key == "master.options"
+    with pytest.raises(ConfigError) as info:
+        MasterConfig(device="haply", options=ScriptedOptions())
+    assert info.value.key == "master.device"
 
 
 def test_from_mapping_accepts_toml_lists_and_rejects_unknown_keys() -> None:

@@ -14,7 +14,7 @@ from numpy.typing import ArrayLike
 from services.bus import codec
 from services.bus.messages import OperatorCommand
 from services.control.master.config import MasterConfig
-from services.control.master.devices import HandReading
+from services.control.master.device import HandReading
 from services.control.master.teleop import Teleop, check_command, scaled_motion
 from services.geometry import exp_so3, rot_x, rot_y, rot_z, rotation_angle, rxyz
 

@@ -22,7 +22,7 @@ from services.bus.messages import (
 from services.control.decision.config import DecisionConfig
 from services.control.decision.passivity import SlaveTdpa
 from services.control.decision.service import DecisionService
-from services.control.master.devices import HandReading
+from services.control.master.device import HandReading
 from services.control.master.feedback import DisplayWrench
 from services.control.master.passivity import MasterTdpa
 from services.geometry import angle_between, m9, rot_y, rot_z

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from services.bus import codec, keys
-from services.bus.messages import ArmDescription, RobotState, StereoFrame, vec
+from services.bus.messages import ArmDescription, StereoFrame
 from services.control.arm.model import load_model
 from services.control.vision.config import VisionConfig
 from services.control.vision.service import VisionService
 from services.control.vision.sim_camera import SimStereoCamera
-from tests.conftest import wait_until
+from tests.conftest import ready_state, wait_until
 
 STEREO = (keys.STEREO_L, keys.STEREO_R)
 
@@ -76,20 +76,7 @@ def test_sim_camera_draws_the_newest_robot_state_once_watched(net) -> None:
     assert isinstance(camera, SimStereoCamera)
     try:
         for seq in range(1, 4):
-            pub.put(
-                RobotState(
-                    seq=seq,
-                    t_ns=seq,
-                    status="ready",
-                    q=vec(q),
-                    tool_p=vec(oMt.translation),
-                    tool_R=vec(oMt.rotation),
-                    flange_p=vec(oMe.translation),
-                    flange_R=vec(oMe.rotation),
-                    engage=0,
-                    cmd_seq=0,
-                )
-            )
+            pub.put(ready_state(seq, seq, q, oMt, oMe))
         assert wait_until(
             lambda: svc._robot is not None and svc._robot.seq == 3, what="robot/state"
         )

@@ -109,5 +109,9 @@ def test_the_page_shows_the_latch_and_offers_reset(page: Page) -> None:
 
 
 def _robot(panel: str) -> str:
+    """The robot's status element of the panel (its colour says ready); the element must be
+    there, or a check that a colour is absent from it would hold for any markup."""
     start = panel.find('id="tr-robot-status"')
-    return panel[start : panel.find("</b>", start)]
+    end = panel.find("</b>", start)
+    assert start >= 0 and end > start, f"no robot status element in the panel: {panel[:300]}"
+    return panel[start:end]

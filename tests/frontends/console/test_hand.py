@@ -22,16 +22,16 @@ from services.control.decision.config import DecisionConfig
 from services.control.decision.service import DecisionService
 from services.control.master.config import MasterConfig
 from services.control.master.service import MasterService
-from services.frontends.console.geometry import Mat, Vec
 from services.frontends.console.hand import HandLink, ToolPose
 from services.frontends.console.mirror import BusMirror
+from services.geometry import Array3, Mat3
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(90)]
 
 TOL_M = 0.002
 
 
-def _d(x: float, y: float, z: float) -> Vec:
+def _d(x: float, y: float, z: float) -> Array3:
     """An offset (m, world)."""
     return np.array([x, y, z])
 
@@ -40,11 +40,11 @@ def _d(x: float, y: float, z: float) -> Vec:
 class Drift:
     """The largest distance of the tool from `origin` seen on robot/state since `reset`."""
 
-    origin: Vec = field(default_factory=lambda: np.zeros(3))
+    origin: Array3 = field(default_factory=lambda: np.zeros(3))
     worst_m: float = 0.0
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def reset(self, origin: Vec) -> None:
+    def reset(self, origin: Array3) -> None:
         with self.lock:
             self.origin, self.worst_m = origin.copy(), 0.0
 
@@ -60,10 +60,10 @@ class Rig:
     client: Node
     mirror: BusMirror
     drift: Drift
-    placed: list[tuple[Vec, Mat]]
+    placed: list[tuple[Array3, Mat3]]
 
     def link(self, master_id: str) -> HandLink:
-        def place(p: Vec, R: Mat) -> None:
+        def place(p: Array3, R: Mat3) -> None:
             self.placed.append((p, R))
 
         def wait(pred: Any, timeout_s: float) -> Any:
@@ -77,12 +77,12 @@ class Rig:
             return None
         return ToolPose(np.asarray(st.tool_p), mat3(st.tool_R), st.status)
 
-    def tool_p(self) -> Vec:
+    def tool_p(self) -> Array3:
         st = self.mirror.state.latest
         assert st is not None
         return np.asarray(st.tool_p)
 
-    def wait_tool(self, p: Vec, timeout_s: float = 15.0) -> RobotState | None:
+    def wait_tool(self, p: Array3, timeout_s: float = 15.0) -> RobotState | None:
         return self.mirror.state.wait_for(
             lambda s: float(np.linalg.norm(np.asarray(s.tool_p) - p)) < TOL_M, timeout_s
         )
@@ -118,7 +118,7 @@ def rig(net: Any) -> Iterator[Rig]:
             c.close()
 
 
-def _ready_at_home(rig: Rig) -> Vec:
+def _ready_at_home(rig: Rig) -> Array3:
     rig.client.call("decision", "connect", {}, 5.0)
     rig.client.call("decision", "initialize", {}, 5.0)
     assert rig.mirror.state.wait_for(lambda s: s.status == "ready", 10.0) is not None

@@ -169,8 +169,10 @@ def test_the_console_session_takes_robot_force_downsampled_by_zenoh(make_net: An
     for seq in range(1, sent + 1):
         pub.put(_force(seq))
         rate.sleep()
-    # Every sample reaches the plain subscriber (robot/force is sent reliably)...
-    assert plain.wait_count(p0 + sent, 20.0), plain.received - p0
+    # Nearly every sample reaches the plain subscriber (robot/force is best-effort, keys.py:
+    # a loaded host may drop one, superseded by the next; Zenoh's downsampling is what cuts
+    # the console's)...
+    assert plain.wait_count(p0 + int(0.95 * sent), 20.0), plain.received - p0
     got = downsampled.received - d0
     # ...and only a fraction reaches the console's, whatever the machine's load made of
     # the publisher's rate: Zenoh dropped the rest before any Python ran.

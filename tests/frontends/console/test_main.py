@@ -3,61 +3,36 @@ master, and leaves cleanly on SIGTERM (the master's close holds the arm)."""
 
 from __future__ import annotations
 
-import os
 import re
 import signal
-import subprocess
 import sys
 import urllib.request
-from pathlib import Path
 from typing import Any
 
 import pytest
 
+from tests.bus.test_router import spawned
 from tests.conftest import wait_until
 
 pytestmark = [pytest.mark.system, pytest.mark.timeout(90)]
-
-ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_console_process_serves_and_stops(net: Any) -> None:
     peer = net.node("test")  # the first node listens: the console connects to it
     alive = peer.alive
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "services.frontends.console",
-            "--port",
-            "0",
-            "--connect",
-            net.endpoint,
-        ],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
-    try:
-        assert proc.stdout is not None
-        line = proc.stdout.readline()
-        m = re.fullmatch(r"console: (http://127\.0\.0\.1:(\d+))\n", line)
+    argv = [sys.executable, "-m", "services.frontends.console", "--port", "0"]
+    with spawned([*argv, "--connect", net.endpoint], merge_stderr=False) as console:
+        line = console.expect(lambda _: True)
+        m = re.fullmatch(r"console: (http://127\.0\.0\.1:(\d+))", line)
         assert m is not None, f"unexpected first line {line!r}"
         with urllib.request.urlopen(m.group(1) + "/", timeout=10) as reply:
             assert reply.status == 200
             assert b"<html" in reply.read(4096).lower()
         assert alive.wait("console", 10.0)
         assert alive.wait("master/console", 10.0)
-        proc.send_signal(signal.SIGTERM)
-        assert proc.wait(timeout=20) == 0
-        rest = proc.stdout.read()
-        assert rest == "", rest
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.communicate()  # reaps it and closes both pipes
+        console.proc.send_signal(signal.SIGTERM)
+        assert console.wait(20.0) == 0
+        assert console.rest() == [line], console.lines
     # Both liveliness tokens go with the process.
     assert wait_until(lambda: not alive.is_alive("console"), 5.0, what="console token gone")
     assert wait_until(lambda: not alive.is_alive("master/console"), 5.0, what="master gone")

@@ -65,6 +65,9 @@ def test_the_extension_fields_time_the_path_on_the_arm_clock() -> None:
     assert hops["to_arm"]["p50"] == pytest.approx(0.2)
     assert hops["apply"]["p50"] == pytest.approx(0.5)
     assert f["arm_cmd_rate_hz"] > 0.0
+    # the longest silences: 1 ms between sends; 2 ms between the active targets at the arm
+    assert f["sent_max_gap_ms"] == pytest.approx(1.0)
+    assert f["arm_cmd_max_gap_ms"] == pytest.approx(2.0)
     assert "3 of 10 commands robot/state showed" in method_note("commands_1000hz", f)
 
 
@@ -82,6 +85,7 @@ def test_nothing_forwarded_says_why() -> None:
     assert "cmd_origin_t_ns" in f["na"]["arm_ms"]
     empty = command_figures(100.0, CommandRun([], []), STEP, [], [])
     assert empty["sent"] == 0 and empty["reached_rate_hz"] == 0.0
+    assert empty["sent_max_gap_ms"] is None and empty["arm_cmd_max_gap_ms"] is None
 
 
 def test_counter_delta_and_step() -> None:

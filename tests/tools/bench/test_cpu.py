@@ -8,9 +8,9 @@ import sys
 import pytest
 
 from services.tools.bench import cpu
+from services.tools.bench.cpu_phases import cpu_figures
 from services.tools.bench.notes import busy_note
 from services.tools.bench.report import document, machine, table
-from services.tools.bench.system import cpu_figures
 
 STAT = """cpu  1000 10 200 5000 40 0 30 20 0 0
 cpu0 500 5 100 2500 20 0 15 10 0 0

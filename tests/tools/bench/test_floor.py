@@ -14,6 +14,7 @@ from services.bus.messages import ForceSample
 from services.tools.bench import floor, stats
 from services.tools.bench.baselines import FORCE_C_NM, FORCE_F_N, FORCE_RAW, force_payload
 from services.tools.bench.probes import StreamProbe
+from tests.bus.test_router import spawned
 from tests.conftest import Net, wait_until
 
 RUN_TIMEOUT_S = 60.0
@@ -69,25 +70,15 @@ def test_queryable_process_answers_every_get(net: Net, tmp_path: Path) -> None:
     reply = {"status": "ready", "counters": {"commands": 3}, "q": [0.0] * 6}
     reply_file = tmp_path / "reply.msgpack"
     reply_file.write_bytes(codec.pack(reply))
-    proc = subprocess.Popen(
-        floor.serve_argv(net.endpoint, reply_file, mode="peer"),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
-    try:
+    argv = floor.serve_argv(net.endpoint, reply_file, mode="peer")
+    with spawned(argv, merge_stderr=False) as server:
         got = floor.time_gets(client.session, 5, startup_s=RUN_TIMEOUT_S)
         assert len(got.ms) == 5 and got.failures == 0
         assert all(x > 0 for x in got.ms)
-        proc.terminate()  # SIGTERM: the server leaves through its own close
-        out, err = proc.communicate(timeout=RUN_TIMEOUT_S)
-        assert proc.returncode == 0, err
+        server.proc.terminate()  # SIGTERM: the server leaves through its own close
+        assert server.wait(RUN_TIMEOUT_S) == 0, server.errors
+        out = "\n".join(server.rest(RUN_TIMEOUT_S))
         assert f"{floor.SERVING} {floor.FLOOR_RPC_KEY}" in out
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
 
 
 def test_time_gets_gives_up_when_nobody_serves(net: Net) -> None:
@@ -100,29 +91,22 @@ def test_relay_process_puts_every_sample_on_again_untouched(net: Net) -> None:
     bench = net.node("bench")  # listens: the relay process connects to it as a peer
     probe = StreamProbe(bench, floor.FLOOR_RELAY_OUT, lambda m: (m.seq, m.t_ns)).start()
     pub = floor.declare_floor_publisher(bench.session, floor.FLOOR_RELAY_IN.key)
-    proc = subprocess.Popen(
-        floor.relay_argv(net.endpoint, mode="peer", take=("robot/force", "robot/state")),
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
-    )
+    argv = floor.relay_argv(net.endpoint, mode="peer", take=("robot/force", "robot/state"))
     try:
-        # route set-up: put seq 1 until it comes back, then 2…50 once each
-        assert wait_until(lambda: pub.put(force_payload(1, 11)) or probe.count() > 0, 30.0)
-        for seq in range(2, 51):
-            pub.put(force_payload(seq, seq * 11))
-        assert wait_until(lambda: probe.newest() is not None and probe.newest()[1][0] == 50)
-        proc.terminate()  # SIGTERM: the relay leaves through its own close
-        out, err = proc.communicate(timeout=RUN_TIMEOUT_S)
+        with spawned(argv, merge_stderr=False) as relay:
+            # route set-up: put seq 1 until it comes back, then 2…50 once each
+            assert wait_until(lambda: pub.put(force_payload(1, 11)) or probe.count() > 0, 30.0)
+            for seq in range(2, 51):
+                pub.put(force_payload(seq, seq * 11))
+            assert wait_until(lambda: probe.newest() is not None and probe.newest()[1][0] == 50)
+            relay.proc.terminate()  # SIGTERM: the relay leaves through its own close
+            code = relay.wait(RUN_TIMEOUT_S)
+            out = "\n".join(relay.rest(RUN_TIMEOUT_S))
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
         pub.undeclare()
     records = probe.stop()
     seqs = [r[1][0] for r in records]
-    assert proc.returncode == 0, err
+    assert code == 0, relay.errors
     assert floor.RELAYING in out
     assert seqs[-49:] == list(range(2, 51)) and set(seqs[:-49]) == {1}
     assert [r[1][1] for r in records[-49:]] == [s * 11 for s in range(2, 51)]  # bytes untouched

@@ -9,6 +9,7 @@ from typing import Any
 import pytest
 
 from services.tools.bench import stats
+from services.tools.bench.cpu_phases import cpu_figures
 from services.tools.bench.force_phases import force_figures
 from services.tools.bench.notes import force_note
 from services.tools.bench.probes import FrameRecord
@@ -25,7 +26,6 @@ from services.tools.bench.report import (
     machine,
     table,
 )
-from services.tools.bench.system import cpu_figures
 from services.tools.bench.video_phase import video_figures
 
 MS = stats.NS_PER_MS
@@ -104,6 +104,7 @@ def full_phases() -> dict[str, Any]:
                 "apply": _summary(2.4, 4.5),
             },
         },
+        "busy_host": {"watchdog_holds": 0, "arm_cmd_max_gap_ms": 21.0, "sent_max_gap_ms": 15.0},
         "rpc_decision_status": _summary(2.0, 5.0),
         "rpc_decision_supervisor": _summary(0.6, 1.5),
         "rpc_arm_status": _summary(0.5, 1.2),
@@ -114,6 +115,7 @@ def full_phases() -> dict[str, Any]:
             "fr3_solve_per_s": 4000.0,
             "ur5e_solve_per_s": 6000.0,
         },
+        "physics": {"sim_s": 5.0, "puma560_rtf": 2.1, "fr3_rtf": 3.4, "ur5e_rtf": 3.5},
         "baseline_tcp": {
             "rate_hz": 999.0,
             "latency_ms": _summary(0.06, 0.2),

@@ -99,6 +99,7 @@ def test_topic_echo_prints_decoded_samples(net: Net, service: Node) -> None:
             "f": [float(r["seq"]), -float(r["seq"]), 0.5],
             "c": [0.0, 0.0, 1.0],
             "raw": None,
+            "estimate": None,
         }
 
 
@@ -182,7 +183,45 @@ def test_topic_list_shows_keys_with_their_types(net: Net, service: Node) -> None
     assert by_key["lab/notes"]["type"] == "?"
 
 
+def test_topic_list_text_aligns_its_columns_to_the_longest_key(net: Net, service: Node) -> None:
+    """The ROS bridge's keys run to ~190 characters: the columns widen with them."""
+    long_key = "ros2/" + "x" * 185
+    pub = service.session.declare_publisher(long_key)
+    stop = threading.Event()
+
+    def notes() -> None:
+        while not stop.wait(0.02):
+            pub.put(codec.pack({"n": 1}))
+
+    t = threading.Thread(target=notes, daemon=True)
+    t.start()
+    try:
+        argv = telerobot("topic", "list", "--duration", "1", "--connect", net.endpoint)
+        with spawned(argv, merge_stderr=False) as child:
+            assert child.wait(DEADLINE_S) == 0
+            lines = list(child.rest())
+    finally:
+        stop.set()
+        t.join(5.0)
+    header, rows = lines[0], lines[1:]
+    assert header.startswith("KEY" + " " * (len(long_key) - 2)) and [
+        r for r in rows if long_key in r
+    ]
+    type_col = header.index("TYPE")
+    assert all(len(r) > type_col and r[type_col - 1] == " " for r in rows)
+
+
 # --- call ----------------------------------------------------------------------------
+
+
+def test_call_pretty_indents_the_reply(net: Net, service: Node) -> None:
+    argv = telerobot(
+        "call", "arm", "status", "--pretty", "--timeout", "10", "--connect", net.endpoint
+    )
+    with spawned(argv, merge_stderr=False) as child:
+        assert child.wait(DEADLINE_S) == 0
+        text = "\n".join(child.rest())
+    assert text.startswith("{\n  ") and json.loads(text)["status"] == "ready"
 
 
 def test_call_prints_the_reply(net: Net, service: Node) -> None:

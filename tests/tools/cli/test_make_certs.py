@@ -51,7 +51,11 @@ def test_the_readme_form_makes_a_client_certificate(tmp_path: Path) -> None:
         "router.pem",
     ]
     assert san_of(tmp_path / "router.pem") == ["DNS:robot.lab.example", "IP Address:10.0.0.5"]
-    assert x509(tmp_path / "operator1.pem", "-subject").strip().endswith("CN = operator1")
+    # the CN is the role the router's ACL and users.txt know; the station is the OU
+    assert x509(tmp_path / "operator1.pem", "-subject").strip() == (
+        "subject=OU = operator1, CN = operator"
+    )
+    assert "the ACL's operator role" in done.stdout
     usage = x509(tmp_path / "operator1.pem", "-ext", "extendedKeyUsage")
     assert "TLS Web Client Authentication" in usage
     subprocess.run(

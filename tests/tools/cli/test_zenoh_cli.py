@@ -186,7 +186,14 @@ def test_the_codec_takes_a_key_expr_as_zenoh_cli_passes_it() -> None:
     )
     assert codec.decode(ForceSample, payload) == sample
     shown = json.loads(zenoh_cli_codec.decode(zenoh.KeyExpr("cell2/robot/force"), payload))
-    assert shown == {"seq": 3, "t_ns": 9, "f": [1.0, 2.0, 3.0], "c": [0.0, 0.0, 0.5], "raw": None}
+    assert shown == {
+        "seq": 3,
+        "t_ns": 9,
+        "f": [1.0, 2.0, 3.0],
+        "c": [0.0, 0.0, 0.5],
+        "raw": None,
+        "estimate": None,
+    }
 
 
 @pytest.mark.parametrize(

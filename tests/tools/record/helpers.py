@@ -8,7 +8,6 @@ from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pinocchio as pin
 from numpy.typing import ArrayLike
 
@@ -20,10 +19,10 @@ from services.bus.messages import (
     ForceSample,
     OperatorCommand,
     RobotState,
-    vec,
 )
 from services.control.arm.model import ArmModel
 from services.tools.record.recorder import McapSink, Received, RecorderConfig
+from tests.conftest import ready_state
 
 T0_NS = 1_700_000_000_000_000_000
 
@@ -68,21 +67,7 @@ def description(
 
 def arm_state(seq: int, q: ArrayLike, oMe: pin.SE3, eMt: pin.SE3) -> bytes:
     """A robot/state at joints q whose flange is at oMe and tool at oMe·eMt."""
-    oMt = oMe * eMt
-    return codec.encode(
-        RobotState(
-            seq=seq,
-            t_ns=T0_NS + seq,
-            status="ready",
-            q=vec(np.asarray(q, dtype=np.float64)),
-            tool_p=vec(oMt.translation),
-            tool_R=vec(oMt.rotation),
-            flange_p=vec(oMe.translation),
-            flange_R=vec(oMe.rotation),
-            engage=0,
-            cmd_seq=0,
-        )
-    )
+    return codec.encode(ready_state(seq, T0_NS + seq, q, oMe * eMt, oMe))
 
 
 def command(seq: int, engage: int, dp: Sequence[float], active: bool = True) -> bytes:

@@ -34,7 +34,7 @@ MIXED = [
 
 def test_layout_two_channels_per_key_exact_raw_bytes_and_times(tmp_path: Path) -> None:
     path = tmp_path / "s.mcap"
-    sink, written = write_file(path, MIXED, world=False)  # the 3D views: test_world.py
+    sink, written = write_file(path, MIXED, view3d=False)  # the 3D views: test_foxglove3d.py
     assert sink.stats.files == [path]
     with path.open("rb") as f:
         reader = make_reader(f, validate_crcs=True)

@@ -24,13 +24,13 @@ from services.control.arm.model import load_model
 from services.control.arm.service import ArmService
 from services.geometry import rot_z
 from services.tools.cli.main import main as telerobot
-from services.tools.record import world
+from services.tools.record import foxglove3d
 from services.tools.record.archive import Recording
 from services.tools.record.recorder import Recorder, RecorderConfig, RecorderStats
 from services.tools.record.report import analyze
 from tests.conftest import Net, wait_until
 
-from .test_world import _compose
+from .test_foxglove3d import _compose
 
 pytestmark = pytest.mark.system
 
@@ -120,17 +120,17 @@ def test_the_robot_model_is_the_fr3_s_urdf_with_each_tool(fr3: Files, which: str
         urdf_with_tool(FR3.urdf, FR3.flange_frame, FR3.tool_p, FR3.tool_R),
         urdf_with_tool(FR3.urdf, FR3.flange_frame, NEW_TOOL_P, NEW_TOOL_R),
     ]
-    assert [json.loads(m.data)["data"] for m in topics[world.DESCRIPTION_TOPIC]] == want
+    assert [json.loads(m.data)["data"] for m in topics[foxglove3d.DESCRIPTION_TOPIC]] == want
     assert [a.data.decode() for a in attachments if a.name == "fr3.urdf"] == want
     links = {j.child for j in urdf_tree(want[0])} | {j.parent for j in urdf_tree(want[0])}
-    for m in topics[world.MODEL_TOPIC]:
+    for m in topics[foxglove3d.MODEL_TOPIC]:
         model = json.loads(m.data)
         frames = {e["frame_id"] for e in model["entities"]}
         assert {"fr3_link0", "fr3_link7", "fr3_hand", "fr3_leftfinger"} <= frames <= links
         assert sum(len(e["models"]) for e in model["entities"]) == 9  # links 0 … 7, the hand
         assert all(e["frame_locked"] for e in model["entities"])
     # the model follows its description
-    (d1, d2), (m1, m2) = topics["/raw/" + DESC], topics[world.MODEL_TOPIC]
+    (d1, d2), (m1, m2) = topics["/raw/" + DESC], topics[foxglove3d.MODEL_TOPIC]
     assert d1.log_time == m1.log_time and d2.log_time == m2.log_time
 
 
@@ -147,9 +147,9 @@ def test_the_fr3_frames_compose_to_the_states_tool_poses(fr3: Files, which: str)
     described_ns = None
     with getattr(fr3, which).open("rb") as f:
         for _, channel, message in make_reader(f).iter_messages(
-            topics=["robot/state", "/tf", world.MODEL_TOPIC]
+            topics=["robot/state", "/tf", foxglove3d.MODEL_TOPIC]
         ):
-            if channel.topic == world.MODEL_TOPIC:
+            if channel.topic == foxglove3d.MODEL_TOPIC:
                 described_ns = described_ns or message.log_time
             else:
                 pairs[message.log_time][channel.topic] = message.data
@@ -169,7 +169,7 @@ def test_the_fr3_frames_compose_to_the_states_tool_poses(fr3: Files, which: str)
         fMt = tfs[-1]
         assert (fMt["parent_frame_id"], fMt["child_frame_id"]) == ("fr3_link8", "tool")
         t = fMt["translation"]
-        p, R = np.array([t["x"], t["y"], t["z"]]), world.rotation(fMt["rotation"])
+        p, R = np.array([t["x"], t["y"], t["z"]]), foxglove3d.rotation(fMt["rotation"])
         k = next(
             i
             for i, eMt in enumerate(tools)

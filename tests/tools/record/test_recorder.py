@@ -224,3 +224,27 @@ def test_a_duration_limit_ends_the_recording_by_itself(net: Net, tmp_path: Path)
         summary = make_reader(fh).get_summary()
     assert summary is not None and summary.statistics is not None
     assert n > 0 and summary.statistics.message_count == 2 * n
+
+
+def test_a_recording_of_everything_leaves_out_the_ros_view_unless_asked(
+    net: Net, tmp_path: Path
+) -> None:
+    """Issue 42 item 12: `record` took the ROS 2 view's copy of every stream (rmw_zenoh
+    keys `<domain>/<topic>/<type>/<hash>`), doubling the data. Left out by default; `--ros`
+    (ros=True) keeps them; an explicit key expression records what it names."""
+    ros_key = "0/robot/state/telerobot_msgs::msg::dds_::RobotState_/RIHS01_0a1b"
+    rec_node = net.node("record")
+    plain = Recorder(rec_node, RecorderConfig(output=str(tmp_path / "plain.mcap")))
+    ros = Recorder(rec_node, RecorderConfig(output=str(tmp_path / "ros.mcap"), ros=True))
+    named = Recorder(rec_node, RecorderConfig(output=str(tmp_path / "n.mcap"), keys=("0/**",)))
+    pub = net.node("pub")
+    _wait_subscribed(pub, "robot/events")
+    _wait_subscribed(pub, ros_key)
+    pub.session.put(ros_key, b"\x00\x01cdr")
+    pub.event("status", "hello")
+    assert wait_until(lambda: ros.stats().received >= 2 and named.stats().received >= 1)
+    assert wait_until(lambda: plain.stats().received >= 1)
+    sp, sr, sn = plain.stop(), ros.stop(), named.stop()
+    assert set(sp.keys) == {"robot/events"}
+    assert set(sr.keys) == {"robot/events", ros_key}
+    assert set(sn.keys) == {ros_key}

@@ -11,7 +11,7 @@ import threading
 import time
 from collections import defaultdict
 from collections.abc import Iterator
-from contextlib import redirect_stdout
+from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,6 +31,7 @@ from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
 from services.control.master.config import MasterConfig
+from services.control.master.devices.scripted import ScriptedOptions
 from services.control.master.service import MasterService
 from services.tools.cli.main import main as telerobot
 from services.tools.record import schemas
@@ -38,7 +39,7 @@ from services.tools.record.archive import Recording
 from services.tools.record.recorder import Recorder, RecorderConfig, RecorderStats
 from services.tools.record.replay import Replayer, ReplayOptions
 from services.tools.record.report import analyze
-from tests.conftest import Net
+from tests.conftest import Net, wait_until
 from tests.tools.record.helpers import conforms
 
 pytestmark = pytest.mark.system
@@ -80,7 +81,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
         services.append(
             MasterService(
                 net.node("master", instance="m1"),
-                MasterConfig(master_id="m1", device="scripted", script="circle"),
+                MasterConfig(master_id="m1", device="scripted", options=ScriptedOptions("circle")),
             )
         )
         assert cmds.wait_count(300, 30.0), "the decision server never forwarded commands"
@@ -305,7 +306,7 @@ def test_the_live_arm_s_transforms_reproduce_its_tool_pose(session: Session) -> 
     1e-9, and its flange is the PUMA's closed-form FK of the recorded q."""
     from services.control.arm.puma560 import Puma560
 
-    from .test_world import _compose
+    from .test_foxglove3d import _compose
 
     kin = Puma560()
     with session.path.open("rb") as f:
@@ -328,3 +329,46 @@ def test_the_live_arm_s_transforms_reproduce_its_tool_pose(session: Session) -> 
         assert np.allclose(poses["flange"][0], st["flange_p"], atol=1e-9)
         checked += 1
     assert checked > 10
+
+
+def test_replay_refuses_a_live_cell_unless_told_and_marks_what_it_sends(
+    session: Session,
+) -> None:
+    """Issue 42 item 7: `replay` into a running system republished old robot/events and
+    robot/state on the live keys, unmarked. Now it refuses (exit 2, naming the live
+    services) while an arm or decision is alive in its namespace; `--into-live` replays,
+    and every sample carries the attachment `replay`."""
+    events = [m.payload for m in Recording(session.path).raw() if m.key == "robot/events"]
+    got: list[tuple[bytes, bytes | None]] = []
+    lock = threading.Lock()
+    net = Net()
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def on_sample(s: zenoh.Sample) -> None:
+        mark = None if s.attachment is None else s.attachment.to_bytes()
+        with lock:
+            got.append((s.payload.to_bytes(), mark))
+
+    def replay(*extra: str) -> tuple[int, str]:
+        err = io.StringIO()
+        out = io.StringIO()
+        with redirect_stdout(out), redirect_stderr(err):
+            args = ["--connect", net.endpoint, "--speed", "0", "--keys", "robot/events"]
+            rc = telerobot(["replay", str(session.path), *args, "--wait-s", "5", *extra])
+        return rc, err.getvalue()
+
+    try:
+        net.node("arm").announce()  # a live arm in this namespace
+        net.node("console").subscribe_raw("robot/events", on_sample)
+        rc, err = replay()
+        assert rc == 2 and "refused: arm run in this namespace" in err and "--into-live" in err
+        assert got == []  # nothing was published
+        rc, _ = replay("--into-live")
+        assert rc == 0
+        assert wait_until(lambda: len(got) >= len(events), 10.0)
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
+        net.close()
+    assert [p for p, _ in got] == events
+    assert {m for _, m in got} == {b"replay"}

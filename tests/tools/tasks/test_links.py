@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from services.control.master.config import MasterConfig
+from services.control.master.devices.virtual import VirtualMaster
 from services.control.master.service import MasterService
-from services.control.master.virtual import VirtualMaster
 from services.geometry import rot_z
 from services.tools.tasks.operator import BusLink, DeviceLink, MasterLink
 from tests.conftest import Net

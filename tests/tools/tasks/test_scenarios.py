@@ -14,8 +14,9 @@ from collections.abc import Iterator
 
 import pytest
 
+from services.tools.cell.sim import SimCell, light_cell
 from services.tools.tasks.metrics import TaskReport
-from services.tools.tasks.system import SimCell, Station, light_cell, run_task
+from services.tools.tasks.system import Station, run_task
 from tests.conftest import Net
 
 pytestmark = pytest.mark.system
@@ -66,7 +67,8 @@ def test_task2_three_blocks_stacked(station: Station) -> None:
     common_checks(report)
     assert report.measures["blocks_stacked"] == 3
     assert report.measures["column"] == ["block0", "block1", "block2"]
-    assert report.measures["misalignment_mm"] == pytest.approx(0.0, abs=1e-6)
+    # stacked by physics: where the fingers let go, nothing snaps it into place
+    assert report.measures["misalignment_mm"] < 5.0
     assert report.workcell["grasps"] == 2 and report.workcell["releases"] == 2
 
 

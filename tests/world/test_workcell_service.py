@@ -1,0 +1,156 @@
+"""The workcell service owns the cell's physics on the bus: it builds the arm the arm service
+describes, the arm's `sim` driver's joints are its joints (`sim/arm/cmd` → `sim/arm/state`),
+a setpoint it cannot take is refused with an event and moves nothing, and `workcell/state`
+and its methods report the objects. Real services on a private Zenoh network."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from services.bus import codec, keys
+from services.bus.config import section
+from services.bus.errors import ConfigError, ProtocolError
+from services.bus.messages import Event, vec
+from services.control.arm.config import ArmConfig
+from services.control.arm.model import load_model
+from services.control.arm.service import ArmService
+from services.world.workcell.config import WorkcellConfig
+from services.world.workcell.engine import CellPhysics
+from services.world.workcell.messages import (
+    SIM_ARM_CMD,
+    SIM_ARM_STATE,
+    WORKCELL_STATE,
+    SimArmCmd,
+    WorkcellState,
+    object_map,
+    objects_of,
+)
+from services.world.workcell.scene import TABLE, default_scene
+from services.world.workcell.service import WorkcellService
+from tests.conftest import Net, wait_until
+
+TOP = TABLE.top_z
+
+
+def test_workcell_state_round_trips_through_the_codec() -> None:
+    ph = CellPhysics(load_model("puma560"), default_scene())
+    msg = WorkcellState(
+        seq=1,
+        t_ns=2,
+        tool_p=(0.5, 0.0, 0.6),
+        grip=0.0,
+        held="",
+        objects={b.name: object_map(b) for b in ph.bodies()},
+        data={"grasps": 0},
+    )
+    back = codec.decode(WorkcellState, codec.encode(msg))
+    objs = objects_of(back)
+    assert sorted(objs) == ["block0", "block1", "block2", "bottle"]
+    # resting on the table (MuJoCo's contacts take the load within a tenth of a mm)
+    np.testing.assert_allclose(objs["block1"].centre, [0.5, -0.1, TOP + 0.025], atol=2e-4)
+    np.testing.assert_allclose(objs["bottle"].top, [0.55, 0.25, TOP + 0.2], atol=2e-4)
+    assert objs["bottle"].liquid_ml == pytest.approx(692.7, abs=0.1)
+    assert objs["block0"].liquid_ml is None
+
+
+def test_a_bad_object_is_named() -> None:
+    msg = WorkcellState(
+        seq=1,
+        t_ns=2,
+        tool_p=(0.5, 0.0, 0.6),
+        grip=0.0,
+        held="",
+        objects={"b": {"kind": "box", "p": [0, 0], "R": list(vec(np.eye(3)))}},
+    )
+    with pytest.raises(ProtocolError, match=r"objects\.b\.p"):
+        objects_of(msg)
+
+
+def test_config_is_checked() -> None:
+    cfg = section(WorkcellConfig, {"rate_hz": 250, "physics": {"grip_force_n": 30.0}}, "workcell")
+    assert cfg.physics.grip_force_n == 30.0
+    with pytest.raises(ConfigError, match="publish_rate_hz"):
+        WorkcellConfig(rate_hz=50.0, publish_rate_hz=100.0)
+    with pytest.raises(ConfigError, match=r"workcell\.physics\.grip_forse_n"):
+        section(WorkcellConfig, {"physics": {"grip_forse_n": 1}}, "workcell")
+    with pytest.raises(ConfigError, match=r"physics\.kp_nm_rad"):
+        section(WorkcellConfig, {"physics": {"kp_nm_rad": -1.0}}, "workcell")
+
+
+def test_the_arm_moves_in_the_workcells_physics_and_bad_setpoints_are_refused(net: Net) -> None:
+    model = load_model("fr3")
+    arm = ArmService(
+        net.node("arm"),
+        ArmConfig(model="fr3", sim_physics="workcell", sim_calibration_s=0.05),
+    )
+    cell = WorkcellService(net.node("workcell"), WorkcellConfig())
+    watcher = net.node("console")
+    events: list[Event] = []
+    lock = threading.Lock()
+
+    def on_event(ev: Event) -> None:
+        with lock:
+            events.append(ev)
+
+    watcher.subscribe(keys.EVENTS, on_event)
+    sim = watcher.subscribe(SIM_ARM_STATE)
+    scene = watcher.subscribe(WORKCELL_STATE)
+    try:
+        # The cell is built from the arm's description: the FR3's joints, at home.
+        st = sim.wait_for(lambda s: len(s.q) == model.n, 10.0)
+        assert st is not None
+        np.testing.assert_allclose(st.q, model.home, atol=1e-6)
+        assert cell.physics is not None and cell.physics.arm.name == "fr3"
+        # The tool hangs in free space: the wrist weighs it (N, tool frame, world down).
+        R = np.asarray(st.tool_R).reshape(3, 3)
+        np.testing.assert_allclose(R @ st.f_t, [0, 0, -0.25 * 9.81], atol=0.02)
+        proxy = arm.proxy
+        proxy.rpc_connect({})
+        proxy.rpc_initialize({})
+        assert wait_until(lambda: proxy.status == "ready", 10.0, what="ready")
+        # A joint move: the physics' joints get there, the arm reads them back.
+        goal = np.array(model.home) + np.resize([0.1, -0.1, 0.1, 0.1, -0.1, 0.1, 0.1], model.n)
+        r = proxy.rpc_move_joints({"q": list(goal)})
+        done = proxy.wait_motion(r["motion"], 20.0)
+        assert done["completed"], done
+        assert sim.wait_for(lambda s: np.max(np.abs(np.array(s.q) - goal)) < 1e-3, 5.0)
+        np.testing.assert_allclose(arm.arm.read_joints(), goal, atol=2e-3)
+        q_here = np.array(sim.latest.q)
+        # A rogue setpoint: a jump, the wrong size, past a limit: refused, nothing moves.
+        rogue = watcher.publisher(SIM_ARM_CMD)
+        bad = [
+            q_here + np.resize([0.0, 0.0, 0.0, 1.0], model.n),
+            q_here[:3],
+            np.where(np.arange(model.n) == 0, model.q_hi[0] + 0.01, q_here),
+        ]
+        for k, q in enumerate(bad):
+            rogue.put(SimArmCmd(seq=10_000 + k, t_ns=time.time_ns(), q=tuple(map(float, q))))
+            assert wait_until(lambda k=k: cell.rejected == k + 1, 5.0, what="refused")  # type: ignore[misc]
+        time.sleep(0.1)  # a jump, were one taken, would show by now
+        now = sim.wait_for(lambda s: s.seq > sim.latest.seq, 2.0) or sim.latest
+        # (still settling onto the goal by a millimetre-radian or so; a jump is 1 rad)
+        assert np.max(np.abs(np.array(now.q) - q_here)) < 5e-3
+        with lock:
+            refused = [e for e in events if (e.data or {}).get("action") == "rejected"]
+        assert refused and "jump" in refused[0].message
+        # workcell/state reports the objects; reset puts them back, the arm stays.
+        got = scene.wait_for(lambda w: "block1" in w.objects, 5.0)
+        assert got is not None
+        reply = watcher.call("workcell", "reset", {}, 5.0)
+        assert reply["objects"]["block1"]["p"][2] == pytest.approx(TOP + 0.025, abs=3e-4)
+        assert watcher.call("workcell", "status", {}, 5.0)["held"] == ""
+        time.sleep(0.05)
+        assert np.max(np.abs(np.array(sim.latest.q) - q_here)) < 5e-3
+        # The physics goes away: the arm's driver notices within its deadline and errs, so
+        # the arm service holds (a lost link stops motion); nothing is commanded after.
+        cell.close()
+        assert wait_until(lambda: arm.arm.status == "error", 5.0, what="the lost physics")
+        assert "physics" in (arm.arm.last_error or "")
+        assert wait_until(lambda: proxy.status == "error", 5.0, what="the arm service's error")
+    finally:
+        arm.close()
+        cell.close()
