@@ -21,6 +21,7 @@ workcell's). Faults can be injected to exercise the proxy's error paths.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -39,6 +40,8 @@ from services.world.workcell.scene import Scene
 if TYPE_CHECKING:
     from services.bus.node import Node
 
+log = logging.getLogger(__name__)
+
 FaultKind = Literal["stall", "disconnect", "error"]
 
 # Substep of the simulated servo (s): the 1 kHz of a joint servo board.
@@ -47,9 +50,13 @@ ARRIVED_RAD = 1e-9
 """The servo's exponential approach ends here: joints this close to the setpoint, and this
 slow (rad/s), are at the setpoint and at rest (far below any encoder's resolution)."""
 IDLE_WAIT_S = 1.0
-PHYSICS_LOST_S = 0.5
+PHYSICS_LOST_S = 2.0
 """No `sim/arm/state` for this long (the workcell publishes at ≥ 20 Hz): the link to the
-physics is lost, the arm errs (a lost link stops motion)."""
+physics is lost, the arm errs (a lost link stops motion). Not shorter: at 0.5 s, on a
+loaded 2-core host (nice-19 busy loops, another demo running), the demo's arm came up in
+`error` in 6 of 11 runs: the workcell, starved while eight services start, was silent that
+long. Nothing moves while the physics is silent (it is what moves the joints), so the wait
+costs no safety; a real arm's link is its driver's."""
 
 JointFloats = tuple[float, ...]
 """The n joint values (rad or rad/s), joint 1 first."""
@@ -587,6 +594,7 @@ class SimArm(ArmBase):
             self._hold()
         if self._status != "error":
             self._last_error = why
+            log.error("arm error: %s", why)
         self._status = "error"
 
     def _resting(self) -> bool:

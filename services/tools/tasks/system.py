@@ -93,7 +93,20 @@ def run_task(task: int, station: Station, timeout_s: float = READY_TIMEOUT_S) ->
     scenario = SCENARIOS[task]
     eyes, node = station.eyes, station.node
     if eyes.robot.wait(lambda s: s.status in READY, timeout_s) is None:
-        raise TaskFailed("the arm is not ready (no robot/state with status ready)")
+        last = eyes.robot.latest
+        said = (
+            "no robot/state arrived"
+            if last is None
+            else f"its last robot/state says {last.status!r}, seq {last.seq}"
+        )
+        if last is not None and last.status == "error":
+            try:  # what the arm says of its error: the reason the operator has to act on
+                why = node.call("arm", "status", {}, timeout_s=2.0).get("arm_error")
+            except (RpcError, Unavailable):
+                why = None
+            if isinstance(why, str) and why:
+                said += f" ({why[:200]})"
+        raise TaskFailed(f"the arm is not ready within {timeout_s:g} s: {said}")
     try:
         node.call("workcell", "reset", {}, timeout_s)
     except (RpcError, Unavailable) as e:
