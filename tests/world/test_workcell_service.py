@@ -130,8 +130,10 @@ def test_the_arm_moves_in_the_workcells_physics_and_bad_setpoints_are_refused(ne
         for k, q in enumerate(bad):
             rogue.put(SimArmCmd(seq=10_000 + k, t_ns=time.time_ns(), q=tuple(map(float, q))))
             assert wait_until(lambda k=k: cell.rejected == k + 1, 5.0, what="refused")  # type: ignore[misc]
-        time.sleep(0.1)  # a jump, were one taken, would show by now
-        now = sim.wait_for(lambda s: s.seq > sim.latest.seq, 2.0) or sim.latest
+        # five more states of the physics (a jump, were one taken, would show in them)
+        seq0 = sim.latest.seq
+        now = sim.wait_for(lambda s: s.seq >= seq0 + 5, 5.0)
+        assert now is not None, "the physics stopped publishing sim/arm/state"
         # (still settling onto the goal by a millimetre-radian or so; a jump is 1 rad)
         assert np.max(np.abs(np.array(now.q) - q_here)) < 5e-3
         with lock:
@@ -143,8 +145,10 @@ def test_the_arm_moves_in_the_workcells_physics_and_bad_setpoints_are_refused(ne
         reply = watcher.call("workcell", "reset", {}, 5.0)
         assert reply["objects"]["block1"]["p"][2] == pytest.approx(TOP + 0.025, abs=3e-4)
         assert watcher.call("workcell", "status", {}, 5.0)["held"] == ""
-        time.sleep(0.05)
-        assert np.max(np.abs(np.array(sim.latest.q) - q_here)) < 5e-3
+        seq0 = sim.latest.seq  # a state published after the reset: the arm stayed
+        after = sim.wait_for(lambda s: s.seq > seq0, 5.0)
+        assert after is not None, "no sim/arm/state after the reset"
+        assert np.max(np.abs(np.array(after.q) - q_here)) < 5e-3
         # The physics goes away: the arm's driver notices within its deadline and errs, so
         # the arm service holds (a lost link stops motion); nothing is commanded after.
         cell.close()

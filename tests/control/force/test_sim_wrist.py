@@ -9,6 +9,7 @@ never reaches the wrist is said once.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Any
@@ -197,11 +198,18 @@ def test_the_physics_wrench_reaches_robot_force_with_only_the_tool_compensated(n
 
         sensor = force.core.sensor
         assert isinstance(sensor, SimSensor)
+
+        def newest_f() -> float:
+            with lock:
+                return float(np.linalg.norm(samples[-1].f)) if samples else math.inf
+
         assert wait_until(lambda: sensor.physics_updates > 10, what="the physics' wrench")
-        time.sleep(0.05)  # robot/state's orientation reached the compensation
+        # robot/state's orientation reached the compensation: the tool's weight is gone
+        assert wait_until(lambda: newest_f() < 0.02, timeout_s=20.0, what="compensation")
         np.testing.assert_allclose(mean_f(), 0.0, atol=0.02)  # the tool alone: compensated
         carried[0] = BLOCK_KG
-        time.sleep(0.02)
+        # the block's weight reached robot/force (half of it: any sample from before is 0)
+        assert wait_until(lambda: newest_f() > 0.5 * BLOCK_KG * G, timeout_s=20.0, what="m·g")
         held = mean_f()
         weight = DOWN.T @ np.array([0.0, 0.0, -BLOCK_KG * G])  # m·g in the tool frame
         assert np.linalg.norm(held - weight) <= 0.05 * BLOCK_KG * G
