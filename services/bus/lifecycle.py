@@ -38,6 +38,11 @@ EXIT_GRACE_S = 15.0
 #: how often a main thread waiting on `Shutdown` wakes so a pending signal handler can run
 SIGNAL_CHECK_S = 0.25
 
+#: how often a service whose router does not answer yet tries again (`ServiceContext.open`)
+ROUTER_RETRY_S = 1.0
+#: how often it says again that it is still waiting (a wrong login looks the same)
+ROUTER_REPEAT_S = 30.0
+
 
 class Shutdown:
     """Set on SIGINT or SIGTERM (installed from the main thread). `wait()` sleeps until then.
@@ -105,7 +110,8 @@ class ServiceContext:
     of its own never reads `[zenoh]`); a bad value raises ConfigError naming the key.
     Everything opened through `open()` or registered with `closing()` is closed when the
     service ends, last registered first: a service registered after its node is closed
-    (holding the arm) before that node's session closes.
+    (holding the arm) before that node's session closes. With `await_router`, a session
+    whose router does not answer is tried again until it does or the service is stopped.
     """
 
     name: str
@@ -114,6 +120,7 @@ class ServiceContext:
     log: logging.Logger
     _stack: contextlib.ExitStack
     _connect: tuple[str, ...]
+    await_router: bool = True
 
     @cached_property
     def deploy(self) -> dict[str, Any]:
@@ -136,14 +143,44 @@ class ServiceContext:
         closed when the service ends. A singleton (by default the services of `SINGLETONS`,
         and a master by its id) first makes sure no other one runs in the cell
         (`Node.claim`: `AlreadyRunning` otherwise) and then reports later contenders."""
-        from services.bus.node import Node
-
         name = name or self.name
-        node = self._stack.enter_context(Node(name, cfg or self.node_config, instance=instance))
+        node = self._stack.enter_context(self._node(name, cfg or self.node_config, instance))
         if singleton if singleton is not None else (name in SINGLETONS or name == "master"):
             node.claim()
             node.watch_claims()
         return node
+
+    def _node(self, name: str, cfg: NodeConfig, instance: str) -> Node:
+        """A Node; while its router does not answer (ConnectFailed), one warning, then a try
+        every `ROUTER_RETRY_S` (`await_router`): a station started before the robot host, or
+        a service that starts before its launcher's router listens, waits for it rather
+        than exiting. ConnectFailed if the service is stopped meanwhile."""
+        from services.bus.node import Node
+
+        since = 0.0  # when the first try failed
+        said = 0.0
+        while True:
+            try:
+                node = Node(name, cfg, instance=instance)
+            except ConnectFailed as e:
+                if not self.await_router or self.stop.is_set():
+                    raise
+                now = time.monotonic()
+                since = since or now
+                if now - said >= ROUTER_REPEAT_S:
+                    waited = f" (waiting for {now - since:.0f} s)" if said else ""
+                    self.log.warning("%s Trying again every %.0f s%s.", e, ROUTER_RETRY_S, waited)
+                    said = now
+                if self.stop.wait(ROUTER_RETRY_S):
+                    raise
+                continue
+            if since:
+                self.log.info(
+                    "connected to %s after %.0f s",
+                    ", ".join(cfg.connect),
+                    time.monotonic() - since,
+                )
+            return node
 
     def closing(self, service: Closeable) -> None:
         """Close `service` when the service ends (before the sessions opened earlier)."""
@@ -178,6 +215,7 @@ def run_service(
     prog: str | None = None,
     connect: tuple[str, ...] = (LOCAL_ROUTER,),
     verbose_help: str = "debug logging",
+    await_router: bool = True,
 ) -> int:
     """The main of every service: parse the command line (`service_parser`), set up logging
     and SIGINT/SIGTERM, then call `start(ctx)`.
@@ -189,6 +227,8 @@ def run_service(
     registered is closed, last first. A bad configuration anywhere ends the process with
     status 2 (`CONFIG_EXIT`) and one line on stderr naming the key. `connect` is where the
     node connects when neither the deployment nor the flags say (the local router).
+    `await_router`: a service waits for a router that does not answer yet (False: a tool
+    that runs to completion fails at once, exit 1, saying so).
     """
     p = service_parser(name, description, add_arguments, prog, verbose_help)
     args = p.parse_args(argv)
@@ -197,7 +237,8 @@ def run_service(
     stop = Shutdown()
     try:
         with contextlib.ExitStack() as stack:
-            status = start(ServiceContext(name, args, stop, log, stack, connect))
+            ctx = ServiceContext(name, args, stop, log, stack, connect, await_router)
+            status = start(ctx)
             if status is not None:
                 return status
             stop.wait()
@@ -208,6 +249,9 @@ def run_service(
         print(f"telerobot {name}: {e}", file=sys.stderr, flush=True)
         return CONFIG_EXIT
     except ConnectFailed as e:
+        if stop.is_set():  # stopped while it waited for its router: nothing ran
+            log.info("%s stopped before its router answered", name)
+            return 0
         print(f"telerobot {name}: {e}", file=sys.stderr, flush=True)
         return 1
     log.info("%s stopped", name)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import faulthandler
 import importlib
+import logging
 import os
 import signal
 import threading
@@ -16,7 +17,7 @@ import pytest
 
 from services.bus.config import LOCAL_ROUTER
 from services.bus.lifecycle import CONFIG_EXIT, ServiceContext, Shutdown, run_service
-from tests.conftest import Net, wait_until
+from tests.conftest import Net, free_port, wait_until
 
 #: every service main (and the router's); each must be built on run_service
 MAINS = [
@@ -162,6 +163,85 @@ def test_sigterm_stops_it_cleanly(net: Net, signals: None) -> None:
     assert status == 0
     assert closed == ["service, session open: True"]
     assert wait_until(lambda: not observer.alive.is_alive("probe"), 10.0)
+
+
+def test_a_service_waits_for_a_router_that_is_not_up_yet(
+    net: Net, signals: None, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A client whose router does not answer says so once and tries again; when the router
+    comes it connects, says so, and runs (a station switched on before the robot host)."""
+    caplog.set_level(logging.INFO, logger="telerobot.probe")
+    announced = threading.Event()
+
+    def start(ctx: ServiceContext) -> None:
+        ctx.open().announce()
+        announced.set()
+
+    def messages() -> list[str]:
+        return [r.getMessage() for r in caplog.records if r.name == "telerobot.probe"]
+
+    seen: list[bool] = []
+
+    def router_comes_later() -> None:
+        waiting = wait_until(lambda: any("Trying again" in m for m in messages()), 30.0)
+        observer = net.node("observer")  # the first node of `net` listens at its endpoint
+        seen.extend([bool(waiting), announced.wait(30.0), observer.alive.wait("probe", 30.0)])
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    helper = threading.Thread(target=router_comes_later)
+    helper.start()
+    status = run_service("probe", ["--connect", net.endpoint, "--mode", "client"], start)
+    helper.join()
+    assert seen == [True, True, True]
+    assert status == 0
+    said = messages()
+    waits = [m for m in said if "Trying again" in m]
+    assert len(waits) == 1, said  # one warning, not one per try
+    assert f"cannot connect to {net.endpoint}" in waits[0]
+    connected = [i for i, m in enumerate(said) if m.startswith(f"connected to {net.endpoint}")]
+    assert len(connected) == 1 and connected[0] > said.index(waits[0]), said
+
+
+def test_a_tool_without_a_router_fails_at_once(
+    capsys: pytest.CaptureFixture[str], signals: None
+) -> None:
+    """A run to completion (await_router=False: `telerobot task`) does not wait: exit 1 and
+    the one line that says which endpoint did not answer."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    reached: list[str] = []
+
+    def start(ctx: ServiceContext) -> int:
+        ctx.open()
+        reached.append("open")
+        return 0
+
+    argv = ["--connect", endpoint, "--mode", "client"]
+    assert run_service("probe", argv, start, await_router=False) == 1
+    err = capsys.readouterr().err
+    assert f"telerobot probe: cannot connect to {endpoint}" in err and err.count("\n") == 1
+    assert reached == []
+
+
+def test_a_stop_while_waiting_for_the_router_ends_cleanly(
+    signals: None, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="telerobot.probe")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+
+    def start(ctx: ServiceContext) -> None:
+        ctx.open()
+
+    def stop_once_waiting() -> None:
+        wait_until(lambda: any("Trying again" in r.getMessage() for r in caplog.records), 30.0)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    helper = threading.Thread(target=stop_once_waiting)
+    helper.start()
+    status = run_service("probe", ["--connect", endpoint, "--mode", "client"], start)
+    helper.join()
+    assert status == 0
+    said = [r.getMessage() for r in caplog.records if r.name == "telerobot.probe"]
+    assert said[-1] == "probe stopped before its router answered", said
 
 
 def test_a_signal_delivered_to_another_thread_still_stops_the_wait(signals: None) -> None:

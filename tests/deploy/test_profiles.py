@@ -37,10 +37,15 @@ def stop(launcher: ChildProcess) -> int:
 
 
 def test_robot_and_operator_profiles_come_up_together(tmp_path: Path) -> None:
+    """The station is switched on first, as an operator may: its services wait for the
+    robot host's router (fresh-clone CI 2026-12-02: started together, the station's master
+    and console found no router yet, exited, and the launcher gave up)."""
     cell = install(tmp_path, ports=(free_port(), free_port()))
     without_hardware(cell, free_port())
-    with spawned(telerobot("up", str(cell.profile("robot")))) as robot:
-        with spawned(telerobot("up", str(cell.profile("operator")))) as station:
+    with spawned(telerobot("up", str(cell.profile("operator")))) as station:
+        for service in ("master", "console"):
+            station.expect(lambda s, n=service: s.startswith(f"[{n}]") and "Trying again" in s)
+        with spawned(telerobot("up", str(cell.profile("robot")))) as robot:
             cfg = NodeConfig(
                 mode="client",
                 connect=(f"tcp/127.0.0.1:{cell.tcp_port}",),
@@ -51,11 +56,13 @@ def test_robot_and_operator_profiles_come_up_together(tmp_path: Path) -> None:
                 up = wait_until(lambda: want <= node.alive.names(), DEADLINE_S, poll_s=0.1)
                 # Strings, so that pytest prints every line of both launchers on a miss.
                 missing = f"missing {sorted(want - node.alive.names())}"
-                assert up, "\n".join([missing, *station.lines[-40:], *robot.lines[-40:]])
+                assert up, "\n".join([missing, *station.so_far()[-40:], *robot.so_far()[-40:]])
                 status = node.call("decision", "status", {}, DEADLINE_S)
                 assert want <= set(status["alive"]), status["alive"]
-            assert stop(station) == 0, station.rest()[-20:]
-        assert stop(robot) == 0, robot.rest()[-30:]
-        lines = robot.rest()
+            for service in ("master", "console"):
+                station.expect(lambda s, n=service: s.startswith(f"[{n}]") and "connected to" in s)
+            assert stop(robot) == 0, robot.rest()[-30:]
+            lines = robot.rest()
+        assert stop(station) == 0, station.rest()[-20:]
     for service in ROBOT_SERVICES | {"router"}:
         assert f"[{service}] stopped (exit 0)" in lines, (service, lines[-30:])

@@ -221,6 +221,19 @@ class Child:
             if test(got):
                 return got
 
+    def so_far(self) -> list[str]:
+        """Every line printed until now, without waiting (`lines=True`): what to show when
+        a test gives up on something else."""
+        while True:
+            try:
+                line = self._queue.get_nowait()
+            except queue.Empty:
+                return self.lines
+            if line is None:
+                self._queue.put(None)
+                return self.lines
+            self.lines.append(line)
+
     def rest(self, timeout_s: float) -> list[str]:
         """Every line, once the child has closed its output within `timeout_s`
         (`lines=True`); AssertionError if it is still writing."""

@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
         add_arguments=arguments,
         prog="python -m services.tools.tasks",
         verbose_help="debug logging; print the operator's log",
+        await_router=False,  # a run to completion: no router is an error at once
     )
 
 
