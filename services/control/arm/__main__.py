@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import get_args
+from typing import Any, get_args
 
 from services.bus.config import service_table
 from services.bus.lifecycle import ServiceContext, run_service
@@ -24,22 +24,35 @@ def arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--baudrate", type=int, default=None)
     p.add_argument("--robot-ip", default=None, help="the Franka's FCI address (libfranka)")
     p.add_argument(
+        "--sim-physics",
+        choices=("own", "workcell"),
+        default=None,
+        help="driver sim: the arm alone in its own physics, or on the workcell's MuJoCo cell "
+        "(the simulation profile's; docs/sim.md)",
+    )
+    p.add_argument(
         "--autostart",
         action="store_true",
         help="connect and initialize at start-up (the simulation profile does)",
     )
 
 
-def start(ctx: ServiceContext) -> None:
-    args = ctx.args
+def arm_table(deploy: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    """The deployment's `[arm]` table with the flags given on the command line over it."""
     overrides = {
         "model": args.model,
         "driver": args.driver,
         "port": args.port,
         "baudrate": args.baudrate,
         "robot_ip": args.robot_ip,
+        "sim_physics": args.sim_physics,
     }
-    table = service_table(ctx.deploy, "arm", overrides)
+    return service_table(deploy, "arm", overrides)
+
+
+def start(ctx: ServiceContext) -> None:
+    args = ctx.args
+    table = arm_table(ctx.deploy, args)
     autostart = bool(table.pop("autostart", False)) or args.autostart
     config = ArmConfig.from_mapping(table)
     from services.control.arm.service import ArmService

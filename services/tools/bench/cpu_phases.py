@@ -1,10 +1,12 @@
 """The CPU phases: what each service of the sim profile costs, idle and during teleoperation.
 
 They run last, on the set `telerobot up sim` runs (deploy/sim.toml): router, arm (sim,
-autostart), force (sim), decision, vision (sim camera, 640×480 at 30 fps), workcell and the
-console with its in-process virtual master and no browser. The bench's own master station
-(which the sim profile does not have) is stopped first; nothing is measured after these
-phases, so starting the workcell and the console cannot disturb another phase.
+autostart, on the workcell's physics), force (sim), decision, vision (sim camera, 640×480
+at 30 fps), workcell and the console with its in-process virtual master and no browser. The
+bench's own master station (which the sim profile does not have) is stopped first, and its
+arm, alone in a physics of its own for the other phases, is started again on the
+workcell's MuJoCo cell as the profile runs it; nothing is measured after these phases, so
+restarting the arm and starting the workcell and the console cannot disturb another phase.
 
 - `cpu_idle`: after `settle_s`, a window in which nobody operates and nobody subscribes to
   video (the bench holds no subscription but its liveliness one);
@@ -28,7 +30,7 @@ from typing import Any
 from services.bus.node import Node
 from services.tools.bench import commands, cpu, stats
 from services.tools.bench.probes import CommandDriver, VideoProbe
-from services.tools.bench.procs import cpu_by_child
+from services.tools.bench.procs import cpu_by_child, wait_arm_ready
 from services.tools.bench.report import CORE_SERVICES, SIM_SERVICES
 from services.tools.cell.procs import ChildFailed, Children, telerobot_argv, wait_alive
 
@@ -36,7 +38,8 @@ Say = Callable[[str], None]
 PhaseLog = Callable[[str], AbstractContextManager[None]]
 
 EXTRA_SERVICES = ("vision", "workcell", "console")
-"""Started for the CPU phases only (in this order; stopped in reverse)."""
+"""Started for the CPU phases only (in this order, the arm again after the workcell;
+stopped in reverse)."""
 CONSOLE_MASTER = "master/console"
 """The console's in-process virtual master (its default id): `up sim` has no other."""
 VIDEO_WARMUP_S = 1.0
@@ -93,6 +96,7 @@ class SimRun:
     vga_fps: float
     startup_timeout_s: float
     say: Say
+    model: str = "puma560"
     phases: dict[str, Any] = field(default_factory=dict)
 
     def mark(self) -> CpuMark:
@@ -113,7 +117,8 @@ class SimRun:
         notes = [
             "CPU phases: the sim profile's processes (router, arm, force, decision, vision "
             f"{w}×{h}@{self.vga_fps:g}, workcell, console without a browser, with its virtual "
-            "master), run after every other phase with the bench's station master stopped; "
+            "master; the arm on the workcell's physics), run after every other phase with the "
+            "bench's station master stopped; "
             f"{settle_s:g} s to settle, then {window_s:g} s idle (nobody operating, nobody "
             f"subscribed to video), then {window_s:g} s while the bench streams robot/cmd at "
             f"{teleop_rate_hz:g} Hz and decodes both eyes. % of one core per process group "
@@ -151,18 +156,26 @@ class SimRun:
         return notes
 
     def _start(self) -> None:
-        self.say("[cpu] stopping the station master; starting vision, workcell, console …")
+        self.say(
+            "[cpu] stopping the station master; starting vision, workcell, the arm on the "
+            "workcell's physics, console …"
+        )
         self.kids.stop("master")
+        self.kids.stop("arm")
         w, h = self.vga_size
         argv = {
             "vision": ("vision", "--size", f"{w}x{h}", "--fps", f"{self.vga_fps:g}"),
             "workcell": ("workcell",),
+            "arm": ("arm", "--autostart", "--model", self.model, "--sim-physics", "workcell"),
             "console": ("console", "--port", "0"),
         }
-        for name in EXTRA_SERVICES:
+        for name in ("vision", "workcell", "arm", "console"):
             self.kids.spawn(name, telerobot_argv(*argv[name], *self.zargs))
-        for name in (*EXTRA_SERVICES, CONSOLE_MASTER):
+            if name == "workcell":  # the arm's joints are its physics': it must run first
+                wait_alive(self.kids, self.node.alive.wait, name, self.startup_timeout_s)
+        for name in (*EXTRA_SERVICES, "arm", CONSOLE_MASTER):
             wait_alive(self.kids, self.node.alive.wait, name, self.startup_timeout_s)
+        wait_arm_ready(self.kids, self.node, self.startup_timeout_s)
 
     def _idle(self, window_s: float) -> dict[str, Any]:
         self.say(f"[cpu_idle] the sim profile idle for {window_s:g} s …")

@@ -167,7 +167,15 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
                     phase_video(kids, node, zargs, key, size, fps, opts, res, say)
                 kids.check()
             sim = cpu_phases.SimRun(
-                kids, node, driver, zargs, opts.vga_size, opts.vga_fps, opts.startup_timeout_s, say
+                kids,
+                node,
+                driver,
+                zargs,
+                opts.vga_size,
+                opts.vga_fps,
+                opts.startup_timeout_s,
+                say,
+                model=opts.model,
             )
             res.notes.extend(
                 sim.run(opts.cpu_settle_s, opts.phase_s, opts.teleop_rate_hz, log.phase)

@@ -269,3 +269,19 @@ def test_a_retried_motion_with_its_request_id_never_moves_twice(net, arm) -> Non
     with pytest.raises(RpcError) as err:
         client.call("arm", "move_relative", {**move, "request_id": "x" * 65}, timeout_s=5.0)
     assert err.value.code == "bad_request"
+
+
+def test_the_arm_takes_its_physics_from_the_command_line_over_the_file() -> None:
+    from services.bus.lifecycle import service_parser
+    from services.control.arm.__main__ import arguments, arm_table
+
+    p = service_parser("arm", add_arguments=arguments)
+    deploy = {"arm": {"driver": "sim", "sim_physics": "own", "model": "ur5e"}}
+    table = arm_table(deploy, p.parse_args(["--sim-physics", "workcell"]))
+    assert table == {"driver": "sim", "sim_physics": "workcell", "model": "ur5e"}
+    from services.control.arm.config import ArmConfig
+
+    assert ArmConfig.from_mapping(table).sim_physics == "workcell"
+    assert arm_table(deploy, p.parse_args([]))["sim_physics"] == "own"
+    with pytest.raises(SystemExit):
+        p.parse_args(["--sim-physics", "elsewhere"])
