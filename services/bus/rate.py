@@ -62,6 +62,10 @@ class RateLoop:
         if not rate_hz > 0:
             raise ValueError("rate_hz must be > 0")
         self.period_s = 1.0 / rate_hz
+        self.reanchor()
+
+    def reanchor(self) -> None:
+        """The next tick one period from now (a loop that paused on purpose: not late)."""
         self._next = time.perf_counter() + self.period_s
 
     def sleep(self) -> float:

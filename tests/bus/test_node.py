@@ -773,6 +773,24 @@ def test_rate_loop_reports_at_most_once_per_interval(monkeypatch: pytest.MonkeyP
     assert loop.late == 11 and reports == [1, 11]
 
 
+def test_a_rate_loop_reanchored_after_a_pause_is_not_late(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A loop that pauses on purpose (the workcell resting) and re-anchors ticks on from
+    then: no late tick, no burst of zero-length sleeps to catch up."""
+    clock = FakeClock()
+    monkeypatch.setattr("services.bus.rate.time.perf_counter", clock.perf_counter)
+    monkeypatch.setattr("services.bus.rate.time.sleep", clock.sleep)
+    loop = RateLoop(500.0)
+    loop.sleep()
+    clock.now += 0.5  # paused 250 periods
+    loop.reanchor()
+    for _ in range(3):
+        assert loop.sleep() == 0.0
+    assert loop.late == 0 and loop.ticks == 4
+    assert clock.slept == pytest.approx([0.002] * 4)
+
+
 def test_rate_loop_with_a_slow_body() -> None:
     """Real time: every third tick's body takes 4 periods; those ticks are counted late."""
     reports: list[int] = []

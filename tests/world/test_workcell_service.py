@@ -158,3 +158,35 @@ def test_the_arm_moves_in_the_workcells_physics_and_bad_setpoints_are_refused(ne
     finally:
         arm.close()
         cell.close()
+
+
+def test_a_resting_cell_wakes_seldom_and_still_takes_the_next_setpoint(net: Net) -> None:
+    """While nothing moves the loop looks for a setpoint every REST_POLL_S, not at its
+    500 Hz (those wake-ups were the idle cell's CPU); the next setpoint is taken and
+    stepped at once. Counted against workcell/state, which the same loop sends at 50 Hz:
+    a loop waking at its rate would wake 10 times per state."""
+    model = load_model("puma560")
+    cell = WorkcellService(net.node("workcell"), WorkcellConfig(), arm=model)
+    watcher = net.node("watcher")
+    scene = watcher.subscribe(WORKCELL_STATE)
+    sim = watcher.subscribe(SIM_ARM_STATE)
+    try:
+        assert wait_until(lambda: cell.resting, 20.0, what="the cell at rest")
+        first = scene.wait_for(lambda w: True, 5.0)
+        assert first is not None
+        w0, steps0, seq0 = cell.wakes, cell.steps, first.seq
+        later = scene.wait_for(lambda w: w.seq >= seq0 + 10, 10.0)
+        assert later is not None
+        assert cell.resting and cell.steps == steps0, "the physics stepped while at rest"
+        states = later.seq - seq0
+        assert cell.wakes - w0 <= 3 * states + 3, (cell.wakes - w0, states)
+        # A setpoint after the rest: taken, stepped, the joint on its way.
+        q = np.array(model.home, dtype=float)
+        goal = q + np.resize([0.02, 0.0], model.n)
+        cmd = watcher.publisher(SIM_ARM_CMD)
+        cmd.put(SimArmCmd(seq=1, t_ns=time.time_ns(), q=tuple(map(float, goal))))
+        moved = sim.wait_for(lambda s: s.cmd_seq == 1 and s.q[0] - q[0] > 0.01, 10.0)
+        assert moved is not None, "the setpoint after the rest moved nothing"
+        assert cell.steps > steps0
+    finally:
+        cell.close()

@@ -14,7 +14,8 @@ meshes) and the scene (`scene.py`), and steps it in real time (docs/sim.md):
 
 Methods at `robot/workcell/rpc/…`: `status` (the state as a map) and `reset` (every object
 back in place; the arm stays where it is). While nothing moves and no setpoint comes the
-physics rests (it is not stepped) and the joints are published at the idle rate.
+physics rests (it is not stepped), the loop looks for a setpoint every `REST_POLL_S`
+instead of at its rate, and the joints are published at the idle rate.
 """
 
 from __future__ import annotations
@@ -59,6 +60,9 @@ the physics rests."""
 REST_SPEED = 1e-5
 """rad/s, m/s: the arm's and the gripper's joints slower than this are still."""
 IDLE_STATE_HZ = 20.0
+REST_POLL_S = 0.01
+"""While the physics rests, the loop looks for a setpoint or a grip this often (instead of
+at `rate_hz`); the first step after it covers the time since the last look."""
 MAX_CATCH_UP_S = 0.01
 """A loop late by more than this steps this much physics (it runs slower than real time
 then, rather than in one leap)."""
@@ -94,6 +98,10 @@ class WorkcellService:
         self._limiter = EventLimiter(1.0, max_keys=16)
         self.steps = 0
         self.rejected = 0
+        self.wakes = 0
+        """The loop's wake-ups (at `rate_hz` while the physics steps, every `REST_POLL_S`
+        while it rests)."""
+        self.resting = False
         self._pub = node.publisher(WORKCELL_STATE)
         self._arm_pub = node.publisher(SIM_ARM_STATE)
         self._cmd = node.latest(SIM_ARM_CMD)
@@ -138,20 +146,31 @@ class WorkcellService:
     # --- the loop ---------------------------------------------------------------------
     def _loop(self) -> None:
         rate = RateLoop(self.config.rate_hz, on_late=self._on_late)
-        every = max(1, round(self.config.rate_hz / self.config.publish_rate_hz))
-        idle_every = max(1, round(self.config.rate_hz / IDLE_STATE_HZ))
-        wakes = 0
+        state_s = 1.0 / self.config.publish_rate_hz
+        next_state = next_idle_arm = time.monotonic()
         while not self._stop.is_set():
-            wakes += 1
+            self.wakes += 1
             self._watch_description()
             ph = self.physics
+            stepped = False
             if ph is not None:
                 stepped = self._tick(ph)
-                if stepped or wakes % idle_every == 0:
+                self.resting = not stepped
+                now = time.monotonic()
+                if stepped or now >= next_idle_arm:
                     self._publish_arm(ph)
-                if wakes % every == 0:
+                    next_idle_arm = now + 1.0 / IDLE_STATE_HZ
+                if now >= next_state:
                     self._publish()
-            rate.sleep()
+                    next_state += state_s
+                    if next_state <= now:  # a late loop: on from now, no burst
+                        next_state = now + state_s
+            if stepped or ph is None:
+                rate.sleep()
+            elif not self._stop.wait(REST_POLL_S):
+                # Resting: a look every REST_POLL_S, not every tick (the loop's wake-ups
+                # were the idle cell's CPU), then the fixed rate again from now.
+                rate.reanchor()
 
     def _tick(self, ph: CellPhysics) -> bool:
         """Take the newest setpoint and grip, step if anything moves; whether it stepped."""
@@ -266,7 +285,12 @@ class WorkcellService:
                 grip=grip_of(1.0 if ph.gripper_closed else 0.0),
                 held=ph.held or "",
                 objects={b.name: object_map(b) for b in ph.bodies()},
-                data={**ph.counters, "steps": self.steps, "rejected": self.rejected},
+                data={
+                    **ph.counters,
+                    "steps": self.steps,
+                    "rejected": self.rejected,
+                    "wakes": self.wakes,
+                },
             )
 
     def _publish(self) -> None:
