@@ -108,6 +108,7 @@ class WorkcellService:
         self._robot = node.latest(keys.STATE)
         self._desc = None if arm is not None else node.subscribe(keys.ARM_DESCRIPTION, history=True)
         self._desc_seen: tuple[str, str] | None = None
+        self._desc_last: ArmDescription | None = None
         if arm is not None:
             self._build(arm)
         node.serve(SERVICE, {"status": self._rpc_status, "reset": self._rpc_reset})
@@ -131,8 +132,9 @@ class WorkcellService:
         if sub is None:
             return
         desc: ArmDescription | None = sub.latest
-        if desc is None:
-            return
+        if desc is None or desc is self._desc_last:
+            return  # (the same message as at the last tick: nothing to compare)
+        self._desc_last = desc
         key = (desc.model, desc.urdf[:64] + repr(desc.eMt))
         if key == self._desc_seen:
             return
