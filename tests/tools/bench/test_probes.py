@@ -125,17 +125,27 @@ def test_stream_probe_records_and_counts_rejections(net: Net) -> None:
     while probe.count() == 0 and time.monotonic() < deadline:  # warm up the route with seq 0
         pub.put(ForceSample(seq=0, t_ns=1000, f=zero, c=zero))
         time.sleep(0.02)
-    warm = probe.count()
-    assert warm > 0
+    assert wait_until(lambda: probe.count() > 0, 5.0)  # seq 0s still in flight may follow
+    # robot/force is best effort: a burst of 20 lost some on a loaded host (make test,
+    # 2026-12-02). The probe is under test, not the bus: each sample is sent once the one
+    # before it is in, and sent again only if it never came.
     for i in range(1, 21):
-        pub.put(ForceSample(seq=i, t_ns=1000 + i, f=zero, c=zero))
+        sample = ForceSample(seq=i, t_ns=1000 + i, f=zero, c=zero)
+        for _ in range(5):
+            pub.put(sample)
+            if wait_until(lambda i=i: _has_seq(probe, i), 1.0):  # type: ignore[misc]
+                break
     pub.put_bytes(b"\x93not a map")
-    assert probe.wait_count(warm + 20, 5.0)
     assert wait_until(lambda: probe.rejected >= 1, 5.0)
     records = [r for r in probe.stop() if r[1][0] > 0]
     assert [r[1] for r in records] == [(i, 1000 + i) for i in range(1, 21)]
     assert probe.rejected == 1
     assert all(r[0] > 1000 for r in records)
+
+
+def _has_seq(probe: StreamProbe[ForceSample], seq: int) -> bool:
+    """Whether the probe holds a record of the sample `seq` (late seq 0s may follow it)."""
+    return any(values[0] == seq for _, values in probe.snapshot())
 
 
 def test_time_calls_times_answers_and_counts_failures(net: Net) -> None:
