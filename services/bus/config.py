@@ -222,7 +222,7 @@ def add_node_args(parser: argparse.ArgumentParser) -> None:
 
 TABLES = frozenset(
     {"zenoh", "router", "up", "arm", "force", "decision", "vision", "console", "master", "ros2"}
-    | {"workcell", "record", "physics"}
+    | {"workcell", "record", "physics", "scene"}
 )
 """The tables a deployment file may have: one per service, `[zenoh]` for every session,
 `[router]` and `[up]` for the launcher. Any other is refused: a misspelt `[decison]` would

@@ -10,6 +10,7 @@ from services.bus import keys
 from services.bus.config import NodeConfig, service_table
 from services.bus.lifecycle import ServiceContext, run_service
 from services.control.vision.config import VisionConfig
+from services.world.workcell.scene_file import deploy_scene
 
 
 def vision_node_config(cfg: NodeConfig, config: VisionConfig) -> NodeConfig:
@@ -42,10 +43,12 @@ def start(ctx: ServiceContext) -> None:
         "files": args.file,
     }
     config = VisionConfig.from_mapping(service_table(ctx.deploy, "vision", overrides))
+    # [scene] file: what the simulated cameras look at, the workcell's own (docs/sim.md)
+    scene = deploy_scene(ctx.deploy) if config.camera == "sim" else None
     from services.control.vision.service import VisionService
 
     node = ctx.open(vision_node_config(ctx.node_config, config))
-    ctx.closing(VisionService(node, config))
+    ctx.closing(VisionService(node, config, scene=scene))
     ctx.log.info(
         "streaming %dx%d at %.0f fps (%s)", config.width, config.height, config.fps, config.camera
     )

@@ -8,11 +8,14 @@ fails to open is reported as an event and retried instead of stopping the servic
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from services.bus.registry import BackendRegistry
 from services.control.vision.camera import Camera, Intrinsics
 from services.control.vision.config import VisionConfig
+
+if TYPE_CHECKING:
+    from services.world.workcell.scene import Scene
 
 BACKENDS: BackendRegistry[Camera] = BackendRegistry(
     "vision.camera",
@@ -25,8 +28,9 @@ BACKENDS: BackendRegistry[Camera] = BackendRegistry(
 """Backend name (`vision.camera`) → class, constructed with `camera_options(config)`."""
 
 
-def camera_options(config: VisionConfig) -> dict[str, Any]:
-    """The constructor arguments of the backend `config.camera`."""
+def camera_options(config: VisionConfig, scene: Scene | None = None) -> dict[str, Any]:
+    """The constructor arguments of the backend `config.camera` (`scene`: what the
+    simulated cameras look at, None for the standard workcell)."""
     if config.camera == "opencv":
         return {
             "sources": config.devices or config.files,
@@ -38,13 +42,13 @@ def camera_options(config: VisionConfig) -> dict[str, Any]:
             "baseline_m": config.baseline_m,
             "loop": config.loop_files,
         }
-    return {"config": config}
+    return {"config": config} if scene is None else {"config": config, "scene": scene}
 
 
-def open_camera(config: VisionConfig) -> Camera:
+def open_camera(config: VisionConfig, scene: Scene | None = None) -> Camera:
     """The camera `config.camera` with its options, not yet opened (`Camera.open`).
 
     Raises ConfigError("vision.camera", …) for a name without a backend (a `VisionConfig`
     built the ordinary way has refused it already).
     """
-    return BACKENDS.build(config.camera, camera_options(config))
+    return BACKENDS.build(config.camera, camera_options(config, scene))

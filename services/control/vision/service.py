@@ -33,6 +33,7 @@ from services.control.vision.config import VisionConfig
 from services.control.vision.pipeline import StereoPipeline
 from services.control.vision.sim_camera import SimStereoCamera
 from services.world.workcell.messages import WORKCELL_STATE, WorkcellState
+from services.world.workcell.scene import Scene
 
 STATS_PERIOD_S = 1.0
 log = logging.getLogger("telerobot.vision")
@@ -41,10 +42,10 @@ log = logging.getLogger("telerobot.vision")
 class VisionService:
     """Runs the stereo pipeline and publishes it; `close()` stops it."""
 
-    def __init__(self, node: Node, config: VisionConfig) -> None:
+    def __init__(self, node: Node, config: VisionConfig, scene: Scene | None = None) -> None:
         self.node = node
         self.config = config
-        self.camera = open_camera(config)
+        self.camera = open_camera(config, scene)
         self._left = node.publisher(keys.STEREO_L)
         self._right = node.publisher(keys.STEREO_R)
         self._stats_pub = node.publisher(keys.VISION_STATS)

@@ -16,6 +16,7 @@ from services.bus.config import NodeConfig, section, service_table
 from services.bus.lifecycle import CONFIG_EXIT, ServiceContext, run_service
 from services.frontends.console.config import ConsoleConfig
 from services.world.workcell.messages import WORKCELL_STATE
+from services.world.workcell.scene_file import deploy_scene
 
 MASTER_TAKEN_WAIT_S = 0.5
 """How long start-up looks for a master already using the console's master id."""
@@ -57,6 +58,7 @@ def master_node_config(cfg: NodeConfig, rate_hz: float | None = None) -> NodeCon
 def serve(ctx: ServiceContext, config: ConsoleConfig) -> int | None:
     """Serve the console (and its master if `config.master`) until the service stops. Every
     exit closes the console, then the master (which leaves the arm held), then the nodes."""
+    scene = deploy_scene(ctx.deploy)  # [scene] file (a bad one fails before any session)
     from services.frontends.console.app import Console
 
     node = ctx.open(console_node_config(ctx.node_config, config))
@@ -80,7 +82,7 @@ def serve(ctx: ServiceContext, config: ConsoleConfig) -> int | None:
             instance=config.master_id,
         )
         ctx.closing(MasterService(mnode, mcfg))
-    console = Console(node, config)
+    console = Console(node, config, scene=scene)
     ctx.closing(console)
     print(f"console: {console.url}", flush=True)
     return None

@@ -47,6 +47,7 @@ from services.frontends.console.panels import Panels
 from services.frontends.console.video import FrameGate, ViewMode
 from services.frontends.console.view3d import View3D
 from services.geometry import Array3, Mat3, wxyz_from_R
+from services.world.workcell.scene import Scene
 
 log = logging.getLogger("telerobot.console")
 
@@ -77,9 +78,10 @@ class Console(View3D, Panels, Actions):
     not close the node (its owner does).
     """
 
-    def __init__(self, node: Node, config: ConsoleConfig) -> None:
+    def __init__(self, node: Node, config: ConsoleConfig, scene: Scene | None = None) -> None:
         self.node = node
         self.config = config
+        self.scene = scene
         # The passivity figures reach the console at twice the GUI rate per side (its
         # session's downsampling): room for the plot's window of both.
         self.mirror = BusMirror(

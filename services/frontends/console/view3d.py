@@ -30,7 +30,7 @@ from services.frontends.console.workcell import (
 )
 from services.geometry import wxyz_from_R
 from services.world.workcell.messages import WORKCELL_STATE, objects_of
-from services.world.workcell.scene import default_scene
+from services.world.workcell.scene import Scene, default_scene
 
 log = logging.getLogger("telerobot.console")
 
@@ -67,6 +67,8 @@ class View3D:
     config: ConsoleConfig
     mirror: BusMirror
     server: viser.ViserServer
+    scene: Scene | None
+    """The workcell's scene ([scene] file), None for the standard one."""
     _drawn: dict[str, np.ndarray]
 
     if TYPE_CHECKING:
@@ -79,7 +81,7 @@ class View3D:
         sc.add_grid("/floor", width=3.0, height=3.0, cell_size=0.25, section_size=1.0)
         # The same description the workcell, force and vision simulations use; the movable
         # objects are moved to their `workcell/state` poses while a browser watches.
-        self.workcell = default_scene()
+        self.workcell = self.scene if self.scene is not None else default_scene()
         self._objects: dict[str, Any] = {}
         self._liquids: dict[str, Any] = {}
         self._spills = Spills(self.workcell)  # where the video puts spilled liquid
