@@ -5,15 +5,18 @@ robot/state of an arm at rest."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
+import zenoh
 from hypothesis import HealthCheck, settings
 
 from services.bus.config import NodeConfig
 from services.bus.messages import RobotState, vec
+from services.bus.node import Node
 from services.bus.peers import Peers
+from services.bus.streams import publisher_qos
 from services.tools.cell.ports import free_port
 from services.tools.cell.wait import Waited, wait_until
 
@@ -82,3 +85,13 @@ def ready_state(seq: int, t_ns: int, q: ArrayLike, oMt: pin.SE3, oMe: pin.SE3) -
         engage=0,
         cmd_seq=0,
     )
+
+
+def lossless(node: Node, topic: Any) -> Callable[[bytes], None]:
+    """A put on `topic` with its QoS but waiting for room instead of dropping: a burst of a
+    best-effort key loses samples on a loaded host (make test, 2026-12-02: 14 of 40), and
+    these tests are of the reader, not of the link. Same priority: it keeps their order."""
+    qos = {**publisher_qos(topic), "congestion_control": zenoh.CongestionControl.BLOCK}
+    pub = node.session.declare_publisher(topic.key, **qos)
+    node._decls.append(pub)
+    return pub.put

@@ -23,8 +23,7 @@ from services.bus.errors import ProtocolError, RpcError, Unavailable
 from services.bus.messages import IDENTITY_R, Event, ForceSample, OperatorCommand, Vec6
 from services.bus.node import Node, Publisher, Subscription, opened
 from services.bus.rate import RateLoop
-from services.bus.streams import publisher_qos
-from tests.conftest import Net, wait_until
+from tests.conftest import Net, lossless, wait_until
 
 DEADLINE_S = 10.0
 
@@ -131,10 +130,10 @@ def test_publishers_use_the_contract_priorities(
 def test_latest_wins_keeps_the_highest_seq(net: Net) -> None:
     a, b = net.node("force"), net.node("watch")
     sub = b.subscribe(keys.FORCE)
-    pub = a.publisher(keys.FORCE)
-    wait_matched(pub)
+    wait_matched(a.publisher(keys.FORCE))
+    put = lossless(a, keys.FORCE)
     for seq in (5, 3, 9, 7, 1, 8):
-        pub.put(force(seq, t_ns=1_000))
+        put(codec.encode(force(seq, t_ns=1_000)))
     assert sub.wait_count(6, DEADLINE_S)
     assert sub.latest is not None and sub.latest.seq == 9
     assert sub.wait_for(lambda m: m.seq == 9, 1.0) == force(9, t_ns=1_000)
@@ -169,15 +168,13 @@ def test_latest_with_each_hands_every_queued_message_over_in_order_then_the_newe
     a, b = net.node("force"), net.node("decision")
     seen: list[int] = []
     latest = b.latest(keys.FORCE, each=lambda m: seen.append(m.seq))
-    pub = a.publisher(keys.FORCE)
-    wait_matched(pub)
+    wait_matched(a.publisher(keys.FORCE))
+    put = lossless(a, keys.FORCE)
     for i in range(1, 21):
-        pub.put(force(i))
-    # with the publisher's own QoS: on another priority it may land after seq 40
-    qos = {k: v for k, v in publisher_qos(keys.FORCE).items() if k != "reliability"}
-    a.session.put(keys.FORCE.key, b"\xc1 garbage", **qos)
+        put(codec.encode(force(i)))
+    put(b"\xc1 garbage")
     for i in range(21, 41):
-        pub.put(force(i))
+        put(codec.encode(force(i)))
     assert wait_until(lambda: (r := latest.read()) is not None and r[0].seq == 40)
     assert seen == list(range(1, 41))
     assert latest.rejected == 1 and latest.received == 40
@@ -245,15 +242,15 @@ def test_batches_react_to_each_arrival_in_order_and_leave_garbage_out(net: Net) 
         threads.append(threading.current_thread())
 
     intake = b.batches(keys.FORCE, on_batch, depth=64)
-    pub = a.publisher(keys.FORCE)
-    wait_matched(pub)
-    pub.put(force(1))
+    wait_matched(a.publisher(keys.FORCE))
+    put = lossless(a, keys.FORCE)
+    put(codec.encode(force(1)))
     assert wait_until(lambda: batches == [(1,)])
     assert threads[0] is not intake.thread  # at once, on Zenoh's thread
     for i in range(2, 12):
-        pub.put(force(i))
-    pub.put_bytes(b"\xc1 garbage")
-    pub.put(force(12))
+        put(codec.encode(force(i)))
+    put(b"\xc1 garbage")
+    put(codec.encode(force(12)))
     assert wait_until(lambda: sum(len(x) for x in batches) == 12)
     assert [s for x in batches for s in x] == list(range(1, 13))
     assert b.rejected.get(keys.FORCE.key) == 1

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from services.bus import keys
+from services.bus import codec, keys
 from services.bus.config import NodeConfig
 from services.bus.errors import ConnectFailed
 from services.bus.messages import ForceSample
@@ -25,7 +25,7 @@ from services.bus.node import Node
 from services.tools.cell.procs import Child
 from services.tools.cell.procs import telerobot_argv as telerobot
 from tests.bus.test_node import wait_matched
-from tests.conftest import free_port
+from tests.conftest import free_port, lossless
 
 REPO = Path(__file__).resolve().parents[2]
 DEADLINE_S = 20.0
@@ -185,10 +185,10 @@ def test_router_honours_a_json5_config_file(tmp_path: Path) -> None:
             sub = b.subscribe(keys.FORCE)
             b.announce()
             assert a.alive.wait("watch", DEADLINE_S)
-            pub = a.publisher(keys.FORCE)
-            wait_matched(pub)
+            wait_matched(a.publisher(keys.FORCE))
+            put = lossless(a, keys.FORCE)  # the router's forwarding is under test, not loss
             for i in range(1, 21):
-                pub.put(ForceSample(seq=i, t_ns=i, f=(0.0, 0.0, 0.0), c=(0.0, 0.0, 0.0)))
+                put(codec.encode(ForceSample(seq=i, t_ns=i, f=(0.0,) * 3, c=(0.0,) * 3)))
             assert sub.wait_count(20, DEADLINE_S)
             assert sub.latest is not None and sub.latest.seq == 20
         finally:
