@@ -160,11 +160,14 @@ def test_the_arm_moves_in_the_workcells_physics_and_bad_setpoints_are_refused(ne
         cell.close()
 
 
-def test_a_resting_cell_wakes_seldom_and_still_takes_the_next_setpoint(net: Net) -> None:
-    """While nothing moves the loop looks for a setpoint every REST_POLL_S, not at its
+def test_a_resting_cell_wakes_seldom_and_still_takes_the_next_setpoint(
+    net: Net, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """After a long rest the loop looks for a setpoint every REST_POLL_S, not at its
     500 Hz (those wake-ups were the idle cell's CPU); the next setpoint is taken and
     stepped at once. Counted against workcell/state, which the same loop sends at 50 Hz:
     a loop waking at its rate would wake 10 times per state."""
+    monkeypatch.setattr("services.world.workcell.service.DEEP_REST_AFTER_S", 0.2)
     model = load_model("puma560")
     cell = WorkcellService(net.node("workcell"), WorkcellConfig(), arm=model)
     watcher = net.node("watcher")
@@ -172,8 +175,11 @@ def test_a_resting_cell_wakes_seldom_and_still_takes_the_next_setpoint(net: Net)
     sim = watcher.subscribe(SIM_ARM_STATE)
     try:
         assert wait_until(lambda: cell.resting, 20.0, what="the cell at rest")
-        first = scene.wait_for(lambda w: True, 5.0)
-        assert first is not None
+        rest = scene.wait_for(lambda w: True, 5.0)
+        assert rest is not None
+        # 15 states (0.3 s) into the rest: past DEEP_REST_AFTER_S
+        first = scene.wait_for(lambda w: w.seq >= rest.seq + 15, 5.0)
+        assert first is not None and cell.resting
         w0, steps0, seq0 = cell.wakes, cell.steps, first.seq
         later = scene.wait_for(lambda w: w.seq >= seq0 + 10, 10.0)
         assert later is not None

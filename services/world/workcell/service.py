@@ -14,8 +14,9 @@ meshes) and the scene (`scene.py`), and steps it in real time (docs/sim.md):
 
 Methods at `robot/workcell/rpc/…`: `status` (the state as a map) and `reset` (every object
 back in place; the arm stays where it is). While nothing moves and no setpoint comes the
-physics rests (it is not stepped), the loop looks for a setpoint every `REST_POLL_S`
-instead of at its rate, and the joints are published at the idle rate.
+physics rests (it is not stepped), after `DEEP_REST_AFTER_S` of that the loop looks for a
+setpoint every `REST_POLL_S` instead of at its rate, and the joints are published at the
+idle rate.
 """
 
 from __future__ import annotations
@@ -61,8 +62,11 @@ REST_SPEED = 1e-5
 """rad/s, m/s: the arm's and the gripper's joints slower than this are still."""
 IDLE_STATE_HZ = 20.0
 REST_POLL_S = 0.01
-"""While the physics rests, the loop looks for a setpoint or a grip this often (instead of
-at `rate_hz`); the first step after it covers the time since the last look."""
+"""Once the physics has rested `DEEP_REST_AFTER_S`, the loop looks for a setpoint or a grip
+this often (instead of at `rate_hz`); the first step after it covers the time since."""
+DEEP_REST_AFTER_S = 2.0
+"""A shorter rest (the arm holding a press between the decision's moves, a pause) keeps the
+loop at its rate: a setpoint there is stepped within a tick, as before."""
 MAX_CATCH_UP_S = 0.01
 """A loop late by more than this steps this much physics (it runs slower than real time
 then, rather than in one leap)."""
@@ -150,6 +154,7 @@ class WorkcellService:
         rate = RateLoop(self.config.rate_hz, on_late=self._on_late)
         state_s = 1.0 / self.config.publish_rate_hz
         next_state = next_idle_arm = time.monotonic()
+        rested_since: float | None = None
         while not self._stop.is_set():
             self.wakes += 1
             self._watch_description()
@@ -168,10 +173,16 @@ class WorkcellService:
                     if next_state <= now:  # a late loop: on from now, no burst
                         next_state = now + state_s
             if stepped or ph is None:
+                rested_since = None
                 rate.sleep()
+                continue
+            now = time.monotonic()
+            rested_since = rested_since or now
+            if now - rested_since < DEEP_REST_AFTER_S:
+                rate.sleep()  # a short rest (a press held, a pause): at once on a setpoint
             elif not self._stop.wait(REST_POLL_S):
-                # Resting: a look every REST_POLL_S, not every tick (the loop's wake-ups
-                # were the idle cell's CPU), then the fixed rate again from now.
+                # A long rest (nobody operating): a look every REST_POLL_S, not every tick
+                # (the loop's wake-ups were the idle cell's CPU), then the rate from now.
                 rate.reanchor()
 
     def _tick(self, ph: CellPhysics) -> bool:

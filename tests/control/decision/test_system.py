@@ -434,8 +434,10 @@ def test_contact_with_the_table_stops_the_motion(make_cell: Callable[..., Cell])
     cell.arm_cmds.wait_more(n, 250, 10.0)  # 0.5 s of the master pushing on
     later = cell.robot(lambda s: s.seq > first.seq)
     assert TOUCH - 0.004 < later.tool_p[2] < TOUCH + 0.002  # the fingertips touch
-    # stopped (the back-off from the impact's peak may lift it by a millimetre or so)
-    assert later.tool_p[2] == pytest.approx(first.tool_p[2], abs=2e-3)
+    # stopped: 0.5 s of the master pushing on took it no deeper. (The back-off from the
+    # impact's peak lifts it, by 2-3 mm on a loaded host, 2026-12-02: bounded by the band
+    # above, where the fingertips still touch.)
+    assert later.tool_p[2] >= first.tool_p[2] - 1e-3
     f = cell.call("sensor_read")["f"]
     assert 1.0 < float(np.linalg.norm(f)) < 1.5 * 40.0  # touching, not past the limit
     assert cell.call("status")["interventions"]["contact"] >= 1
@@ -587,7 +589,9 @@ def test_guarded_move_finds_the_table_top(make_cell: Callable[..., Cell]) -> Non
     assert busy.data is not None and busy.data["master"] == "m1"
     st = cell.call("status")
     assert st["mode"] == "hold" and st["supervisor"]["last_task"]["done"] is True
-    assert cell.tool_p()[0] == pytest.approx(0.55, abs=5e-4)  # the operator moved nothing
+    # the operator moved nothing (their ramp is 5 cm along x; the press's fingertip friction
+    # shifts the tool by up to 0.6 mm on a loaded host, 2026-12-02)
+    assert cell.tool_p()[0] == pytest.approx(0.55, abs=2e-3)
 
 
 class ForceLog:
