@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from services.bus import keys
+from services.bus import codec, keys
 from services.bus.messages import ForceSample, StereoFrame, VisionStats
 from services.control.vision.adapt import VIDEO_ARRIVAL
 from services.control.vision.config import VisionConfig
@@ -19,6 +19,7 @@ from services.frontends.console.config import ConsoleConfig
 from services.frontends.console.link import LinkMeter, link_html
 from services.frontends.console.mirror import BusMirror
 from tests.bus.test_node import wait_matched
+from tests.conftest import lossless
 
 from .support import FakeBrowser, wait_until
 
@@ -71,18 +72,23 @@ def test_the_mirror_feeds_the_meter_from_the_streams(net: Any) -> None:
     mirror = BusMirror(net.node("console"), events=3, force_capacity=100, receiver="console/m")
     mirror.watch_page(True)
     mirror.watch_video(True)
-    force = src.publisher(keys.FORCE)
-    left = src.publisher(keys.STEREO_L)
-    wait_matched(force)
-    wait_matched(left)
+    wait_matched(src.publisher(keys.FORCE))
+    wait_matched(src.publisher(keys.STEREO_L))
+    # The meter is under test, not the link: the only gaps are the ones left out here (a
+    # burst on these best-effort keys lost more on a loaded host, 2026-12-02).
+    force, left = lossless(src, keys.FORCE), lossless(src, keys.STEREO_L)
     for seq in range(1, 41):
         if seq not in (7, 8):
-            force.put(ForceSample(seq=seq, t_ns=time.time_ns(), f=(0.0, 0.0, 1.0), c=(0.0,) * 3))
+            force(
+                codec.encode(
+                    ForceSample(seq=seq, t_ns=time.time_ns(), f=(0.0, 0.0, 1.0), c=(0.0,) * 3)
+                )
+            )
     for seq in (1, 2, 4):
-        left.put(
+        left(codec.encode(
             StereoFrame(seq=seq, t_ns=time.time_ns(), eye="l", width=16, height=16,
                         encoding="bgr8", data=bytes(16 * 16 * 3))
-        )  # fmt: skip
+        ))  # fmt: skip
     assert wait_until(lambda: mirror.link.force_loss(time.monotonic()) is not None)
     assert wait_until(lambda: (r := mirror.link.report()) is not None and r.pairs == 3)
     report = mirror.link.report()
