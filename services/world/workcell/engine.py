@@ -178,7 +178,7 @@ class CellPhysics:
         """The gripper's subtree (palm, fingers): the bodies whose own inertia the wrist's
         reading leaves out (`wrench_t`)."""
         self._gravity = np.asarray(self.model.opt.gravity, dtype=float).copy()
-        self._acc6 = np.zeros((len(self._tool_bodies), 6))
+        self._tool_acc = np.zeros((len(self._tool_bodies), 6))
         self._tool_masses: list[float] = self.model.body_mass[self._tool_bodies].tolist()
         self._gravity_floats: list[float] = self._gravity.tolist()
         self._p_et_floats: list[float] = self._p_et.tolist()
@@ -333,7 +333,7 @@ class CellPhysics:
         b0 = c.gripper_body
         R_we = d.xmat[b0].reshape(3, 3)
         o = d.xpos[b0]
-        acc = self._acc6  # one row per tool body
+        acc = self._tool_acc  # one row per tool body
         bodies = self._tool_bodies
         for i, b in enumerate(bodies):
             # [rot; lin] at the body's centre of mass, world frame; MuJoCo's linear part is

@@ -103,8 +103,8 @@ class WorkcellService:
         self.steps = 0
         self.rejected = 0
         self.wakes = 0
-        """The loop's wake-ups (at `rate_hz` while the physics steps, every `REST_POLL_S`
-        while it rests)."""
+        """The loop's wake-ups (at `rate_hz`, and every `REST_POLL_S` once the physics has
+        rested `DEEP_REST_AFTER_S`)."""
         self.resting = False
         self._pub = node.publisher(WORKCELL_STATE)
         self._arm_pub = node.publisher(SIM_ARM_STATE)
