@@ -87,6 +87,14 @@ def ready_state(seq: int, t_ns: int, q: ArrayLike, oMt: pin.SE3, oMe: pin.SE3) -
     )
 
 
+BEST_EFFORT_LOSS = 0.15
+"""The share of a best-effort stream (robot/force: PROTOCOL §3, keys.FORCE) a test allows
+lost in transit: a lost sample is one millisecond of a continuous signal, and on a starved
+2-core CI host some are (6 % over compose's TLS link, up to 7 % in-process, 2026-12-02; none
+on a quiet machine). What a test asserts is the stream in order, none twice; the loss of a
+quiet machine is `telerobot bench`'s (docs/bench.md)."""
+
+
 def lossless(node: Node, topic: Any) -> Callable[[bytes], None]:
     """A put on `topic` with its QoS but waiting for room instead of dropping: a burst of a
     best-effort key loses samples on a loaded host (make test, 2026-12-02: 14 of 40), and
