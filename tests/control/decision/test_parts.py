@@ -319,13 +319,15 @@ def test_a_watched_approach_stops_within_one_and_a_half_times_the_limit(
 @given(
     start=st.floats(41.0, 2_000.0),
     falls=st.lists(st.floats(0.0, 5.0), min_size=1, max_size=50),
-    rise=st.floats(0.0, 3.9),
+    rise=st.floats(0.0, 3.8),
 )
 def test_a_motion_that_lowers_a_contact_force_is_never_stopped_for_it(
     start: float, falls: list[float], rise: float
 ) -> None:
     """Started pressing harder than the limit (after a stop, say), a motion that lowers the
-    force, or lets it creep up by less than 10 % of the limit, goes on: the way out."""
+    force, or lets it creep up by less than 10 % of the limit, goes on: the way out. (The
+    creep's own rate counts: 3.89 N in the last 0.995 s, projected CONTACT_REACT_S ahead,
+    passes start + 4 N and is "heading past"; 3.8 N over ≥ 0.75 s stays below it.)"""
     cfg = DecisionConfig()
     w = Watch("move_relative", since_ns=0)
     f_n = start
