@@ -39,7 +39,15 @@ from services.bus.node import Node
 from services.bus.rate import RateLoop
 from services.bus.streams import wait_latest
 from services.control.master.devices.virtual import VirtualMaster
-from services.geometry import angle_between, exp_so3, rotation_angle, rxyz, rxyz_inv, slerp
+from services.geometry import (
+    angle_between,
+    exp_so3,
+    orthonormalize,
+    rotation_angle,
+    rxyz,
+    rxyz_inv,
+    slerp,
+)
 from services.world.workcell.messages import WORKCELL_STATE, ObjectView, WorkcellState, objects_of
 
 Vec = NDArray[np.float64]
@@ -396,10 +404,13 @@ class Operator:
         self.scale_r = 1.0
         self.frame: Frame = "world"
         self.ref: Reference | None = None
-        self._still_since = time.monotonic()
-        # the tool as seen at each tick, over a few settle windows (what `settle` looks at)
+        # The tool as the arm reported it, one sample per tick (a new `robot/state` seq
+        # only), over a few settle windows: (seq, the arm's t_s, p, R). What `settle` looks
+        # at, by the arm's own clock: on a starved host states arrive late and in bursts,
+        # and a stale state repeated at each tick is not a still tool.
         span = max(16, math.ceil(3.0 * self.config.settle_window_s * self.config.rate_hz))
-        self._seen: deque[tuple[float, Vec, Mat]] = deque(maxlen=span)
+        self._seen: deque[tuple[int, float, Vec, Mat]] = deque(maxlen=span)
+        self._still_seq = -1  # the last robot/state seq seen when the hand came to rest
         self._losses_seen = 0
         self._engaged_at_change = False
         self._t0 = time.monotonic()
@@ -417,9 +428,14 @@ class Operator:
         except (RpcError, Unavailable) as e:
             raise TaskFailed(f"the master station does not respond: {e}") from None
         st = self.eyes.robot.latest
-        if st is not None:
-            self._seen.append((time.monotonic(), np.asarray(st.tool_p), mat3(st.tool_R)))
+        if st is not None and (not self._seen or st.seq != self._seen[-1][0]):
+            self._seen.append((st.seq, st.t_ns * 1e-9, np.asarray(st.tool_p), mat3(st.tool_R)))
         self._rate.sleep()
+
+    def _hand_at_rest(self) -> None:
+        """From now the hand holds still: `settle` judges the states the arm sends after."""
+        st = self.eyes.robot.latest
+        self._still_seq = -1 if st is None else st.seq
 
     def _say(self, text: str) -> None:
         self.stats.log.append(f"{time.monotonic() - self._t0:7.2f} s  {text}")
@@ -454,32 +470,43 @@ class Operator:
             self.hand_p = p0 + u * (goal_p - p0)
             self.hand_R = slerp(R0, goal_R, u)
             self._tick()
-        self._still_since = time.monotonic()
+        self._hand_at_rest()
 
     # --- watching the tool ------------------------------------------------------------------
-    def settle(self) -> None:
-        """Hold the hand still until the tool is still (the window of settle_window_s)."""
+    def settle(self) -> tuple[Vec, Mat]:
+        """Hold the hand still until the tool is still: over settle_window_s of the arm's
+        clock, every state the arm sent after the hand came to rest is within the tolerance
+        of the newest. Returns the tool's mean pose over that window (the tremor's and the
+        servo's jitter averaged: what a person judges by eye)."""
         cfg = self.config
         tol_m = cfg.settle_tol_m + 4.0 * cfg.tremor_m * (0.0 if self.clutch else self.scale_t)
         tol_r = cfg.settle_tol_rad + 4.0 * cfg.tremor_rad * (0.0 if self.clutch else self.scale_r)
+        settled: list[tuple[Vec, Mat]] = []
 
         def still() -> bool:
-            now = time.monotonic()
-            if now - self._still_since < cfg.settle_window_s or not self._seen:
-                return False
             st = self.eyes.robot.latest
             if st is None or st.status not in READY:
                 return False
-            _, p_new, R_new = self._seen[-1]
-            window = [(t, p, R) for t, p, R in self._seen if t >= now - cfg.settle_window_s]
-            if len(window) < 3 or window[0][0] > now - 0.8 * cfg.settle_window_s:
+            after = [s for s in self._seen if s[0] > self._still_seq]
+            if len(after) < 3 or after[-1][1] - after[0][1] < cfg.settle_window_s:
                 return False
-            return all(
+            _, t_new, p_new, R_new = after[-1]
+            window = [(p, R) for _, t, p, R in after if t >= t_new - cfg.settle_window_s]
+            if len(window) < 3 or not all(
                 float(np.linalg.norm(p - p_new)) <= tol_m and angle_between(R, R_new) <= tol_r
-                for _, p, R in window
+                for p, R in window
+            ):
+                return False
+            settled.append(
+                (
+                    np.mean([p for p, _ in window], axis=0),
+                    orthonormalize(np.mean([R for _, R in window], axis=0)),
+                )
             )
+            return True
 
         self._until(still, "the tool to settle")
+        return settled[-1]
 
     # --- the station's controls -----------------------------------------------------------
     def engage(self) -> None:
@@ -541,9 +568,8 @@ class Operator:
 
     def _rebase(self) -> None:
         self._losses_seen = self.eyes.engagements_lost
-        self._still_since = time.monotonic()
-        self.settle()
-        p0, R0 = self.eyes.tool()
+        self._hand_at_rest()
+        p0, R0 = self.settle()
         self.ref = Reference(
             self.hand_p.copy(), self.hand_R.copy(), p0, R0, self.scale_t, self.scale_r, self.frame
         )
@@ -672,11 +698,10 @@ class Operator:
             alpha = min(alpha_p, alpha_r)
             if alpha >= 1.0:
                 self.move_hand(hand_p, hand_R)
-                self.settle()
+                p, R = self.settle()
                 if self.eyes.engagements_lost != self._losses_seen:
                     aim_p, aim_R = goal_p.copy(), goal_R.copy()  # what it saw was a hold
                     continue
-                p, R = self.eyes.tool()
                 err_p, err_r = float(np.linalg.norm(goal_p - p)), angle_between(R, goal_R)
                 if err_p <= tol_m and err_r <= tol_rad:
                     self.stats.reaches += 1
