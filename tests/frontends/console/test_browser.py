@@ -77,7 +77,9 @@ pytestmark = [
         not CHROMIUM.exists(),
         reason="no /usr/bin/chromium (make system-deps installs it: apt-get install chromium)",
     ),
-    pytest.mark.timeout(180),
+    # A hang guard above the sum of the steps' own deadlines (the first test's waits add up
+    # to about 250 s): on CI's starved 2 cores, 180 s cut a run that was still progressing.
+    pytest.mark.timeout(360),
 ]
 
 
