@@ -98,8 +98,14 @@ quiet machine is `telerobot bench`'s (docs/bench.md)."""
 def lossless(node: Node, topic: Any) -> Callable[[bytes], None]:
     """A put on `topic` with its QoS but waiting for room instead of dropping: a burst of a
     best-effort key loses samples on a loaded host (make test, 2026-12-02: 14 of 40), and
-    these tests are of the reader, not of the link. Same priority: it keeps their order."""
-    qos = {**publisher_qos(topic), "congestion_control": zenoh.CongestionControl.BLOCK}
+    these tests are of the reader, not of the link. Same priority: it keeps their order.
+    Reliable too: a router between the two forwards a best-effort sample on a best-effort
+    path, and one lost on a busy host left `tests/bus/test_router.py` one sample short."""
+    qos = {
+        **publisher_qos(topic),
+        "congestion_control": zenoh.CongestionControl.BLOCK,
+        "reliability": zenoh.Reliability.RELIABLE,
+    }
     pub = node.session.declare_publisher(topic.key, **qos)
     node._decls.append(pub)
     return pub.put
