@@ -458,10 +458,18 @@ def test_compose_down_leaves_the_arm_holding(cluster: Cluster) -> None:
     w = cluster.watch
     s0, t0 = len(w.snapshot(w.states)), len(w.snapshot(w.targets))
     before = cluster.call("decision", "status")
-    events = subprocess.Popen(
+    since = f"{time.time() - 1.0:.9f}"  # seconds[.nanoseconds], all nine digits
+    cluster.robot("down", "-t", "15", timeout_s=180)
+    # The daemon keeps its recent events: read the stack's exits back from before `down`
+    # (no subscription to race the first container's stop) until now (all have exited).
+    out = subprocess.run(
         [
             "docker",
             "events",
+            "--since",
+            since,
+            "--until",
+            f"{time.time():.9f}",
             "--filter",
             f"label=com.docker.compose.project={cluster.robot.project}",
             "--filter",
@@ -469,16 +477,11 @@ def test_compose_down_leaves_the_arm_holding(cluster: Cluster) -> None:
             "--format",
             "{{json .}}",
         ],
-        stdout=subprocess.PIPE,
+        capture_output=True,
         text=True,
-    )
-    try:
-        time.sleep(1.0)  # `docker events` subscribes before the first container stops
-        cluster.robot("down", "-t", "15", timeout_s=180)
-        time.sleep(1.0)
-    finally:
-        events.terminate()
-        out, _ = events.communicate(timeout=30)
+        timeout=60,
+        check=True,
+    ).stdout
     exits = {}
     for line in out.splitlines():
         attrs = json.loads(line)["Actor"]["Attributes"]
