@@ -18,6 +18,7 @@ from services.bus.messages import Event, vec
 from services.control.arm.config import ArmConfig
 from services.control.arm.model import load_model
 from services.control.arm.service import ArmService
+from services.world.workcell.channel import ArmChannel
 from services.world.workcell.config import WorkcellConfig
 from services.world.workcell.engine import CellPhysics
 from services.world.workcell.messages import (
@@ -81,13 +82,20 @@ def test_config_is_checked() -> None:
         section(WorkcellConfig, {"physics": {"kp_nm_rad": -1.0}}, "workcell")
 
 
-def test_the_arm_moves_in_the_workcells_physics_and_bad_setpoints_are_refused(net: Net) -> None:
+@pytest.mark.parametrize("via", ["workcell", "embedded"])
+def test_the_arm_moves_in_the_workcells_physics_and_bad_setpoints_are_refused(
+    net: Net, via: str
+) -> None:
+    """`workcell`: setpoints and joints over the bus; `embedded` (the sim profile's): the
+    workcell in the arm's process, through an ArmChannel; the same checks either way."""
     model = load_model("fr3")
+    channel = ArmChannel() if via == "embedded" else None
     arm = ArmService(
         net.node("arm"),
-        ArmConfig(model="fr3", sim_physics="workcell", sim_calibration_s=0.05),
+        ArmConfig(model="fr3", sim_physics=via, sim_calibration_s=0.05),
+        channel=channel,
     )
-    cell = WorkcellService(net.node("workcell"), WorkcellConfig())
+    cell = WorkcellService(net.node("workcell"), WorkcellConfig(), channel=channel)
     watcher = net.node("console")
     events: list[Event] = []
     lock = threading.Lock()
@@ -120,8 +128,18 @@ def test_the_arm_moves_in_the_workcells_physics_and_bad_setpoints_are_refused(ne
         assert sim.wait_for(lambda s: np.max(np.abs(np.array(s.q) - goal)) < 1e-3, 5.0)
         np.testing.assert_allclose(arm.arm.read_joints(), goal, atol=2e-3)
         q_here = np.array(sim.latest.q)
-        # A rogue setpoint: a jump, the wrong size, past a limit: refused, nothing moves.
         rogue = watcher.publisher(SIM_ARM_CMD)
+        if channel is not None:
+            # Embedded, the physics takes no setpoint from the bus: one published there is
+            # not even looked at (nothing refused, nothing moves) …
+            far = np.where(np.arange(model.n) == 0, q_here[0] + 0.2, q_here)
+            rogue.put(SimArmCmd(seq=9_999, t_ns=time.time_ns(), q=tuple(map(float, far))))
+            seq0 = sim.latest.seq
+            assert sim.wait_for(lambda s: s.seq >= seq0 + 5, 5.0) is not None
+            assert cell.rejected == 0
+            assert np.max(np.abs(np.array(sim.latest.q) - q_here)) < 5e-3
+            rogue = channel.cmd  # … the driver's own hand-off is what is checked below
+        # A rogue setpoint: a jump, the wrong size, past a limit: refused, nothing moves.
         bad = [
             q_here + np.resize([0.0, 0.0, 0.0, 1.0], model.n),
             q_here[:3],
@@ -196,3 +214,40 @@ def test_a_resting_cell_wakes_seldom_and_still_takes_the_next_setpoint(
         assert cell.steps > steps0
     finally:
         cell.close()
+
+
+def test_telerobot_arm_embedded_runs_the_workcell_in_its_process(net: Net) -> None:
+    """`telerobot arm --sim-physics embedded` (the sim profile's): one process announces
+    both `arm` and `workcell`, the arm comes up ready on the cell's physics (its joints on
+    `sim/arm/state`, the workcell's queryables answer), and SIGTERM stops both, exit 0."""
+    import signal
+
+    from tests.bus.test_router import spawned, telerobot
+
+    watcher = net.node("console")
+    sim = watcher.subscribe(SIM_ARM_STATE)
+    state = watcher.subscribe(keys.STATE)
+    argv = telerobot(
+        "arm", "--sim-physics", "embedded", "--autostart", "--connect", net.endpoint
+    )  # fmt: skip
+    with spawned(argv) as child:
+        assert watcher.alive.wait("workcell", 30.0) and watcher.alive.wait("arm", 30.0)
+        ready = state.wait_for(lambda s: s.status == "ready", 30.0)
+        assert ready is not None, child.lines[-20:]
+        got = sim.wait_for(lambda s: len(s.q) == len(ready.q), 10.0)
+        assert got is not None
+        np.testing.assert_allclose(got.q, ready.q, atol=1e-3)  # the arm's joints: the cell's
+        assert watcher.call("workcell", "status", {}, 5.0)["held"] == ""
+        child.proc.send_signal(signal.SIGTERM)
+        assert child.wait(30.0) == 0, child.lines[-20:]
+    assert wait_until(lambda: not watcher.alive.is_alive("workcell"), 10.0, what="gone")
+
+
+def test_embedded_physics_is_a_config_value_and_needs_its_channel() -> None:
+    from services.control.arm.backends import arm_options
+
+    assert ArmConfig(sim_physics="embedded").sim_physics == "embedded"
+    with pytest.raises(ConfigError, match=r"arm\.sim_physics.*own, workcell, embedded"):
+        ArmConfig(sim_physics="elsewhere")
+    with pytest.raises(ConfigError, match=r"arm\.sim_physics"):
+        arm_options(ArmConfig(sim_physics="embedded"))  # no workcell in this process

@@ -28,10 +28,11 @@ BACKENDS: BackendRegistry[Arm] = BackendRegistry(
 
 
 def arm_options(
-    config: ArmConfig, model: ArmModel | None = None, node: Any = None
+    config: ArmConfig, model: ArmModel | None = None, node: Any = None, channel: Any = None
 ) -> dict[str, Any]:
     """The constructor arguments of the backend `config.driver`, for `model` (default: the
-    configuration's); `node`: the service's, for a simulated arm on the workcell's physics."""
+    configuration's); `node`: the service's, for a simulated arm on the workcell's physics;
+    `channel`: the `ArmChannel` of a workcell in this process (`sim_physics = "embedded"`)."""
     arm = model if model is not None else load_model(config.model)
     config = config.bind(arm)
     if config.driver == "serial":
@@ -58,13 +59,21 @@ def arm_options(
         if node is None:
             raise ConfigError("arm.sim_physics", "the workcell's physics needs the bus")
         options["node"] = node
+    elif config.sim_physics == "embedded":
+        if channel is None:
+            raise ConfigError(
+                "arm.sim_physics", "embedded needs the workcell in this process (telerobot arm)"
+            )
+        options["channel"] = channel
     return options
 
 
-def open_arm(config: ArmConfig, model: ArmModel | None = None, node: Any = None) -> Arm:
+def open_arm(
+    config: ArmConfig, model: ArmModel | None = None, node: Any = None, channel: Any = None
+) -> Arm:
     """The arm `config.driver` with its options, not yet connected (`Arm.connect` does that).
 
     Raises `ConfigError("arm.driver", …)` for a name without a backend (an `ArmConfig` built
     the ordinary way has already refused it).
     """
-    return BACKENDS.build(config.driver, arm_options(config, model, node))
+    return BACKENDS.build(config.driver, arm_options(config, model, node, channel))

@@ -15,11 +15,14 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any, Literal, get_args
 
-from services.bus.bounds import check_config
+from services.bus.bounds import check_config, short
 from services.bus.config import section
 from services.bus.errors import ConfigError
 from services.control.arm.driver import DriverName
 from services.control.arm.model import DEFAULT_MODEL, ArmModel
+
+SIM_PHYSICS = ("own", "workcell", "embedded")
+"""Whose physics a `sim` arm's joints are (ArmConfig.sim_physics)."""
 
 #: the physical bound (services/bus/bounds.py) each numeric setting must respect
 _KINDS: dict[str, str] = {
@@ -54,8 +57,10 @@ class ArmConfig:
     target further than this from the previous one is refused.
 
     `sim_physics` (driver `sim`): whose physics the simulated arm's joints are: `own` (the
-    arm alone, in this process) or `workcell` (the cell's, owned by the `workcell` service:
-    the arm then touches the objects; docs/sim.md).
+    arm alone, in this process), `workcell` (the cell's, owned by the `workcell` service:
+    the arm then touches the objects; docs/sim.md) or `embedded` (the same cell, the
+    workcell service run inside the arm's process: setpoints and joints pass in memory,
+    no bus hop; the sim profile's).
     `libfranka` (a Franka FR3 or Panda, docs/franka.md) needs `robot_ip`; `franka_realtime`
     is libfranka's real-time check (`auto`: on where the kernel has a real-time policy, else
     off and said at start-up), `franka_watchdog_s` how long without the robot's state is a
@@ -129,9 +134,10 @@ class ArmConfig:
         if self.serial_cycle_ms > 28.0:
             raise ConfigError("arm.serial_cycle_ms", "must be ≤ 28 ms (the PUMA setpoint cycle)")
         _non_negative(self, "sim_calibration_s")
-        if self.sim_physics not in ("own", "workcell"):
+        if self.sim_physics not in SIM_PHYSICS:
             raise ConfigError(
-                "arm.sim_physics", f"must be own or workcell, got {self.sim_physics!r}"
+                "arm.sim_physics",
+                f"must be one of {', '.join(SIM_PHYSICS)}, got {short(repr(self.sim_physics))}",
             )
         _positive(self, "franka_watchdog_s")
         if self.robot_ip is not None and not _host(self.robot_ip):

@@ -56,10 +56,17 @@ command can arrive right after a tick; a stalled thread must not make one long s
 
 
 class ArmService:
-    """Runs the PUMA proxy on the bus; `close()` holds the arm and disconnects it."""
+    """Runs the arm's proxy on the bus; `close()` holds the arm and disconnects it.
+    `channel`: the `ArmChannel` to a workcell running in this process, for a `sim` arm on
+    `sim_physics = "embedded"`."""
 
     def __init__(
-        self, node: Node, config: ArmConfig, arm: Any = None, model: ArmModel | None = None
+        self,
+        node: Node,
+        config: ArmConfig,
+        arm: Any = None,
+        model: ArmModel | None = None,
+        channel: Any = None,
     ) -> None:
         self.node = node
         self.model = model if model is not None else load_model(config.model)
@@ -67,7 +74,7 @@ class ArmService:
         # the liveliness watch starts now, not at the first motion call: a set created on
         # demand has not yet heard of a decision that is already alive (unsupervised moves)
         _ = node.alive
-        self.arm = arm if arm is not None else open_arm(self.config, self.model, node)
+        self.arm = arm if arm is not None else open_arm(self.config, self.model, node, channel)
         self.proxy = ArmProxy(self.arm, self.config, self._emit, self.model)
         self._clock: Clocked | None = self.arm if isinstance(self.arm, Clocked) else None
         """A driver with a robot clock of its own: ticks advance by it (docs/franka.md)."""

@@ -6,7 +6,9 @@ is either
 
 - **the workcell's** (`node` given: the arm service's): setpoints on `sim/arm/cmd`, joints
   from `sim/arm/state`, both published by the one process that owns the physics (the
-  `workcell` service), which also moves the objects the arm touches; or
+  `workcell` service), which also moves the objects the arm touches;
+- **the workcell's in this process** (`channel` given: `sim_physics = "embedded"`, the sim
+  profile's): the same messages through an `ArmChannel`, in memory; or
 - **its own** (no node: the arm alone, for the contract suite, the proxy's tests and a
   standalone `telerobot arm`): a `CellPhysics` of the arm in an empty cell, stepped at 1 kHz
   by its own thread (`threaded=True`) or by the caller through `step(dt_s)`
@@ -25,14 +27,15 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Sequence
-from typing import TYPE_CHECKING, Literal
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from services.control.arm.arm_base import ArmBase, as_joint_vector
 from services.control.arm.driver import ArmError, ArmStatus, Q
 from services.control.arm.model import ArmModel, load_model
+from services.world.workcell.channel import ArmChannel
 from services.world.workcell.engine import CellPhysics
 from services.world.workcell.messages import SIM_ARM_CMD, SIM_ARM_STATE, SimArmCmd
 from services.world.workcell.scene import Scene
@@ -305,18 +308,25 @@ class _OwnPhysics(_Link):
 
 
 class _WorkcellPhysics(_Link):
-    """The workcell's physics over the bus: `sim/arm/cmd` out, `sim/arm/state` in."""
+    """The workcell's physics: over the bus (`sim/arm/cmd` out, `sim/arm/state` in), or in
+    memory through an `ArmChannel` when the workcell runs in this process (the same
+    messages, not encoded)."""
 
-    def __init__(self, node: Node, n: int) -> None:
+    def __init__(self, n: int, node: Node | None = None, channel: ArmChannel | None = None) -> None:
         self._n = n
-        self._pub = node.publisher(SIM_ARM_CMD)
-        self._state = node.latest(SIM_ARM_STATE)
+        if channel is not None:
+            self._put: Callable[[SimArmCmd], None] = channel.cmd.put
+            self._state: Any = channel.state
+        else:
+            assert node is not None
+            self._put = node.publisher(SIM_ARM_CMD).put
+            self._state = node.latest(SIM_ARM_STATE)
         self._seq = 0
         self._rx_ns = 0
 
     def command(self, q: JointFloats, halt: bool = False) -> None:
         self._seq += 1
-        self._pub.put(SimArmCmd(seq=self._seq, t_ns=time.time_ns(), q=q, halt=halt))
+        self._put(SimArmCmd(seq=self._seq, t_ns=time.time_ns(), q=q, halt=halt))
 
     def joints(self) -> tuple[JointFloats, JointFloats] | None:
         got = self._state.read()
@@ -358,6 +368,7 @@ class SimArm(ArmBase):
         q_lo: Sequence[float] | None = None,
         q_hi: Sequence[float] | None = None,
         node: Node | None = None,
+        channel: ArmChannel | None = None,
     ) -> None:
         if calibration_s < 0.0:
             raise ValueError("calibration_s must be ≥ 0")
@@ -380,7 +391,11 @@ class SimArm(ArmBase):
         q0 = _joints(as_joint_vector(arm.home if q_init is None else q_init, "q", n), n)
         if any(q < lo or q > hi for q, lo, hi in zip(q0, self._lo, self._hi, strict=True)):
             raise ValueError("q_init is outside the joint limits")
-        self._link: _Link = _OwnPhysics(arm, q0) if node is None else _WorkcellPhysics(node, n)
+        self._link: _Link = (
+            _OwnPhysics(arm, q0)
+            if node is None and channel is None
+            else _WorkcellPhysics(n, node, channel)
+        )
         self._q_read: JointFloats = q0
         self._sp: JointFloats = q0
         self._calibration_s = float(calibration_s)

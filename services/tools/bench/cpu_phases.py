@@ -1,12 +1,13 @@
 """The CPU phases: what each service of the sim profile costs, idle and during teleoperation.
 
 They run last, on the set `telerobot up sim` runs (deploy/sim.toml): router, arm (sim,
-autostart, on the workcell's physics), force (sim), decision, vision (sim camera, 640×480
-at 30 fps), workcell and the console with its in-process virtual master and no browser. The
-bench's own master station (which the sim profile does not have) is stopped first, and its
-arm, alone in a physics of its own for the other phases, is started again on the
-workcell's MuJoCo cell as the profile runs it; nothing is measured after these phases, so
-restarting the arm and starting the workcell and the console cannot disturb another phase.
+autostart, with the workcell's MuJoCo cell in its process: `sim_physics = "embedded"`),
+force (sim), decision, vision (sim camera, 640×480 at 30 fps) and the console with its
+in-process virtual master and no browser. The bench's own master station (which the sim
+profile does not have) is stopped first, and its arm, alone in a physics of its own for the
+other phases, is started again with the cell as the profile runs it; nothing is measured
+after these phases, so restarting the arm and starting the console cannot disturb another
+phase. The arm's figure holds the physics.
 
 - `cpu_idle`: after `settle_s`, a window in which nobody operates and nobody subscribes to
   video (the bench holds no subscription but its liveliness one);
@@ -37,8 +38,8 @@ from services.tools.cell.procs import ChildFailed, Children, telerobot_argv, wai
 Say = Callable[[str], None]
 PhaseLog = Callable[[str], AbstractContextManager[None]]
 
-EXTRA_SERVICES = ("vision", "workcell", "console")
-"""Started for the CPU phases only (in this order, the arm again after the workcell;
+EXTRA_SERVICES = ("vision", "console")
+"""Started for the CPU phases only (in this order, the arm again with the workcell in it;
 stopped in reverse)."""
 CONSOLE_MASTER = "master/console"
 """The console's in-process virtual master (its default id): `up sim` has no other."""
@@ -116,8 +117,9 @@ class SimRun:
         w, h = self.vga_size
         notes = [
             "CPU phases: the sim profile's processes (router, arm, force, decision, vision "
-            f"{w}×{h}@{self.vga_fps:g}, workcell, console without a browser, with its virtual "
-            "master; the arm on the workcell's physics), run after every other phase with the "
+            f"{w}×{h}@{self.vga_fps:g}, console without a browser, with its virtual "
+            "master; the workcell's physics in the arm's process), run after every other "
+            "phase with the "
             "bench's station master stopped; "
             f"{settle_s:g} s to settle, then {window_s:g} s idle (nobody operating, nobody "
             f"subscribed to video), then {window_s:g} s while the bench streams robot/cmd at "
@@ -157,23 +159,20 @@ class SimRun:
 
     def _start(self) -> None:
         self.say(
-            "[cpu] stopping the station master; starting vision, workcell, the arm on the "
-            "workcell's physics, console …"
+            "[cpu] stopping the station master; starting vision, the arm with the workcell's "
+            "physics in its process, console …"
         )
         self.kids.stop("master")
         self.kids.stop("arm")
         w, h = self.vga_size
         argv = {
             "vision": ("vision", "--size", f"{w}x{h}", "--fps", f"{self.vga_fps:g}"),
-            "workcell": ("workcell",),
-            "arm": ("arm", "--autostart", "--model", self.model, "--sim-physics", "workcell"),
+            "arm": ("arm", "--autostart", "--model", self.model, "--sim-physics", "embedded"),
             "console": ("console", "--port", "0"),
         }
-        for name in ("vision", "workcell", "arm", "console"):
+        for name in ("vision", "arm", "console"):
             self.kids.spawn(name, telerobot_argv(*argv[name], *self.zargs))
-            if name == "workcell":  # the arm's joints are its physics': it must run first
-                wait_alive(self.kids, self.node.alive.wait, name, self.startup_timeout_s)
-        for name in (*EXTRA_SERVICES, "arm", CONSOLE_MASTER):
+        for name in (*EXTRA_SERVICES, "workcell", "arm", CONSOLE_MASTER):
             wait_alive(self.kids, self.node.alive.wait, name, self.startup_timeout_s)
         wait_arm_ready(self.kids, self.node, self.startup_timeout_s)
 

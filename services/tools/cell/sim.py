@@ -2,10 +2,12 @@
 
 Each service runs on a node of its own as separate processes would, built in the order each
 needs the one before: arm (simulated arm, at home), workcell (the cell's MuJoCo physics, of a
-given `Scene`, which the arm's joints and the wrist are part of), force (simulated wrist) and
-decision. Used by the tests, by the tasks (`python -m services.tools.tasks --headless`), by
-the bench and by the link bench's robot side (`services.tools.tdpa.link_bench`, which starts
-it through the decision server instead of `start()`).
+given `Scene`, which the arm's joints and the wrist are part of; with the arm on
+`sim_physics = "embedded"`, the default `light_arm`, the two share an `ArmChannel` in memory
+as in the sim profile's arm process), force (simulated wrist) and decision. Used by the
+tests, by the tasks (`python -m services.tools.tasks --headless`), by the bench and by the
+link bench's robot side (`services.tools.tdpa.link_bench`, which starts it through the
+decision server instead of `start()`).
 
 Nodes come from a `NodeFactory(name, instance)`, so the same code runs on a private test
 network or a headless in-process network.
@@ -25,6 +27,7 @@ from services.control.decision.service import DecisionService
 from services.control.force.config import ForceConfig
 from services.control.force.service import ForceService
 from services.tools.cell.wait import wait_until
+from services.world.workcell.channel import ArmChannel
 from services.world.workcell.config import WorkcellConfig
 from services.world.workcell.scene import Scene
 from services.world.workcell.service import WorkcellService
@@ -57,11 +60,17 @@ class SimCell:
         scene: Scene | None = None,
     ) -> None:
         self._closers: list[Callable[[], None]] = []
+        arm = arm or ArmConfig()
+        # the arm on the cell's physics in memory, as the sim profile runs it (embedded)
+        channel = ArmChannel() if arm.sim_physics == "embedded" else None
         try:
-            self.arm = ArmService(make_node("arm", None), arm or ArmConfig())
+            self.arm = ArmService(make_node("arm", None), arm, channel=channel)
             self._closers.append(self.arm.close)
             self.workcell = WorkcellService(
-                make_node("workcell", None), workcell or WorkcellConfig(), scene=scene
+                make_node("workcell", None),
+                workcell or WorkcellConfig(),
+                scene=scene,
+                channel=channel,
             )
             self._closers.append(self.workcell.close)
             self.force = ForceService(make_node("force", None), force or ForceConfig())
@@ -89,8 +98,9 @@ class SimCell:
 
 
 def light_arm(model: str = DEFAULT_MODEL) -> ArmConfig:
-    """The simulated arm `model` on the workcell's physics, with a short calibration."""
-    return ArmConfig(model=model, sim_calibration_s=0.05, sim_physics="workcell")
+    """The simulated arm `model` on the workcell's physics (embedded: handed over in memory,
+    as the sim profile does), with a short calibration."""
+    return ArmConfig(model=model, sim_calibration_s=0.05, sim_physics="embedded")
 
 
 LIGHT_FORCE = ForceConfig(seed=7, period_ms=2.0)

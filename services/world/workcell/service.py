@@ -8,6 +8,8 @@ meshes) and the scene (`scene.py`), and steps it in real time (docs/sim.md):
   state for `state_stale_ms` the gripper is left as it was);
 - **out**: `sim/arm/state` (the joints, the wrist's wrench, the tool pose) every loop while
   anything moves, for the arm's driver and the force service's `sim` sensor;
+  with an arm in the same process (`channel`, `[arm] sim_physics = "embedded"`) its
+  setpoints and joints pass in memory instead (channel.py), `sim/arm/state` still out;
   `workcell/state` (extension, docs/tasks.md) at `publish_rate_hz`; Events of kind
   `workcell` (`data.action`: grasp, missed, release, settled, toppled, spill, reset, and
   `rejected` for a refused setpoint).
@@ -37,6 +39,7 @@ from services.bus.messages import ArmDescription, RobotState, vec
 from services.bus.node import Node
 from services.bus.rate import RateLoop
 from services.world.workcell.arm import DescribedArm
+from services.world.workcell.channel import ArmChannel
 from services.world.workcell.config import WorkcellConfig
 from services.world.workcell.engine import CellPhysics
 from services.world.workcell.messages import (
@@ -86,8 +89,10 @@ class WorkcellService:
         config: WorkcellConfig,
         scene: Scene | None = None,
         arm: Any = None,
+        channel: ArmChannel | None = None,
     ) -> None:
         self.node = node
+        self._channel = channel
         self.config = config
         self.scene = scene if scene is not None else default_scene()
         self.physics: CellPhysics | None = None
@@ -108,7 +113,8 @@ class WorkcellService:
         self.resting = False
         self._pub = node.publisher(WORKCELL_STATE)
         self._arm_pub = node.publisher(SIM_ARM_STATE)
-        self._cmd = node.latest(SIM_ARM_CMD)
+        # the arm's setpoints: in memory from an arm in this process, else over the bus
+        self._cmd: Any = channel.cmd if channel is not None else node.latest(SIM_ARM_CMD)
         self._robot = node.latest(keys.STATE)
         self._desc = None if arm is not None else node.subscribe(keys.ARM_DESCRIPTION, history=True)
         self._desc_seen: tuple[str, str] | None = None
@@ -279,6 +285,8 @@ class WorkcellService:
                 tool_R=vec(R),
                 cmd_seq=max(0, self._cmd_seq),
             )
+        if self._channel is not None:
+            self._channel.state.put(msg)
         self._arm_pub.put(msg)
 
     def _message(self) -> WorkcellState:
