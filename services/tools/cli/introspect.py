@@ -315,7 +315,7 @@ def cmd_call(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
             return 2
         left = max(args.timeout - (time.monotonic() - start), 0.5)
         try:
-            reply = _call_interruptibly(node, service, args.method, call_args, left)
+            reply = node.call(service, args.method, call_args, timeout_s=left)
         except KeyboardInterrupt:
             return _interrupted(node, service, args.method, out)
         except RpcError as e:
@@ -332,32 +332,6 @@ def cmd_call(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
     indent = 2 if getattr(args, "pretty", False) else None
     out.write(json.dumps(codec.jsonable(reply), ensure_ascii=False, indent=indent) + "\n")
     return 0
-
-
-def _call_interruptibly(
-    node: Any, service: str, method: str, call_args: dict[str, Any], timeout_s: float
-) -> dict[str, Any]:
-    """`node.call` in a worker thread, the main thread waiting in short, signal-aware
-    steps: Ctrl-C raises KeyboardInterrupt here at once, whatever the call is blocked in
-    (a SIGINT that arrived while the main thread was inside Zenoh's reply iterator was
-    lost once under load: the call went on to its 60 s timeout)."""
-    done = threading.Event()
-    box: dict[str, Any] = {}
-
-    def run() -> None:
-        try:
-            box["reply"] = node.call(service, method, call_args, timeout_s=timeout_s)
-        except BaseException as e:  # handed to the main thread, raised there
-            box["error"] = e
-        finally:
-            done.set()
-
-    threading.Thread(target=run, name=f"call-{method}", daemon=True).start()
-    while not done.wait(0.05):
-        pass
-    if "error" in box:
-        raise box["error"]
-    return dict(box["reply"])
 
 
 MOTIONS = frozenset({"move_joints", "move_pose", "move_relative", "home", "initialize"})
