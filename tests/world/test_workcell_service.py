@@ -182,9 +182,12 @@ def test_a_resting_cell_wakes_seldom_and_still_takes_the_next_setpoint(
     net: Net, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """After a long rest the loop looks for a setpoint every REST_POLL_S, not at its
-    500 Hz (those wake-ups were the idle cell's CPU); the next setpoint is taken and
-    stepped at once. Counted against workcell/state, which the same loop sends at 50 Hz:
-    a loop waking at its rate would wake 10 times per state."""
+    500 Hz (those wake-ups were the idle cell's CPU), and sends workcell/state at
+    REST_STATE_HZ, not 50 Hz; the next setpoint is taken and stepped at once, and the
+    states are at their full rate again. Wake-ups counted against the states the same
+    loop sends: a loop waking at its rate would wake 5 times as often."""
+    from services.world.workcell.service import REST_POLL_S, REST_STATE_HZ
+
     monkeypatch.setattr("services.world.workcell.service.DEEP_REST_AFTER_S", 0.2)
     model = load_model("puma560")
     cell = WorkcellService(net.node("workcell"), WorkcellConfig(), arm=model)
@@ -195,15 +198,19 @@ def test_a_resting_cell_wakes_seldom_and_still_takes_the_next_setpoint(
         assert wait_until(lambda: cell.resting, 20.0, what="the cell at rest")
         rest = scene.wait_for(lambda w: True, 5.0)
         assert rest is not None
-        # 15 states (0.3 s) into the rest: past DEEP_REST_AFTER_S
-        first = scene.wait_for(lambda w: w.seq >= rest.seq + 15, 5.0)
+        # 3 states (0.6 s at REST_STATE_HZ) into the rest: past DEEP_REST_AFTER_S
+        first = scene.wait_for(lambda w: w.seq >= rest.seq + 3, 5.0)
         assert first is not None and cell.resting
         w0, steps0, seq0 = cell.wakes, cell.steps, first.seq
-        later = scene.wait_for(lambda w: w.seq >= seq0 + 10, 10.0)
+        later = scene.wait_for(lambda w: w.seq >= seq0 + 5, 10.0)
         assert later is not None
         assert cell.resting and cell.steps == steps0, "the physics stepped while at rest"
+        # the states' spacing by their own stamps: REST_STATE_HZ, not publish_rate_hz
+        gap_s = (later.t_ns - first.t_ns) * 1e-9 / (later.seq - seq0)
+        assert gap_s >= 0.8 / REST_STATE_HZ, gap_s
         states = later.seq - seq0
-        assert cell.wakes - w0 <= 3 * states + 3, (cell.wakes - w0, states)
+        per_state = 1.0 / REST_STATE_HZ / REST_POLL_S  # wake-ups per state, polling
+        assert cell.wakes - w0 <= 1.5 * per_state * states + 3, (cell.wakes - w0, states)
         # A setpoint after the rest: taken, stepped, the joint on its way.
         q = np.array(model.home, dtype=float)
         goal = q + np.resize([0.02, 0.0], model.n)
@@ -212,6 +219,12 @@ def test_a_resting_cell_wakes_seldom_and_still_takes_the_next_setpoint(
         moved = sim.wait_for(lambda s: s.cmd_seq == 1 and s.q[0] - q[0] > 0.01, 10.0)
         assert moved is not None, "the setpoint after the rest moved nothing"
         assert cell.steps > steps0
+        # moving: workcell/state at its full rate again (10 states within 20 ms gaps)
+        a = scene.wait_for(lambda w: w.t_ns > moved.t_ns, 5.0)
+        assert a is not None
+        b = scene.wait_for(lambda w: w.seq >= a.seq + 10, 5.0)
+        assert b is not None
+        assert (b.t_ns - a.t_ns) * 1e-9 / (b.seq - a.seq) < 2.0 / WorkcellConfig().publish_rate_hz
     finally:
         cell.close()
 

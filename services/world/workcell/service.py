@@ -10,7 +10,8 @@ meshes) and the scene (`scene.py`), and steps it in real time (docs/sim.md):
   anything moves, for the arm's driver and the force service's `sim` sensor;
   with an arm in the same process (`channel`, `[arm] sim_physics = "embedded"`) its
   setpoints and joints pass in memory instead (channel.py), `sim/arm/state` still out;
-  `workcell/state` (extension, docs/tasks.md) at `publish_rate_hz`; Events of kind
+  `workcell/state` (extension, docs/tasks.md) at `publish_rate_hz` (`REST_STATE_HZ` while
+  the physics rests); Events of kind
   `workcell` (`data.action`: grasp, missed, release, settled, toppled, spill, reset, and
   `rejected` for a refused setpoint).
 
@@ -64,6 +65,10 @@ the physics rests."""
 REST_SPEED = 1e-5
 """rad/s, m/s: the arm's and the gripper's joints slower than this are still."""
 IDLE_STATE_HZ = 20.0
+REST_STATE_HZ = 5.0
+"""`workcell/state` while the physics rests (nothing moves, so every message says the same):
+this often instead of `publish_rate_hz`, back to that rate at the first step. At 50 Hz the
+idle cell's states were decoded by vision and the force service 50 times a second."""
 REST_POLL_S = 0.01
 """Once the physics has rested `DEEP_REST_AFTER_S`, the loop looks for a setpoint or a grip
 this often (instead of at `rate_hz`); the first step after it covers the time since."""
@@ -173,11 +178,14 @@ class WorkcellService:
                 if stepped or now >= next_idle_arm:
                     self._publish_arm(ph)
                     next_idle_arm = now + 1.0 / IDLE_STATE_HZ
+                period = state_s if stepped else 1.0 / REST_STATE_HZ
                 if now >= next_state:
                     self._publish()
-                    next_state += state_s
+                    next_state += period
                     if next_state <= now:  # a late loop: on from now, no burst
-                        next_state = now + state_s
+                        next_state = now + period
+                elif stepped and next_state > now + state_s:
+                    next_state = now  # moving again after a rest: at the full rate at once
             if stepped or ph is None:
                 rested_since = None
                 rate.sleep()
