@@ -3,6 +3,7 @@ runs over a private Zenoh network (counts and contents, never speed)."""
 
 from __future__ import annotations
 
+import math
 import subprocess
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from services.tools.bench import floor, stats
 from services.tools.bench.baselines import FORCE_C_NM, FORCE_F_N, FORCE_RAW, force_payload
 from services.tools.bench.probes import StreamProbe
 from tests.bus.test_router import spawned
-from tests.conftest import Net, wait_until
+from tests.conftest import BEST_EFFORT_LOSS, Net, wait_until
 
 RUN_TIMEOUT_S = 60.0
 
@@ -44,7 +45,9 @@ def test_parse_sent() -> None:
         floor.parse_sent("nothing here")
 
 
-def test_publisher_process_delivers_every_sample_in_order(net: Net) -> None:
+def test_publisher_process_delivers_its_samples_in_order(net: Net) -> None:
+    """The floor's samples arrive in order, none twice, decoded as sent; being robot/force's
+    QoS (best effort), at most BEST_EFFORT_LOSS of them lost in transit on a loaded host."""
     sub = net.node("sub")  # listens: the publisher process connects to it as a peer
     probe = StreamProbe(sub, floor.FLOOR_TOPIC, lambda m: (m.seq, m.t_ns)).start()
     done = subprocess.run(
@@ -57,9 +60,11 @@ def test_publisher_process_delivers_every_sample_in_order(net: Net) -> None:
     assert done.returncode == 0, done.stderr
     sent = floor.parse_sent(done.stdout)
     assert sent.sent >= 1 and sent.wall_s > 0
-    assert probe.wait_count(sent.sent, 10.0)
+    least = math.ceil((1.0 - BEST_EFFORT_LOSS) * sent.sent)
+    assert probe.wait_count(least, 10.0), (probe.count(), sent.sent)
     records = probe.stop()
-    assert [r[1][0] for r in records] == list(range(1, sent.sent + 1))
+    seqs = [r[1][0] for r in records]
+    assert seqs == sorted(set(seqs)) and set(seqs) <= set(range(1, sent.sent + 1)), seqs
     assert probe.rejected == 0
     # arrival never precedes the stamp on one clock
     assert (stats.latencies_ms([r[0] for r in records], [r[1][1] for r in records]) >= 0).all()
@@ -94,11 +99,23 @@ def test_relay_process_puts_every_sample_on_again_untouched(net: Net) -> None:
     argv = floor.relay_argv(net.endpoint, mode="peer", take=("robot/force", "robot/state"))
     try:
         with spawned(argv, merge_stderr=False) as relay:
-            # route set-up: put seq 1 until it comes back, then 2…50 once each
+            # route set-up: put seq 1 until it comes back, then 2…50 once each, then the
+            # tail (51, 52, …) until one comes back: best effort, any may be lost on a busy
+            # host, and the check below is of order and bytes, with BEST_EFFORT_LOSS
             assert wait_until(lambda: pub.put(force_payload(1, 11)) or probe.count() > 0, 30.0)
             for seq in range(2, 51):
                 pub.put(force_payload(seq, seq * 11))
-            assert wait_until(lambda: probe.newest() is not None and probe.newest()[1][0] == 50)
+            tail = iter(range(51, 10_000))
+
+            def back() -> bool:
+                newest = probe.newest()
+                if newest is not None and newest[1][0] >= 50:
+                    return True
+                seq = next(tail)
+                pub.put(force_payload(seq, seq * 11))
+                return False
+
+            assert wait_until(back, 30.0), probe.newest()
             relay.proc.terminate()  # SIGTERM: the relay leaves through its own close
             code = relay.wait(RUN_TIMEOUT_S)
             out = "\n".join(relay.rest(RUN_TIMEOUT_S))
@@ -108,8 +125,11 @@ def test_relay_process_puts_every_sample_on_again_untouched(net: Net) -> None:
     seqs = [r[1][0] for r in records]
     assert code == 0, relay.errors
     assert floor.RELAYING in out
-    assert seqs[-49:] == list(range(2, 51)) and set(seqs[:-49]) == {1}
-    assert [r[1][1] for r in records[-49:]] == [s * 11 for s in range(2, 51)]  # bytes untouched
+    after = [r[1] for r in records if r[1][0] >= 2]
+    assert set(seqs) - {r[0] for r in after} == {1}  # the set-up's seq 1, put until back
+    assert [s for s, _ in after] == sorted({s for s, _ in after}), seqs  # in order, once
+    assert all(t == s * 11 for s, t in after)  # bytes untouched
+    assert len([s for s, _ in after if s <= 50]) >= (1.0 - BEST_EFFORT_LOSS) * 49, seqs
     # set-up puts the relay got before the way back existed were relayed to nobody
     assert int(out.split("relayed ")[-1]) >= len(records)
     assert probe.rejected == 0
