@@ -7,13 +7,16 @@ to the class's constructor arguments.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from services.bus.errors import ConfigError
 from services.bus.registry import BackendRegistry
 from services.control.arm.config import ArmConfig
 from services.control.arm.driver import Arm
 from services.control.arm.model import ArmModel, load_model
+
+if TYPE_CHECKING:
+    from services.world.workcell.channel import ArmChannel
 
 BACKENDS: BackendRegistry[Arm] = BackendRegistry(
     "arm.driver",
@@ -28,7 +31,10 @@ BACKENDS: BackendRegistry[Arm] = BackendRegistry(
 
 
 def arm_options(
-    config: ArmConfig, model: ArmModel | None = None, node: Any = None, channel: Any = None
+    config: ArmConfig,
+    model: ArmModel | None = None,
+    node: Any = None,
+    channel: ArmChannel | None = None,
 ) -> dict[str, Any]:
     """The constructor arguments of the backend `config.driver`, for `model` (default: the
     configuration's); `node`: the service's, for a simulated arm on the workcell's physics;
@@ -69,7 +75,10 @@ def arm_options(
 
 
 def open_arm(
-    config: ArmConfig, model: ArmModel | None = None, node: Any = None, channel: Any = None
+    config: ArmConfig,
+    model: ArmModel | None = None,
+    node: Any = None,
+    channel: ArmChannel | None = None,
 ) -> Arm:
     """The arm `config.driver` with its options, not yet connected (`Arm.connect` does that).
 

@@ -21,7 +21,7 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 from services.bus import codec, keys
 from services.bus.bounds import check
@@ -32,6 +32,9 @@ from services.control.arm.backends import open_arm
 from services.control.arm.config import ArmConfig
 from services.control.arm.driver import Clocked
 from services.control.arm.model import ArmModel, load_model
+
+if TYPE_CHECKING:
+    from services.world.workcell.channel import ArmChannel
 from services.control.arm.proxy import ArmProxy
 
 log = logging.getLogger("telerobot.arm")
@@ -66,7 +69,7 @@ class ArmService:
         config: ArmConfig,
         arm: Any = None,
         model: ArmModel | None = None,
-        channel: Any = None,
+        channel: ArmChannel | None = None,
     ) -> None:
         self.node = node
         self.model = model if model is not None else load_model(config.model)

@@ -25,11 +25,9 @@ class Slot(Generic[M]):
 
     def __init__(self) -> None:
         self._item: tuple[M, int] | None = None
-        self.received = 0
 
     def put(self, msg: M) -> None:
         self._item = (msg, time.monotonic_ns())
-        self.received += 1
 
     def read(self) -> tuple[M, int] | None:
         """(the newest message, its arrival ns), or None before the first."""
