@@ -288,10 +288,11 @@ def test_every_service_is_alive_and_every_container_runs(cluster: Cluster) -> No
 
 def force_status(cluster: Cluster) -> dict[str, Any]:
     """The force service's `sensor_status`, asked on the robot host as its `robot` login
-    (the operator's ACL has no force queries): `telerobot call` inside its container."""
+    (the operator's ACL has no force queries): `telerobot call` in the decision's container
+    (not the force service's, whose CPU share a limit may cap: the call would take it)."""
     argv = ["telerobot", "call", "force", "sensor_status", "{}"]
     argv += ["--config", "/etc/telerobot/robot.toml", "--timeout", "30"]
-    info: Any = cluster.robot.inspect("force")
+    info: Any = cluster.robot.inspect("decision")
     out = docker.run(["docker", "exec", info["Id"], *argv], timeout_s=90).stdout
     status: dict[str, Any] = json.loads(out)
     return status
