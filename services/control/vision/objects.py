@@ -151,6 +151,44 @@ def objects_of_state(scene: Scene, views: Mapping[str, ObjectView]) -> tuple[Obj
     return tuple(out)
 
 
+STILL_P_M = 1e-4
+"""An object drawn once stays drawn where it was until its position has moved more than
+this (0.1 mm: a twentieth of a pixel at 1 m at 640×480 and 60°) …"""
+STILL_R = 5e-4
+"""… or an entry of its rotation more than this (about 0.5 mrad: 0.1 mm at 0.2 m). MuJoCo's
+resting objects are never quite still (the bottle rocks by ~7e-5 of a rotation entry, a
+block settles by micrometres): drawn at each new bit of their pose, every object was
+ray-cast again in both eyes at every pair during teleoperation, a third of vision's CPU."""
+
+
+def steady(
+    drawn: tuple[ObjectPose, ...] | None, objects: tuple[ObjectPose, ...]
+) -> tuple[ObjectPose, ...]:
+    """`objects`, where each that has not moved beyond STILL_P_M / STILL_R from how it is
+    `drawn` (the same name, kind, size, colour and liquid level) is the drawn one (so its
+    key is unchanged and it is not ray-cast again). All of `drawn` when none moved."""
+    if not drawn:
+        return objects
+    before = {o.name: o for o in drawn}
+    out = []
+    for o in objects:
+        d = before.get(o.name)
+        same = (
+            d is not None
+            and d.kind == o.kind
+            and d.color == o.color
+            and round(d.liquid_m, 4) == round(o.liquid_m, 4)
+            and bool(np.array_equal(d.size, o.size))
+            and float(np.max(np.abs(d.p - o.p))) <= STILL_P_M
+            and float(np.max(np.abs(d.R - o.R))) <= STILL_R
+        )
+        out.append(d if same and d is not None else o)
+    kept = tuple(out)
+    if len(kept) == len(drawn) and all(a is b for a, b in zip(kept, drawn, strict=True)):
+        return drawn
+    return kept
+
+
 SPILL_THICKNESS_M = 0.003
 """A puddle is drawn as a disc this thick would hold the spilled volume …"""
 MAX_PUDDLE_RADIUS_M = 0.15

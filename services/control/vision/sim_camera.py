@@ -9,7 +9,7 @@ from numpy.typing import ArrayLike
 
 from services.control.vision.camera import CameraError, StereoPair
 from services.control.vision.config import VisionConfig
-from services.control.vision.objects import ObjectPose, Spills, objects_of_state
+from services.control.vision.objects import ObjectPose, Spills, objects_of_state, steady
 from services.control.vision.render import RobotPose, StereoRenderer
 from services.control.vision.rig import StereoRig
 from services.world.workcell.messages import WorkcellState, objects_of
@@ -91,7 +91,9 @@ class SimStereoCamera:
         views = objects_of(state)
         objects = objects_of_state(self._scene, views)
         self._spills.update(views)
-        self._objects = objects + self._spills.objects()
+        # a resting object stays where it was drawn (`steady`): not ray-cast again for the
+        # solver's micrometres
+        self._objects = steady(self._objects, objects + self._spills.objects())
 
     def set_scene(self, scene: Scene) -> None:
         """Replace the workcell (re-ray-casts the background now if the camera is open)."""

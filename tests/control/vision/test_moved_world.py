@@ -15,7 +15,15 @@ from services.bus.errors import ProtocolError
 from services.bus.messages import vec
 from services.control.arm.model import load_model
 from services.control.vision.config import VisionConfig
-from services.control.vision.objects import LIQUID_BGR, SPILL_BGR, composite
+from services.control.vision.objects import (
+    LIQUID_BGR,
+    SPILL_BGR,
+    STILL_P_M,
+    STILL_R,
+    ObjectPose,
+    composite,
+    steady,
+)
 from services.control.vision.service import VisionService
 from services.control.vision.sim_camera import SimStereoCamera
 from services.geometry import rot_x
@@ -180,6 +188,74 @@ def test_only_what_moved_is_ray_cast_again(cam: SimStereoCamera) -> None:
     cam.grab()
     assert renderer.left.recasts == n0 + 1
     assert renderer.right.recasts == renderer.left.recasts
+
+
+def test_a_resting_object_is_not_ray_cast_again_for_the_solvers_jitter(
+    cam: SimStereoCamera,
+) -> None:
+    """MuJoCo's resting objects move by micrometres and rock by ~1e-4 of a rotation entry
+    from state to state: they stay drawn where they were, pixel for pixel, and are not
+    ray-cast again; a move past STILL_P_M is drawn at once."""
+    cam.clear_robot()
+    renderer = cam._renderer
+    assert renderer is not None
+    first = {**STACKED, "bottle": BOTTLE_UPRIGHT}
+    cam.set_workcell(state(first, 20))
+    img0 = cam.grab().left
+    n0 = (renderer.left.recasts, renderer.right.recasts)
+    rng = np.random.default_rng(7)
+    for seq in range(21, 41):
+        jittered = {
+            name: {
+                **o,
+                "p": list(np.asarray(o["p"]) + rng.uniform(-0.9, 0.9, 3) * STILL_P_M),
+                "R": list(vec(rot_x(rng.uniform(-0.9, 0.9) * STILL_R))),
+            }
+            for name, o in first.items()
+        }
+        cam.set_workcell(state(jittered, seq))
+        assert np.array_equal(cam.grab().left, img0), seq
+    assert (renderer.left.recasts, renderer.right.recasts) == n0
+    block = first["block2"]
+    moved = {
+        **first,
+        "block2": {**block, "p": list(np.asarray(block["p"]) + np.array([3 * STILL_P_M, 0, 0]))},
+    }
+    cam.set_workcell(state(moved, 41))
+    assert not np.array_equal(cam.grab().left, img0)
+    assert (renderer.left.recasts, renderer.right.recasts) == (n0[0] + 1, n0[1] + 1)
+
+
+def test_steady_keeps_only_what_is_still_and_otherwise_the_same() -> None:
+    def pose(**kw: Any) -> ObjectPose:
+        base: dict[str, Any] = {
+            "name": "bottle",
+            "kind": "cylinder",
+            "p": np.array([0.5, 0.1, TOP]),
+            "R": np.eye(3),
+            "size": np.array([0.06, 0.06, 0.2]),
+            "color": (10, 20, 30),
+            "liquid_m": 0.1,
+        }
+        return ObjectPose(**{**base, **kw})
+
+    drawn = (pose(), pose(name="block0", kind="box"))
+    nudged = (pose(p=drawn[0].p + 0.5 * STILL_P_M), pose(name="block0", kind="box"))
+    assert steady(drawn, nudged) is drawn
+    assert steady(None, nudged) is nudged
+    for changed in (
+        pose(p=drawn[0].p + np.array([0.0, 0.0, 2 * STILL_P_M])),
+        pose(R=rot_x(4 * STILL_R)),
+        pose(liquid_m=0.09),  # poured: the level is drawn at once
+        pose(size=np.array([0.06, 0.06, 0.21])),
+        pose(color=(11, 20, 30)),
+        pose(kind="box"),
+    ):
+        got = steady(drawn, (changed, drawn[1]))
+        assert got[0] is changed and got[1] is drawn[1]
+    new = pose(name="block9", kind="box")
+    assert steady(drawn, (*drawn, new)) == (*drawn, new)
+    assert steady(drawn, drawn[1:]) == drawn[1:]  # one gone
 
 
 def test_tilted_bottle_and_its_liquid_level(cam: SimStereoCamera) -> None:
