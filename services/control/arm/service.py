@@ -32,10 +32,10 @@ from services.control.arm.backends import open_arm
 from services.control.arm.config import ArmConfig
 from services.control.arm.driver import Clocked
 from services.control.arm.model import ArmModel, load_model
+from services.control.arm.proxy import ArmProxy
 
 if TYPE_CHECKING:
     from services.world.workcell.channel import ArmChannel
-from services.control.arm.proxy import ArmProxy
 
 log = logging.getLogger("telerobot.arm")
 

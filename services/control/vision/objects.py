@@ -54,14 +54,11 @@ class ObjectPose:
 
     def key(self) -> tuple[object, ...]:
         """Equal keys draw the same pixels."""
-        return (
-            self.kind,
-            self.p.tobytes(),
-            self.R.tobytes(),
-            self.size.tobytes(),
-            self.color,
-            round(self.liquid_m, 4),
-        )
+        return (self.p.tobytes(), self.R.tobytes(), *self.look())
+
+    def look(self) -> tuple[object, ...]:
+        """What it is, pose aside: its key without `p` and `R`."""
+        return (self.kind, self.size.tobytes(), self.color, round(self.liquid_m, 4))
 
     def corners(self) -> F64:
         """The 8 corners of its bounding box (world, m)."""
@@ -165,24 +162,21 @@ def steady(
     drawn: tuple[ObjectPose, ...] | None, objects: tuple[ObjectPose, ...]
 ) -> tuple[ObjectPose, ...]:
     """`objects`, where each that has not moved beyond STILL_P_M / STILL_R from how it is
-    `drawn` (the same name, kind, size, colour and liquid level) is the drawn one (so its
-    key is unchanged and it is not ray-cast again). All of `drawn` when none moved."""
+    `drawn` (the same name and `look`: kind, size, colour, liquid level) is the drawn one (so
+    its key is unchanged and it is not ray-cast again). All of `drawn` when none moved."""
     if not drawn:
         return objects
     before = {o.name: o for o in drawn}
     out = []
     for o in objects:
         d = before.get(o.name)
-        same = (
+        still = (
             d is not None
-            and d.kind == o.kind
-            and d.color == o.color
-            and round(d.liquid_m, 4) == round(o.liquid_m, 4)
-            and bool(np.array_equal(d.size, o.size))
+            and d.look() == o.look()
             and float(np.max(np.abs(d.p - o.p))) <= STILL_P_M
             and float(np.max(np.abs(d.R - o.R))) <= STILL_R
         )
-        out.append(d if same and d is not None else o)
+        out.append(d if still and d is not None else o)
     kept = tuple(out)
     if len(kept) == len(drawn) and all(a is b for a, b in zip(kept, drawn, strict=True)):
         return drawn
