@@ -20,6 +20,7 @@ from services.frontends.console.poses import box_edges
 from services.frontends.console.tdpa import TdpaView
 from services.frontends.console.video import VIEW_MODES, FrameGate, Image, ViewMode, compose, decode
 from services.frontends.console.view import (
+    VIDEO_STYLE,
     ArmShown,
     MasterView,
     alive_html,
@@ -142,6 +143,7 @@ class Panels:
         self._video_panel = gui.add_panel()
         with self._video_panel.add_tab("Video"):
             self._view = gui.add_dropdown("View", options=VIEW_MODES, initial_value=self._view_mode)
+            gui.add_html(VIDEO_STYLE)
             self._image = gui.add_image(
                 np.full((120, 320, 3), 40, dtype=np.uint8), label=None, format="jpeg"
             )

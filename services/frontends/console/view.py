@@ -155,6 +155,19 @@ def estop_latched(decision: Mapping[str, Any] | None) -> bool:
     return decision is not None and decision.get("estop") is True
 
 
+VIDEO_STYLE = (
+    "<style>"
+    # viser draws a GUI image at most its own size (max-width: 100%), so a small frame, as
+    # the camera sends while its link is congested (160×120 an eye), would shrink in its
+    # window; it is scaled up by the browser instead (nothing more crosses the link). The
+    # video is the console's only GUI image, and viser's images are blob: URLs.
+    'img[src^="blob:"]{width:100%;height:auto}'
+    "</style>"
+)
+"""The video window's style: the image fills the window's width whatever the frame's size,
+keeping its aspect."""
+
+
 def loading_items(
     state: bool,
     decision: bool,

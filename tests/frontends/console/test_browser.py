@@ -212,6 +212,16 @@ def _pixels(png: bytes) -> np.ndarray:
     return np.asarray(img)
 
 
+def _video_box(page: Any) -> dict[str, float] | None:
+    """The video's box on the page: the widest image (the icons are ≤ 100 px)."""
+    boxes = [
+        b
+        for b in (img.bounding_box() for img in page.locator("img").all())
+        if b is not None and b["width"] > 100
+    ]
+    return max(boxes, key=lambda b: b["width"]) if boxes else None
+
+
 def test_console_page_drives_the_sim_arm(system: System) -> None:
     from playwright.sync_api import expect, sync_playwright
 
@@ -325,13 +335,8 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             expect(page.get_by_role("button", name="Reset e-stop")).to_be_enabled()
 
             # --- the video fills its window, keeping the frames' aspect --------------------
-            video = [
-                b
-                for b in (img.bounding_box() for img in page.locator("img").all())
-                if b is not None and b["width"] > 100
-            ]
-            assert video, "no video image on the page"
-            box = max(video, key=lambda b: b["width"])
+            box = _video_box(page)
+            assert box is not None, "no video image on the page"
             assert box["width"] >= MIN_VIDEO_PX, f"the video is {box['width']:.0f} px wide"
             # side-by-side of two 320×240 eyes: 640×240
             assert box["width"] / box["height"] == pytest.approx(640 / 240, rel=0.03)
@@ -353,6 +358,26 @@ def test_console_page_drives_the_sim_arm(system: System) -> None:
             u, v = _project(cam, np.array([0.0, 0.0, 0.35]))
             px = shot[int(canvas["y"] + v), int(canvas["x"] + u)]
             assert px.mean() < 170, f"no arm at the pedestal's pixel ({px})"
+
+            # --- one eye: a frame narrower than the window still fills it --------------------
+            # The left eye alone is 320×240 (160×120 while the camera's link is congested),
+            # narrower than the window: the browser scales it up to the window's width.
+            page.get_by_label("View").click(no_wait_after=NO_WAIT, timeout=CLICK_MS)
+            page.get_by_role("option", name="left", exact=True).click(
+                no_wait_after=NO_WAIT, timeout=CLICK_MS
+            )
+
+            def one_eye() -> dict[str, float] | None:
+                b = _video_box(page)
+                return b if b is not None and b["width"] / b["height"] < 1.5 else None
+
+            assert wait_until(lambda: one_eye() is not None, 20.0, poll_s=0.1, what="one eye")
+            eye = one_eye()
+            assert eye is not None, f"the view shows no single eye ({_video_box(page)})"
+            assert eye["width"] == pytest.approx(box["width"], abs=2.0), (eye, box)
+            assert eye["width"] / eye["height"] == pytest.approx(320 / 240, rel=0.03)
+            natural = page.evaluate("Math.max(...[...document.images].map((i) => i.naturalWidth))")
+            assert natural < eye["width"], f"the frame ({natural} px) is not narrower"
 
             # --- Reset: the latch clears and the hand is parked on the tool again ----------
             page.get_by_role("button", name="Reset e-stop").click(
