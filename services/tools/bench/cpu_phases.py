@@ -5,9 +5,13 @@ autostart, with the workcell's MuJoCo cell in its process: `sim_physics = "embed
 force (sim), decision, vision (sim camera, 640×480 at 30 fps) and the console with its
 in-process virtual master and no browser. The bench's own master station (which the sim
 profile does not have) is stopped first, and its arm, alone in a physics of its own for the
-other phases, is started again with the cell as the profile runs it; nothing is measured
-after these phases, so restarting the arm and starting the console cannot disturb another
-phase. The arm's figure holds the physics.
+other phases, is started again with the cell as the profile runs it, and so is the force
+service, at the profile's priority (the other phases ask for `highest`, as robot.toml does);
+nothing is measured after these phases, so restarting them and starting the console cannot
+disturb another phase. The arm's figure holds the physics. The services stay the bench's
+clients (robot.toml's mode); the profile runs them as peers of its router (docs/bench.md
+has both). The same run's teleop floor (teleop_floor.py) is the least the router and the
+three 1 kHz services can cost.
 
 - `cpu_idle`: after `settle_s`, a window in which nobody operates and nobody subscribes to
   video (the bench holds no subscription but its liveliness one);
@@ -160,19 +164,24 @@ class SimRun:
     def _start(self) -> None:
         self.say(
             "[cpu] stopping the station master; starting vision, the arm with the workcell's "
-            "physics in its process, console …"
+            "physics in its process, the force service at the profile's priority, console …"
         )
         self.kids.stop("master")
         self.kids.stop("arm")
+        # The force service as the profile runs it: deploy/sim.toml leaves its priority at
+        # the default (`normal`); at `highest`, as the other phases ask for, its sampler
+        # spins the last 100 µs of every period under SCHED_FIFO (6–9 % of a core here).
+        self.kids.stop("force")
         w, h = self.vga_size
         argv = {
             "vision": ("vision", "--size", f"{w}x{h}", "--fps", f"{self.vga_fps:g}"),
             "arm": ("arm", "--autostart", "--model", self.model, "--sim-physics", "embedded"),
             "console": ("console", "--port", "0"),
+            "force": ("force",),
         }
-        for name in ("vision", "arm", "console"):
+        for name in ("vision", "arm", "force", "console"):
             self.kids.spawn(name, telerobot_argv(*argv[name], *self.zargs))
-        for name in (*EXTRA_SERVICES, "workcell", "arm", CONSOLE_MASTER):
+        for name in (*EXTRA_SERVICES, "workcell", "arm", "force", CONSOLE_MASTER):
             wait_alive(self.kids, self.node.alive.wait, name, self.startup_timeout_s)
         wait_arm_ready(self.kids, self.node, self.startup_timeout_s)
 

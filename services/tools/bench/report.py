@@ -216,10 +216,16 @@ def _get_floor(stat: str) -> tuple[str, str]:
     return (f"baseline_zenoh_query.latency_ms.{stat}", ZENOH_GET)
 
 
+TELEOP_FLOOR = ("teleop_floor.core_pct", "bare Zenoh, the same 1 kHz streams")
+"""The teleop floor (teleop_floor.py): the router and three bare processes carrying what
+the router, the decision, the arm and the force service carry during 1 kHz teleop."""
+
+
 def _cpu_specs(phase: str, what: str, targets: bool) -> list[Spec]:
     specs = [
         Spec(f"{phase}_core", f"{what} CPU: router + arm + force + decision", "%",
-             f"{phase}.core_pct", "lower", target="idle_core_pct" if targets else None),
+             f"{phase}.core_pct", "lower", target="idle_core_pct" if targets else None,
+             floor=None if targets else TELEOP_FLOOR),
         Spec(f"{phase}_sim", f"{what} CPU: whole sim system (+ vision, console; physics in arm)",
              "%",
              f"{phase}.sim_pct", "lower", target="idle_sim_pct" if targets else None),
@@ -416,6 +422,7 @@ PHASE_KEYS: tuple[str, ...] = (
     "baseline_zenoh_query",
     "cpu_idle",
     "cpu_teleop",
+    "teleop_floor",
 )
 
 

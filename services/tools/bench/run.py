@@ -34,9 +34,10 @@ from services.tools.bench.probes import CommandDriver
 from services.tools.bench.procs import children_cpu_s, cpu_by_child, wait_arm_ready
 from services.tools.bench.relay_phase import phase_relay_floor
 from services.tools.bench.rpc_phase import phase_rpc
+from services.tools.bench.teleop_floor import phase_teleop_floor
 from services.tools.bench.video_phase import phase_video
 from services.tools.cell.ports import free_port
-from services.tools.cell.procs import Children, telerobot_argv, wait_alive, wait_log
+from services.tools.cell.procs import ChildFailed, Children, telerobot_argv, wait_alive, wait_log
 
 MASTER_ID = "bench"
 STATION_ID = "station"
@@ -125,6 +126,8 @@ def run_bench(opts: BenchOptions, say: Say = print) -> RunResult:
         log.kids = kids
         router = kids.spawn("router", telerobot_argv("router", "--listen", endpoint))
         wait_log(router, "router up", opts.startup_timeout_s)
+        with log.phase("teleop_floor"):
+            res.phases["teleop_floor"] = _teleop_floor(kids, endpoint, opts, say)
         say(f"router up on {endpoint}; starting arm, force, decision, master …")
         node = Node("master", NodeConfig(mode="client", connect=(endpoint,)), instance=MASTER_ID)
         try:
@@ -213,6 +216,17 @@ def _start_services(
         wait_alive(kids, node.alive.wait, name, opts.startup_timeout_s)
     wait_arm_ready(kids, node, opts.startup_timeout_s)
     say("arm ready, force streaming, decision and master up")
+
+
+def _teleop_floor(kids: Children, endpoint: str, opts: BenchOptions, say: Say) -> dict[str, Any]:
+    """The teleop floor (teleop_floor.py), first: nothing but the router runs yet."""
+    try:
+        return phase_teleop_floor(
+            kids, endpoint, opts.cpu_settle_s, opts.phase_s, opts.startup_timeout_s, say
+        )
+    except (ChildFailed, TimeoutError) as e:
+        say(f"    teleop floor not measured: {str(e).splitlines()[0]}")
+        return {"na": {"*": f"not measured: {str(e).splitlines()[0]}"}}
 
 
 def _force_priority(node: Node) -> dict[str, Any] | None:

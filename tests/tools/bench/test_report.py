@@ -133,6 +133,7 @@ def full_phases() -> dict[str, Any]:
         "baseline_zenoh_relay_1000hz": {"latency_ms": _summary(0.25, 0.7)},
         "cpu_idle": _cpu(**IDLE_SIM),
         "cpu_teleop": _cpu(**{k: 2 * v for k, v in IDLE_SIM.items()}),
+        "teleop_floor": {"core_pct": 24.0, "services": {}, "na": {}},
     }
 
 
@@ -244,6 +245,9 @@ def test_figures_compare_with_paper_floor_baseline_and_target() -> None:
     assert rows["cpu_idle_sim"].ours == pytest.approx(25.0)
     assert rows["cpu_teleop_sim"].ours == pytest.approx(50.0)
     assert rows["cpu_teleop_sim"].target_verdict == "n/a"  # only idle is budgeted
+    assert rows["cpu_teleop_core"].floor == pytest.approx(24.0)  # the same run's teleop floor
+    assert rows["cpu_teleop_core"].floor_name == "bare Zenoh, the same 1 kHz streams"
+    assert rows["cpu_idle_core"].floor is None
     assert rows["cpu_idle_console"].ours == pytest.approx(6.0)
 
 

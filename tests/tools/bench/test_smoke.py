@@ -42,3 +42,5 @@ def test_quick_run_writes_every_figure(tmp_path: Path) -> None:
         assert set(doc["phases"][key]["services"]) >= {"router", "arm", "force", "console"}
         assert doc["phases"][key]["sim_pct"] is not None
     assert doc["phases"]["cpu_teleop"]["video"]["frames_l"] > 0
+    floor = doc["phases"]["teleop_floor"]
+    assert floor["na"] == {} and floor["core_pct"] == pytest.approx(sum(floor["services"].values()))
