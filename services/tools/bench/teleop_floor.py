@@ -12,16 +12,17 @@ these streams (sizes as measured on the bus, PUMA 560, 2026-12-04):
 | `sim/arm/state` | 1 kHz | 351 | the workcell's loop (in the arm's process) → the force service |
 | `robot/state` | 250 Hz | 506 | the arm → the decision, the force service |
 
-Here one minimal process per role does only that — plain zenoh-python, one session, the
-streams' QoS (`floor.declare_floor_publisher`), no code of our services: it sends its own
-streams on its own clock (`RateLoop`), puts each command on again at once as the target
-(the decision's relay, inline in Zenoh's callback), and hands every sample it takes to
-Python (its bytes taken, counted: each of our services must look at every one — the decision
-watches every force sample). Keys are the bench's own (`bench/floor/teleop/<stream>`), so
-no service receives them. The router plus these three is the least CPU those four of ours can
-cost for teleoperation on this machine; what the CPU phases' `core_pct` costs above it is
-ours (decode and checks, the supervision, IK, the physics), not the bus's. The master's
-side (the bench's own) is reported apart, as `bench_pct` is, never in the sum.
+Here one minimal process per role does only that — plain zenoh-python, one session,
+robot/force's QoS on every stream (`floor.declare_floor_publisher`), no code of our
+services: it sends its own streams on its own clock (`RateLoop`), puts each command on again
+at once as the target (the decision's relay, inline in Zenoh's callback), and hands every
+sample it takes to Python (its bytes taken, counted: each of our services must look at every
+one — the decision watches every force sample). Keys are the bench's own
+(`bench/floor/teleop/<stream>`), so no service receives them. The router plus these three is
+the least CPU those four of ours can cost for teleoperation on this machine while each
+process looks at every sample it takes; what the CPU phases' `core_pct` costs above it is
+ours (decode and checks, the supervision, IK, the physics), not the bus's. The master's side
+(the bench's own) is reported apart, as `bench_pct` is, never in the sum.
 
 Run as `python -m services.tools.bench.teleop_floor ROLE --connect ENDPOINT` (the bench
 spawns it like a service); on SIGTERM it prints one `teleop floor counts {json}` line:
