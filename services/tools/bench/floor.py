@@ -59,7 +59,9 @@ FLOOR_EXPRESS = True
 FLOOR_CONGESTION = zenoh.CongestionControl.BLOCK
 
 
-def _session(endpoint: str, mode: str) -> zenoh.Session:
+def floor_session(endpoint: str, mode: str) -> zenoh.Session:
+    """A bare session of a floor process: `mode` peer or (anything else) client, to
+    `endpoint`."""
     cfg = NodeConfig(mode="peer" if mode == "peer" else "client", connect=(endpoint,))
     return zenoh.open(cfg.to_zenoh())
 
@@ -76,7 +78,7 @@ def _matching(pub: zenoh.Publisher) -> bool:
 
 def publish(endpoint: str, mode: str, rate_hz: float, duration_s: float) -> FloorSent:
     """The publisher: once a subscriber matches, one ForceSample per tick for `duration_s`."""
-    with _session(endpoint, mode) as session:
+    with floor_session(endpoint, mode) as session:
         pub = declare_floor_publisher(session, FLOOR_TOPIC.key)
         deadline = time.monotonic() + MATCH_TIMEOUT_S
         while not _matching(pub):
@@ -113,7 +115,7 @@ def relay(endpoint: str, mode: str, stop: threading.Event, take: Sequence[str] =
     decision takes robot/force and robot/state (Zenoh keeps the newest in a ring of one; no
     Python per sample), so its link carries what the decision's does."""
     relayed = 0
-    with _session(endpoint, mode) as session:
+    with floor_session(endpoint, mode) as session:
         taken = [session.declare_subscriber(k, zenoh.handlers.RingChannel(1)) for k in take]
         pub = declare_floor_publisher(session, FLOOR_RELAY_OUT.key)
 
@@ -143,7 +145,7 @@ def serve(endpoint: str, mode: str, reply: bytes, stop: threading.Event) -> None
         finally:
             query.drop()
 
-    with _session(endpoint, mode) as session:
+    with floor_session(endpoint, mode) as session:
         queryable = session.declare_queryable(FLOOR_RPC_KEY, on_query)
         print(f"{SERVING} {FLOOR_RPC_KEY}", flush=True)
         while not stop.wait(0.2):

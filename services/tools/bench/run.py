@@ -225,8 +225,9 @@ def _teleop_floor(kids: Children, endpoint: str, opts: BenchOptions, say: Say) -
             kids, endpoint, opts.cpu_settle_s, opts.phase_s, opts.startup_timeout_s, say
         )
     except (ChildFailed, TimeoutError) as e:
-        say(f"    teleop floor not measured: {str(e).splitlines()[0]}")
-        return {"na": {"*": f"not measured: {str(e).splitlines()[0]}"}}
+        why = f"not measured: {(str(e).splitlines() or [type(e).__name__])[0]}"
+        say(f"    teleop floor {why}")
+        return {"na": {"*": why}}
 
 
 def _force_priority(node: Node) -> dict[str, Any] | None:

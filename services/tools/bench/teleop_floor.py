@@ -45,10 +45,9 @@ from typing import Any
 
 import zenoh
 
-from services.bus.config import NodeConfig
 from services.bus.rate import RateLoop
 from services.tools.bench import cpu
-from services.tools.bench.floor import declare_floor_publisher
+from services.tools.bench.floor import declare_floor_publisher, floor_session
 from services.tools.bench.procs import cpu_by_child
 from services.tools.cell.procs import Child, Children, wait_log
 
@@ -101,8 +100,7 @@ def run_role(name: str, endpoint: str, mode: str, stop: threading.Event) -> dict
     role = ROLES[name]
     got = dict.fromkeys((*role.takes, *(i for i, _ in role.relays)), 0)
     sent = dict.fromkeys((*role.sends, *(o for _, o in role.relays)), 0)
-    cfg = NodeConfig(mode="peer" if mode == "peer" else "client", connect=(endpoint,))
-    with zenoh.open(cfg.to_zenoh()) as session:
+    with floor_session(endpoint, mode) as session:
         pubs = {s: declare_floor_publisher(session, key(s)) for s in sent}
         subs = [session.declare_subscriber(key(s), _taker(got, s)) for s in role.takes]
         subs += [
