@@ -39,6 +39,11 @@ MAX_BUTTON = 64
 """Button bits are 0 … 63 (`HandReading.buttons`)."""
 MAX_RAMP_S = 10.0
 MIN_STALE_MS, MAX_STALE_MS = 10.0, 5000.0
+DAMPING_MARGIN = 0.5
+"""`contact_damping_ns_m` may be at most this fraction of 2·m·rate (the device's moving mass
+`passivity_device_mass_kg` × the loop's `rate_hz`): a damper sampled at the loop's rate on
+a velocity one tick old is itself unstable past 2·m/T, and the margin leaves room for the
+velocity filter's lag and a device lighter than set."""
 """How long a wrist force may be held without a new one: from a few samples to a lease."""
 _POSITIVE_KEYS = ("max_force_n", "max_torque_nm")
 
@@ -129,6 +134,12 @@ class MasterConfig:
         last one is held until then: a lost packet or a TCP retransmission is bridged, a
         stream that stopped is not). Counted on this host's clock, never from the sample's
         robot-host stamp. 100 ms suits a LAN; over a lossy TCP link of long delay, longer.
+    contact_damping_ns_m: a viscous damper (N·s/m) on the hand's motion, added to the
+        displayed force while a contact force is shown (its gain ramps in with that force
+        over `feedback.CONTACT_DAMPING_FULL_N`; none in free space). A stiff contact shown
+        to a softly held device bounces unless the loop damps at least about the contact's
+        stiffness × the loop's delay (Colgate's bound: docs/master.md, "Contact damping").
+        0 (default): off. At most DAMPING_MARGIN × 2 × passivity_device_mass_kg × rate_hz.
     """
 
     master_id: str = "master"
@@ -151,6 +162,7 @@ class MasterConfig:
     passivity_device_mass_kg: float = 0.5
     passivity_moments: bool = False
     passivity_device_inertia_kg_m2: float = DEVICE_INERTIA_KG_M2
+    contact_damping_ns_m: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.master_id, str) or not self.master_id:
@@ -194,10 +206,23 @@ class MasterConfig:
             raise option_error(
                 "force_stale_ms", f"must be within {MIN_STALE_MS:g} … {MAX_STALE_MS:g} ms"
             )
+        self._check_damping(mass)
         if self.engage_on_start is None:
             object.__setattr__(self, "engage_on_start", type(self.options).engages_on_start)
         elif not isinstance(self.engage_on_start, bool):
             raise option_error("engage_on_start", "must be true or false")
+
+    def _check_damping(self, mass_kg: float) -> None:
+        """`contact_damping_ns_m` is ≥ 0 and within the sampled damper's stability bound."""
+        b = number("contact_damping_ns_m", self.contact_damping_ns_m)
+        b_max = DAMPING_MARGIN * 2.0 * mass_kg * self.rate_hz
+        if not 0.0 <= b <= b_max:
+            raise option_error(
+                "contact_damping_ns_m",
+                f"must be within 0 … {b_max:g} N·s/m ({DAMPING_MARGIN:g} × 2 × "
+                "passivity_device_mass_kg × rate_hz: a damper sampled at the loop's rate is "
+                "unstable beyond 2·m·rate)",
+            )
 
     def _check_options(self) -> None:
         """`device` names a backend and `options` are that backend's (its defaults if none)."""

@@ -7,8 +7,9 @@ in `tool` mode (PROTOCOL §2). The displayed wrench is mapped back the same way 
 rotation, so its inverse is Aᵀ), scaled, and saturated with its direction kept.
 
 `ForceDisplay` is the one path from the wrist to the hand that the master service uses:
-that mapping, then zero unless engaged, a ramp-in after each engagement, and a hook where a
-master-side controller (passivity) can change the wrench before the device shows it.
+that mapping, then zero unless engaged, a ramp-in after each engagement, a hook where a
+master-side controller (passivity) can change the wrench before the device shows it, and a
+damper on the hand's motion while a contact is shown (`contact_damping_ns_m`).
 """
 
 from __future__ import annotations
@@ -140,6 +141,50 @@ frame), knowing the hand reading of this tick and the time since the previous on
 by the loop thread, only while engaged; its output is saturated again."""
 
 
+CONTACT_DAMPING_FULL_N = 1.0
+"""The contact damper's gain ramps in with the force shown (after the hook), from 0 at no
+force to `contact_damping_ns_m` at this force (N) and above: free motion is not damped, and
+the damper never switches on at once under a moving hand."""
+VELOCITY_CUTOFF_HZ = 100.0
+"""The hand's velocity for the damper: its position differenced each tick, low-passed at
+this cutoff (a first-order filter: position noise of a µm at 1 kHz is 1 mm/s raw)."""
+MAX_DAMPED_DT_S = 0.05
+"""A tick longer than this (a stalled loop) restarts the velocity estimate: a step over a
+long gap is not the hand's velocity now."""
+
+
+class HandVelocity:
+    """The hand's velocity (m/s, master frame) from its positions tick by tick, low-passed
+    at VELOCITY_CUTOFF_HZ; zero until two positions less than MAX_DAMPED_DT_S apart."""
+
+    def __init__(self) -> None:
+        self._p: Array3 | None = None
+        self.v: Array3 = np.zeros(3)
+
+    def reset(self) -> None:
+        self._p = None
+        self.v = np.zeros(3)
+
+    def update(self, hand_p: ArrayLike, dt_s: float) -> Array3:
+        p = np.asarray(hand_p, dtype=float).reshape(3)
+        prev, self._p = self._p, p
+        if prev is None or not 0.0 < dt_s <= MAX_DAMPED_DT_S:
+            self.v = np.zeros(3)
+            return self.v
+        alpha = 1.0 - math.exp(-2.0 * math.pi * VELOCITY_CUTOFF_HZ * dt_s)
+        self.v = self.v + alpha * ((p - prev) / dt_s - self.v)
+        return self.v
+
+
+def contact_damping(f_shown: ArrayLike, v_hand: ArrayLike, b_ns_m: float) -> Array3:
+    """The damper's force (N, master frame) on a hand moving at `v_hand` while `f_shown` is
+    shown: −b·v with b = `b_ns_m` × min(|f_shown| / CONTACT_DAMPING_FULL_N, 1). Passive: its
+    power against the hand, −b·|v|², is never positive."""
+    f = np.asarray(f_shown, dtype=float).reshape(3)
+    gain = b_ns_m * min(math.hypot(*f) / CONTACT_DAMPING_FULL_N, 1.0)
+    return -gain * np.asarray(v_hand, dtype=float).reshape(3)
+
+
 def ramp_gain(since_engaged_s: float, ramp_s: float) -> float:
     """0 → 1 linearly over `ramp_s` after an engagement (1 at once when ramp_s is 0)."""
     if ramp_s <= 0.0:
@@ -160,7 +205,10 @@ class ForceDisplay:
        restart it), so a contact force held through a re-clutch does not kick the hand;
        likewise since the force came back after a stale gap (the display was zero through
        it, and the wrist may press harder now: a stream that resumes does not kick either);
-    4. `hook` (None: unchanged), then saturated again to max_force_n / max_torque_nm.
+    4. `hook` (None: unchanged), then saturated again to max_force_n / max_torque_nm;
+    5. with `contact_damping_ns_m` > 0, the contact damper on the hand's velocity
+       (`contact_damping`, outside the hook: a passivity port observes the contact's force,
+       not the damper's), the sum saturated again.
     """
 
     def __init__(self, config: MasterConfig, hook: WrenchHook | None = None) -> None:
@@ -169,6 +217,8 @@ class ForceDisplay:
         self._ramp_s = config.force_ramp_s
         self._max_force_n = config.max_force_n
         self._max_torque_nm = config.max_torque_nm
+        self._damping_ns_m = config.contact_damping_ns_m
+        self._velocity = HandVelocity()
         self._engaged_since_s: float | None = None
         self._fresh_since_s: float | None = None
         self.faults = 0
@@ -185,7 +235,9 @@ class ForceDisplay:
         """The wrench to display this tick (see the class docstring); now_s is monotonic."""
         if not engaged:
             self._engaged_since_s = None
+            self._velocity.reset()
             return ForceFeedback.zero()
+        v_hand = self._velocity.update(hand.hand_p, dt_s) if self._damping_ns_m > 0.0 else None
         if self._engaged_since_s is None:
             self._engaged_since_s = now_s
         if measured is None:
@@ -206,14 +258,19 @@ class ForceDisplay:
         shown = DisplayWrench(
             gain * mapped.f, gain * mapped.c, mapped.force_saturated, mapped.torque_saturated
         )
-        if self.hook is None:
+        if self.hook is not None:
+            hooked = self.hook(shown, hand, dt_s)
+            f, f_sat = saturate(hooked.f, self._max_force_n)
+            c, c_sat = saturate(hooked.c, self._max_torque_nm)
+            if not (np.all(np.isfinite(f)) and np.all(np.isfinite(c))):
+                self.faults += 1
+                return ForceFeedback.zero()
+            shown = DisplayWrench(
+                f, c, hooked.force_saturated or f_sat, hooked.torque_saturated or c_sat
+            )
+        if v_hand is None:
             return shown
-        hooked = self.hook(shown, hand, dt_s)
-        f, f_sat = saturate(hooked.f, self._max_force_n)
-        c, c_sat = saturate(hooked.c, self._max_torque_nm)
-        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(c))):
-            self.faults += 1
-            return ForceFeedback.zero()
-        return DisplayWrench(
-            f, c, hooked.force_saturated or f_sat, hooked.torque_saturated or c_sat
+        f, f_sat = saturate(
+            shown.f + contact_damping(shown.f, v_hand, self._damping_ns_m), self._max_force_n
         )
+        return DisplayWrench(f, shown.c, shown.force_saturated or f_sat, shown.torque_saturated)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -19,9 +20,13 @@ from services.control.master.devices.haply.backend import HaplyOptions
 from services.control.master.devices.keyboard import KeyboardOptions
 from services.control.master.devices.scripted import ScriptedOptions
 from services.control.master.feedback import (
+    CONTACT_DAMPING_FULL_N,
+    MAX_DAMPED_DT_S,
     DisplayWrench,
     ForceDisplay,
     ForceFeedback,
+    HandVelocity,
+    contact_damping,
     operator_wrench,
     ramp_gain,
     saturate,
@@ -106,6 +111,10 @@ def test_engage_on_start_defaults_by_device(device: str, engages: bool) -> None:
         ("passivity_device_inertia_kg_m2", math.nan),
         ("passivity_device_mass_kg", "0.5"),
         ("passivity_moments", "yes"),
+        ("contact_damping_ns_m", -1.0),
+        ("contact_damping_ns_m", math.nan),
+        ("contact_damping_ns_m", "150"),
+        ("contact_damping_ns_m", 51.0),  # above 0.5 × 2 × 0.5 kg × 100 Hz
     ],
 )
 def test_bad_values_name_their_key(key: str, value: object) -> None:
@@ -437,3 +446,84 @@ def test_the_displayed_wrench_is_bounded_zero_when_disengaged_and_never_above_th
         else:
             limit = 3.0 * ramp_gain(now - max(since, fresh), ramp_s)
             assert np.linalg.norm(out.f) <= limit * (1 + 1e-9) + 1e-12
+
+
+# --- the contact damper ---------------------------------------------------------------------
+
+
+def test_the_contact_dampers_bound_follows_the_devices_mass_and_the_loops_rate() -> None:
+    """0.5 × 2·m·rate: 50 N·s/m for 0.5 kg at 100 Hz, 250 at 500 Hz, 500 for 1 kg there."""
+    assert MasterConfig(contact_damping_ns_m=50.0).contact_damping_ns_m == 50.0
+    assert MasterConfig(rate_hz=500.0, contact_damping_ns_m=250.0).contact_damping_ns_m == 250.0
+    with pytest.raises(ConfigError, match="0 … 250 N·s/m") as info:
+        MasterConfig(rate_hz=500.0, contact_damping_ns_m=251.0)
+    assert info.value.key == "master.contact_damping_ns_m"
+    heavy = MasterConfig(rate_hz=500.0, passivity_device_mass_kg=1.0, contact_damping_ns_m=500.0)
+    assert heavy.contact_damping_ns_m == 500.0
+
+
+def _moving(z_m: float) -> HandReading:
+    return HandReading(np.array([0.0, 0.0, z_m]), np.eye(3), False)
+
+
+def test_the_contact_damper_resists_the_hands_motion_in_contact_only() -> None:
+    """Engaged, 4 N shown, the hand rising at 10 mm/s: 100 N·s/m take 1 N off once the
+    velocity filter has settled; with no force shown (free space) nothing; at 0.5 N, half
+    the gain (it ramps in with the force over CONTACT_DAMPING_FULL_N)."""
+    cfg = MasterConfig(force_ramp_s=0.0, rate_hz=1000.0, contact_damping_ns_m=100.0)
+    display = ForceDisplay(cfg)
+    dt, v = 0.001, 0.01
+    outs = [display.update(PUSH, "world", True, _moving(v * dt * k), dt, dt * k) for k in range(50)]
+    assert outs[0].f[2] == 4.0  # no velocity from one position: no kick at engagement
+    np.testing.assert_allclose(outs[-1].f, [0.0, 0.0, 4.0 - 100.0 * v], atol=1e-6)
+    assert all(a.f[2] >= b.f[2] for a, b in itertools.pairwise(outs))  # no overshoot
+    free = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), np.eye(3).reshape(9))
+    light = ((0.0, 0.0, 0.5 * CONTACT_DAMPING_FULL_N), (0.0, 0.0, 0.0), np.eye(3).reshape(9))
+    t = dt * 50
+    for measured, want in ((free, 0.0), (light, 0.5 * CONTACT_DAMPING_FULL_N - 0.5)):
+        for k in range(50, 100):
+            out = display.update(measured, "world", True, _moving(v * dt * k), dt, t)
+            t += dt
+        np.testing.assert_allclose(out.f, [0.0, 0.0, want], atol=1e-6)
+
+
+def test_the_contact_damper_is_off_when_disengaged_stale_or_after_a_stall() -> None:
+    """Master-shift and a stale stream show nothing at all, however the hand moves; after
+    either, and after a loop stalled past MAX_DAMPED_DT_S, the velocity starts afresh (one
+    position is no velocity), so the damper never kicks the hand."""
+    cfg = MasterConfig(force_ramp_s=0.0, rate_hz=1000.0, contact_damping_ns_m=100.0)
+    display = ForceDisplay(cfg)
+    dt = 0.001
+    for k in range(20):
+        display.update(PUSH, "world", True, _moving(0.001 * k), dt, dt * k)
+    assert not display.update(PUSH, "world", False, _moving(0.5), dt, 0.1).f.any()
+    assert display.update(PUSH, "world", True, _moving(0.9), dt, 0.2).f[2] == 4.0
+    assert not display.update(None, "world", True, _moving(0.0), dt, 0.3).f.any()
+    assert display.update(PUSH, "world", True, _moving(0.2), MAX_DAMPED_DT_S * 2, 0.4).f[2] == 4.0
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    f=st.lists(st.floats(-50.0, 50.0), min_size=3, max_size=3),
+    v=st.lists(st.floats(-2.0, 2.0), min_size=3, max_size=3),
+    b=st.floats(0.0, 500.0),
+)
+def test_the_contact_damper_only_takes_energy_from_the_hand(
+    f: list[float], v: list[float], b: float
+) -> None:
+    """Its power against the hand's velocity is never positive, and it is no stronger than
+    b·|v|, nor stronger than the force shown calls for (b × |f| / CONTACT_DAMPING_FULL_N)."""
+    d = contact_damping(f, v, b)
+    assert float(np.dot(d, v)) <= 1e-12
+    gain = b * min(float(np.linalg.norm(f)) / CONTACT_DAMPING_FULL_N, 1.0)
+    assert float(np.linalg.norm(d)) <= gain * float(np.linalg.norm(v)) * (1 + 1e-12) + 1e-12
+
+
+def test_hand_velocity_is_the_filtered_difference_of_its_positions() -> None:
+    hv = HandVelocity()
+    assert not hv.update([0.0, 0.0, 0.0], 0.001).any()
+    for k in range(1, 100):
+        v = hv.update([0.002 * k, 0.0, 0.0], 0.001)
+    np.testing.assert_allclose(v, [2.0, 0.0, 0.0], rtol=1e-9)
+    hv.reset()
+    assert not hv.update([5.0, 0.0, 0.0], 0.001).any()
