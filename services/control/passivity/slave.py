@@ -69,22 +69,27 @@ port, 3-DoF at 200 ms: the contact came and went in 3 seeds of 6, 0 of 6 since).
 began is the tool's position at the first sample with a contact force
 (`SlavePort.backoff_m`)."""
 OWING_CLEAR_M = 0.005
-"""Left owing at the last contact (`SlavePort.forgiven_j`), the offset is given back in free
-space only away from that contact's surface, or while the target stays this far (m) out of
-it: no second touch from a master that sent no energy, and the tool back on the master's
-mapping once the operator has let go (it stayed 38 mm off in the simulated 3-DoF loop at
-700 ms, seed 1)."""
+"""Out of contact, the offset is given back at the drift's speed only away from the last
+contact's surface, or while the target stays this far (m) out of it (the tool back on the
+master's mapping once the operator has let go: left owing, it stayed 38 mm off in the
+simulated 3-DoF loop at 700 ms, seed 1); towards the surface near it, at DRIFT_CONTACT_M_S
+only: a second touch that slow is no impact. Until 2026-12-04 the drift towards it was held
+back altogether when the contact was left owing (the tool then stayed 0.2–0.3 mm above the
+MuJoCo table for the rest of the hold while the operator pressed on, feeling nothing), and
+was free otherwise (at 3 cm/s the target then stepped 1.7–3 mm below the table within a
+tick and the tool struck it again): docs/passivity.md, "On the MuJoCo cell"."""
 YIELD_M_S_N = 5e-5
 """The yield rate measured (m/s per N, `[decision] passivity_yield_m_s_n`; off by default):
 0.25 mm/s for 5 N, which sheds 5 N/s against the link bench's 20 kN/m table."""
 DRIFT_CONTACT_M_S = 0.001
-"""With the yield on, the offset is given back into a contact at this speed at most (m/s;
-20 N/s against the link bench's 20 kN/m table), and only while the tool presses no harder
-than the hand feels: the yield's offset given back at the free-space 3 cm/s pressed the
-tool to 32 N at 700 ms. Not with the yield off: there, held in contact, the offset built up
-at the touch (the hand's figures a round trip late) was given back at 3 cm/s whenever the
-force dipped under the dead band, and the tool struck the table at 49–71 N in 4 runs of 18
-at 200 ms (0 of 20 without the rule, 2026-11-27)."""
+"""Towards the surface just left (OWING_CLEAR_M), and with the yield on into a contact, the
+offset is given back at this speed at most (m/s; 20 N/s against the link bench's 20 kN/m
+table), in contact only while the tool presses no harder than the hand feels: the yield's
+offset given back at the free-space 3 cm/s pressed the tool to 32 N at 700 ms. Not with the
+yield off: there, held in contact, the offset built up at the touch (the hand's figures a
+round trip late) was given back at 3 cm/s whenever the force dipped under the dead band,
+and the tool struck the table at 49–71 N in 4 runs of 18 at 200 ms (0 of 20 without the
+rule, 2026-11-27)."""
 YIELD_MAX_M_S = 0.002
 """The fastest the target backs out for the operator (m/s)."""
 YIELD_MIN_N = 0.5
@@ -164,7 +169,6 @@ class SlavePort:
     yield_max_rtt_s: float = math.inf
     rtt_s: float | None = None
     yield_on: bool | None = None
-    _owing: bool = False
     _in_contact: bool = False
     _surface: tuple[tuple[float, ...], tuple[float, ...]] | None = None
     _f_prev: tuple[float, ...] | None = None
@@ -174,8 +178,8 @@ class SlavePort:
     def budget_j(self) -> float:
         """Energy the robot may still put into the workcell (< 0: overdrawn; the target
         then backs out along the force until the workcell has given the excess back, and
-        what it has not when the tool is out of contact is forgiven; until the next contact
-        the drift then goes back towards that surface only clear of it, OWING_CLEAR_M)."""
+        what it has not when the tool is out of contact is forgiven; out of contact the drift
+        goes back towards that surface near it only slowly, OWING_CLEAR_M)."""
         return self.remote.e_in - self.observer.e_out + self.recovered_j + self.forgiven_j
 
     def reset(self, epoch: int) -> None:
@@ -186,7 +190,6 @@ class SlavePort:
         self.excluded_j = 0.0
         self.clipped_j = 0.0
         self.forgiven_j = 0.0
-        self._owing = False
         self._in_contact = False
         self._surface = None
         self.asked_n = self.shown_n = None
@@ -240,11 +243,8 @@ class SlavePort:
             self.observer.record(e)
             if not any(fs) and self.budget_j < 0.0:
                 # Out of contact: the workcell has given back all it will; the rest of the
-                # overdraw was one tick's impact, sampled late (module docstring). Until
-                # the next contact no drift back towards that surface near it, as when it
-                # was owed (it would only lead to the next impact): OWING_CLEAR_M.
+                # overdraw was one tick's impact, sampled late (module docstring).
                 self.forgiven_j -= self.budget_j
-                self._owing = True
         self._f_prev, self._p_prev = fs, ps
         return e
 
@@ -265,15 +265,13 @@ class SlavePort:
         if ff < MIN_FORCE_N**2:
             f, ff = [0.0] * len(want), 0.0
         f_n = math.sqrt(ff)
-        if ff > 0.0:
-            self._owing = False
-            if not self._in_contact:
-                # Where the contact was first felt: an arm that overruns a touch (its
-                # braking lag) goes on past it, and backing out to it sheds that. The last
-                # tool out of contact instead lifts the tool off (one tick of approach): in
-                # the simulated 3-DoF loop at 200 ms, 1 seed of 6 stable against 6 of 6.
-                touch = tuple(float(x) for x in p_now)
-                self._surface = (touch, tuple(fi / f_n for fi in f))
+        if ff > 0.0 and not self._in_contact:
+            # Where the contact was first felt: an arm that overruns a touch (its
+            # braking lag) goes on past it, and backing out to it sheds that. The last
+            # tool out of contact instead lifts the tool off (one tick of approach): in
+            # the simulated 3-DoF loop at 200 ms, 1 seed of 6 stable against 6 of 6.
+            touch = tuple(float(x) for x in p_now)
+            self._surface = (touch, tuple(fi / f_n for fi in f))
         self._in_contact = ff > 0.0
         if ff == 0.0 or self.yield_on is None:
             self.yield_on = self._link_allows_yield()
@@ -288,15 +286,16 @@ class SlavePort:
             # the link): given back regardless, the offset the operator had pushed past a
             # clamped target pressed the tool to 32 N at 700 ms, the hand feeling 5.
             comp = [0.0] * len(comp)
+        if any(comp) and ff == 0.0 and self._surface is not None:
+            tried = [w + c for w, c in zip(want, comp, strict=True)]
+            if not self._clear_of_surface(tried, comp):
+                # Going back towards the surface just left, near it: slowly, at
+                # DRIFT_CONTACT_M_S (OWING_CLEAR_M says why).
+                comp = self._drift_step(dt_s, DRIFT_CONTACT_M_S)
         if any(comp):
             tried = [w + c for w, c in zip(want, comp, strict=True)]
-            # Free in free space, unless overdrawn, or left so (forgiven) at the last
-            # contact and going back towards its surface near it: it would only lead to
-            # the next impact.
-            if ff == 0.0:
-                pays = budget >= 0.0 and (not self._owing or self._clear_of_surface(tried, comp))
-            else:
-                pays = self._committed(f, tried, p_now) <= budget
+            # Free in free space unless overdrawn; in contact, while the budget pays.
+            pays = budget >= 0.0 if ff == 0.0 else self._committed(f, tried, p_now) <= budget
             if pays:
                 want = tried
         alpha = 0.0
