@@ -678,6 +678,23 @@ supervisor holding the tool against its limit, not a contact the loop settled: n
 however calm (one run without TDPA at 700 ms, 2026-11-26, rested at 42 N, RMS 0.02 N)."""
 
 
+def model_line(doc: dict[str, Any]) -> str:
+    """What `--link`'s table is of, in one paragraph (the simulated loop's is
+    `sim_bench.model_line`)."""
+    st = doc["settings"]
+    return (
+        "Model: the real services over a real link — the robot side (the arm on the MuJoCo "
+        "cell, the force service, the decision with the guarded approach of "
+        f"{st.get('approach_zone_m')} m) and the master station (a simulated 0.5 kg device "
+        f"held by a simulated hand, {st.get('master_rate_hz'):g} Hz, contact damping "
+        f"{st.get('contact_damping_ns_m'):g} N·s/m) in two network namespaces joined by "
+        f"{st.get('emulator', 'the link')} over {st.get('transport')}; round trips "
+        f"{st.get('delays_ms')} ms, jitter {st.get('jitter')}, loss {st.get('loss')}; the "
+        f"fingertips pressed onto the table, {st.get('hold_s'):g} s hold measured over its last "
+        f"{st.get('measured_s'):g} s (docs/passivity.md). Forces in N along the world's z."
+    )
+
+
 def bench_measures(m: dict[str, Any]) -> dict[str, float | bool]:
     """The simulated bench's measures (`passivity.MEASURES`) from one run over the link.
     energy_generated_j: the channel's output beyond its input at the end, counting what the
@@ -771,6 +788,7 @@ def run_matrix(
             "hold_s": hold_s,
             "measured_s": min(MEASURE_S, hold_s),
             "yield_m_s_n": yield_m_s_n,
+            "contact_damping_ns_m": CONTACT_DAMPING_NS_M,
             "twist": twist,
         },
     }

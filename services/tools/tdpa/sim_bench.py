@@ -537,7 +537,7 @@ def main(argv: list[str] | None = None) -> int:
         drawn = plots(results, Path(args.plots)) if args.plots else []
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(doc, indent=2) + "\n")
-    print(model_line(doc))
+    print(link_bench.model_line(doc) if args.link else model_line(doc))
     print(table(doc))
     twisted = bool(doc["settings"].get("twist"))
     if twisted:

@@ -137,7 +137,16 @@ def test_link_run_writes_its_own_document_and_plots(
         "passivity_link_0ms.png",
         "passivity_link_200ms.png",
     ]
-    assert "RTT ms" in capsys.readouterr().out
+    said = capsys.readouterr().out
+    assert "RTT ms" in said
+    # The table says what it is of: the services over the link, not the simulated loop.
+    lines = said.splitlines()
+    model = lines[next(i for i, x in enumerate(lines) if "RTT ms" in x) - 1]
+    assert model.startswith("Model: the real services over a real link"), model
+    assert "MuJoCo" in model and "500 Hz" in model and "round trips [0, 200] ms" in model
+    assert f"contact damping {link_bench.CONTACT_DAMPING_NS_M:g} N·s/m" in model
+    assert "simulated 1-DoF" not in said and "None" not in model
+    assert doc["settings"]["contact_damping_ns_m"] == link_bench.CONTACT_DAMPING_NS_M
 
 
 def _runs_told(monkeypatch: pytest.MonkeyPatch, keyword: str) -> list[object]:
