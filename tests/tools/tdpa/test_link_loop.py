@@ -19,13 +19,12 @@ reason where the namespaces cannot be made.
 
 from __future__ import annotations
 
-from typing import Any
-
 import pytest
 
 from services.control.master.passivity import RESERVE_J
 from services.control.passivity.controller import TOLERANCE_J
 from services.tools.tdpa import link_bench as pl
+from tests.tools.tdpa.link_runs import link_lost_the_operator, over_link
 
 # Alone: the link is a userspace delay line and the master a 500 Hz loop in their own
 # processes; beside a second test worker a command stalled past the 1.4 s watchdog once
@@ -43,70 +42,6 @@ ON_MUJOCO = (
     " the hand put in against a force shown 200 ms late) - open; not run in `make test` (each"
     " run takes a minute alone): `pytest --runxfail` runs them"
 )
-
-
-def over_link(
-    rtt_ms: float, passivity: bool, transport: str = "tcp", twist: bool = False
-) -> dict[str, Any]:
-    reason = pl.unavailable()
-    if reason:
-        pytest.skip(reason)
-    try:  # the bench's protocol
-        return pl.run_over_link(rtt_ms, passivity, transport=transport, twist=twist)
-    except RuntimeError as e:
-        if "Operation not permitted" in str(e) or "Permission denied" in str(e):
-            pytest.skip(f"network namespace setup refused: {e}")
-        raise
-
-
-def link_lost_the_operator(m: dict[str, Any]) -> bool:
-    """The decision held because the operator's session lapsed (its liveliness lost)."""
-    return any("master 'op' lost" in e for e in m["events"])
-
-
-def test_the_local_loop_holds_a_press_on_the_mujoco_table() -> None:
-    """0 ms, TDPA off, through the same services and namespaces: the operator presses the
-    fingertips onto the MuJoCo table and the press holds through the hold. Before the
-    master's contact damper (`[master] contact_damping_ns_m`, 250 N·s/m in the link bench)
-    the tool bounced off the table every 0.5–0.8 s here (steady 0.3–1.5 N, peaks 14–23 N):
-    each newton shown lifted the softly held hand 17 times as far as it pressed the tool
-    (docs/master.md, "Contact damping")."""
-    m = over_link(0.0, passivity=False)
-    if link_lost_the_operator(m):
-        m = over_link(0.0, passivity=False)
-    assert m["peak_n"] >= pl.CONTACT_N and m["penetration_mm"] > 0.0, m
-    _assert_the_press_held(m)
-    assert m["peak_n"] < pl.SUPERVISOR_LIMIT_N, m["peak_n"]
-
-
-def _assert_the_press_held(m: dict[str, Any], least_n: float = 4.0) -> None:
-    """The press held through the window (its force never under 10 % of the steady force:
-    no bounce), calm (its swing about its trend under 25 % of the steady force), and both
-    its steady force and the force felt above `least_n` (the operator means 8 N).
-    The bench's "stable" asks 10 %: met in every quiet run (swing 0.05–0.6 N on 6.3 N);
-    beside a busy core the fingertips' stick–slip shook it by 16 % RMS once in six."""
-    measures = {
-        k: round(v, 3) if isinstance(v, float) else v for k, v in pl.bench_measures(m).items()
-    }
-    assert m["held"], measures
-    assert measures["swing_rms_n"] < 0.25 * m["steady_n"], measures
-    assert m["steady_n"] > least_n and m["felt_n"] > least_n, measures
-
-
-def test_with_tdpa_the_local_loop_holds_the_press_and_stays_passive() -> None:
-    """0 ms, TDPA on: both ports' bounds hold and so does the press. Before the slave
-    port's drift went back towards a surface just left at DRIFT_CONTACT_M_S, a strike lost
-    the press here and the tool hovered above the table for the rest of the hold (17 N,
-    8 mJ forgiven; docs/passivity.md, "On the MuJoCo cell")."""
-    m = over_link(0.0, passivity=True)
-    if link_lost_the_operator(m):
-        m = over_link(0.0, passivity=True)
-    assert m["peak_n"] >= pl.CONTACT_N and m["penetration_mm"] > 0.0, m
-    allowance = RESERVE_J + 0.01 + TOLERANCE_J
-    assert m["master_out_j"] <= m["slave_in_j"] + allowance, m
-    assert m["slave_out_j"] <= m["master_in_j"] + m["slave_recovered_j"] + 0.01, m
-    assert pl.bench_measures(m)["energy_generated_j"] <= 0.01 + allowance, m
-    _assert_the_press_held(m, least_n=3.0)
 
 
 @pytest.mark.xfail(reason=ON_MUJOCO, strict=False, run=False)
