@@ -3,8 +3,9 @@ services in two network namespaces (`services.tools.tdpa.link_bench`, as
 `test_link_loop.py`): the local loop's own stability, which the 200 ms tests there build
 on (docs/passivity.md, "On the MuJoCo cell"; docs/master.md, "Contact damping").
 
-System, not alone: at 0 ms nothing waits on a long watchdog, and both passed 10 of 10 runs
-beside a busy core (2026-12-04); each run takes about 18 s.
+System, not alone: at 0 ms nothing waits on a long watchdog; what a second worker beside
+them changes is how much the fingertips' stick–slip shakes the press, not whether it holds
+(`link_runs.assert_the_press_held`). Each run takes about 18 s.
 """
 
 from __future__ import annotations
