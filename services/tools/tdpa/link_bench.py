@@ -106,14 +106,13 @@ MASTER_RATE_HZ = 500.0
 """The master station's loop rate over the link (`--master-rate-hz`): a haptic device's.
 At 100 Hz the force limiter lets the display rise only while the hand sinks at
 Ḟ·h²/(rise·m), 25 times faster than at 500 Hz, and the contact creeps on (docs/passivity.md)."""
-CONTACT_DAMPING_NS_M = float(os.environ.get("TELEROBOT_LINK_DAMPING", "250"))
-"""The operator's master damps the hand in contact (`[master] contact_damping_ns_m`, N·s/m;
-env TELEROBOT_LINK_DAMPING for experiments). The MuJoCo table (≈ 5 kN/m with the arm's servo
-at the PUMA's tool) shown to the softly held device (0.5 kg, 2 N·s/m; hand 300 N/m, 10 N·s/m)
-bounced at 0 ms with TDPA off: every displayed newton lifts the hand 3.3 mm against a
-penetration of 0.2 mm, and the loop's own delay (master tick, bus, decision, servo, sensor)
-needs about k·τ of damping, far above the hand's 12 (docs/passivity.md, "On the MuJoCo
-cell")."""
+CONTACT_DAMPING_NS_M = 250.0
+"""The operator's master damps the hand in contact (`[master] contact_damping_ns_m`, N·s/m).
+The MuJoCo table (≈ 5 kN/m with the arm's servo at the PUMA's tool) shown to the softly held
+device (0.5 kg, 2 N·s/m; hand 300 N/m, 10 N·s/m) bounced at 0 ms with TDPA off: every
+displayed newton lifts the hand 3.3 mm against a penetration of 0.2 mm, and the loop's own
+delay (master tick, bus, decision, servo, sensor) needs about k·τ of damping, far above the
+hand's 12 (docs/passivity.md, "On the MuJoCo cell")."""
 QUIET_S = 0.5
 """The robot side measures once the master's figures have not arrived for this long."""
 TWIST_RAD = 0.15
