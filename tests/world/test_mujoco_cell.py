@@ -127,7 +127,7 @@ def test_a_bad_parameter_or_arm_fails_naming_the_key() -> None:
         build_cell(bad, SCENE)
 
 
-@pytest.mark.parametrize("name", ["puma560", "fr3"])
+@pytest.mark.parametrize("name", SHIPPED)
 def test_the_gripper_holds_by_friction_and_the_wrist_weighs_the_block(name: str) -> None:
     ph = CellPhysics(load_model(name), SCENE)
     d = Driver(ph)
@@ -191,8 +191,9 @@ def test_the_tool_pushing_a_block_slides_it() -> None:
     assert abs(b.p[2] - start[2]) < 1e-3 and b.phase == "resting", b
 
 
-def test_a_steady_press_is_what_the_joint_torques_balance() -> None:
-    ph = CellPhysics(load_model("puma560"), SCENE)
+@pytest.mark.parametrize("name", SHIPPED)
+def test_a_steady_press_is_what_the_joint_torques_balance(name: str) -> None:
+    ph = CellPhysics(load_model(name), SCENE)
     d = Driver(ph)
     spot = np.array([0.60, 0.15, TABLE.top_z])
     reach = ph.params.finger_length_m
@@ -237,10 +238,11 @@ def test_a_steady_press_is_what_the_joint_torques_balance() -> None:
     tilt_deg=st.floats(0.0, 25.0),
     target=st.sampled_from(["table", "block1"]),
 )
+@pytest.mark.parametrize("name", SHIPPED)
 def test_no_approach_reads_above_the_sensors_range(
-    speed: float, tilt_deg: float, target: str
+    name: str, speed: float, tilt_deg: float, target: str
 ) -> None:
-    ph = CellPhysics(load_model("puma560"), SCENE)
+    ph = CellPhysics(load_model(name), SCENE)
     d = Driver(ph)
     surface = np.array([0.62, 0.15, TABLE.top_z]) if target == "table" else top_of(ph, "block1")
     R = ph.tool_pose()[1] @ rot_y(math.radians(tilt_deg))
