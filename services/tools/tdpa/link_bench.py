@@ -43,6 +43,7 @@ from services.bus.config import NodeConfig
 from services.bus.messages import Event, ForceSample, MasterFeedback, PassivityState, RobotState
 from services.bus.node import Node
 from services.bus.peers import Clients, Peers
+from services.control.arm.model import DEFAULT_MODEL
 from services.control.decision.config import DecisionConfig
 from services.control.master.config import MasterConfig
 from services.control.master.haptic_sim import SimHapticMaster
@@ -251,9 +252,10 @@ def build_robot(
     passivity: bool = True,
     start_gap_m: float = START_GAP_M,
     torsion_nm_rad: float = 0.0,
+    model: str = DEFAULT_MODEL,
     **decision: float,
 ) -> tuple[SimCell, Trace]:
-    """The cell layer's `SimCell` (the sim arm on the workcell's physics, `light_arm`; the
+    """The cell layer's `SimCell` (the sim arm `model` on the workcell's physics, `light_arm`; the
     MuJoCo cell of the table: the contact, and its friction resisting a turn, are its
     solver's; the sim wrist, 500 Hz, `LIGHT_FORCE`; the decision with `passivity` and the
     `decision` settings) and a recording console, each on a node from `node(name,
@@ -272,7 +274,7 @@ def build_robot(
     } | decision
     cell = SimCell(
         node,
-        arm=light_arm(),
+        arm=light_arm(model),
         force=LIGHT_FORCE,
         decision=DecisionConfig(passivity=passivity, **settings),
         scene=Scene(boxes=(TABLE,)),
@@ -430,6 +432,7 @@ def robot(
     hold_s: float,
     yield_m_s_n: float = YIELD_DEFAULT,
     torsion_nm_rad: float = 0.0,
+    model: str = DEFAULT_MODEL,
 ) -> None:
     peers: Peers | RouterSide = (
         RouterSide(endpoint, os.environ.get(ZENOH_CONFIG_ENV, ""))
@@ -444,6 +447,7 @@ def robot(
             watchdog_ms=watchdog,
             state_stale_ms=watchdog,
             torsion_nm_rad=torsion_nm_rad,
+            model=model,
             approach_zone_m=zone_m,
             passivity_yield_m_s_n=yield_m_s_n,
         )
@@ -573,10 +577,11 @@ def run_over_link(
     hold_s: float = HOLD_S,
     yield_m_s_n: float = YIELD_DEFAULT,
     twist: bool = False,
+    model: str = DEFAULT_MODEL,
 ) -> dict[str, Any]:
-    """One press–hold–release over a fresh link (with `twist`, a turn against the
-    contact too: `TWIST_RAD`) (`rate_mbit` > 0: its bandwidth each way, a link the streams
-    can saturate; the hold `hold_s` long; `yield_m_s_n`: the decision's
+    """One press–hold–release of arm `model` over a fresh link (with `twist`, a turn
+    against the contact too: `TWIST_RAD`) (`rate_mbit` > 0: its bandwidth each way, a link
+    the streams can saturate; the hold `hold_s` long; `yield_m_s_n`: the decision's
     `passivity_yield_m_s_n`): the robot side's metrics, the operator's own figures (keys
     `op_…`), the link's emulator, the last events and the series, each (s since the
     operator started, value): `force` (world f_z), `z` (the tool point above the touch, m),
@@ -608,6 +613,7 @@ def run_over_link(
                 str(hold_s),
                 str(yield_m_s_n),
                 str(TORSION_NM_RAD if twist else 0.0),
+                model,
             ),
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
@@ -661,6 +667,7 @@ def run_over_link(
     m["approach_zone_m"], m["rate_mbit"] = approach_zone_m, rate_mbit
     m["yield_m_s_n"] = yield_m_s_n
     m["twist"] = twist
+    m["model"] = model
     m["events"] = out["events"]
     m["events_after"] = out.get("events_after", [])
     m["force"] = out["force"]
@@ -682,8 +689,9 @@ def model_line(doc: dict[str, Any]) -> str:
     `sim_bench.model_line`)."""
     st = doc["settings"]
     return (
-        "Model: the real services over a real link — the robot side (the arm on the MuJoCo "
-        "cell, the force service, the decision with the guarded approach of "
+        "Model: the real services over a real link — the robot side (the arm "
+        f"({st.get('model', DEFAULT_MODEL)}) on the MuJoCo cell, the force service, the "
+        "decision with the guarded approach of "
         f"{st.get('approach_zone_m')} m) and the master station (a simulated 0.5 kg device "
         f"held by a simulated hand, {st.get('master_rate_hz'):g} Hz, contact damping "
         f"{st.get('contact_damping_ns_m'):g} N·s/m) in two network namespaces joined by "
@@ -770,6 +778,7 @@ def run_matrix(
     hold_s: float = HOLD_S,
     yield_m_s_n: float = YIELD_DEFAULT,
     twist: bool = False,
+    model: str = DEFAULT_MODEL,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
     """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
     simulated bench's keys, the runs). `twist`: the turn too, its moment under
@@ -789,6 +798,7 @@ def run_matrix(
             "yield_m_s_n": yield_m_s_n,
             "contact_damping_ns_m": CONTACT_DAMPING_NS_M,
             "twist": twist,
+            "model": model,
         },
     }
     runs: dict[tuple[int, bool], dict[str, Any]] = {}
@@ -807,6 +817,7 @@ def run_matrix(
                 hold_s=hold_s,
                 yield_m_s_n=yield_m_s_n,
                 twist=twist,
+                model=model,
             )
             runs[(delay, on)] = m
             if on:
@@ -897,6 +908,7 @@ def main(argv: list[str]) -> None:
             float(argv[5]),
             float(argv[6]),
             float(argv[7]) if len(argv) > 7 else 0.0,
+            argv[8] if len(argv) > 8 else DEFAULT_MODEL,
         )
     elif role == "operator":
         operator(

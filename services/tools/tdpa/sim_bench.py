@@ -34,6 +34,7 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from services.control.arm.model import DEFAULT_MODEL, SHIPPED
 from services.control.passivity.dynamics import Wall
 from services.tools.tdpa.loop import (
     SLAVE_SPEED_M_S,
@@ -397,6 +398,12 @@ def main(argv: list[str] | None = None) -> int:
         help="the real services over a real bad link (network namespaces; root)",
     )
     p.add_argument(
+        "--model",
+        choices=SHIPPED,
+        default=None,
+        help=f"--link: the simulated arm on the MuJoCo cell (default {DEFAULT_MODEL})",
+    )
+    p.add_argument(
         "--transport",
         choices=["tcp", "udp", "tls", "quic", "quic-mixed"],
         default="tcp",
@@ -473,6 +480,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--slave-speed is the simulation's (not --link) and within 0 … 10 m/s")
     if args.slave_port and (args.link or args.slave_speed == 0.0):
         p.error("--slave-port is the simulation's (not --link) and needs --slave-speed > 0")
+    if args.model is not None and not args.link:
+        p.error("--model needs --link (the simulation is one degree of freedom, no arm)")
     if args.twist and args.slave_speed == 0.0:
         p.error("--twist needs --slave-speed > 0")
     if args.seeds and (args.link or not 1 <= args.seeds <= 100):
@@ -502,6 +511,7 @@ def main(argv: list[str] | None = None) -> int:
                 link_bench.YIELD_DEFAULT if args.yield_m_s_n is None else args.yield_m_s_n
             ),
             twist=args.twist,
+            model=args.model or DEFAULT_MODEL,
         )
         path = Path(args.json or "artifacts/bench_passivity_link.json")
         drawn = link_bench.plots(runs, Path(args.plots)) if args.plots else []

@@ -7,17 +7,22 @@ from typing import Any
 
 import pytest
 
+from services.control.arm.model import DEFAULT_MODEL
 from services.tools.tdpa import link_bench as pl
 
 
 def over_link(
-    rtt_ms: float, passivity: bool, transport: str = "tcp", twist: bool = False
+    rtt_ms: float,
+    passivity: bool,
+    transport: str = "tcp",
+    twist: bool = False,
+    model: str = DEFAULT_MODEL,
 ) -> dict[str, Any]:
     reason = pl.unavailable()
     if reason:
         pytest.skip(reason)
     try:  # the bench's protocol
-        return pl.run_over_link(rtt_ms, passivity, transport=transport, twist=twist)
+        return pl.run_over_link(rtt_ms, passivity, transport=transport, twist=twist, model=model)
     except RuntimeError as e:
         if "Operation not permitted" in str(e) or "Permission denied" in str(e):
             pytest.skip(f"network namespace setup refused: {e}")

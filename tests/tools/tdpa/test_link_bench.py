@@ -108,6 +108,22 @@ def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.Monkey
     assert doc["runs"]["700_on"]["measured_rtt_ms"] == {"decision": 1051.0, "master": 1052.0}
     assert doc["runs"]["700_off"]["measured_rtt_ms"] == {"decision": None, "master": None}
     json.loads(json.dumps(doc, allow_nan=False))  # strict JSON
+
+
+def test_the_matrix_runs_the_arm_it_is_given(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--link --model`: every run of the matrix presses with that arm, and the document and
+    its model line say which."""
+    models: list[object] = []
+
+    def run(rtt_ms: float, on: bool, *a: object, **kw: object) -> dict[str, Any]:
+        models.append(kw.get("model"))
+        return fake_run(rtt_ms, on)
+
+    monkeypatch.setattr(link_bench, "run_over_link", run)
+    doc, _ = link_bench.run_matrix((0, 50), 0.1, 0.01, lambda _: None, model="fr3")
+    assert models == ["fr3"] * 4
+    assert doc["settings"]["model"] == "fr3"
+    assert "the arm (fr3) on the MuJoCo cell" in link_bench.model_line(doc)
     text = sim_bench.table(doc)
     assert len(text.splitlines()) == 2 + 4
     assert "–" in text.splitlines()[2]  # the off row's energy

@@ -105,6 +105,15 @@ def test_seeds_sum_up_each_seeds_run() -> None:
     assert "0 / 2" in rows[3] and "2 / 2" in rows[4]
 
 
+def test_cli_model_is_the_links(capsys: pytest.CaptureFixture[str]) -> None:
+    """`--model` picks the arm of `--link`'s robot side; the simulation has none, and a model
+    not shipped is refused before anything runs."""
+    for bad in (["--model", "fr3"], ["--link", "--model", "kuka"]):
+        with pytest.raises(SystemExit):
+            main(bad)
+        assert "--model" in capsys.readouterr().err
+
+
 def test_cli_seeds_is_the_simulations(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["--seeds", "3", "--link"])
