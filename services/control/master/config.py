@@ -140,6 +140,16 @@ class MasterConfig:
         to a softly held device bounces unless the loop damps at least about the contact's
         stiffness × the loop's delay (Colgate's bound: docs/master.md, "Contact damping").
         0 (default): off. At most DAMPING_MARGIN × 2 × passivity_device_mass_kg × rate_hz.
+    contact_tangential_gain: in contact, the part of the displayed force across the
+        contact's normal (its friction, mostly) is shown × this, 0 … 1; the part along the
+        normal (the press) always in full. The normal is the mean force's direction over the
+        contact's first `feedback.NORMAL_WINDOW_S` (`feedback.ContactNormal`). Applied before
+        a passivity port, which observes what the hand is shown. 1 (default): the force as
+        measured. Over a delayed link the hand, yielding sideways to the friction it is
+        shown a round trip late, drags the tool across the surface and TDPA's slave port
+        pays that friction work: at 0 the link bench's press was calm at 50 and 200 ms where
+        with friction shown it shook or was lost, but lighter at 0 ms (docs/passivity.md,
+        "Friction hidden from the hand").
     """
 
     master_id: str = "master"
@@ -163,6 +173,7 @@ class MasterConfig:
     passivity_moments: bool = False
     passivity_device_inertia_kg_m2: float = DEVICE_INERTIA_KG_M2
     contact_damping_ns_m: float = 0.0
+    contact_tangential_gain: float = 1.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.master_id, str) or not self.master_id:
@@ -207,6 +218,8 @@ class MasterConfig:
                 "force_stale_ms", f"must be within {MIN_STALE_MS:g} … {MAX_STALE_MS:g} ms"
             )
         self._check_damping(mass)
+        if not 0.0 <= number("contact_tangential_gain", self.contact_tangential_gain) <= 1.0:
+            raise option_error("contact_tangential_gain", "must be within 0 … 1")
         if self.engage_on_start is None:
             object.__setattr__(self, "engage_on_start", type(self.options).engages_on_start)
         elif not isinstance(self.engage_on_start, bool):

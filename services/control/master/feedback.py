@@ -7,9 +7,10 @@ in `tool` mode (PROTOCOL §2). The displayed wrench is mapped back the same way 
 rotation, so its inverse is Aᵀ), scaled, and saturated with its direction kept.
 
 `ForceDisplay` is the one path from the wrist to the hand that the master service uses:
-that mapping, then zero unless engaged, a ramp-in after each engagement, a hook where a
-master-side controller (passivity) can change the wrench before the device shows it, and a
-damper on the hand's motion while a contact is shown (`contact_damping_ns_m`).
+that mapping, then zero unless engaged, a ramp-in after each engagement, the contact's
+friction shown scaled (`contact_tangential_gain`), a hook where a master-side controller
+(passivity) can change the wrench before the device shows it, and a damper on the hand's
+motion while a contact is shown (`contact_damping_ns_m`).
 """
 
 from __future__ import annotations
@@ -185,6 +186,74 @@ def contact_damping(f_shown: ArrayLike, v_hand: ArrayLike, b_ns_m: float) -> Arr
     return -gain * np.asarray(v_hand, dtype=float).reshape(3)
 
 
+CONTACT_NORMAL_N = 1.0
+"""A contact begins when the force shown reaches this (N); its normal is taken from the
+forces of this size or more over its first NORMAL_WINDOW_S, while the force is mostly the
+press and its friction not yet built up."""
+CONTACT_LOST_N = 0.5
+CONTACT_LOST_S = 0.1
+"""Below CONTACT_LOST_N (N) for CONTACT_LOST_S the contact is over; the next one takes its
+normal anew (a touch's bounces are one contact)."""
+NORMAL_WINDOW_S = 0.1
+"""The normal is the mean force's direction over the contact's first this many seconds."""
+
+
+class ContactNormal:
+    """The contact's normal (unit, master frame) from the force shown tick by tick: the
+    direction of the mean force over the contact's first NORMAL_WINDOW_S (its samples of
+    CONTACT_NORMAL_N or more; a touch's chatter and impact tilt any single one), kept until
+    the force has stayed below CONTACT_LOST_N for CONTACT_LOST_S; None out of contact and
+    while the window fills (forces whose mean is under CONTACT_LOST_N name none: the window
+    starts again)."""
+
+    def __init__(self) -> None:
+        self.n: Array3 | None = None
+        self._sum = np.zeros(3)
+        self._count = 0
+        self._since_s: float | None = None
+        self._low_since_s: float | None = None
+
+    def reset(self) -> None:
+        self.n = None
+        self._sum = np.zeros(3)
+        self._count = 0
+        self._since_s = self._low_since_s = None
+
+    def update(self, f_shown: ArrayLike, now_s: float) -> Array3 | None:
+        f = np.asarray(f_shown, dtype=float).reshape(3)
+        size = math.hypot(*f)
+        if self._since_s is not None:
+            if size < CONTACT_LOST_N:
+                if self._low_since_s is None:
+                    self._low_since_s = now_s
+                elif now_s - self._low_since_s >= CONTACT_LOST_S:
+                    self.reset()
+                    return None
+            else:
+                self._low_since_s = None
+        if size >= CONTACT_NORMAL_N and self.n is None:
+            if self._since_s is None:
+                self._since_s = now_s
+            self._sum = self._sum + f
+            self._count += 1
+            if now_s - self._since_s >= NORMAL_WINDOW_S:
+                size_sum = math.hypot(*self._sum)
+                if size_sum >= CONTACT_LOST_N * self._count:
+                    self.n = self._sum / size_sum
+                else:  # forces that cancel name no normal: the window starts again
+                    self._sum, self._count, self._since_s = np.zeros(3), 0, now_s
+        return self.n
+
+
+def across_normal(f_shown: ArrayLike, n: ArrayLike, gain: float) -> Array3:
+    """`f_shown` with its part across the unit normal `n` scaled by `gain`: (f·n)n +
+    gain·(f − (f·n)n). Never longer than `f_shown` for a gain within 0 … 1."""
+    f = np.asarray(f_shown, dtype=float).reshape(3)
+    u = np.asarray(n, dtype=float).reshape(3)
+    along = float(f @ u) * u
+    return along + gain * (f - along)
+
+
 def ramp_gain(since_engaged_s: float, ramp_s: float) -> float:
     """0 → 1 linearly over `ramp_s` after an engagement (1 at once when ramp_s is 0)."""
     if ramp_s <= 0.0:
@@ -205,8 +274,11 @@ class ForceDisplay:
        restart it), so a contact force held through a re-clutch does not kick the hand;
        likewise since the force came back after a stale gap (the display was zero through
        it, and the wrist may press harder now: a stream that resumes does not kick either);
-    4. `hook` (None: unchanged), then saturated again to max_force_n / max_torque_nm;
-    5. with `contact_damping_ns_m` > 0, the contact damper on the hand's velocity
+    4. with `contact_tangential_gain` < 1, the force's part across the contact's normal
+       (`ContactNormal`) × that gain (`across_normal`): what the device shows, and so what
+       a passivity port in the hook observes;
+    5. `hook` (None: unchanged), then saturated again to max_force_n / max_torque_nm;
+    6. with `contact_damping_ns_m` > 0, the contact damper on the hand's velocity
        (`contact_damping`, outside the hook: a passivity port observes the contact's force,
        not the damper's), the sum saturated again.
     """
@@ -218,6 +290,8 @@ class ForceDisplay:
         self._max_force_n = config.max_force_n
         self._max_torque_nm = config.max_torque_nm
         self._damping_ns_m = config.contact_damping_ns_m
+        self._tangential_gain = config.contact_tangential_gain
+        self._normal = ContactNormal()
         self._velocity = HandVelocity()
         self._engaged_since_s: float | None = None
         self._fresh_since_s: float | None = None
@@ -236,6 +310,7 @@ class ForceDisplay:
         if not engaged:
             self._engaged_since_s = None
             self._velocity.reset()
+            self._normal.reset()
             return ForceFeedback.zero()
         v_hand = self._velocity.update(hand.hand_p, dt_s) if self._damping_ns_m > 0.0 else None
         if self._engaged_since_s is None:
@@ -255,8 +330,13 @@ class ForceDisplay:
         if self._fresh_since_s is not None:
             since = max(since, self._fresh_since_s)
         gain = ramp_gain(now_s - since, self._ramp_s)
+        f_shown = gain * mapped.f
+        if self._tangential_gain < 1.0:
+            n = self._normal.update(f_shown, now_s)
+            if n is not None:
+                f_shown = across_normal(f_shown, n, self._tangential_gain)
         shown = DisplayWrench(
-            gain * mapped.f, gain * mapped.c, mapped.force_saturated, mapped.torque_saturated
+            f_shown, gain * mapped.c, mapped.force_saturated, mapped.torque_saturated
         )
         if self.hook is not None:
             hooked = self.hook(shown, hand, dt_s)

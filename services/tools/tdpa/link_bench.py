@@ -507,6 +507,7 @@ def operator(
     stale_ms: float,
     hold_s: float,
     twist_rad: float = 0.0,
+    tangential_gain: float = 1.0,
 ) -> None:
     routed = not endpoint.startswith("tcp/")  # a client of the robot host's router: RouterSide
     cfg = NodeConfig(
@@ -527,6 +528,7 @@ def operator(
             force_stale_ms=stale_ms,
             passivity_moments=twist_rad != 0.0,
             contact_damping_ns_m=CONTACT_DAMPING_NS_M,
+            contact_tangential_gain=tangential_gain,
         )
         device = SimHapticMaster(
             depth_m=DEPTH_M,
@@ -578,10 +580,12 @@ def run_over_link(
     yield_m_s_n: float = YIELD_DEFAULT,
     twist: bool = False,
     model: str = DEFAULT_MODEL,
+    tangential_gain: float = 1.0,
 ) -> dict[str, Any]:
     """One press–hold–release of arm `model` over a fresh link (with `twist`, a turn
-    against the contact too: `TWIST_RAD`) (`rate_mbit` > 0: its bandwidth each way, a link
-    the streams can saturate; the hold `hold_s` long; `yield_m_s_n`: the decision's
+    against the contact too: `TWIST_RAD`; the master showing the contact's friction ×
+    `tangential_gain`, its `contact_tangential_gain`) (`rate_mbit` > 0: its bandwidth each
+    way, a link the streams can saturate; the hold `hold_s` long; `yield_m_s_n`: the decision's
     `passivity_yield_m_s_n`): the robot side's metrics, the operator's own figures (keys
     `op_…`), the link's emulator, the last events and the series, each (s since the
     operator started, value): `force` (world f_z), `z` (the tool point above the touch, m),
@@ -639,6 +643,7 @@ def run_over_link(
                         wd,
                         str(hold_s),
                         str(TWIST_RAD if twist else 0.0),
+                        str(tangential_gain),
                     ),
                     capture_output=True,
                     text=True,
@@ -668,6 +673,7 @@ def run_over_link(
     m["yield_m_s_n"] = yield_m_s_n
     m["twist"] = twist
     m["model"] = model
+    m["tangential_gain"] = tangential_gain
     m["events"] = out["events"]
     m["events_after"] = out.get("events_after", [])
     m["force"] = out["force"]
@@ -694,7 +700,8 @@ def model_line(doc: dict[str, Any]) -> str:
         "decision with the guarded approach of "
         f"{st.get('approach_zone_m')} m) and the master station (a simulated 0.5 kg device "
         f"held by a simulated hand, {st.get('master_rate_hz'):g} Hz, contact damping "
-        f"{st.get('contact_damping_ns_m'):g} N·s/m) in two network namespaces joined by "
+        f"{st.get('contact_damping_ns_m'):g} N·s/m, the contact's friction shown × "
+        f"{st.get('tangential_gain', 1.0):g}) in two network namespaces joined by "
         f"{st.get('emulator', 'the link')} over {st.get('transport')}; round trips "
         f"{st.get('delays_ms')} ms, jitter {st.get('jitter')}, loss {st.get('loss')}; the "
         f"fingertips pressed onto the table, {st.get('hold_s'):g} s hold measured over its last "
@@ -779,6 +786,7 @@ def run_matrix(
     yield_m_s_n: float = YIELD_DEFAULT,
     twist: bool = False,
     model: str = DEFAULT_MODEL,
+    tangential_gain: float = 1.0,
 ) -> tuple[dict[str, Any], dict[tuple[int, bool], dict[str, Any]]]:
     """Every delay, TDPA off then on, over a fresh link each: (the JSON document with the
     simulated bench's keys, the runs). `twist`: the turn too, its moment under
@@ -799,6 +807,7 @@ def run_matrix(
             "contact_damping_ns_m": CONTACT_DAMPING_NS_M,
             "twist": twist,
             "model": model,
+            "tangential_gain": tangential_gain,
         },
     }
     runs: dict[tuple[int, bool], dict[str, Any]] = {}
@@ -818,6 +827,7 @@ def run_matrix(
                 yield_m_s_n=yield_m_s_n,
                 twist=twist,
                 model=model,
+                tangential_gain=tangential_gain,
             )
             runs[(delay, on)] = m
             if on:
@@ -918,6 +928,7 @@ def main(argv: list[str]) -> None:
             float(argv[4]),
             float(argv[5]),
             float(argv[6]) if len(argv) > 6 else 0.0,
+            float(argv[7]) if len(argv) > 7 else 1.0,
         )
     else:
         raise SystemExit(f"unknown role {role!r}")

@@ -398,6 +398,15 @@ def main(argv: list[str] | None = None) -> int:
         help="the real services over a real bad link (network namespaces; root)",
     )
     p.add_argument(
+        "--tangential-gain",
+        type=float,
+        default=None,
+        metavar="G",
+        help="--link: the master's contact_tangential_gain, the part of the contact's force "
+        "across its normal (its friction) shown, 0 … 1 (default 1: as measured; 0: the press "
+        "alone)",
+    )
+    p.add_argument(
         "--model",
         choices=SHIPPED,
         default=None,
@@ -480,6 +489,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--slave-speed is the simulation's (not --link) and within 0 … 10 m/s")
     if args.slave_port and (args.link or args.slave_speed == 0.0):
         p.error("--slave-port is the simulation's (not --link) and needs --slave-speed > 0")
+    if args.tangential_gain is not None and not (args.link and 0.0 <= args.tangential_gain <= 1.0):
+        p.error("--tangential-gain needs --link and a value within 0 … 1")
     if args.model is not None and not args.link:
         p.error("--model needs --link (the simulation is one degree of freedom, no arm)")
     if args.twist and args.slave_speed == 0.0:
@@ -512,6 +523,7 @@ def main(argv: list[str] | None = None) -> int:
             ),
             twist=args.twist,
             model=args.model or DEFAULT_MODEL,
+            tangential_gain=1.0 if args.tangential_gain is None else args.tangential_gain,
         )
         path = Path(args.json or "artifacts/bench_passivity_link.json")
         drawn = link_bench.plots(runs, Path(args.plots)) if args.plots else []

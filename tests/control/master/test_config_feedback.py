@@ -115,6 +115,10 @@ def test_engage_on_start_defaults_by_device(device: str, engages: bool) -> None:
         ("contact_damping_ns_m", math.nan),
         ("contact_damping_ns_m", "150"),
         ("contact_damping_ns_m", 51.0),  # above 0.5 × 2 × 0.5 kg × 100 Hz
+        ("contact_tangential_gain", -0.1),
+        ("contact_tangential_gain", 1.5),
+        ("contact_tangential_gain", math.nan),
+        ("contact_tangential_gain", "0"),
     ],
 )
 def test_bad_values_name_their_key(key: str, value: object) -> None:

@@ -108,6 +108,9 @@ def test_matrix_document_has_the_simulated_bench_keys(monkeypatch: pytest.Monkey
     assert doc["runs"]["700_on"]["measured_rtt_ms"] == {"decision": 1051.0, "master": 1052.0}
     assert doc["runs"]["700_off"]["measured_rtt_ms"] == {"decision": None, "master": None}
     json.loads(json.dumps(doc, allow_nan=False))  # strict JSON
+    text = sim_bench.table(doc)
+    assert len(text.splitlines()) == 2 + 4
+    assert "–" in text.splitlines()[2]  # the off row's energy
 
 
 def test_the_matrix_runs_the_arm_it_is_given(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -124,9 +127,22 @@ def test_the_matrix_runs_the_arm_it_is_given(monkeypatch: pytest.MonkeyPatch) ->
     assert models == ["fr3"] * 4
     assert doc["settings"]["model"] == "fr3"
     assert "the arm (fr3) on the MuJoCo cell" in link_bench.model_line(doc)
-    text = sim_bench.table(doc)
-    assert len(text.splitlines()) == 2 + 4
-    assert "–" in text.splitlines()[2]  # the off row's energy
+    assert "friction shown × 1" in link_bench.model_line(doc)
+
+
+def test_the_matrix_shows_the_friction_it_is_told(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`--link --tangential-gain`: every run's master shows that share of the friction."""
+    gains: list[object] = []
+
+    def run(rtt_ms: float, on: bool, *a: object, **kw: object) -> dict[str, Any]:
+        gains.append(kw.get("tangential_gain"))
+        return fake_run(rtt_ms, on)
+
+    monkeypatch.setattr(link_bench, "run_over_link", run)
+    doc, _ = link_bench.run_matrix((200,), 0.1, 0.01, lambda _: None, tangential_gain=0.0)
+    assert gains == [0.0, 0.0]
+    assert doc["settings"]["tangential_gain"] == 0.0
+    assert "friction shown × 0" in link_bench.model_line(doc)
 
 
 def test_link_run_says_why_not_where_the_link_cannot_be_made(

@@ -112,6 +112,10 @@ def test_cli_model_is_the_links(capsys: pytest.CaptureFixture[str]) -> None:
         with pytest.raises(SystemExit):
             main(bad)
         assert "--model" in capsys.readouterr().err
+    for bad in (["--tangential-gain", "0"], ["--link", "--tangential-gain", "1.5"]):
+        with pytest.raises(SystemExit):
+            main(bad)
+        assert "--tangential-gain" in capsys.readouterr().err
 
 
 def test_cli_seeds_is_the_simulations(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
