@@ -187,19 +187,19 @@ def contact_damping(f_shown: ArrayLike, v_hand: ArrayLike, b_ns_m: float) -> Arr
 
 
 CONTACT_NORMAL_N = 1.0
-"""A contact begins when the force shown reaches this (N); its normal is taken from the
+"""A contact begins when the wrist force reaches this (N); its normal is taken from the
 forces of this size or more over its first NORMAL_WINDOW_S, while the force is mostly the
 press and its friction not yet built up."""
 CONTACT_LOST_N = 0.5
 CONTACT_LOST_S = 0.1
-"""Below CONTACT_LOST_N (N) for CONTACT_LOST_S the contact is over; the next one takes its
-normal anew (a touch's bounces are one contact)."""
+"""Below CONTACT_LOST_N (N, the wrist force) for CONTACT_LOST_S the contact is over; the
+next one takes its normal anew (a touch's bounces are one contact)."""
 NORMAL_WINDOW_S = 0.1
 """The normal is the mean force's direction over the contact's first this many seconds."""
 
 
 class ContactNormal:
-    """The contact's normal (unit, master frame) from the force shown tick by tick: the
+    """The contact's normal (unit, in the frame of the forces it is given) tick by tick: the
     direction of the mean force over the contact's first NORMAL_WINDOW_S (its samples of
     CONTACT_NORMAL_N or more; a touch's chatter and impact tilt any single one), kept until
     the force has stayed below CONTACT_LOST_N for CONTACT_LOST_S; None out of contact and
@@ -274,9 +274,10 @@ class ForceDisplay:
        restart it), so a contact force held through a re-clutch does not kick the hand;
        likewise since the force came back after a stale gap (the display was zero through
        it, and the wrist may press harder now: a stream that resumes does not kick either);
-    4. with `contact_tangential_gain` < 1, the force's part across the contact's normal
-       (`ContactNormal`) × that gain (`across_normal`): what the device shows, and so what
-       a passivity port in the hook observes;
+    4. with `contact_tangential_gain` < 1, the wrist force's part across the contact's
+       normal (`ContactNormal`, in the world frame) × that gain (`across_normal`), before
+       step 1's mapping: what the device shows, and so what a passivity port in the hook
+       observes;
     5. `hook` (None: unchanged), then saturated again to max_force_n / max_torque_nm;
     6. with `contact_damping_ns_m` > 0, the contact damper on the hand's velocity
        (`contact_damping`, outside the hook: a passivity port observes the contact's force,
@@ -296,6 +297,23 @@ class ForceDisplay:
         self._engaged_since_s: float | None = None
         self._fresh_since_s: float | None = None
         self.faults = 0
+
+    def _hide_friction(self, f_tool: ArrayLike, tool_R: ArrayLike, now_s: float) -> ArrayLike:
+        """The wrist force (tool frame) with its part across the contact's normal × the
+        gain. The normal is kept in the world frame (`ContactNormal` on the world force), so
+        a tool that turns in contact, or the `tool` frame, does not turn it. Input that is
+        not a finite force and a rotation is returned as it is, for `compute` to refuse."""
+        f = np.asarray(f_tool, dtype=float)
+        R = np.asarray(tool_R, dtype=float)
+        if f.shape != (3,) or R.size != 9 or not np.all(np.isfinite(f)):
+            return f_tool
+        R = R.reshape(3, 3)
+        if not is_rotation(R):
+            return f_tool
+        n = self._normal.update(R @ f, now_s)
+        if n is None:
+            return f
+        return R.T @ across_normal(R @ f, n, self._tangential_gain)
 
     def update(
         self,
@@ -318,11 +336,16 @@ class ForceDisplay:
         if measured is None:
             self._fresh_since_s = None
             mapped = ForceFeedback.zero()
+            if self._tangential_gain < 1.0:
+                self._normal.update(np.zeros(3), now_s)  # no force: towards the contact's end
         else:
             if self._fresh_since_s is None:
                 self._fresh_since_s = now_s
+            f_tool, c_tool, tool_R = measured
+            if self._tangential_gain < 1.0:
+                f_tool = self._hide_friction(f_tool, tool_R, now_s)
             try:
-                mapped = self.feedback.compute(*measured, frame, hand.hand_R)
+                mapped = self.feedback.compute(f_tool, c_tool, tool_R, frame, hand.hand_R)
             except ValueError:
                 self.faults += 1
                 return ForceFeedback.zero()
@@ -330,13 +353,8 @@ class ForceDisplay:
         if self._fresh_since_s is not None:
             since = max(since, self._fresh_since_s)
         gain = ramp_gain(now_s - since, self._ramp_s)
-        f_shown = gain * mapped.f
-        if self._tangential_gain < 1.0:
-            n = self._normal.update(f_shown, now_s)
-            if n is not None:
-                f_shown = across_normal(f_shown, n, self._tangential_gain)
         shown = DisplayWrench(
-            f_shown, gain * mapped.c, mapped.force_saturated, mapped.torque_saturated
+            gain * mapped.f, gain * mapped.c, mapped.force_saturated, mapped.torque_saturated
         )
         if self.hook is not None:
             hooked = self.hook(shown, hand, dt_s)

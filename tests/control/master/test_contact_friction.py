@@ -3,6 +3,8 @@ press in full, across a normal estimated over the contact's first moments."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -17,6 +19,7 @@ from services.control.master.feedback import (
     ForceDisplay,
     across_normal,
 )
+from services.geometry import rot_x
 
 DT = 0.001
 STILL = HandReading(np.zeros(3), np.eye(3), False)
@@ -137,6 +140,42 @@ def test_disengaging_forgets_the_normal() -> None:
     display.update(_press((0.0, 0.0, 4.0)), "world", False, STILL, DT, 1.0)
     got = display.update(_press((4.0, 0.0, 0.0)), "world", True, STILL, DT, 1.001).f
     np.testing.assert_allclose(got, [4.0, 0.0, 0.0], atol=1e-9)
+
+
+def test_the_normal_stays_put_in_the_world_while_the_tool_turns() -> None:
+    """The normal is the world's: pressing straight down with the tool turned 90° about x,
+    then turned back in contact with friction built up, the hand is shown the press alone —
+    in the `tool` frame too, where the display turns with the tool."""
+    window = int(NORMAL_WINDOW_S / DT) + 2
+    for frame in ("world", "tool"):
+        display = ForceDisplay(MasterConfig(force_ramp_s=0.0, contact_tangential_gain=0.0))
+        t = 0.0
+        for _ in range(window):
+            t += DT
+            r1 = rot_x(np.pi / 2)
+            display.update(
+                (r1.T @ [0.0, 0.0, 4.0], (0.0,) * 3, r1.reshape(9)), frame, True, STILL, DT, t
+            )
+        r2 = rot_x(0.3)
+        world = np.array([2.0, -1.0, 4.0])
+        got = display.update(
+            (r2.T @ world, (0.0,) * 3, r2.reshape(9)), frame, True, STILL, DT, t + DT
+        ).f
+        want = [0.0, 0.0, 4.0] if frame == "world" else r2.T @ [0.0, 0.0, 4.0]
+        np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+def test_bad_input_is_left_for_the_display_to_refuse() -> None:
+    """A non-finite force or a tool orientation that is no rotation shows zero and counts a
+    fault, as without the option, and leaves the contact's normal untouched."""
+    display = ForceDisplay(MasterConfig(force_ramp_s=0.0, contact_tangential_gain=0.0))
+    for bad in (
+        ((math.nan, 0.0, 4.0), (0.0,) * 3, TOOL),
+        ((0.0, 0.0, 4.0), (0.0,) * 3, (2.0,) * 9),
+    ):
+        assert not display.update(bad, "world", True, STILL, DT, DT).f.any()
+    assert display.faults == 2
+    assert display._normal.n is None and display._normal._since_s is None
 
 
 def test_the_gain_is_a_checked_setting() -> None:
