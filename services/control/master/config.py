@@ -142,8 +142,9 @@ class MasterConfig:
         0 (default): off. At most DAMPING_MARGIN × 2 × passivity_device_mass_kg × rate_hz.
     contact_tangential_gain: in contact, the part of the displayed force across the
         contact's normal (its friction, mostly) is shown × this, 0 … 1; the part along the
-        normal (the press) always in full. The normal is the mean force's direction over the
-        contact's first `feedback.NORMAL_WINDOW_S` (`feedback.ContactNormal`). Applied before
+        normal (the press) always in full. The normal is the mean wrist force's direction in
+        the world frame over the contact's first `feedback.NORMAL_WINDOW_S`
+        (`feedback.ContactNormal`). Applied before
         a passivity port, which observes what the hand is shown. 1 (default): the force as
         measured. Over a delayed link the hand, yielding sideways to the friction it is
         shown a round trip late, drags the tool across the surface and TDPA's slave port
