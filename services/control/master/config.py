@@ -142,15 +142,14 @@ class MasterConfig:
         0 (default): off. At most DAMPING_MARGIN × 2 × passivity_device_mass_kg × rate_hz.
     contact_tangential_gain: in contact, the part of the displayed force across the
         contact's normal (its friction, mostly) is shown × this, 0 … 1; the part along the
-        normal (the press) always in full. The normal is the mean wrist force's direction in
+        normal (the press) always in full. The normal is the mean of the wrist force's directions in
         the world frame over the contact's first `feedback.NORMAL_WINDOW_S`
-        (`feedback.ContactNormal`). Applied before
-        a passivity port, which observes what the hand is shown. 1 (default): the force as
-        measured. Over a delayed link the hand, yielding sideways to the friction it is
-        shown a round trip late, drags the tool across the surface and TDPA's slave port
-        pays that friction work: at 0 the link bench's press was calm at 50 and 200 ms where
-        with friction shown it shook or was lost, but lighter at 0 ms (docs/passivity.md,
-        "Friction hidden from the hand").
+        (`feedback.ContactNormal`). Applied before a passivity port, which observes what the
+        hand is shown. 1 (default): the force as measured. Over a delayed link the hand,
+        yielding sideways to the friction it is shown a round trip late, drags the tool
+        across the surface and TDPA's slave port pays that friction work: at 0 the link
+        bench's press was calm at 50 and 200 ms where with friction shown it shook or was
+        lost, but lighter at 0 ms (docs/passivity.md, "Friction hidden from the hand").
     """
 
     master_id: str = "master"

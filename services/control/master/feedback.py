@@ -195,16 +195,20 @@ CONTACT_LOST_S = 0.1
 """Below CONTACT_LOST_N (N, the wrist force) for CONTACT_LOST_S the contact is over; the
 next one takes its normal anew (a touch's bounces are one contact)."""
 NORMAL_WINDOW_S = 0.1
-"""The normal is the mean force's direction over the contact's first this many seconds."""
+"""The normal is the mean of the force's directions over the contact's first this many
+seconds."""
+FORCE_CAP_N = 1e6
+"""The wrist force is bounded to this size (direction kept) before its normal is taken:
+far above any display's limit, far below where its arithmetic could overflow."""
 
 
 class ContactNormal:
     """The contact's normal (unit, in the frame of the forces it is given) tick by tick: the
-    direction of the mean force over the contact's first NORMAL_WINDOW_S (its samples of
-    CONTACT_NORMAL_N or more; a touch's chatter and impact tilt any single one), kept until
-    the force has stayed below CONTACT_LOST_N for CONTACT_LOST_S; None out of contact and
-    while the window fills (forces whose mean is under CONTACT_LOST_N name none: the window
-    starts again)."""
+    mean of the force's directions over the contact's first NORMAL_WINDOW_S (its samples of
+    CONTACT_NORMAL_N or more, one vote each, so neither a touch's chatter and impact nor
+    one absurd sample tilts it much), kept until the force has stayed below CONTACT_LOST_N
+    for CONTACT_LOST_S; None out of contact and while the window fills (directions that
+    mostly cancel, their mean under 0.5, name none: the window starts again)."""
 
     def __init__(self) -> None:
         self.n: Array3 | None = None
@@ -234,11 +238,11 @@ class ContactNormal:
         if size >= CONTACT_NORMAL_N and self.n is None:
             if self._since_s is None:
                 self._since_s = now_s
-            self._sum = self._sum + f
+            self._sum = self._sum + f / size  # each sample's direction, one vote each
             self._count += 1
             if now_s - self._since_s >= NORMAL_WINDOW_S:
                 size_sum = math.hypot(*self._sum)
-                if size_sum >= CONTACT_LOST_N * self._count:
+                if size_sum >= 0.5 * self._count:
                     self.n = self._sum / size_sum
                 else:  # forces that cancel name no normal: the window starts again
                     self._sum, self._count, self._since_s = np.zeros(3), 0, now_s
@@ -310,10 +314,13 @@ class ForceDisplay:
         R = R.reshape(3, 3)
         if not is_rotation(R):
             return f_tool
-        n = self._normal.update(R @ f, now_s)
+        # Direction kept, size bounded: a finite but absurd force (1e308 N) must not
+        # overflow the rotation or the normal's sum; the display saturates it anyway.
+        f_world = R @ saturate(f, FORCE_CAP_N)[0]
+        n = self._normal.update(f_world, now_s)
         if n is None:
             return f
-        return R.T @ across_normal(R @ f, n, self._tangential_gain)
+        return R.T @ across_normal(f_world, n, self._tangential_gain)
 
     def update(
         self,

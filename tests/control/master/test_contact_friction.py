@@ -178,6 +178,23 @@ def test_bad_input_is_left_for_the_display_to_refuse() -> None:
     assert display._normal.n is None and display._normal._since_s is None
 
 
+def test_an_absurd_force_does_not_poison_the_contact() -> None:
+    """A finite but absurd wrist force (1e308 N) in contact is shown saturated like any
+    other, and the press after it is still shown with its friction hidden: the normal
+    stays a finite unit vector."""
+    cfg = MasterConfig(force_ramp_s=0.0, contact_tangential_gain=0.0)
+    display = ForceDisplay(cfg)
+    window = int(NORMAL_WINDOW_S / DT) + 2
+    t = 0.0
+    for f in [(1e308, 1e308, 1e308)] + [(0.0, 0.0, 4.0)] * window:
+        t += DT
+        out = display.update(_press(f), "world", True, STILL, DT, t).f
+        assert np.all(np.isfinite(out)) and float(np.linalg.norm(out)) <= cfg.max_force_n + 1e-9
+    got = display.update(_press((2.0, -1.0, 4.0)), "world", True, STILL, DT, t + DT).f
+    assert np.all(np.isfinite(got)) and got[2] > 0.0
+    assert float(np.hypot(got[0], got[1])) < 0.2 * float(np.hypot(2.0, -1.0))
+
+
 def test_the_gain_is_a_checked_setting() -> None:
     assert MasterConfig().contact_tangential_gain == 1.0
     assert MasterConfig.from_mapping({"contact_tangential_gain": 0}).contact_tangential_gain == 0
