@@ -17,7 +17,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from services.control.arm.model import DEFAULT_MODEL
 from services.control.decision.service import DecisionService
 from services.control.master.config import MasterConfig
 from services.control.master.haptic_sim import SimHapticMaster
@@ -45,16 +44,9 @@ class Loop:
             c()
 
 
-def build(
-    net: Net,
-    passivity: bool = True,
-    start_gap_m: float = 0.04,
-    model: str = DEFAULT_MODEL,
-    **decision: float,
-) -> Loop:
-    """The robot side (arm `model`), the arm `start_gap_m` above the table, recording; no
-    master yet."""
-    cell, trace = pl.build_robot(net.node, passivity, start_gap_m, model=model, **decision)
+def build(net: Net, passivity: bool = True, start_gap_m: float = 0.04, **decision: float) -> Loop:
+    """The robot side, the arm `start_gap_m` above the table, recording; no master yet."""
+    cell, trace = pl.build_robot(net.node, passivity, start_gap_m, **decision)
     return Loop(net, cell.decision, trace, [cell.close])
 
 

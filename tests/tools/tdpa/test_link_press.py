@@ -17,8 +17,8 @@ again today, with the FR3 and the UR5e.
 With TDPA, for every shipped arm on its MuJoCo cell: each model's tool, servo and joints
 make their own contact loop (at 0 ms, 2026-12-04, quiet, three runs each: steady
 4.8–6.0 N, felt 4.5–5.7 N for the FR3; steady 3.6–5.7 N, felt 3.7–5.4 N for the UR5e).
-Without TDPA the PUMA's (the FR3's and the UR5e's held at 6.2–6.3 N in every bench run,
-docs/passivity.md "The FR3 and the UR5e over the link").
+Without TDPA the test presses with the PUMA only (the FR3's and the UR5e's held at
+6.2–6.3 N in every bench run, docs/passivity.md "The FR3 and the UR5e over the link").
 """
 
 from __future__ import annotations

@@ -105,9 +105,10 @@ def test_seeds_sum_up_each_seeds_run() -> None:
     assert "0 / 2" in rows[3] and "2 / 2" in rows[4]
 
 
-def test_cli_model_is_the_links(capsys: pytest.CaptureFixture[str]) -> None:
-    """`--model` picks the arm of `--link`'s robot side; the simulation has none, and a model
-    not shipped is refused before anything runs."""
+def test_cli_model_and_tangential_gain_are_the_links(capsys: pytest.CaptureFixture[str]) -> None:
+    """`--model` picks the arm of `--link`'s robot side, `--tangential-gain` its master's
+    friction shown; the simulation has neither, and a model not shipped or a gain outside
+    0 … 1 is refused before anything runs."""
     for bad in (["--model", "fr3"], ["--link", "--model", "kuka"]):
         with pytest.raises(SystemExit):
             main(bad)
